@@ -1,0 +1,720 @@
+"""Camera models for body-mounted fisheye cameras.
+
+Every model is an equinox Module: arrays (intrinsics) are pytree leaves and the image size is
+static, so a batch of ``C`` cameras of one model is the same class with a leading axis ``C`` on every
+array leaf (build it with :func:`stack_cameras`, index it with :func:`camera_at`, map over it with
+``jax.vmap``). The methods are written for a single camera; points and pixels may carry any leading
+shape.
+
+Conventions:
+    * Camera frame as OpenCV: x right, y down, z forward (optical axis). Points in any length unit.
+    * Pixels as OpenCV: the centre of the top-left pixel is (0, 0), u to the right, v down.
+      COLMAP puts that centre at (0.5, 0.5); :func:`to_pycolmap` / :func:`from_pycolmap` convert.
+    * Angles in radians; ``theta`` is the angle between a ray and the optical axis.
+
+The fisheye models are formulated with ``theta = atan2(r, z)`` instead of normalised ``x / z``, so
+they stay correct beyond 90 degrees off-axis. Projection never returns NaN: points outside a model's
+valid domain get the principal point, ``valid=False`` and finite (zero) gradients.
+
+Nothing here imports ``cv2`` or ``pycolmap`` at import time; the conversion and file helpers import
+them lazily.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+import numbers
+import os
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pycolmap
+
+__all__ = [
+    "FISHEYE_ANGLE_LIMIT",
+    "CameraModel",
+    "FOVCamera",
+    "OpenCVFisheyeCamera",
+    "PinholeCamera",
+    "stack_cameras",
+    "camera_at",
+    "to_pycolmap",
+    "from_pycolmap",
+    "read_opencv_fisheye_calibration",
+    "write_opencv_fisheye_calibration",
+]
+
+# Largest angle off the optical axis accepted by the fisheye models. They are defined up to (not
+# including) pi, but the ray straight behind the camera projects to a whole circle, so stay away.
+FISHEYE_ANGLE_LIMIT = math.radians(179.0)
+# A pinhole camera accepts points with z >= sin(PINHOLE_MARGIN) * |p|, i.e. theta <= pi/2 - margin.
+PINHOLE_MARGIN = 1e-6
+# Below this |omega| a FOV camera is treated as its pinhole limit (front hemisphere only): as omega
+# goes to 0 the image of the back hemisphere is pushed out to radius ~ pi / omega.
+FOV_PINHOLE_OMEGA = 1e-3
+# Squared norm below which a point counts as the camera centre.
+_MIN_NORM2 = 1e-200
+# Series expansions replace the closed forms when their small parameter squared is below this.
+_SERIES_EPS = 1e-4
+# Kannala-Brandt: grid and Newton steps for the valid angle; table size and Newton steps for the
+# inverse of theta -> theta_d. All unrolled (no while loops): fixed cost, jit/vmap/jacfwd friendly.
+_KB_GRID = 1024
+_KB_ROOT_STEPS = 6
+_KB_TABLE = 64
+_KB_NEWTON_STEPS = 8
+
+
+def _float_array(x: Any) -> Array:
+    return jnp.asarray(x, dtype=jnp.result_type(float))
+
+
+def _int_size(x: Any) -> Any:
+    # Validated (with the field name) in CameraModel.__check_init__.
+    if isinstance(x, numbers.Integral) and not isinstance(x, bool):
+        return int(x)
+    return x
+
+
+def _concrete(x: Array) -> np.ndarray | None:
+    """Value of ``x`` as numpy, or None while tracing."""
+    try:
+        return np.asarray(x)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return None
+
+
+def _check_shape(cls: str, name: str, x: Array, trailing: tuple[int, ...], what: str) -> None:
+    if x.ndim < len(trailing) or tuple(x.shape[x.ndim - len(trailing) :]) != trailing:
+        want = "(..., " + ", ".join(map(str, trailing)) + ")" if trailing else "(...)"
+        raise ValueError(f"{cls}.{name} must have shape {want} ({what}); got shape {tuple(x.shape)}")
+
+
+def _check_batch(cls: str, fields: dict[str, tuple[Array, int]]) -> None:
+    """All array fields must share one leading batch shape."""
+    shapes = {n: tuple(a.shape[: a.ndim - k]) for n, (a, k) in fields.items()}
+    if len(set(shapes.values())) > 1:
+        listing = ", ".join(f"{n} {tuple(a.shape)}" for n, (a, _) in fields.items())
+        raise ValueError(f"{cls}: array fields have different leading (batch) shapes: {listing}")
+
+
+def _check_finite_positive(cls: str, name: str, x: Array, positive: bool) -> None:
+    v = _concrete(x)
+    if v is None:
+        return
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{cls}.{name} must be finite; got {v.tolist()}")
+    if positive and not np.all(v > 0):
+        raise ValueError(f"{cls}.{name} must be positive (pixels); got {v.tolist()}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Safe scalar helpers (double-where: the unused branch is fed harmless inputs, so neither its
+# value nor its derivative can be NaN/inf).
+
+
+def _atan2_over_y(y2: Array, z: Array) -> Array:
+    """``atan2(y, z) / y`` for ``y = sqrt(y2) >= 0``, smooth in ``y2`` at 0 when ``z > 0``.
+
+    Callers guarantee ``y2 > 0`` or ``z > 0``.
+    """
+    series = (z > 0) & (y2 < _SERIES_EPS * z * z)
+    zs = jnp.where(series, z, 1.0)
+    t2 = y2 / (zs * zs)
+    # atan(t) / t = 1 - t^2/3 + t^4/5 - ...; remainder < t^10/11 < 1e-21 here.
+    f_series = (1.0 + t2 * (-1.0 / 3 + t2 * (1.0 / 5 + t2 * (-1.0 / 7 + t2 / 9)))) / zs
+    y = jnp.sqrt(jnp.where(series | (y2 <= 0), 1.0, y2))
+    f_general = jnp.arctan2(y, z) / y
+    return jnp.where(series, f_series, f_general)
+
+
+def _sinc_cos(x2: Array) -> tuple[Array, Array]:
+    """``(sin(x) / x, cos(x))`` for ``x = sqrt(x2) >= 0``, smooth in ``x2`` at 0."""
+    series = x2 < _SERIES_EPS
+    sinc_s = 1.0 + x2 * (-1.0 / 6 + x2 * (1.0 / 120 + x2 * (-1.0 / 5040 + x2 / 362880)))
+    cos_s = 1.0 + x2 * (-1.0 / 2 + x2 * (1.0 / 24 + x2 * (-1.0 / 720 + x2 / 40320)))
+    x = jnp.sqrt(jnp.where(series, 1.0, x2))
+    return jnp.where(series, sinc_s, jnp.sin(x) / x), jnp.where(series, cos_s, jnp.cos(x))
+
+
+def _safe_sqrt(x: Array) -> Array:
+    """sqrt with a zero (not infinite) derivative at 0."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
+
+
+def _normalize(v: Array) -> Array:
+    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    ok = n2 > _MIN_NORM2
+    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, n2, 1.0)), jnp.array([0.0, 0.0, 1.0]))
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+class CameraModel(eqx.Module):
+    """Abstract camera model: intrinsics as array leaves, image size as static ints.
+
+    Attributes:
+        width: Image width in pixels (static).
+        height: Image height in pixels (static).
+    """
+
+    width: int = eqx.field(static=True, converter=_int_size)
+    height: int = eqx.field(static=True, converter=_int_size)
+
+    def __check_init__(self) -> None:
+        cls = type(self).__name__
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{cls}.{name} must be a positive integer (pixels); got {v!r}")
+
+    # -- model-specific part ------------------------------------------------------------------
+
+    @property
+    @abc.abstractmethod
+    def max_angle(self) -> Array:
+        """Half field of view (rad): project is valid and invertible for ``theta <= max_angle``.
+
+        Shape ``()`` for a single camera (the batch shape for a batched one).
+        """
+
+    @abc.abstractmethod
+    def _project_normalized(self, points_cam: Array) -> Array:
+        """Offsets ``(pixel - principal_point) / focal``, shape (..., 2), for valid points only."""
+
+    @abc.abstractmethod
+    def _unproject_normalized(self, m: Array) -> Array:
+        """Unit rays (..., 3) from ``m = (pixel - principal_point) / focal``, shape (..., 2)."""
+
+    # -- shared -------------------------------------------------------------------------------
+
+    focal: eqx.AbstractVar[Array]
+    principal_point: eqx.AbstractVar[Array]
+
+    def project(self, points_cam: Array) -> tuple[Array, Array]:
+        """Project points in the camera frame to pixels.
+
+        Args:
+            points_cam: (..., 3) points in the camera frame (any length unit).
+
+        Returns:
+            ``(pixels, valid)``: (..., 2) pixel coordinates (OpenCV convention) and a (...) bool
+            mask. A point at the camera centre, non-finite, or more than :attr:`max_angle` off the
+            optical axis is invalid: its pixel is the principal point and its gradients are zero.
+        """
+        p = jnp.asarray(points_cam, dtype=jnp.result_type(float))
+        if p.shape[-1:] != (3,):
+            raise ValueError(f"project: points_cam must have shape (..., 3); got {p.shape}")
+        return _project(self, p)
+
+    def unproject(self, pixels: Array) -> Array:
+        """Bearing vectors of pixels.
+
+        Args:
+            pixels: (..., 2) pixel coordinates (OpenCV convention).
+
+        Returns:
+            (..., 3) unit rays in the camera frame. Pixels beyond the image of :attr:`max_angle`
+            are clamped to that boundary (their ray is at ``max_angle`` off-axis).
+        """
+        uv = jnp.asarray(pixels, dtype=jnp.result_type(float))
+        if uv.shape[-1:] != (2,):
+            raise ValueError(f"unproject: pixels must have shape (..., 2); got {uv.shape}")
+        return _unproject(self, uv)
+
+    def in_image(self, pixels: Array) -> Array:
+        """(...) bool mask: pixel (..., 2) lies in [-0.5, width-0.5] x [-0.5, height-0.5]."""
+        uv = jnp.asarray(pixels)
+        u, v = uv[..., 0], uv[..., 1]
+        return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """Leading batch shape of the intrinsics (``()`` for a single camera)."""
+        return tuple(self.focal.shape[:-1])
+
+
+# Compiled once per camera class, image size and input shape, so that eager calls (outside any
+# user jit) are fast; inside a user's jit/vmap/grad these simply inline.
+@jax.jit
+def _project(cam: CameraModel, p: Array) -> tuple[Array, Array]:
+    n2 = jnp.sum(p * p, axis=-1)
+    nonzero = n2 > _MIN_NORM2
+    norm = jnp.sqrt(jnp.where(nonzero, n2, 1.0))
+    cos_max = jnp.cos(jax.lax.stop_gradient(cam.max_angle))
+    valid = nonzero & (p[..., 2] >= cos_max * norm) & jnp.all(jnp.isfinite(p), axis=-1)
+    # Double-where: invalid points are replaced by the optical axis before any arithmetic, so
+    # neither their values nor their derivatives can be NaN or inf.
+    p_safe = jnp.where(valid[..., None], p, jnp.array([0.0, 0.0, 1.0]))
+    uv = cam.focal * cam._project_normalized(p_safe) + cam.principal_point
+    return jnp.where(valid[..., None], uv, cam.principal_point), valid
+
+
+@jax.jit
+def _unproject(cam: CameraModel, uv: Array) -> Array:
+    return cam._unproject_normalized((uv - cam.principal_point) / cam.focal)
+
+
+def _check_common(self: CameraModel) -> None:
+    cls = type(self).__name__
+    _check_shape(cls, "focal", self.focal, (2,), "fx, fy in pixels")
+    _check_shape(cls, "principal_point", self.principal_point, (2,), "cx, cy in pixels")
+    _check_finite_positive(cls, "focal", self.focal, positive=True)
+    _check_finite_positive(cls, "principal_point", self.principal_point, positive=False)
+
+
+class PinholeCamera(CameraModel):
+    """Undistorted perspective camera: ``pixel = focal * (x, y) / z + principal_point``.
+
+    Valid for points with ``z >= sin(PINHOLE_MARGIN) * |p|`` (in front of the camera).
+
+    Attributes:
+        focal: (..., 2) focal lengths (fx, fy) in pixels.
+        principal_point: (..., 2) principal point (cx, cy) in pixels, OpenCV convention.
+    """
+
+    focal: Array = eqx.field(converter=_float_array)
+    principal_point: Array = eqx.field(converter=_float_array)
+
+    def __check_init__(self) -> None:
+        _check_common(self)
+        _check_batch(
+            type(self).__name__, {"focal": (self.focal, 1), "principal_point": (self.principal_point, 1)}
+        )
+
+    @property
+    def max_angle(self) -> Array:
+        """``pi/2 - PINHOLE_MARGIN``: only points in front of the camera project."""
+        return jnp.full(self.focal.shape[:-1], 0.5 * math.pi - PINHOLE_MARGIN)
+
+    def _project_normalized(self, p: Array) -> Array:
+        return p[..., :2] / p[..., 2:3]
+
+    def _unproject_normalized(self, m: Array) -> Array:
+        return _normalize(jnp.concatenate([m, jnp.ones_like(m[..., :1])], axis=-1))
+
+
+class FOVCamera(CameraModel):
+    """Devernay-Faugeras field-of-view fisheye model (COLMAP "FOV").
+
+    With ``theta`` the angle off the optical axis, the normalised image radius is
+    ``r_d = atan(2 tan(theta) tan(omega / 2)) / omega``, evaluated as
+    ``atan2(2 tan(omega / 2) sin(theta), cos(theta)) / omega`` so that it holds for theta >= 90 deg;
+    ``pixel = focal * r_d * (x, y) / r + principal_point`` with ``r = sqrt(x^2 + y^2)``.
+    ``omega -> 0`` is the pinhole limit.
+
+    Attributes:
+        focal: (..., 2) focal lengths (fx, fy) in pixels.
+        principal_point: (..., 2) principal point (cx, cy) in pixels, OpenCV convention.
+        omega: (...) distortion parameter in radians, ``0 <= omega < pi``.
+    """
+
+    focal: Array = eqx.field(converter=_float_array)
+    principal_point: Array = eqx.field(converter=_float_array)
+    omega: Array = eqx.field(converter=_float_array)
+
+    def __check_init__(self) -> None:
+        cls = type(self).__name__
+        _check_common(self)
+        _check_batch(
+            cls,
+            {
+                "focal": (self.focal, 1),
+                "principal_point": (self.principal_point, 1),
+                "omega": (self.omega, 0),
+            },
+        )
+        v = _concrete(self.omega)
+        if v is not None and not (np.all(np.isfinite(v)) and np.all(v >= 0) and np.all(v < math.pi)):
+            raise ValueError(f"{cls}.omega must be finite and in [0, pi) radians; got {v.tolist()}")
+
+    @property
+    def max_angle(self) -> Array:
+        """``FISHEYE_ANGLE_LIMIT`` (179 deg); just under 90 deg in the pinhole limit ``omega < 1e-3``.
+
+        The model is a bijection from directions with ``theta < pi`` onto a disc of radius
+        ``pi / omega`` (normalised), so only the ray straight behind the camera is excluded.
+        """
+        return jnp.where(
+            jnp.abs(self.omega) < FOV_PINHOLE_OMEGA, 0.5 * math.pi - PINHOLE_MARGIN, FISHEYE_ANGLE_LIMIT
+        )
+
+    def _tan_ratio(self) -> tuple[Array, Array]:
+        """``(g, a^2)`` with ``a = 2 tan(omega / 2)`` and ``g = a / omega`` (-> 1 as omega -> 0)."""
+        w = self.omega
+        small = jnp.abs(w) < 1e-2
+        x2 = 0.25 * w * w
+        # tan(x) / x series; remainder ~ 0.02 x^8 < 1e-20.
+        g_series = 1.0 + x2 * (1.0 / 3 + x2 * (2.0 / 15 + x2 * 17.0 / 315))
+        ws = jnp.where(small, 1.0, w)
+        g = jnp.where(small, g_series, 2.0 * jnp.tan(0.5 * ws) / ws)
+        return g, (g * w) ** 2
+
+    def _project_normalized(self, p: Array) -> Array:
+        g, a2 = self._tan_ratio()
+        r2 = p[..., 0] ** 2 + p[..., 1] ** 2
+        # r_d / r = (a / omega) * atan2(a r, z) / (a r): no division by r, smooth on the axis.
+        s = g * _atan2_over_y(a2 * r2, p[..., 2])
+        return p[..., :2] * s[..., None]
+
+    def _unproject_normalized(self, m: Array) -> Array:
+        g, a2 = self._tan_ratio()
+        # Image radius of the max_angle ray: pixels further out are clamped to it.
+        th = self.max_angle
+        sin_t, cos_t = jnp.sin(th), jnp.cos(th)
+        rd_max = g * _atan2_over_y(a2 * sin_t**2, cos_t) * sin_t
+        q = jnp.sum(m * m, axis=-1)
+        clamp = q > rd_max**2
+        scale = jnp.where(clamp, rd_max / jnp.sqrt(jnp.where(clamp, q, 1.0)), 1.0)
+        rho2 = self.omega**2 * jnp.where(clamp, rd_max**2, q)
+        # tan(theta) = tan(rho) / a, so the ray is parallel to (m sin(rho) / r_d, a cos(rho)),
+        # i.e. to (m sinc(rho), (a / omega) cos(rho)); this is (m, 1) in the pinhole limit.
+        sinc, cos = _sinc_cos(rho2)
+        ray = jnp.concatenate([m * (scale * sinc)[..., None], (g * cos)[..., None]], axis=-1)
+        return _normalize(ray)
+
+
+def _kb_poly(k: Array, t2: Array) -> Array:
+    """``1 + k1 t^2 + k2 t^4 + k3 t^6 + k4 t^8``."""
+    k1, k2, k3, k4 = (k[..., i] for i in range(4))
+    return 1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
+
+
+def _kb_dpoly(k: Array, t2: Array) -> Array:
+    """d/dtheta of ``theta * poly(theta^2)``: ``1 + 3 k1 t^2 + 5 k2 t^4 + 7 k3 t^6 + 9 k4 t^8``."""
+    k1, k2, k3, k4 = (k[..., i] for i in range(4))
+    return 1.0 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+
+
+def _kb_ddpoly(k: Array, t: Array) -> Array:
+    """Second derivative of ``theta * poly(theta^2)``."""
+    k1, k2, k3, k4 = (k[..., i] for i in range(4))
+    t2 = t * t
+    return t * (6 * k1 + t2 * (20 * k2 + t2 * (42 * k3 + t2 * 72 * k4)))
+
+
+@jax.jit
+def _kb_max_angle_single(k: Array) -> Array:
+    """First angle in (0, FISHEYE_ANGLE_LIMIT] where ``d theta_d / d theta`` stops being positive."""
+    grid = jnp.linspace(0.0, FISHEYE_ANGLE_LIMIT, _KB_GRID + 1)
+    d = _kb_dpoly(k, grid * grid)
+    bad = d <= 0
+    i = jnp.maximum(jnp.argmax(bad), 1)  # d(0) = 1 > 0, so a sign change lies in (grid[i-1], grid[i]]
+    lo, hi, d_lo, d_hi = grid[i - 1], grid[i], d[i - 1], d[i]
+    # Linear interpolation, then Newton on d(theta) = 0 kept inside the bracket (unrolled: no loop).
+    t = lo + (hi - lo) * d_lo / jnp.where(d_lo > d_hi, d_lo - d_hi, 1.0)
+    for _ in range(_KB_ROOT_STEPS):
+        dd = _kb_ddpoly(k, t)
+        t = jnp.clip(t - _kb_dpoly(k, t * t) / jnp.where(dd < 0, dd, -1.0), lo, hi)
+    # Step back onto the side where the derivative is still positive.
+    t = jnp.where(_kb_dpoly(k, t * t) > 0, t, jnp.nextafter(t, lo))
+    return jnp.where(jnp.any(bad), t, FISHEYE_ANGLE_LIMIT)
+
+
+class OpenCVFisheyeCamera(CameraModel):
+    """Kannala-Brandt equidistant fisheye model (``cv2.fisheye``, COLMAP "OPENCV_FISHEYE").
+
+    ``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)`` with
+    ``theta = atan2(r, z)``; ``pixel = focal * theta_d * (x, y) / r + principal_point``. Valid up to
+    the first angle where ``theta_d`` stops increasing (at most ``FISHEYE_ANGLE_LIMIT``). OpenCV's
+    skew ``alpha`` (``K[0, 1] = alpha * fx``; zero when calibrated with
+    ``cv2.fisheye.CALIB_FIX_SKEW``) is not supported.
+
+    Attributes:
+        focal: (..., 2) focal lengths (fx, fy) in pixels.
+        principal_point: (..., 2) principal point (cx, cy) in pixels, OpenCV convention.
+        distortion: (..., 4) coefficients (k1, k2, k3, k4), dimensionless.
+    """
+
+    focal: Array = eqx.field(converter=_float_array)
+    principal_point: Array = eqx.field(converter=_float_array)
+    distortion: Array = eqx.field(converter=_float_array)
+
+    def __check_init__(self) -> None:
+        cls = type(self).__name__
+        _check_common(self)
+        _check_shape(cls, "distortion", self.distortion, (4,), "k1, k2, k3, k4")
+        _check_batch(
+            cls,
+            {
+                "focal": (self.focal, 1),
+                "principal_point": (self.principal_point, 1),
+                "distortion": (self.distortion, 1),
+            },
+        )
+        _check_finite_positive(cls, "distortion", self.distortion, positive=False)
+
+    @property
+    def max_angle(self) -> Array:
+        """First angle where ``theta_d(theta)`` stops increasing, at most ``FISHEYE_ANGLE_LIMIT``."""
+        k = jax.lax.stop_gradient(self.distortion)
+        return jnp.vectorize(_kb_max_angle_single, signature="(4)->()")(k)
+
+    def _project_normalized(self, p: Array) -> Array:
+        k = self.distortion
+        r2 = p[..., 0] ** 2 + p[..., 1] ** 2
+        theta_over_r = _atan2_over_y(r2, p[..., 2])
+        theta2 = r2 * theta_over_r**2
+        s = theta_over_r * _kb_poly(k, theta2)
+        return p[..., :2] * s[..., None]
+
+    def _unproject_normalized(self, m: Array) -> Array:
+        k = self.distortion
+        th_max = self.max_angle
+        q = jnp.sum(m * m, axis=-1)
+        theta_d_max = th_max * _kb_poly(k, th_max**2)
+        theta_d = jnp.minimum(_safe_sqrt(q), theta_d_max)
+
+        # Initial guess by interpolating a table of theta_d over [0, max_angle], where theta_d is
+        # increasing; then Newton steps kept inside the table cell, all without gradients.
+        ks, td, t_max = (jax.lax.stop_gradient(x) for x in (k, theta_d, th_max))
+        grid = jnp.linspace(0.0, 1.0, _KB_TABLE + 1) * t_max
+        table = grid * _kb_poly(ks, grid * grid)
+        i = jnp.clip(jnp.sum(table < td[..., None], axis=-1), 1, _KB_TABLE)
+        lo, hi, f_lo, f_hi = grid[i - 1], grid[i], table[i - 1], table[i]
+        t = lo + (hi - lo) * (td - f_lo) / jnp.where(f_hi > f_lo, f_hi - f_lo, 1.0)
+        for _ in range(_KB_NEWTON_STEPS):
+            d = _kb_dpoly(ks, t * t)
+            t = jnp.clip(t - (t * _kb_poly(ks, t * t) - td) / jnp.where(d > 0, d, 1.0), lo, hi)
+        # Value t; derivative -(d residual) / (d residual / d theta) (implicit function theorem).
+        d = _kb_dpoly(k, t * t)
+        step = (t * _kb_poly(k, t * t) - theta_d) / jnp.where(d > 0, d, 1.0)
+        theta = jnp.where(q > theta_d_max**2, t, t - (step - jax.lax.stop_gradient(step)))
+
+        theta2 = theta * theta
+        sinc, cos = _sinc_cos(theta2)
+        # |m| sin(theta) / theta_d = |m| sinc(theta) / poly(theta^2); m / theta_d is the azimuth.
+        poly = _kb_poly(k, theta2)
+        clamp_scale = jnp.where(
+            q > theta_d_max**2, theta_d_max / jnp.sqrt(jnp.where(q > theta_d_max**2, q, 1.0)), 1.0
+        )
+        xy = m * (clamp_scale * sinc / poly)[..., None]
+        return _normalize(jnp.concatenate([xy, cos[..., None]], axis=-1))
+
+
+# ---------------------------------------------------------------------------------------------
+# Batching
+
+_C = TypeVar("_C", bound=CameraModel)
+
+
+def stack_cameras(cameras: Sequence[_C]) -> _C:
+    """Stack single cameras of one class and image size into a batched camera.
+
+    Args:
+        cameras: Non-empty sequence of cameras of the same class and width/height.
+
+    Returns:
+        A camera of the same class whose array leaves have a leading axis ``len(cameras)``.
+
+    Raises:
+        ValueError: If the sequence is empty or the classes, image sizes or leaf shapes differ.
+    """
+    cameras = list(cameras)
+    if not cameras:
+        raise ValueError("stack_cameras: need at least one camera")
+    first = cameras[0]
+    for i, cam in enumerate(cameras[1:], start=1):
+        if type(cam) is not type(first):
+            raise ValueError(
+                f"stack_cameras: camera {i} is a {type(cam).__name__}, camera 0 a {type(first).__name__}"
+            )
+        if (cam.width, cam.height) != (first.width, first.height):
+            raise ValueError(
+                f"stack_cameras: camera {i} has image size {cam.width}x{cam.height}, "
+                f"camera 0 {first.width}x{first.height}"
+            )
+        s0 = [jnp.shape(x) for x in jax.tree.leaves(first)]
+        si = [jnp.shape(x) for x in jax.tree.leaves(cam)]
+        if s0 != si:
+            raise ValueError(f"stack_cameras: camera {i} has array shapes {si}, camera 0 {s0}")
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *cameras)
+
+
+def camera_at(batched: _C, i: int | Array) -> _C:
+    """Camera ``i`` of a batched camera (indexes the leading axis of every array leaf)."""
+    return jax.tree.map(lambda x: x[i], batched)
+
+
+# ---------------------------------------------------------------------------------------------
+# pycolmap conversion (COLMAP pixel centres are at +0.5)
+
+
+def _single_params(camera: CameraModel, fn: str) -> dict[str, np.ndarray]:
+    if camera.batch_shape != ():
+        raise ValueError(f"{fn}: expected a single camera, got batch shape {camera.batch_shape}")
+    return {n: np.asarray(getattr(camera, n), dtype=np.float64) for n in ("focal", "principal_point")}
+
+
+def to_pycolmap(camera: CameraModel) -> "pycolmap.Camera":
+    """Convert a single camera to a ``pycolmap.Camera`` (FOV, OPENCV_FISHEYE or PINHOLE).
+
+    The principal point is shifted by +0.5 px into COLMAP's pixel convention.
+    """
+    import pycolmap
+
+    p = _single_params(camera, "to_pycolmap")
+    fx, fy = p["focal"]
+    cx, cy = p["principal_point"] + 0.5
+    if isinstance(camera, FOVCamera):
+        model, params = "FOV", [fx, fy, cx, cy, float(camera.omega)]
+    elif isinstance(camera, OpenCVFisheyeCamera):
+        model, params = "OPENCV_FISHEYE", [fx, fy, cx, cy, *np.asarray(camera.distortion).tolist()]
+    elif isinstance(camera, PinholeCamera):
+        model, params = "PINHOLE", [fx, fy, cx, cy]
+    else:
+        raise ValueError(f"to_pycolmap: unsupported camera class {type(camera).__name__}")
+    return pycolmap.Camera(
+        model=model, width=camera.width, height=camera.height, params=[float(x) for x in params]
+    )
+
+
+def from_pycolmap(cam: "pycolmap.Camera") -> CameraModel:
+    """Convert a ``pycolmap.Camera`` (FOV, OPENCV_FISHEYE, PINHOLE, SIMPLE_PINHOLE) to a model.
+
+    The principal point is shifted by -0.5 px into OpenCV's pixel convention.
+
+    Raises:
+        ValueError: For any other COLMAP camera model (the message names it).
+    """
+    name = cam.model.name
+    prm = np.asarray(cam.params, dtype=np.float64)
+    size = {"width": int(cam.width), "height": int(cam.height)}
+    if name == "SIMPLE_PINHOLE":
+        return PinholeCamera(**size, focal=[prm[0], prm[0]], principal_point=prm[1:3] - 0.5)
+    if name == "PINHOLE":
+        return PinholeCamera(**size, focal=prm[0:2], principal_point=prm[2:4] - 0.5)
+    if name == "FOV":
+        return FOVCamera(**size, focal=prm[0:2], principal_point=prm[2:4] - 0.5, omega=prm[4])
+    if name == "OPENCV_FISHEYE":
+        return OpenCVFisheyeCamera(
+            **size, focal=prm[0:2], principal_point=prm[2:4] - 0.5, distortion=prm[4:8]
+        )
+    raise ValueError(
+        f"from_pycolmap: unsupported COLMAP camera model {name!r} "
+        "(supported: FOV, OPENCV_FISHEYE, PINHOLE, SIMPLE_PINHOLE)"
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# OpenCV cv2.fisheye calibration files (cv2.FileStorage YAML/XML/JSON)
+
+_K_NAMES = ("camera_matrix", "K")
+_D_NAMES = ("dist_coeff", "distortion_coefficients", "D")
+
+
+def _read_node(fs: Any, names: Sequence[str]) -> tuple[str, Any] | None:
+    for name in names:
+        node = fs.getNode(name)
+        if not node.empty():
+            return name, node
+    return None
+
+
+def read_opencv_fisheye_calibration(
+    path: str | os.PathLike, image_size: tuple[int, int] | None = None
+) -> OpenCVFisheyeCamera:
+    """Read a ``cv2.fisheye`` calibration written with ``cv2.FileStorage``.
+
+    Reads ``camera_matrix`` (3x3 K; also ``K``), ``dist_coeff`` (4 coefficients; also
+    ``distortion_coefficients`` or ``D``) and, if present, ``image_width``/``image_height``.
+
+    Args:
+        path: The .yml/.yaml/.xml/.json file.
+        image_size: ``(width, height)`` in pixels, used when the file does not store the size.
+
+    Raises:
+        ValueError: Naming the file and the missing or malformed field.
+    """
+    import cv2
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ValueError(f"{path}: calibration file does not exist")
+    try:
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    except cv2.error as e:
+        raise ValueError(f"{path}: cannot parse as an OpenCV FileStorage file: {e}") from None
+    if not fs.isOpened():
+        raise ValueError(f"{path}: cannot open as an OpenCV FileStorage file")
+    try:
+        found = _read_node(fs, _K_NAMES)
+        if found is None:
+            raise ValueError(f"{path}: missing field 'camera_matrix' (3x3 camera matrix K)")
+        k_name, node = found
+        K = node.mat()
+        if K is None or np.shape(K) != (3, 3):
+            raise ValueError(f"{path}: field '{k_name}' must be a 3x3 matrix; got shape {np.shape(K)}")
+        found = _read_node(fs, _D_NAMES)
+        if found is None:
+            raise ValueError(f"{path}: missing field 'dist_coeff' (4 fisheye coefficients k1..k4)")
+        d_name, node = found
+        D = node.mat()
+        if D is None or np.size(D) != 4:
+            raise ValueError(
+                f"{path}: field '{d_name}' must hold 4 coefficients; got shape {np.shape(D)}"
+            )
+        w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
+        if not w_node.empty() and not h_node.empty():
+            width, height = int(w_node.real()), int(h_node.real())
+        elif image_size is not None:
+            width, height = (int(s) for s in image_size)
+        else:
+            missing = "image_width" if w_node.empty() else "image_height"
+            raise ValueError(f"{path}: missing field '{missing}'; pass image_size=(width, height)")
+    finally:
+        fs.release()
+    K = np.asarray(K, dtype=np.float64)
+    if abs(K[0, 1]) > 1e-12 * abs(K[0, 0]) or not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+        raise ValueError(
+            f"{path}: field '{k_name}' must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
+            f"(no skew); got {K.tolist()}"
+        )
+    try:
+        return OpenCVFisheyeCamera(
+            width=width,
+            height=height,
+            focal=[K[0, 0], K[1, 1]],
+            principal_point=[K[0, 2], K[1, 2]],
+            distortion=np.asarray(D, dtype=np.float64).reshape(4),
+        )
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
+
+
+def write_opencv_fisheye_calibration(path: str | os.PathLike, camera: OpenCVFisheyeCamera) -> None:
+    """Write a single camera as ``image_width``, ``image_height``, ``camera_matrix``, ``dist_coeff``.
+
+    The format (chosen by the extension, e.g. .yml) is readable by ``cv2.FileStorage`` and by
+    :func:`read_opencv_fisheye_calibration`.
+    """
+    import cv2
+
+    if not isinstance(camera, OpenCVFisheyeCamera):
+        raise ValueError(
+            f"write_opencv_fisheye_calibration: expected an OpenCVFisheyeCamera, got {type(camera).__name__}"
+        )
+    p = _single_params(camera, "write_opencv_fisheye_calibration")
+    (fx, fy), (cx, cy) = p["focal"], p["principal_point"]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    D = np.asarray(camera.distortion, dtype=np.float64).reshape(4, 1)
+    path = os.fspath(path)
+    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_WRITE)
+    if not fs.isOpened():
+        raise ValueError(f"{path}: cannot open for writing")
+    try:
+        fs.write("image_width", int(camera.width))
+        fs.write("image_height", int(camera.height))
+        fs.write("camera_matrix", K)
+        fs.write("dist_coeff", D)
+    finally:
+        fs.release()

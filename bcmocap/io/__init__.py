@@ -1,0 +1,16 @@
+"""Motion files: BVH and Acclaim ASF/AMC (the CMU database) to and from :class:`~bcmocap.kinematics.Skeleton`
+and :class:`~bcmocap.kinematics.Motion`, converted to bcmocap's Z-up world in metres."""
+
+from .asf import AsfBone, AsfData, load_cmu, read_amc, read_asf
+from .bvh import BvhData, read_bvh, write_bvh
+
+__all__ = [
+    "AsfBone",
+    "AsfData",
+    "BvhData",
+    "load_cmu",
+    "read_amc",
+    "read_asf",
+    "read_bvh",
+    "write_bvh",
+]

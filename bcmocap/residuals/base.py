@@ -1,0 +1,137 @@
+"""The residual-term API.
+
+A term is one *batched* kind of measurement: it holds its data (arrays whose leading axis is the
+frame, so a time window is a slice) and a pure function of the variables it touches. Terms differ by
+their footprint, which the solver exploits to build block-tridiagonal normal equations:
+
+=====================  ==============================================  ==========================
+kind                   the residual is a function of                    data leading axes
+=====================  ==============================================  ==========================
+``FrameTerm``          one frame's :class:`FrameState`                  ``(T, ...)``
+``PairTerm``           consecutive frames ``(t-1, t)``                  ``(T, ...)`` (indexed by t)
+``CameraTerm``         one camera's ``cam_from_world`` at one frame     ``(T, C, ...)``
+``CameraPairTerm``     one camera's ``cam_from_world`` at ``t-1, t``    ``(T, C, ...)`` (indexed by t)
+=====================  ==============================================  ==========================
+
+Every residual function returns ``(r, valid)``: residual blocks ``r`` of shape ``(n, k)`` and a
+boolean mask ``(n,)``. The solver zeroes invalid blocks, applies the term's robust loss per block
+and multiplies by ``sqrt(weight)`` (the λ of Eq. 1), so a term's contribution to the cost is
+``weight · ½ Σ ρ(‖r‖²)`` over valid blocks. Per-measurement weights or square-root information
+matrices belong in the data and are applied inside the residual function (whitening).
+
+Camera terms are differentiated with respect to the 6-DOF camera pose only; the solver chains that
+with the Jacobian of the camera pose with respect to the frame's root pose and joint angles. That is
+exact and much cheaper than differentiating every measurement with respect to every joint.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..cameras import CameraModel
+from ..geometry import SE3
+from ..kinematics.skeleton import Motion
+from .losses import RobustLoss, TrivialLoss
+
+
+class FrameState(eqx.Module):
+    """What a frame-level residual can look at, for one frame.
+
+    Attributes:
+        motion: the frame's root position and rotations (batch shape ``()``).
+        world_from_segment: SE3 with batch shape ``(J,)``.
+        world_from_camera: SE3 with batch shape ``(C,)`` (empty if the problem has no rig).
+    """
+
+    motion: Motion
+    world_from_segment: SE3
+    world_from_camera: SE3
+
+
+class Term(eqx.Module):
+    """Base class of all residual terms.
+
+    Attributes:
+        data: pytree of arrays whose leading axis is the frame (camera terms: frame, camera).
+        weight: λ, multiplying this term's squared residuals in the objective.
+        loss: robust loss applied per residual block.
+        name: label used in reports.
+    """
+
+    data: Any
+    weight: jax.Array = eqx.field(default=1.0, kw_only=True, converter=jnp.asarray)
+    loss: RobustLoss = eqx.field(default_factory=TrivialLoss, kw_only=True)
+    name: str = eqx.field(default="", static=True, kw_only=True)
+
+    @property
+    def label(self) -> str:
+        return self.name or type(self).__name__
+
+    def num_frames(self) -> int:
+        leaves = jax.tree.leaves(self.data)
+        return int(np.shape(leaves[0])[0]) if leaves else 0
+
+    def window(self, start: int, stop: int) -> Term:
+        """This term restricted to frames ``[start, stop)`` with its data as JAX arrays."""
+        data = jax.tree.map(lambda a: jnp.asarray(np.asarray(a[start:stop])), self.data)
+        return eqx.tree_at(lambda t: t.data, self, data, is_leaf=lambda x: x is None)
+
+    def check(self, num_frames: int, num_cameras: int) -> None:
+        """Raise ValueError if the data's leading axes or values do not fit the problem."""
+        expected = (num_frames, num_cameras) if isinstance(self, (CameraTerm, CameraPairTerm)) else (num_frames,)
+        for path, leaf in jax.tree_util.tree_leaves_with_path(self.data):
+            shape = np.shape(leaf)
+            if shape[: len(expected)] != expected:
+                raise ValueError(
+                    f"{self.label}: data{jax.tree_util.keystr(path)} has shape {shape}; expected leading axes "
+                    f"{expected} (frames{', cameras' if len(expected) == 2 else ''})"
+                )
+            arr = np.asarray(leaf)
+            if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+                idx = tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])
+                raise ValueError(f"{self.label}: data{jax.tree_util.keystr(path)} has NaN/inf at index {idx}")
+
+    def finish(self, r: jax.Array, valid: jax.Array) -> jax.Array:
+        """Mask, robustify and weight raw residual blocks ``(..., k)``."""
+        r = jnp.where(valid[..., None], r, 0.0)
+        return jnp.sqrt(self.weight) * self.loss.scale_residual(r)
+
+
+class FrameTerm(Term):
+    """A residual on one frame's variables (priors, joint limits, contacts)."""
+
+    @abc.abstractmethod
+    def residual(self, state: FrameState, data: Any) -> tuple[jax.Array, jax.Array]:
+        """Args: one frame's state and data slice. Returns ``(r (n, k), valid (n,))``."""
+
+
+class PairTerm(Term):
+    """A residual on two consecutive frames (smoothness). ``data[t]`` belongs to the pair ``(t-1, t)``."""
+
+    @abc.abstractmethod
+    def residual(self, prev: FrameState, curr: FrameState, data: Any) -> tuple[jax.Array, jax.Array]:
+        """Returns ``(r (n, k), valid (n,))`` for the pair ``(t-1, t)``."""
+
+
+class CameraTerm(Term):
+    """Measurements of one camera at one frame (reprojection)."""
+
+    @abc.abstractmethod
+    def residual(self, cam_from_world: SE3, camera: CameraModel, data: Any) -> tuple[jax.Array, jax.Array]:
+        """Args: one camera's pose (batch ``()``), its intrinsics and data slice ``data[t, c]``."""
+
+
+class CameraPairTerm(Term):
+    """Measurements linking one camera at frames ``t-1`` and ``t`` (homography transfer)."""
+
+    @abc.abstractmethod
+    def residual(
+        self, prev_cam_from_world: SE3, cam_from_world: SE3, camera: CameraModel, data: Any
+    ) -> tuple[jax.Array, jax.Array]:
+        """Args: the camera's poses at ``t-1`` and ``t``, its intrinsics and ``data[t, c]``."""

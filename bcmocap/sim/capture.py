@@ -1,0 +1,122 @@
+"""The standard synthetic capture: CMU motion, 18-camera rig, scene, measurements and ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..correspondences import Correspondences
+from ..kinematics.ik import motion_from_camera_poses
+from ..kinematics.rig import Rig
+from ..kinematics.skeleton import Motion, Skeleton
+from ..residuals import Term
+from ..solver.objective import ObjectiveWeights, paper_terms
+from .motions import load_body_motion
+from .observe import NoiseModel, ObservationSimulator
+from .rig import standard_rig
+from .world import World, make_world
+
+
+@dataclasses.dataclass
+class SyntheticCapture:
+    """A simulated capture with its ground truth.
+
+    Attributes:
+        skeleton, rig: the true model (skeleton and camera mounts).
+        motion: ground-truth motion ``(T, J)``.
+        world: scene points.
+        noise: measurement model; seed: base random seed; fps: frame rate.
+    """
+
+    skeleton: Skeleton
+    rig: Rig
+    motion: Motion
+    world: World
+    noise: NoiseModel
+    seed: int
+    fps: float
+
+    def __post_init__(self):
+        self._simulator = ObservationSimulator(self.skeleton, self.rig, self.motion, self.world.points, self.noise, self.seed)
+
+    @property
+    def num_frames(self) -> int:
+        return self.motion.num_frames
+
+    def correspondences(self, start: int = 0, stop: int | None = None) -> Correspondences:
+        """Measurements of frames ``[start, stop)`` (all frames by default)."""
+        stop = self.num_frames if stop is None else stop
+        arrays = self._simulator.frames(start, stop)
+        return Correspondences(points=self.world.points, fps=self.fps, **arrays)
+
+    def initial_motion(self, correspondences: Correspondences | None = None) -> Motion:
+        """Motion from the noisy registered camera poses, as the solver's starting point."""
+        c = self.correspondences() if correspondences is None else correspondences
+        return motion_from_camera_poses(self.skeleton, self.rig, c.world_from_camera, c.registered)
+
+    def lazy_problem(self, weights: ObjectiveWeights = ObjectiveWeights()) -> LazyProblem:
+        """A problem that simulates each window's measurements when the solver asks for it."""
+        return LazyProblem(self, weights)
+
+
+class LazyProblem:
+    """Eq. (1) for a synthetic capture, generating measurements one window at a time (constant memory)."""
+
+    def __init__(self, capture: SyntheticCapture, weights: ObjectiveWeights):
+        self.capture, self.weights = capture, weights
+        self.skeleton, self.rig = capture.skeleton, capture.rig
+
+    @property
+    def num_frames(self) -> int:
+        return self.capture.num_frames
+
+    def window(self, start: int, stop: int) -> tuple[Term, ...]:
+        c = self.capture.correspondences(start, stop)
+        terms = paper_terms(c, self.skeleton, self.weights)
+        if not any(t.label == "homography" for t in terms):  # keep one term set for every window
+            from ..residuals import HomographyTransfer, loss_from_name
+
+            terms.insert(1, HomographyTransfer(
+                {"pixels": c.homography_pixels, "pixels_prev": c.homography_pixels_prev, "weights": c.homography_weights},
+                weight=self.weights.homography, loss=loss_from_name(self.weights.loss, self.weights.loss_scale),
+                name="homography"))
+        if start > 0:  # the first row pairs with the frame before the window
+            terms = [_with_first_pair(t) for t in terms]
+        return tuple(t.window(0, stop - start) for t in terms)
+
+
+def _with_first_pair(term: Term) -> Term:
+    import equinox as eqx
+
+    if term.label in ("root smoothness", "joint smoothness"):
+        data = np.asarray(term.data).copy()
+        data[0] = 1.0
+        return eqx.tree_at(lambda t: t.data, term, data)
+    return term
+
+
+def standard_capture(
+    motion: str = "walk",
+    *,
+    seconds: float = 2.0,
+    start_seconds: float = 0.0,
+    fps: float = 60.0,
+    width: int = 640,
+    height: int = 360,
+    noise: NoiseModel = NoiseModel(),
+    seed: int = 0,
+) -> SyntheticCapture:
+    """The standard synthetic capture of ARCHITECTURE.md.
+
+    Args:
+        motion: bundled CMU trial ("walk", "run", "jump").
+        seconds, start_seconds: part of the trial to use. fps: frame rate (Hz).
+        width, height: image size of the 170° FOV-model cameras.
+        noise: measurement model (1 px, 10 % outliers, 5 % unregistered by default).
+        seed: random seed for the scene and the measurements.
+    """
+    skeleton, truth = load_body_motion(motion, fps=fps, seconds=seconds, start_seconds=start_seconds)
+    rig = standard_rig(skeleton, width, height)
+    world = make_world(np.asarray(truth.root_position)[:, :2], seed=seed)
+    return SyntheticCapture(skeleton, rig, truth, world, noise, seed, fps)

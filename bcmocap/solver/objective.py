@@ -1,0 +1,63 @@
+"""Eq. (1) of the paper from correspondences: E_r (reprojection + homography) + λ_O E_O + λ_A E_A."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from ..correspondences import Correspondences
+from ..kinematics.rig import Rig
+from ..kinematics.skeleton import Skeleton
+from ..residuals import HomographyTransfer, JointSmoothness, Reprojection, RootSmoothness, Term, loss_from_name, pair_mask
+from .solve import Problem
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectiveWeights:
+    """Weights and robust loss of Eq. (1).
+
+    Attributes:
+        root_smoothness: λ_O in px² per m² (and per rad² of root rotation) of frame-to-frame change.
+        joint_smoothness: λ_A in px² per rad² of frame-to-frame joint-angle change.
+        homography: weight of the homography-transfer term relative to reprojection.
+        loss: robust loss of the image terms ("none", "huber", "cauchy"); loss_scale in px. Cauchy at
+            8 px keeps inliers of a 1–2° initial pose error in the convex zone while outliers (uniform
+            over the image) get ~1 % of an inlier's influence.
+    """
+
+    root_smoothness: float = 1e3
+    joint_smoothness: float = 1e1
+    homography: float = 1.0
+    loss: str = "cauchy"
+    loss_scale: float = 8.0
+
+
+def paper_terms(correspondences: Correspondences, skeleton: Skeleton, weights: ObjectiveWeights = ObjectiveWeights()) -> list[Term]:
+    """The residual terms of Eq. (1) for a capture's correspondences."""
+    c = correspondences
+    loss = loss_from_name(weights.loss, weights.loss_scale)
+    terms: list[Term] = [
+        Reprojection(
+            {"point_ids": c.point_ids, "pixels": c.pixels, "weights": c.weights},
+            points=c.points, loss=loss, name="reprojection",
+        ),
+    ]
+    if (c.homography_weights > 0).any():
+        terms.append(HomographyTransfer(
+            {"pixels": c.homography_pixels, "pixels_prev": c.homography_pixels_prev, "weights": c.homography_weights},
+            weight=weights.homography, loss=loss, name="homography",
+        ))
+    mask = pair_mask(c.num_frames)
+    if weights.root_smoothness > 0:
+        terms.append(RootSmoothness(mask, weight=weights.root_smoothness, name="root smoothness"))
+    if weights.joint_smoothness > 0:
+        terms.append(JointSmoothness(mask, skeleton=skeleton, weight=weights.joint_smoothness, name="joint smoothness"))
+    return terms
+
+
+def paper_problem(
+    correspondences: Correspondences, skeleton: Skeleton, rig: Rig, weights: ObjectiveWeights = ObjectiveWeights()
+) -> Problem:
+    """A :class:`Problem` for Eq. (1), checking the correspondences against the rig."""
+    if correspondences.num_cameras != rig.num_cameras:
+        raise ValueError(f"correspondences have {correspondences.num_cameras} cameras, the rig has {rig.num_cameras}")
+    return Problem(skeleton, rig, paper_terms(correspondences, skeleton, weights))

@@ -1,0 +1,272 @@
+"""Whole-sequence solve by overlapping sliding windows (§4.3 of the paper).
+
+Windows have a fixed length (one compilation serves them all; the last window is shifted back to end
+at the last frame). Each window starts from the current estimate, holds the frame just before it fixed
+so pair terms (smoothness, homography) connect across the seam, and hands its last ``overlap`` frames
+to the next window, which solves them again with more future context. Memory is that of one window,
+whatever the sequence length; the problem's data is sliced (or generated) one window at a time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ..kinematics.rig import Rig
+from ..kinematics.skeleton import Motion, Skeleton
+from ..residuals.base import CameraPairTerm, CameraTerm, Term
+from .levenberg_marquardt import StructuredLevenbergMarquardt
+from .window import WindowProblem, normal_equations, residuals
+
+
+class SequenceProblem(Protocol):
+    """What the sliding-window solver needs: a model and terms it can cut into windows."""
+
+    skeleton: Skeleton
+    rig: Rig | None
+
+    @property
+    def num_frames(self) -> int: ...
+
+    def window(self, start: int, stop: int) -> Sequence[Term]: ...
+
+
+@dataclasses.dataclass
+class Problem:
+    """Eq. (1) for a whole sequence: a skeleton, its rig and residual terms over ``num_frames`` frames.
+
+    Attributes:
+        skeleton: the kinematic tree (fixed during the solve).
+        rig: cameras on the segments, or None if no term needs cameras.
+        terms: residual terms whose data cover all frames.
+    """
+
+    skeleton: Skeleton
+    rig: Rig | None
+    terms: Sequence[Term]
+
+    def __post_init__(self):
+        self.terms = tuple(self.terms)
+        if not self.terms:
+            raise ValueError("Problem: no residual terms")
+        counts = {t.label: t.num_frames() for t in self.terms}
+        if len(set(counts.values())) != 1:
+            raise ValueError(f"Problem: terms cover different numbers of frames: {counts}")
+        uses_cameras = any(isinstance(t, (CameraTerm, CameraPairTerm)) for t in self.terms)
+        if uses_cameras and self.rig is None:
+            raise ValueError("Problem: camera terms need a rig")
+        if self.rig is not None:
+            self.rig.check(self.skeleton)
+        num_cameras = self.rig.num_cameras if self.rig is not None else 0
+        for term in self.terms:
+            term.check(self.num_frames, num_cameras)
+
+    @property
+    def num_frames(self) -> int:
+        return self.terms[0].num_frames()
+
+    def window(self, start: int, stop: int) -> tuple[Term, ...]:
+        return tuple(t.window(start, stop) for t in self.terms)
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverOptions:
+    """Sliding-window Levenberg–Marquardt settings.
+
+    Attributes:
+        window: frames per window (the whole sequence if it is shorter).
+        overlap: frames each window hands to the next to solve again.
+        max_steps: LM iterations per window (accepted or rejected).
+        rtol, atol: optimistix stopping tolerances on the step (rad, m) and on the residual change
+            (whitened units, e.g. px), RMS norm: stop when both are below ``atol + rtol·|value|``.
+        damping_scale: initial Levenberg–Marquardt damping relative to the Marquardt diagonal.
+    """
+
+    window: int = 40
+    overlap: int = 10
+    max_steps: int = 40
+    rtol: float = 1e-6
+    atol: float = 1e-6
+    damping_scale: float = 1e-3
+
+    def __post_init__(self):
+        if self.window < 1:
+            raise ValueError(f"SolverOptions: window must be ≥ 1, got {self.window}")
+        if not 0 <= self.overlap < self.window:
+            raise ValueError(f"SolverOptions: overlap must be in [0, window), got {self.overlap} with window {self.window}")
+        if self.max_steps < 1:
+            raise ValueError(f"SolverOptions: max_steps must be ≥ 1, got {self.max_steps}")
+
+
+@dataclasses.dataclass(frozen=True)
+class WindowReport:
+    """How one window's solve went (costs are ½ Σ r² of Eq. 1 over the window)."""
+
+    start: int
+    stop: int
+    initial_cost: float
+    final_cost: float
+    num_steps: int
+    num_accepted_steps: int
+    converged: bool
+    seconds: float
+
+
+@dataclasses.dataclass
+class Solution:
+    """Result of :func:`solve`: the motion over all frames and one report per window."""
+
+    motion: Motion
+    reports: list[WindowReport]
+
+    @property
+    def converged(self) -> bool:
+        return all(r.converged for r in self.reports)
+
+
+def window_starts(num_frames: int, window: int, overlap: int) -> list[int]:
+    """First frame of each window; all windows have length ``min(window, num_frames)``."""
+    window = min(window, num_frames)
+    starts, start = [0], 0
+    while start + window < num_frames:
+        start = min(start + window - overlap, num_frames - window)
+        starts.append(start)
+    return starts
+
+
+@eqx.filter_jit
+def _solve_window(problem: WindowProblem, options: SolverOptions):
+    w, d = problem.num_frames, problem.skeleton.num_dofs
+    build = eqx.Partial(normal_equations, problem)
+    solver = StructuredLevenbergMarquardt(build, options.rtol, options.atol, damping_scale=options.damping_scale)
+    fn = lambda y, args: residuals(args, y)
+    y0 = jnp.zeros((w, d))
+    sol = optx.least_squares(fn, solver, y0, args=problem, max_steps=options.max_steps, throw=False)
+    y = sol.value
+    cost = lambda yy: 0.5 * sum(jnp.sum(r * r) for r in residuals(problem, yy))
+    motion = problem.skeleton.retract(problem.reference[1:], y)
+    return (
+        motion,
+        cost(y0),
+        cost(y),
+        sol.stats["num_steps"],
+        sol.state.num_accepted_steps,
+        sol.result == optx.RESULTS.successful,
+    )
+
+
+def solve(
+    problem: SequenceProblem,
+    initial_motion: Motion,
+    options: SolverOptions = SolverOptions(),
+    *,
+    progress: bool | Callable[[WindowReport], None] = False,
+) -> Solution:
+    """Minimise Eq. (1) over a whole sequence with overlapping windows.
+
+    Args:
+        problem: a :class:`Problem` (or anything with ``skeleton``, ``rig``, ``num_frames`` and
+            ``window(start, stop)``).
+        initial_motion: ``(T, ...)`` starting motion, e.g. from registered camera poses.
+        options: window length, overlap, iteration limits.
+        progress: True for a progress bar, or a callable receiving each :class:`WindowReport`.
+
+    Returns:
+        The solved motion and per-window reports.
+
+    Raises:
+        ValueError: mismatched shapes, NaN/inf, or a window without any usable observation.
+        FloatingPointError: a window's solve produced a non-finite motion.
+    """
+    skeleton, rig, num_frames = problem.skeleton, problem.rig, problem.num_frames
+    initial_motion.check(skeleton, "initial_motion")
+    if initial_motion.num_frames != num_frames:
+        raise ValueError(f"initial_motion has {initial_motion.num_frames} frames, the problem has {num_frames}")
+    window = min(options.window, num_frames)
+    starts = window_starts(num_frames, window, min(options.overlap, window - 1))
+    root = np.array(initial_motion.root_position, dtype=np.float64)
+    rotations = np.array(initial_motion.rotations, dtype=np.float64)
+    reports: list[WindowReport] = []
+    bar = None
+    if progress is True:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=num_frames, desc="solving", unit="frame")
+    done = 0
+    for start in starts:
+        stop = start + window
+        t0 = time.perf_counter()
+        terms = tuple(problem.window(start, stop))
+        _check_window_has_observations(terms, start, stop)
+        prev = max(start - 1, 0)
+        reference = Motion(
+            np.concatenate([root[prev : prev + 1], root[start:stop]]),
+            np.concatenate([rotations[prev : prev + 1], rotations[start:stop]]),
+        )
+        wp = WindowProblem(skeleton, rig, terms, reference, jnp.asarray(start > 0))
+        motion, c0, c1, steps, accepted, ok = _solve_window(wp, options)
+        new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
+        if not (np.all(np.isfinite(new_root)) and np.all(np.isfinite(new_rot))):
+            raise FloatingPointError(f"solve: window of frames [{start}, {stop}) produced a non-finite motion")
+        root[start:stop], rotations[start:stop] = new_root, new_rot
+        report = WindowReport(start, stop, float(c0), float(c1), int(steps), int(accepted), bool(ok), time.perf_counter() - t0)
+        reports.append(report)
+        if bar is not None:
+            bar.update(stop - done)
+            bar.set_postfix(cost=f"{report.final_cost:.4g}")
+        elif callable(progress):
+            progress(report)
+        done = stop
+    if bar is not None:
+        bar.close()
+    return Solution(Motion(root, rotations), reports)
+
+
+def _check_window_has_observations(terms: Sequence[Term], start: int, stop: int) -> None:
+    camera_terms = [t for t in terms if isinstance(t, (CameraTerm, CameraPairTerm))]
+    if not camera_terms:
+        return
+    total = 0.0
+    for term in camera_terms:
+        weights = term.data.get("weights") if isinstance(term.data, dict) else None
+        total += float(jnp.sum(weights)) if weights is not None else 1.0
+    if total <= 0.0:
+        names = ", ".join(t.label for t in camera_terms)
+        raise ValueError(f"no usable observation in the window of frames [{start}, {stop}) ({names} all have zero weight)")
+
+
+def whole_sequence_residual_function(problem: SequenceProblem, initial_motion: Motion) -> Callable[[np.ndarray], np.ndarray]:
+    """The residual vector of the whole sequence as one window, ``y (T·D,) ↦ r``, for reference solvers.
+
+    ``y`` is the tangent offset from ``initial_motion`` (so ``y = 0`` is the initial guess); the
+    residuals are exactly those the windowed solver minimises.
+    """
+    skeleton = problem.skeleton
+    n = problem.num_frames
+    terms = tuple(problem.window(0, n))
+    reference = Motion(
+        np.concatenate([np.asarray(initial_motion.root_position[:1]), np.asarray(initial_motion.root_position)]),
+        np.concatenate([np.asarray(initial_motion.rotations[:1]), np.asarray(initial_motion.rotations)]),
+    )
+    wp = WindowProblem(skeleton, problem.rig, terms, reference, jnp.asarray(False))
+
+    @jax.jit
+    def fn(y_flat):
+        r = residuals(wp, y_flat.reshape(n, skeleton.num_dofs))
+        return jnp.concatenate([a.reshape(-1) for a in r])
+
+    return fn
+
+
+def motion_from_tangent(problem: SequenceProblem, initial_motion: Motion, y_flat: np.ndarray) -> Motion:
+    """The motion at tangent offset ``y`` ``(T·D,)`` from ``initial_motion`` (inverse of the above's variables)."""
+    d = problem.skeleton.num_dofs
+    return problem.skeleton.retract(initial_motion, jnp.asarray(y_flat).reshape(-1, d))

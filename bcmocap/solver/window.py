@@ -1,0 +1,236 @@
+"""One time window of Eq. (1): its residuals and its structured Gauss–Newton normal equations.
+
+A window holds ``W`` frames of variables plus, at index 0 of its reference motion, the frame just
+before it (solved by the previous window and held fixed) so that pair terms connect across the seam.
+Variables are tangent vectors ``y`` ``(W, D)`` relative to the reference motion (see
+:meth:`Skeleton.retract`), so the solver always steps in the tangent space of the current pose.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..geometry import SE3
+from ..kinematics.fk import forward_kinematics
+from ..kinematics.rig import Rig
+from ..kinematics.skeleton import Motion, Skeleton
+from ..residuals.base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, PairTerm, Term
+
+
+class WindowProblem(eqx.Module):
+    """Everything a window's solve needs, as one pytree.
+
+    Attributes:
+        skeleton, rig: the model (rig may be None for problems without cameras).
+        terms: residual terms restricted to the window (data leading axis ``W``).
+        reference: motion with ``W + 1`` frames: the fixed previous frame, then the window's frames.
+        has_previous: scalar bool; False for the first window of a sequence (pair terms at its
+            first frame are then dropped).
+    """
+
+    skeleton: Skeleton
+    rig: Rig | None
+    terms: tuple[Term, ...]
+    reference: Motion
+    has_previous: jax.Array
+
+    @property
+    def num_frames(self) -> int:
+        return self.reference.root_position.shape[0] - 1
+
+
+def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.Array) -> FrameState:
+    """State of frames with batch shape ``S`` from tangent vectors ``(*S, D)``."""
+    motion = skeleton.retract(reference, y)
+    world_from_segment = forward_kinematics(skeleton, motion)
+    if rig is None:
+        world_from_camera = SE3.identity(batch_axes=(*y.shape[:-1], 0))
+    else:
+        world_from_camera = rig.world_from_camera(world_from_segment)
+    return FrameState(motion, world_from_segment, world_from_camera)
+
+
+def _extended(problem: WindowProblem, y: jax.Array) -> jax.Array:
+    return jnp.concatenate([jnp.zeros_like(y[:1]), y], axis=0)
+
+
+def _pair_valid(problem: WindowProblem, valid: jax.Array) -> jax.Array:
+    """Drop the pair (previous, first) when there is no previous frame."""
+    return valid.at[0].set(valid[0] & problem.has_previous)
+
+
+def _vmap_cameras(fn, camera_axis_args):
+    """vmap ``fn`` over frames (axis 0) and cameras (axis 1 of per-frame arrays, axis 0 of intrinsics)."""
+    return jax.vmap(jax.vmap(fn, in_axes=camera_axis_args), in_axes=(0,) * len(camera_axis_args))
+
+
+def residuals(problem: WindowProblem, y: jax.Array) -> tuple[jax.Array, ...]:
+    """All finished residual blocks of the window, one array per term (shapes ``(W, ..., k)``)."""
+    states = frame_state(problem.skeleton, problem.rig, problem.reference, _extended(problem, y))
+    prev_states = jax.tree.map(lambda a: a[:-1], states)
+    curr_states = jax.tree.map(lambda a: a[1:], states)
+    out = []
+    cam_from_world = states.world_from_camera.inverse() if problem.rig is not None else None
+    for term in problem.terms:
+        if isinstance(term, FrameTerm):
+            r, v = jax.vmap(term.residual)(curr_states, term.data)
+        elif isinstance(term, PairTerm):
+            r, v = jax.vmap(term.residual)(prev_states, curr_states, term.data)
+            v = _pair_valid(problem, v)
+        elif isinstance(term, CameraTerm):
+            fn = lambda pose, cam, data, term=term: term.residual(SE3(pose), cam, data)
+            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0)), in_axes=(0, None, 0))(
+                cam_from_world.wxyz_xyz[1:], problem.rig.intrinsics, term.data
+            )
+        elif isinstance(term, CameraPairTerm):
+            fn = lambda prev, pose, cam, data, term=term: term.residual(SE3(prev), SE3(pose), cam, data)
+            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0)), in_axes=(0, 0, None, 0))(
+                cam_from_world.wxyz_xyz[:-1], cam_from_world.wxyz_xyz[1:], problem.rig.intrinsics, term.data
+            )
+            v = _pair_valid(problem, v)
+        else:
+            raise TypeError(f"{term.label}: a term must subclass FrameTerm, PairTerm, CameraTerm or CameraPairTerm")
+        out.append(term.finish(r, v))
+    return tuple(out)
+
+
+def cost(problem: WindowProblem, y: jax.Array) -> jax.Array:
+    """½ Σ of all finished squared residuals."""
+    return 0.5 * sum(jnp.sum(r * r) for r in residuals(problem, y))
+
+
+class NormalEquations(eqx.Module):
+    """Gauss–Newton system of a window: ``H = JᵀJ`` (block tridiagonal) and ``g = Jᵀr``.
+
+    Attributes:
+        diag: ``(W, D, D)``; upper: ``(W-1, D, D)`` with ``upper[t] = H[t, t+1]``; grad: ``(W, D)``.
+    """
+
+    diag: jax.Array
+    upper: jax.Array
+    grad: jax.Array
+
+
+def _camera_pose_jacobians(problem: WindowProblem, y_ext: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``cam_from_world`` ``(W+1, C, 7)`` and its Jacobian ``(W+1, C, 6, D)`` w.r.t. each frame's variables.
+
+    The camera tangent is a left perturbation: ``cam_from_world(y') = exp(ξ) · cam_from_world(y)``.
+    """
+
+    def per_frame(reference: Motion, y_t: jax.Array):
+        def pose(yy):
+            return frame_state(problem.skeleton, problem.rig, reference, yy).world_from_camera.inverse()
+
+        current = jax.lax.stop_gradient(pose(y_t))
+        tangent = lambda yy: (pose(yy) @ current.inverse()).log()
+        return current.wxyz_xyz, jax.jacfwd(tangent)(y_t)
+
+    return jax.vmap(per_frame)(problem.reference, y_ext)
+
+
+def _camera_measurement_jacobians(residual_fn, poses: tuple[jax.Array, ...]):
+    """Finished residual ``(n, k)`` and its Jacobian ``(n, k, 6·len(poses))`` w.r.t. left pose perturbations."""
+
+    def perturbed(xi):
+        perturbed_poses = [SE3.exp(xi[6 * i : 6 * i + 6]) @ SE3(p) for i, p in enumerate(poses)]
+        return residual_fn(*perturbed_poses)
+
+    zero = jnp.zeros(6 * len(poses))
+    return perturbed(zero), jax.jacfwd(perturbed)(zero)
+
+
+def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
+    """Assemble the block-tridiagonal Gauss–Newton system of the window at ``y`` ``(W, D)``."""
+    w, d = y.shape
+    y_ext = _extended(problem, y)
+    diag = jnp.zeros((w + 1, d, d))  # index 0: the fixed previous frame (discarded)
+    upper = jnp.zeros((w, d, d))  # upper[t] couples extended frames t and t+1
+    grad = jnp.zeros((w + 1, d))
+    needs_cameras = any(isinstance(t, (CameraTerm, CameraPairTerm)) for t in problem.terms)
+    if needs_cameras:
+        cam_poses, pose_jac = _camera_pose_jacobians(problem, y_ext)
+    for term in problem.terms:
+        if isinstance(term, FrameTerm):
+            def frame_residual(y_t, ref_t, data, term=term):
+                r, v = term.residual(frame_state(problem.skeleton, problem.rig, ref_t, y_t), data)
+                return term.finish(r, v).reshape(-1)
+
+            r = jax.vmap(frame_residual)(y, problem.reference[1:], term.data)
+            jac = jax.vmap(jax.jacfwd(frame_residual))(y, problem.reference[1:], term.data)
+            diag = diag.at[1:].add(jnp.einsum("tri,trj->tij", jac, jac))
+            grad = grad.at[1:].add(jnp.einsum("tri,tr->ti", jac, r))
+        elif isinstance(term, PairTerm):
+            def pair_residual(y_pair, ref_prev, ref_curr, data, ok, term=term):
+                prev = frame_state(problem.skeleton, problem.rig, ref_prev, y_pair[0])
+                curr = frame_state(problem.skeleton, problem.rig, ref_curr, y_pair[1])
+                r, v = term.residual(prev, curr, data)
+                return term.finish(r, v & ok).reshape(-1)
+
+            pairs = jnp.stack([y_ext[:-1], y_ext[1:]], axis=1)  # (W, 2, D)
+            ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
+            args = (pairs, problem.reference[:-1], problem.reference[1:], term.data, ok)
+            r = jax.vmap(pair_residual)(*args)
+            jac = jax.vmap(jax.jacfwd(pair_residual))(*args)  # (W, m, 2, D)
+            diag, upper, grad = _add_pair_blocks(diag, upper, grad, r, jac[:, :, 0], jac[:, :, 1])
+        elif isinstance(term, CameraTerm):
+            def cam_blocks(pose, cam, data, term=term):
+                fn = lambda p: term.finish(*term.residual(p, cam, data)).reshape(-1)
+                r, jac = _camera_measurement_jacobians(fn, (pose,))
+                return jac.T @ jac, jac.T @ r
+
+            hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0)), in_axes=(0, None, 0))(
+                cam_poses[1:], problem.rig.intrinsics, term.data
+            )  # (W, C, 6, 6), (W, C, 6)
+            jp = pose_jac[1:]
+            diag = diag.at[1:].add(jnp.einsum("tcai,tcab,tcbj->tij", jp, hess, jp))
+            grad = grad.at[1:].add(jnp.einsum("tcai,tca->ti", jp, g))
+        elif isinstance(term, CameraPairTerm):
+            def cam_pair_blocks(prev, pose, cam, data, ok, term=term):
+                fn = lambda p0, p1: term.finish(*_and_valid(term.residual(p0, p1, cam, data), ok)).reshape(-1)
+                r, jac = _camera_measurement_jacobians(fn, (prev, pose))
+                return jac.T @ jac, jac.T @ r
+
+            ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
+            hess, g = jax.vmap(jax.vmap(cam_pair_blocks, in_axes=(0, 0, 0, 0, None)), in_axes=(0, 0, None, 0, 0))(
+                cam_poses[:-1], cam_poses[1:], problem.rig.intrinsics, term.data, ok
+            )  # (W, C, 12, 12), (W, C, 12)
+            jp_prev, jp_curr = pose_jac[:-1], pose_jac[1:]
+            h00 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, :6], jp_prev)
+            h11 = jnp.einsum("tcai,tcab,tcbj->tij", jp_curr, hess[:, :, 6:, 6:], jp_curr)
+            h01 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, 6:], jp_curr)
+            diag = diag.at[:-1].add(h00).at[1:].add(h11)
+            upper = upper + h01
+            grad = grad.at[:-1].add(jnp.einsum("tcai,tca->ti", jp_prev, g[:, :, :6]))
+            grad = grad.at[1:].add(jnp.einsum("tcai,tca->ti", jp_curr, g[:, :, 6:]))
+        else:
+            raise TypeError(f"{term.label}: a term must subclass FrameTerm, PairTerm, CameraTerm or CameraPairTerm")
+    return NormalEquations(diag[1:], upper[1:], grad[1:])
+
+
+def _and_valid(result, ok):
+    r, v = result
+    return r, v & ok
+
+
+def _add_pair_blocks(diag, upper, grad, r, jac_prev, jac_curr):
+    """Add a pair term's ``(W, m)`` residuals and Jacobians w.r.t. extended frames t and t+1."""
+    diag = diag.at[:-1].add(jnp.einsum("tri,trj->tij", jac_prev, jac_prev))
+    diag = diag.at[1:].add(jnp.einsum("tri,trj->tij", jac_curr, jac_curr))
+    upper = upper + jnp.einsum("tri,trj->tij", jac_prev, jac_curr)
+    grad = grad.at[:-1].add(jnp.einsum("tri,tr->ti", jac_prev, r))
+    grad = grad.at[1:].add(jnp.einsum("tri,tr->ti", jac_curr, r))
+    return diag, upper, grad
+
+
+def make_window_problem(
+    skeleton: Skeleton,
+    rig: Rig | None,
+    terms: Sequence[Term],
+    reference: Motion,
+    has_previous: bool,
+) -> WindowProblem:
+    return WindowProblem(skeleton, rig, tuple(terms), reference, jnp.asarray(has_previous))

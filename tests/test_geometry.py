@@ -1,0 +1,186 @@
+"""Tests for bcmocap.geometry: rotation angles, quaternion averaging, slerp, Euler angles, conversions."""
+
+import itertools
+
+import numpy as np
+import pytest
+from conftest import quat_distance, quat_matrix, quat_multiply, random_quaternions, rodrigues
+
+from bcmocap.geometry import (
+    average_quaternions,
+    canonical_quat,
+    euler_to_matrix,
+    matrix_from_quat,
+    quat_from_matrix,
+    quat_identity,
+    rotation_angle,
+    slerp,
+)
+
+
+def axis_angle_quat(axis, angle) -> np.ndarray:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    angle = np.asarray(angle, float)[..., None]
+    return np.concatenate([np.cos(angle / 2), np.sin(angle / 2) * axis], axis=-1)
+
+
+def same_rotation(a, b) -> bool:
+    """Quaternions equal up to sign."""
+    return np.allclose(a, b, atol=1e-12) or np.allclose(a, -np.asarray(b), atol=1e-12)
+
+
+# ---- rotation_angle -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-9, 1e-6, 1e-3, 0.5, 2.0, np.pi - 1e-3, np.pi - 1e-6, np.pi - 1e-9, np.pi])
+def test_rotation_angle_is_exact_near_zero_and_pi(angle):
+    rng = np.random.default_rng(0)
+    q_a = random_quaternions(rng, (5,))
+    axis = rng.normal(size=3)
+    q_b = quat_multiply(q_a, axis_angle_quat(axis, angle))
+    got = np.asarray(rotation_angle(q_a, q_b))
+    # An arccos of the dot product would lose half the digits near 0 (and near π): demand full precision.
+    np.testing.assert_allclose(got, angle, rtol=1e-9, atol=1e-15)
+
+
+def test_rotation_angle_is_insensitive_to_quaternion_sign():
+    rng = np.random.default_rng(1)
+    q_a, q_b = random_quaternions(rng, (2, 8))
+    ref = np.asarray(rotation_angle(q_a, q_b))
+    for sa, sb in itertools.product([1, -1], repeat=2):
+        np.testing.assert_allclose(rotation_angle(sa * q_a, sb * q_b), ref, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(rotation_angle(q_a, -q_a), 0.0, atol=1e-15)
+    np.testing.assert_allclose(ref, quat_distance(q_a, q_b), atol=1e-7)
+
+
+def test_rotation_angle_is_the_geodesic_angle_at_most_pi():
+    q = axis_angle_quat([0.0, 0.0, 1.0], 1.5 * np.pi)  # the same rotation as −π/2
+    np.testing.assert_allclose(rotation_angle(quat_identity(), q), 0.5 * np.pi, rtol=1e-12)
+
+
+# ---- average_quaternions --------------------------------------------------------------------------
+
+
+def test_average_of_identical_rotations_is_that_rotation_whatever_the_signs():
+    rng = np.random.default_rng(2)
+    q = random_quaternions(rng, ())
+    copies = np.tile(q, (7, 1)) * rng.choice([-1.0, 1.0], size=(7, 1))
+    mean = average_quaternions(copies)
+    assert mean[0] >= 0
+    assert same_rotation(mean, q)
+    np.testing.assert_allclose(np.linalg.norm(mean), 1.0, atol=1e-14)
+
+
+def test_average_of_symmetric_spread_is_the_centre_and_sign_flips_do_not_matter():
+    rng = np.random.default_rng(3)
+    centre = random_quaternions(rng, ())
+    perturb = []
+    for axis in np.eye(3):
+        for s in (1.0, -1.0):
+            perturb.append(quat_multiply(centre, axis_angle_quat(axis, s * 0.3)))
+    perturb = np.array(perturb)
+    mean = average_quaternions(perturb)
+    assert same_rotation(mean, canonical_quat(centre))
+    flipped = perturb * rng.choice([-1.0, 1.0], size=(len(perturb), 1))
+    np.testing.assert_allclose(average_quaternions(flipped), mean, atol=1e-12)
+
+
+def test_average_weights_ignore_zero_weighted_rotations():
+    rng = np.random.default_rng(4)
+    q = random_quaternions(rng, (3,))
+    mean = average_quaternions(q, weights=np.array([0.0, 2.0, 0.0]))
+    assert same_rotation(mean, q[1])
+
+
+def test_average_quaternions_errors():
+    with pytest.raises(ValueError, match=r"expected q \(N, 4\)"):
+        average_quaternions(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="weights"):
+        average_quaternions(np.tile([1.0, 0, 0, 0], (3, 1)), weights=np.ones(2))
+    with pytest.raises(ValueError, match="no rotation has a positive weight"):
+        average_quaternions(np.tile([1.0, 0, 0, 0], (3, 1)), weights=np.zeros(3))
+
+
+# ---- slerp ----------------------------------------------------------------------------------------
+
+
+def test_slerp_endpoints_and_constant_angular_speed():
+    rng = np.random.default_rng(5)
+    q0, q1 = random_quaternions(rng, (2, 6), max_angle=np.pi)
+    total = quat_distance(q0, q1)
+    assert same_rotation(slerp(q0, q1, np.zeros(6)), q0)
+    np.testing.assert_allclose(quat_distance(slerp(q0, q1, np.ones(6)), q1), 0.0, atol=1e-7)
+    for t in (0.25, 0.5, 0.9):
+        mid = slerp(q0, q1, np.full(6, t))
+        np.testing.assert_allclose(np.linalg.norm(mid, axis=-1), 1.0, atol=1e-14)
+        np.testing.assert_allclose(quat_distance(q0, mid), t * total, atol=1e-7)
+        np.testing.assert_allclose(quat_distance(mid, q1), (1 - t) * total, atol=1e-7)
+
+
+def test_slerp_takes_the_short_way_when_signs_differ():
+    q0 = axis_angle_quat([0, 0, 1], 0.0)
+    q1 = -axis_angle_quat([0, 0, 1], 0.4)
+    mid = slerp(q0, q1, 0.5)
+    assert same_rotation(mid, axis_angle_quat([0, 0, 1], 0.2))
+
+
+def test_slerp_of_identical_rotations():
+    q = random_quaternions(np.random.default_rng(6), ())
+    out = slerp(q, q, 0.3)
+    assert np.all(np.isfinite(out))
+    assert same_rotation(out, q)
+
+
+# ---- Euler angles ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("order", ["".join(p) for p in itertools.product("XYZ", repeat=3)] + ["X", "ZY", "yxz"])
+def test_euler_to_matrix_matches_rodrigues_products(order):
+    rng = np.random.default_rng(7)
+    angles = rng.uniform(-np.pi, np.pi, size=(4, len(order)))
+    got = euler_to_matrix(angles, order)
+    assert got.shape == (4, 3, 3)
+    for b in range(4):
+        ref = np.eye(3)
+        for k, axis in enumerate(order.upper()):
+            ref = ref @ rodrigues(angles[b, k] * np.eye(3)["XYZ".index(axis)])
+        np.testing.assert_allclose(got[b], ref, atol=1e-14)
+
+
+def test_euler_to_matrix_shape_error():
+    with pytest.raises(ValueError, match=r"3 axes 'ZXY' but angles have shape \(2,\)"):
+        euler_to_matrix(np.zeros(2), "ZXY")
+
+
+# ---- quaternion ↔ matrix --------------------------------------------------------------------------
+
+
+def test_matrix_quaternion_round_trips():
+    rng = np.random.default_rng(8)
+    q = random_quaternions(rng, (2, 3, 5))
+    m = matrix_from_quat(q)
+    assert m.shape == (2, 3, 5, 3, 3)
+    np.testing.assert_allclose(m, quat_matrix(q), atol=1e-14)
+    back = quat_from_matrix(m)
+    assert back.shape == q.shape
+    assert np.all(back[..., 0] >= 0)
+    np.testing.assert_allclose(back, canonical_quat(q), atol=1e-12)
+    np.testing.assert_allclose(matrix_from_quat(back), m, atol=1e-14)
+
+
+@pytest.mark.parametrize("axis", [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [1, -2, 0.5]])
+def test_matrix_quaternion_round_trip_at_half_turns(axis):
+    # w = 0: the branch of the matrix → quaternion conversion that must not use the trace.
+    for angle in (np.pi, np.pi - 1e-7):
+        m = rodrigues(angle * np.asarray(axis, float) / np.linalg.norm(axis))
+        q = quat_from_matrix(m)
+        np.testing.assert_allclose(np.linalg.norm(q), 1.0, atol=1e-14)
+        np.testing.assert_allclose(matrix_from_quat(q), m, atol=1e-12)
+
+
+def test_rotation_angle_gradient_is_finite_at_equal_rotations():
+    import jax
+
+    q = random_quaternions(np.random.default_rng(9), ())
+    grad = np.asarray(jax.grad(lambda a: rotation_angle(a, q))(q))
+    assert np.all(np.isfinite(grad))

@@ -1,0 +1,464 @@
+"""Tests for bcmocap.residuals and the structured normal equations of bcmocap.solver.window.
+
+Derivatives are checked against central finite differences in float64, and the solver's block
+tridiagonal ``JᵀJ`` / ``Jᵀr`` against a dense autodiff Jacobian of the same window.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import KNEE_AXIS, central_difference, quat_multiply, random_motion, random_quaternions, scene_points
+
+from bcmocap.cameras import camera_at
+from bcmocap.geometry import SE3, SO3
+from bcmocap.kinematics import Motion, camera_poses
+from bcmocap.residuals import (
+    CauchyLoss,
+    HomographyTransfer,
+    HuberLoss,
+    JointSmoothness,
+    Reprojection,
+    RootSmoothness,
+    TrivialLoss,
+    loss_from_name,
+    pair_mask,
+)
+from bcmocap.solver.window import frame_state, make_window_problem, normal_equations, residuals
+
+W = 3  # frames per window
+N = 8  # observation slots per camera-frame
+M = 6  # homography slots per camera-frame
+
+
+def assert_jacobian_close(jac, ref, rtol=1e-7):
+    """Entrywise agreement relative to the Jacobian's largest entry (central differences: O(ε²) + O(1e-16/ε))."""
+    jac, ref = np.asarray(jac), np.asarray(ref)
+    assert jac.shape == ref.shape
+    assert np.all(np.isfinite(jac))
+    scale = max(np.abs(ref).max(), 1.0)
+    np.testing.assert_allclose(jac, ref, rtol=0, atol=rtol * scale)
+
+
+# ---- robust losses --------------------------------------------------------------------------------
+
+LOSSES = [HuberLoss(1.5), CauchyLoss(2.0), HuberLoss(0.3), CauchyLoss(0.5)]
+
+
+def rho_reference(loss, s):
+    c = loss.scale
+    if isinstance(loss, HuberLoss):
+        return np.where(s <= c * c, s, 2 * c * np.sqrt(s) - c * c)
+    return c * c * np.log1p(s / (c * c))
+
+
+@pytest.mark.parametrize("loss", LOSSES, ids=repr)
+def test_scaled_residual_squared_norm_is_rho(loss):
+    rng = np.random.default_rng(0)
+    r = rng.normal(size=(50, 3)) * np.logspace(-4, 2, 50)[:, None]
+    s = np.sum(r * r, axis=-1)
+    np.testing.assert_allclose(loss.rho(s), rho_reference(loss, s), rtol=1e-13)
+    scaled = np.asarray(loss.scale_residual(r))
+    np.testing.assert_allclose(np.sum(scaled * scaled, axis=-1), rho_reference(loss, s), rtol=1e-12)
+    # The scaling keeps each block's direction.
+    factor = np.sum(scaled * r, -1) / s
+    np.testing.assert_allclose(scaled, factor[:, None] * r, rtol=1e-12, atol=1e-300)
+    assert np.all(factor > 0) and np.all(factor <= 1 + 1e-15)
+
+
+@pytest.mark.parametrize("loss", LOSSES, ids=repr)
+def test_losses_are_the_identity_for_small_residuals(loss):
+    r = np.array([[1e-9, -2e-9], [3e-6, 1e-6], [0.0, 1e-7]])
+    np.testing.assert_allclose(loss.scale_residual(r), r, rtol=1e-10)
+    if isinstance(loss, HuberLoss):  # exactly the identity inside the quadratic zone
+        inside = np.array([[0.99 * loss.scale / np.sqrt(2), 0.99 * loss.scale / np.sqrt(2)]])
+        np.testing.assert_array_equal(loss.scale_residual(inside), inside)
+
+
+@pytest.mark.parametrize("loss", LOSSES + [TrivialLoss()], ids=repr)
+def test_loss_derivatives_are_finite_at_zero_and_match_finite_differences(loss):
+    zero = jnp.zeros((1, 2))
+    jac0 = np.asarray(jax.jacfwd(loss.scale_residual)(zero))
+    np.testing.assert_array_equal(jac0.reshape(2, 2), np.eye(2))  # ρ'(0) = 1
+    grad0 = jax.grad(lambda r: 0.5 * jnp.sum(loss.scale_residual(r) ** 2))(zero)
+    np.testing.assert_array_equal(grad0, 0.0)
+    rev0 = np.asarray(jax.jacrev(loss.scale_residual)(zero))
+    np.testing.assert_array_equal(rev0, jac0)
+    rng = np.random.default_rng(1)
+    for r in rng.normal(size=(4, 1, 2)) * np.array([0.1, 1.0, 3.0, 20.0])[:, None, None]:
+        jac = jax.jacfwd(loss.scale_residual)(jnp.asarray(r))
+        assert_jacobian_close(jac, central_difference(lambda x: loss.scale_residual(x), r), rtol=1e-8)
+
+
+def test_huber_is_smooth_at_its_threshold():
+    loss = HuberLoss(2.0)
+    direction = np.array([[0.6, 0.8]])
+    jac_at = np.asarray(jax.jacfwd(loss.scale_residual)(jnp.asarray(2.0 * direction)))
+    assert np.all(np.isfinite(jac_at))
+    below = np.asarray(jax.jacfwd(loss.scale_residual)(jnp.asarray((2.0 - 1e-7) * direction)))
+    above = np.asarray(jax.jacfwd(loss.scale_residual)(jnp.asarray((2.0 + 1e-7) * direction)))
+    np.testing.assert_allclose(below, above, atol=1e-6)
+
+
+def test_loss_from_name():
+    assert isinstance(loss_from_name("none"), TrivialLoss)
+    assert isinstance(loss_from_name("Huber", 3.0), HuberLoss) and loss_from_name("huber", 3.0).scale == 3.0
+    assert isinstance(loss_from_name("CAUCHY", 2.0), CauchyLoss)
+    with pytest.raises(ValueError, match="unknown robust loss 'tukey'; choose one of none, huber, cauchy"):
+        loss_from_name("tukey")
+
+
+# ---- a tiny window --------------------------------------------------------------------------------
+
+
+def smooth_truth(skeleton, num_frames, rng) -> Motion:
+    """A representable motion whose frames differ by a few degrees and centimetres (numpy, no eager JAX)."""
+    first = random_motion(skeleton, None, rng, max_angle=0.8)
+    steps = random_quaternions(rng, (num_frames - 1, skeleton.num_segments), max_angle=0.08)
+    rot = [np.asarray(first.rotations)]
+    for step in steps:
+        rot.append(quat_multiply(rot[-1], step))
+    rot = np.asarray(skeleton.project_rotations(np.stack(rot)))
+    root = np.asarray(first.root_position) + np.cumsum(rng.normal(scale=0.03, size=(num_frames, 3)), axis=0)
+    return Motion(root, rot)
+
+
+def project_all(rig, cam_from_world, points):
+    """Pixels ``(T, C, P, 2)`` and validity of all points in all cameras."""
+    p_cam = SE3(cam_from_world[:, :, None, :]) @ jnp.asarray(points)[None, None]
+    uv, valid = jax.vmap(lambda p: jax.vmap(lambda cam, q: cam.project(q))(rig.intrinsics, p))(p_cam)
+    return np.asarray(uv), np.asarray(valid)
+
+
+@pytest.fixture(scope="module")
+def scene(skeleton, rig):
+    """Truth over ``W + 1`` frames (index 0 is the frame before the window), measurements, and a reference motion."""
+    rng = np.random.default_rng(42)
+    c = rig.num_cameras
+    truth = smooth_truth(skeleton, W + 1, rng)
+    points = scene_points(rng, 20)
+    cam_from_world = np.asarray(camera_poses(skeleton, rig, truth).inverse().wxyz_xyz)
+    uv, valid = project_all(rig, cam_from_world, points)
+
+    ids = np.stack([np.stack([rng.choice(len(points), N, replace=False) for _ in range(c)]) for _ in range(W)])
+    ids[:, :, -1] = -1  # an empty slot
+    frames = np.arange(1, W + 1)[:, None, None]
+    cams = np.arange(c)[None, :, None]
+    pixels = uv[frames, cams, np.clip(ids, 0, None)] + rng.normal(scale=0.7, size=(W, c, N, 2))
+    outlier = rng.random((W, c, N)) < 0.15
+    pixels[outlier] += rng.normal(scale=40.0, size=(outlier.sum(), 2))
+    weights = np.where(ids >= 0, rng.choice([1.0, 0.25, 4.0], size=(W, c, N)), 0.0)
+    weights[0, 0, 0] = 0.0
+    pixels[ids < 0] = 0.0
+    # The homography term pairs window row t with extended frames (t, t + 1).
+    hid = ids[:, :, :M].clip(0)
+    h_pix = uv[frames, cams, hid] + rng.normal(scale=0.5, size=(W, c, M, 2))
+    h_prev = uv[frames - 1, cams, hid] + rng.normal(scale=0.5, size=(W, c, M, 2))
+    h_w = np.where(valid[frames, cams, hid] & valid[frames - 1, cams, hid] & (ids[:, :, :M] >= 0), 1.0, 0.0)
+    h_w[1, 2] = 0.0  # a camera-frame without matches
+    offset = random_quaternions(rng, (W + 1, skeleton.num_segments), max_angle=0.03)
+    reference = Motion(
+        np.asarray(truth.root_position) + rng.normal(scale=0.02, size=(W + 1, 3)),
+        np.asarray(skeleton.project_rotations(quat_multiply(np.asarray(truth.rotations), offset))),
+    )
+    return dict(
+        truth=truth, reference=reference, points=points, cam_from_world=cam_from_world,
+        reprojection={"point_ids": ids.astype(np.int32), "pixels": pixels, "weights": weights},
+        homography={"pixels": h_pix, "pixels_prev": h_prev, "weights": h_w},
+    )
+
+
+def window_terms(skeleton, scene):
+    mask = np.ones(W)
+    mask[2] = 0.0  # one pair switched off
+    terms = [
+        Reprojection(scene["reprojection"], points=scene["points"], loss=CauchyLoss(2.0), name="reprojection"),
+        HomographyTransfer(scene["homography"], weight=0.5, loss=HuberLoss(1.0), name="homography"),
+        RootSmoothness(mask, rotation_scale=0.5, weight=300.0, name="root smoothness"),
+        JointSmoothness(mask, skeleton=skeleton, weight=20.0, name="joint smoothness"),
+    ]
+    return [t.window(0, W) for t in terms]
+
+
+@eqx.filter_jit
+def dense_system(problem, y):
+    """Residual vector and its dense Jacobian ``(m, W, D)`` by forward-mode autodiff."""
+    flat = lambda yy: jnp.concatenate([r.reshape(-1) for r in residuals(problem, yy)])
+    return flat(y), jax.jacfwd(flat)(y)
+
+
+def flat_residual_blocks(problem, y):
+    """The residual blocks of each term, cut from the (compiled) dense system."""
+    r, _ = dense_system(problem, y)
+    shapes = [a.shape for a in jax.eval_shape(lambda: residuals(problem, y))]
+    parts = np.split(np.asarray(r), np.cumsum([int(np.prod(sh)) for sh in shapes])[:-1])
+    return [p.reshape(sh) for p, sh in zip(parts, shapes)]
+
+
+structured_system = eqx.filter_jit(normal_equations)
+
+
+@pytest.fixture(scope="module")
+def problems(skeleton, rig, scene):
+    """The window with and without a previous frame (one compilation serves both: has_previous is traced).
+
+    Robust losses on both image terms (Cauchy on reprojection, with 40 px outliers far beyond its 2 px
+    scale; Huber on homography) cover the plain least-squares case too: the solver scales residuals
+    before differentiating in both paths.
+    """
+    terms = window_terms(skeleton, scene)
+    return {has_previous: make_window_problem(skeleton, rig, terms, scene["reference"], has_previous)
+            for has_previous in (False, True)}
+
+
+@pytest.mark.parametrize("has_previous", [False, True])
+def test_normal_equations_match_dense_jacobian(problems, skeleton, has_previous):
+    problem = problems[has_previous]
+    d = skeleton.num_dofs
+    y = jnp.asarray(np.random.default_rng(3).normal(scale=0.01, size=(W, d)))
+    r, jac = dense_system(problem, y)
+    r, jac = np.asarray(r), np.asarray(jac).reshape(len(r), W * d)
+    assert np.all(np.isfinite(jac)) and np.abs(r).max() > 1.0
+    hess = (jac.T @ jac).reshape(W, d, W, d)
+    grad = (jac.T @ r).reshape(W, d)
+    ne = structured_system(problem, y)
+    assert ne.diag.shape == (W, d, d) and ne.upper.shape == (W - 1, d, d) and ne.grad.shape == (W, d)
+    scale = np.abs(hess).max()
+    for t in range(W):
+        np.testing.assert_allclose(ne.diag[t], hess[t, :, t], rtol=1e-8, atol=1e-9 * scale)
+        np.testing.assert_allclose(ne.grad[t], grad[t], rtol=1e-8, atol=1e-9 * np.abs(grad).max())
+    for t in range(W - 1):
+        np.testing.assert_allclose(ne.upper[t], hess[t, :, t + 1], rtol=1e-8, atol=1e-9 * scale)
+        assert np.abs(hess[t, :, t + 1]).max() > 1e-3 * scale  # frames really are coupled
+    np.testing.assert_array_equal(hess[0, :, 2], 0.0)  # and only neighbours are
+
+
+def test_has_previous_switches_the_seam_pair(problems):
+    y = jnp.zeros((W, problems[False].skeleton.num_dofs))
+    without = [np.asarray(a) for a in flat_residual_blocks(problems[False], y)]
+    with_prev = [np.asarray(a) for a in flat_residual_blocks(problems[True], y)]
+    for a, b in zip(without[1:], with_prev[1:]):  # homography and the smoothness terms: pair terms
+        np.testing.assert_array_equal(a[0], 0.0)
+        assert np.abs(b[0]).max() > 0
+        np.testing.assert_array_equal(a[1:], b[1:])
+    np.testing.assert_array_equal(without[0], with_prev[0])  # reprojection does not pair frames
+    # The switched-off pair (mask 0 at row 2) stays zero.
+    np.testing.assert_array_equal(with_prev[2][2], 0.0)
+    np.testing.assert_array_equal(with_prev[3][2], 0.0)
+
+
+def test_window_jacobian_matches_finite_differences(problems, skeleton):
+    """The dense Jacobian used as the reference above is itself right (retract → FK → rig → lens → loss)."""
+    problem = problems[True]
+    y = np.random.default_rng(4).normal(scale=0.01, size=(W, skeleton.num_dofs))
+    _, jac = dense_system(problem, jnp.asarray(y))
+    fd = central_difference(lambda yy: dense_system(problem, jnp.asarray(yy))[0], y, eps=1e-7)
+    assert_jacobian_close(jac, fd, rtol=1e-7)
+
+
+# ---- per-term Jacobians against finite differences ------------------------------------------------
+
+
+def _camera_term_residual(xi, term, poses, camera, data):
+    """A camera term's finished residual with each pose moved by a left perturbation ``exp(ξ_i) · pose_i``."""
+    moved = [SE3.exp(xi[6 * i : 6 * i + 6]) @ SE3(p) for i, p in enumerate(poses)]
+    return term.finish(*term.residual(*moved, camera, data))
+
+
+# Compiled once per term class, loss and data shape; shared by the tests below.
+camera_term_residual = eqx.filter_jit(_camera_term_residual)
+camera_term_jacfwd = eqx.filter_jit(jax.jacfwd(_camera_term_residual))
+camera_term_jacrev = eqx.filter_jit(jax.jacrev(_camera_term_residual))
+
+
+def reprojection_term(data) -> Reprojection:
+    """A windowed reprojection term like the one of the window problem (so compilations are shared)."""
+    return Reprojection(data, points=jnp.zeros((0, 3)), loss=CauchyLoss(2.0), name="reprojection")
+
+
+def check_camera_term_jacobian(term, xi, poses, camera, data, eps=1e-6, rtol=1e-7):
+    term = eqx.tree_at(lambda t: t.data, term, data)  # the term's own data is not used: share compilations
+    poses = tuple(jnp.asarray(p.wxyz_xyz if isinstance(p, SE3) else p) for p in poses)
+    f = lambda x: camera_term_residual(jnp.asarray(x), term, poses, camera, data)
+    jac = np.asarray(camera_term_jacfwd(jnp.asarray(xi), term, poses, camera, data))
+    assert_jacobian_close(jac, central_difference(f, np.asarray(xi), eps=eps), rtol=rtol)
+    return jac
+
+
+def test_reprojection_jacobian_wrt_camera_pose(rig, problems, scene):
+    term = problems[True].terms[0]
+    t, c = 1, 2
+    data = jax.tree.map(lambda a: a[t, c], term.data)
+    xi = np.random.default_rng(5).normal(scale=1e-3, size=6)
+    check_camera_term_jacobian(term, xi, (scene["cam_from_world"][t + 1, c],), camera_at(rig.intrinsics, c), data)
+
+
+def off_axis_points(theta_deg, cam_from_world, distance=4.0):
+    theta = np.deg2rad(theta_deg)
+    azimuth = np.linspace(0.3, 2 * np.pi, N, endpoint=False)
+    p_cam = distance * np.stack(
+        [np.sin(theta) * np.cos(azimuth), np.sin(theta) * np.sin(azimuth), np.full(N, np.cos(theta))], axis=1
+    )
+    return p_cam, np.asarray(cam_from_world.inverse() @ p_cam)
+
+
+@pytest.mark.parametrize("off_axis_deg", [0.0, 30.0, 80.0, 85.0, 89.0, 95.0, 150.0, 178.0])
+def test_reprojection_jacobian_across_the_fisheye_field(rig, off_axis_deg):
+    """Points up to the edge of the lens model's domain (179°), past the 170° lens's image edge (85°) and 90°."""
+    camera = camera_at(rig.intrinsics, 0)
+    cam_from_world = SE3.from_rotation_and_translation(SO3.exp(jnp.array([0.3, -0.2, 0.1])), jnp.array([0.1, 0.2, -0.3]))
+    p_cam, points = off_axis_points(off_axis_deg, cam_from_world)
+    uv, valid = camera.project(p_cam)
+    assert np.all(valid)
+    data = {"points": jnp.asarray(points), "pixels": jnp.asarray(np.asarray(uv) + 1.5), "weights": np.full(N, 2.0)}
+    term = reprojection_term(data)
+    # Small steps: at 178° a large one would cross the 179° limit of the model.
+    check_camera_term_jacobian(term, np.zeros(6), (cam_from_world,), camera, data, eps=1e-7, rtol=1e-6)
+
+
+def test_invalid_observations_give_zero_residuals_and_finite_jacobians(rig):
+    camera = camera_at(rig.intrinsics, 1)
+    p_cam = np.array([
+        [0.5, -0.2, 3.0],  # valid
+        [0.0, 0.0, -5.0],  # straight behind the camera
+        [0.05, 0.0, -5.0],  # 179.4° off axis: beyond the model's domain
+        [1.0, 0.5, 2.0],  # valid but weight 0
+        [0.0, 0.0, 0.0],  # at the camera centre
+        [-0.3, 0.4, 2.5],  # weight 0 and NaN pixels (a padded slot)
+        [0.01, 0.0, -5.0],  # 179.9° off axis
+        [0.0, 0.0, 1e-160],  # (almost) at the camera centre
+    ])
+    pixels = np.full((N, 2), 50.0)
+    pixels[5] = np.nan
+    weights = np.array([1.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0, 1.0])
+    data = {"points": jnp.asarray(p_cam), "pixels": jnp.asarray(pixels), "weights": jnp.asarray(weights)}
+    term = reprojection_term(data)
+    identity = jnp.asarray(SE3.identity().wxyz_xyz)
+    _, valid = term.residual(SE3(identity), camera, data)
+    np.testing.assert_array_equal(valid, [True] + [False] * (N - 1))
+    args = (jnp.zeros(6), eqx.tree_at(lambda t: t.data, term, data), (identity,), camera, data)
+    out = np.asarray(camera_term_residual(*args))
+    np.testing.assert_array_equal(out[1:], 0.0)
+    assert np.all(out[0] != 0.0)
+    for jac in (camera_term_jacfwd(*args), camera_term_jacrev(*args)):
+        jac = np.asarray(jac)
+        assert np.all(np.isfinite(jac))
+        np.testing.assert_array_equal(jac[1:], 0.0)
+        assert np.abs(jac[0]).max() > 1.0
+
+
+def test_homography_jacobian_wrt_both_camera_poses(rig, problems, scene):
+    term = problems[True].terms[1]
+    t, c = 2, 3
+    data = jax.tree.map(lambda a: a[t, c], term.data)
+    assert np.asarray(data["weights"]).sum() > 0
+    poses = (scene["cam_from_world"][t, c], scene["cam_from_world"][t + 1, c])
+    xi = np.random.default_rng(6).normal(scale=1e-3, size=12)
+    jac = check_camera_term_jacobian(term, xi, poses, camera_at(rig.intrinsics, c), data)
+    # Rotation-only transfer: camera translations do not matter (tangent order: translation, rotation).
+    np.testing.assert_allclose(jac[..., :3], 0.0, atol=1e-12)
+    np.testing.assert_allclose(jac[..., 6:9], 0.0, atol=1e-12)
+    assert np.abs(jac[..., 3:6]).max() > 1.0 and np.abs(jac[..., 9:]).max() > 1.0
+
+
+def test_homography_of_a_pure_rotation_is_exact(rig):
+    """With exact matches of a rotating camera the transfer residual vanishes."""
+    camera = camera_at(rig.intrinsics, 0)
+    rng = np.random.default_rng(7)
+    curr = SE3.from_rotation_and_translation(SO3.exp(jnp.array([0.1, 0.2, 0.3])), jnp.array([0.5, 0.0, 1.0]))
+    prev = SE3.from_rotation_and_translation(SO3.exp(jnp.array([0.15, 0.1, 0.35])), jnp.array([-2.0, 1.0, 0.0]))
+    rays = rng.normal(size=(10, 3)) + np.array([0.0, 0.0, 2.5])  # directions in the world
+    uv_curr, ok_curr = camera.project(curr.rotation() @ rays)
+    uv_prev, ok_prev = camera.project(prev.rotation() @ rays)
+    assert np.all(ok_curr & ok_prev)
+    data = {"pixels": uv_curr, "pixels_prev": uv_prev, "weights": jnp.ones(10)}
+    r, valid = HomographyTransfer(data).residual(prev, curr, camera, data)
+    assert np.all(valid)
+    np.testing.assert_allclose(r, 0.0, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def smoothness_terms(skeleton):
+    return (RootSmoothness(np.ones(1), rotation_scale=0.7, weight=4.0),
+            JointSmoothness(np.ones(1), skeleton=skeleton, weight=9.0))
+
+
+def _smoothness_residuals(y2, terms, skeleton, rig, reference):
+    """Both smoothness terms' finished residuals ``(6 + D - 6,)`` of the pair of frames ``reference[0], reference[1]``."""
+    prev = frame_state(skeleton, rig, reference[0], y2[0])
+    curr = frame_state(skeleton, rig, reference[1], y2[1])
+    return jnp.concatenate([t.finish(*t.residual(prev, curr, jnp.asarray(1.0))).ravel() for t in terms])
+
+
+smoothness_residuals = eqx.filter_jit(_smoothness_residuals)
+smoothness_jacobian = eqx.filter_jit(jax.jacfwd(_smoothness_residuals))
+
+
+@pytest.mark.parametrize("case", ["generic", "identical frames, straight knee"])
+def test_smoothness_jacobians_wrt_frame_tangents(skeleton, rig, smoothness_terms, case):
+    rng = np.random.default_rng(8)
+    if case == "generic":
+        reference = random_motion(skeleton, 2, rng, max_angle=2.0)
+        y2 = rng.normal(scale=0.05, size=(2, skeleton.num_dofs))
+    else:  # log at the identity and a knee at exactly 0 rad
+        one = random_motion(skeleton, None, rng)
+        rot = np.array(one.rotations)
+        rot[4] = [1.0, 0, 0, 0]
+        reference = Motion(np.tile(one.root_position, (2, 1)), np.tile(rot, (2, 1, 1)))
+        y2 = np.zeros((2, skeleton.num_dofs))
+    args = (smoothness_terms, skeleton, rig, reference)
+    f = lambda yy: smoothness_residuals(jnp.asarray(yy), *args)
+    jac = np.asarray(smoothness_jacobian(jnp.asarray(y2), *args))
+    assert jac.shape == (skeleton.num_dofs, 2, skeleton.num_dofs)
+    assert_jacobian_close(jac, central_difference(f, y2), rtol=1e-8)
+    if case != "generic":
+        np.testing.assert_array_equal(np.asarray(f(y2)), 0.0)
+        # At equal frames the residual is linear in the tangents: ±sqrt(weight) times the DOF selection.
+        np.testing.assert_allclose(jac[:, 0], -jac[:, 1], atol=1e-12)
+        np.testing.assert_allclose(jac[:, 1], np.diag(np.r_[np.full(3, 2.0), np.full(3, 1.4), np.full(10, 3.0)]),
+                                   atol=1e-12)
+
+
+def test_smoothness_values(skeleton, rig, smoothness_terms):
+    base = skeleton.rest_motion(2)
+    knee = KNEE_AXIS / np.linalg.norm(KNEE_AXIS)
+    rot = np.array(base.rotations)
+    rot[0, 4] = np.r_[np.cos(0.1), np.sin(0.1) * knee]  # knee at 0.2 rad
+    rot[1, 4] = np.r_[np.cos(0.35), np.sin(0.35) * knee]  # knee at 0.7 rad
+    rot[1, 0] = np.r_[np.cos(0.05), 0.0, 0.0, np.sin(0.05)]  # root yaws by 0.1 rad
+    motion = Motion(np.array([[0.0, 0.0, 1.0], [0.1, -0.2, 1.0]]), rot)
+    r = np.asarray(smoothness_residuals(jnp.zeros((2, skeleton.num_dofs)), smoothness_terms, skeleton, rig, motion))
+    # Root: sqrt(4) × (translation (m), 0.7 × rotation (rad)).
+    np.testing.assert_allclose(r[:6], 2.0 * np.array([0.1, -0.2, 0.0, 0.0, 0.0, 0.7 * 0.1]), atol=1e-14)
+    # Joints: sqrt(9) × each DOF's change; only the knee angle moved, by 0.5 rad.
+    expected = np.zeros(10)
+    expected[-1] = 3.0 * 0.5
+    np.testing.assert_allclose(r[6:], expected, atol=1e-14)
+
+
+def test_pair_mask():
+    np.testing.assert_array_equal(pair_mask(4), [0.0, 1.0, 1.0, 1.0])
+
+
+def test_term_check_errors(scene):
+    rep = Reprojection(scene["reprojection"], points=scene["points"], name="reprojection")
+    rep.check(W, 6)
+    with pytest.raises(ValueError, match=r"reprojection: data\['point_ids'\] has shape \(3, 6, 8\), expected \(3, 5, 8\)"):
+        rep.check(W, 5)
+    bad = dict(scene["reprojection"], point_ids=np.full_like(scene["reprojection"]["point_ids"], 20))
+    with pytest.raises(ValueError, match="point_ids reach 20 but there are only 20 points"):
+        Reprojection(bad, points=scene["points"], name="reprojection").check(W, 6)
+    hom = HomographyTransfer({k: v for k, v in scene["homography"].items() if k != "pixels_prev"}, name="hom")
+    with pytest.raises(ValueError, match="hom: data has no 'pixels_prev'"):
+        hom.check(W, 6)
+    root = RootSmoothness(np.ones(W + 1), name="root smoothness")
+    with pytest.raises(ValueError, match=r"root smoothness: data has shape \(4,\); expected leading axes \(3,\)"):
+        root.check(W, 6)
+
+
+def test_homography_check_allows_nan_in_unused_slots(scene):
+    data = {k: np.array(v) for k, v in scene["homography"].items()}
+    data["pixels_prev"][0, 0] = np.nan
+    data["weights"][0, 0] = 0.0
+    HomographyTransfer(data, name="homography").check(W, 6)

@@ -1,0 +1,202 @@
+"""Tests for bcmocap.sim: the synthetic capture's determinism, counts and consistency with its truth.
+
+The standard capture parses CMU files and compiles the observation simulator (the slow part): one
+module-scoped capture of 0.2 s and at most 3 frames of correspondences serve every test here.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import KNEE_AXIS, quat_distance, random_motion, random_quaternions
+
+from bcmocap.eval import joint_position_errors
+from bcmocap.geometry import SE3
+from bcmocap.kinematics import JointType, Motion, camera_poses, forward_kinematics, world_rotations
+from bcmocap.sim import BODY_SEGMENTS, BodySegment, make_world, reduce_motion, resample, standard_capture
+
+FRAMES = 3
+
+
+@pytest.fixture(scope="module")
+def capture():
+    return standard_capture("walk", seconds=0.2, seed=3)
+
+
+@pytest.fixture(scope="module")
+def corr(capture):
+    return capture.correspondences(0, FRAMES)
+
+
+def test_standard_capture_model(capture):
+    skeleton = capture.skeleton
+    assert capture.num_frames == 12  # 0.2 s at 60 Hz
+    assert skeleton.names == tuple(s.name for s in BODY_SEGMENTS)
+    assert skeleton.num_dofs == 40
+    assert capture.rig.num_cameras == 18
+    assert sum(t == JointType.HINGE for t in skeleton.joint_types) == 4
+    capture.motion.check(skeleton)
+
+
+def test_frames_depend_only_on_seed_and_frame_index(capture, corr):
+    later = capture.correspondences(1, FRAMES)
+    again = capture.correspondences(0, FRAMES)
+    for f in dataclasses.fields(corr):
+        a, b, c = getattr(corr, f.name), getattr(later, f.name), getattr(again, f.name)
+        np.testing.assert_array_equal(a, c, err_msg=f.name)
+        if f.name not in ("points", "fps"):
+            np.testing.assert_array_equal(a[1:FRAMES], b, err_msg=f.name)
+
+
+def test_same_seed_gives_identical_measurements(capture, corr):
+    # A second capture with the same truth, scene and seed (this compiles a second simulator: one frame only).
+    twin = dataclasses.replace(capture)
+    assert twin._simulator is not capture._simulator
+    last = twin.correspondences(FRAMES - 1, FRAMES)
+    for f in dataclasses.fields(corr):
+        if f.name not in ("points", "fps"):
+            np.testing.assert_array_equal(getattr(last, f.name), getattr(corr, f.name)[FRAMES - 1 :], err_msg=f.name)
+
+
+def test_world_is_deterministic_per_seed():
+    path = np.array([[0.0, 0.0], [1.0, 0.5]])
+    a, b, c = make_world(path, seed=5), make_world(path, seed=5), make_world(path, seed=6)
+    np.testing.assert_array_equal(a.points, b.points)
+    assert a.points.shape != c.points.shape or not np.array_equal(a.points, c.points)
+    assert np.all(a.points >= a.lower - 1e-9) and np.all(a.points <= a.upper + 1e-9)
+    assert a.points.shape[1] == 3 and len(a.points) > 500
+
+
+def test_observation_counts_and_slots(capture, corr):
+    used = corr.weights > 0
+    counts = used.sum(axis=-1)  # (T, C)
+    reg = corr.registered
+    assert reg[0].all()  # frame 0 has no previous frame for the homography
+    assert 0 < (~reg).sum() <= 0.25 * reg.size
+    assert counts.max() <= capture.noise.max_observations
+    assert np.mean(counts[reg] >= 150) >= 0.9
+    # Unregistered camera-frames have no point observations but homography matches, and only they do.
+    np.testing.assert_array_equal(counts[~reg], 0)
+    has_matches = (corr.homography_weights > 0).any(axis=-1)
+    np.testing.assert_array_equal(has_matches & reg, False)
+    assert np.all((corr.homography_weights > 0).sum(axis=-1)[~reg] >= 30)
+    # Empty slots are marked −1 and have zero weight; used ones point at scene points.
+    np.testing.assert_array_equal(corr.point_ids < 0, ~used)
+    assert corr.point_ids.max() < len(corr.points)
+
+
+def project(capture, motion, points_per_camera):
+    """Pixels ``(T, C, N, 2)`` of points ``(T, C, N, 3)`` seen from the true cameras."""
+    cam_from_world = camera_poses(capture.skeleton, capture.rig, motion).inverse()
+    p_cam = SE3(cam_from_world.wxyz_xyz[:, :, None, :]) @ jnp.asarray(points_per_camera)
+    uv, valid = jax.vmap(lambda p: jax.vmap(lambda cam, q: cam.project(q))(capture.rig.intrinsics, p))(p_cam)
+    return np.asarray(uv), np.asarray(valid)
+
+
+def test_measurements_agree_with_the_truth(capture, corr):
+    truth = capture.motion[:FRAMES]
+    used = corr.weights > 0
+    uv, valid = project(capture, truth, corr.points[corr.point_ids.clip(0)])
+    assert valid[used].all()
+    err = np.linalg.norm(uv - corr.pixels, axis=-1)[used]
+    # 1 px noise and 10 % outliers.
+    assert np.median(err) < 2.0
+    assert 0.8 < np.mean(err < 5.0) < 0.97
+    # In the image, up to the 1 px noise added to points projected near its border.
+    width, height = capture.rig.intrinsics.width, capture.rig.intrinsics.height
+    u, v = corr.pixels[..., 0][used], corr.pixels[..., 1][used]
+    assert np.all((u > -6) & (u < width + 5) & (v > -6) & (v < height + 5))
+    # Registered poses are near the true camera poses (SfM-like noise of 1° and 2 cm).
+    true_poses = np.asarray(camera_poses(capture.skeleton, capture.rig, truth).wxyz_xyz)
+    reg = corr.registered
+    angle = quat_distance(corr.world_from_camera[..., :4], true_poses[..., :4])[reg]
+    dist = np.linalg.norm(corr.world_from_camera[..., 4:] - true_poses[..., 4:], axis=-1)[reg]
+    assert np.median(np.rad2deg(angle)) < 3.0 and np.rad2deg(angle).max() < 6.0
+    assert np.median(dist) < 0.06 and dist.max() < 0.15
+
+
+def test_initial_motion_from_noisy_poses_is_near_the_truth(capture, corr):
+    initial = capture.initial_motion(corr)
+    truth = capture.motion[:FRAMES]
+    assert initial.rotations.shape == truth.rotations.shape
+    err = joint_position_errors(capture.skeleton, initial, truth)  # (T, J) m
+    assert np.median(err) < 0.1
+
+
+def test_capture_hinges_are_exact(capture):
+    skeleton, rot = capture.skeleton, np.asarray(capture.motion.rotations)
+    for j, kind in enumerate(skeleton.joint_types):
+        if kind == JointType.HINGE:
+            axis = np.asarray(skeleton.hinge_axes[j])
+            np.testing.assert_allclose(np.cross(rot[:, j, 1:], axis), 0.0, atol=1e-12)
+
+
+# ---- reduce_motion and resample on a small hand-built skeleton ---------------------------------------
+
+SMALL = (
+    BodySegment("hips", None, "pelvis", "pelvis", JointType.FREE),
+    BodySegment("knee", "leg", "shin", "shin", JointType.HINGE),  # listed before its parent on purpose
+    BodySegment("upper", "hips", "head", "torso", JointType.BALL),
+    BodySegment("leg", "hips", "thigh", "thigh", JointType.BALL),
+)
+
+
+def test_reduce_motion(skeleton):
+    rng = np.random.default_rng(0)
+    full = random_motion(skeleton, 4, rng, max_angle=1.5)
+    # Give the full knee some swing: the reduced hinge must keep only the twist about its axis.
+    rot = np.array(full.rotations)
+    rot[:, 4] = random_quaternions(rng, (4,), max_angle=1.0)
+    full = Motion(full.root_position, rot)
+    reduced_skeleton, reduced = reduce_motion(skeleton, full, SMALL)
+    assert reduced_skeleton.names == ("hips", "upper", "leg", "knee")
+    assert reduced_skeleton.parents == (-1, 0, 0, 2)
+    assert reduced_skeleton.joint_types == (JointType.FREE, JointType.BALL, JointType.BALL, JointType.HINGE)
+    axis = KNEE_AXIS / np.linalg.norm(KNEE_AXIS)
+    np.testing.assert_allclose(reduced_skeleton.hinge_axes[3], axis, atol=1e-15)
+    np.testing.assert_allclose(reduced_skeleton.offsets[1], skeleton.offsets[1], atol=1e-15)
+    np.testing.assert_allclose(reduced_skeleton.offsets[3], skeleton.offsets[4], atol=1e-15)
+    # Hinge rotations are exactly about their axis.
+    q = np.asarray(reduced.rotations)
+    np.testing.assert_allclose(np.cross(q[:, 3, 1:], axis), 0.0, atol=1e-15)
+    # Ball segments take the world orientation of their bone; joints sit where the full skeleton's are.
+    world_full = np.asarray(world_rotations(skeleton, full))
+    world_reduced = np.asarray(world_rotations(reduced_skeleton, reduced))
+    np.testing.assert_allclose(quat_distance(world_reduced[:, :3], world_full[:, [0, 2, 3]]), 0.0, atol=1e-7)
+    pos_full = np.asarray(forward_kinematics(skeleton, full).translation())
+    pos_reduced = np.asarray(forward_kinematics(reduced_skeleton, reduced).translation())
+    np.testing.assert_allclose(pos_reduced, pos_full[:, [0, 1, 3, 4]], atol=1e-13)
+
+
+def test_reduce_motion_rejects_a_hinge_on_a_ball_bone(skeleton):
+    segments = SMALL[:1] + (BodySegment("arm", "hips", "torso", "torso", JointType.HINGE),)
+    with pytest.raises(ValueError, match="'arm' is a hinge but bone 'torso' is not"):
+        reduce_motion(skeleton, skeleton.rest_motion(2), segments)
+    with pytest.raises(ValueError, match=r"unknown parents: \['arm'\]"):
+        reduce_motion(skeleton, skeleton.rest_motion(2), (SMALL[0], BodySegment("arm", "nope", "torso", "torso", JointType.BALL)))
+
+
+def test_resample(skeleton):
+    src = random_motion(skeleton, 9, np.random.default_rng(1), max_angle=0.5)
+    same = resample(src, 120.0, 120.0)
+    np.testing.assert_allclose(same.root_position, src.root_position, atol=1e-15)
+    np.testing.assert_allclose(quat_distance(same.rotations, src.rotations), 0.0, atol=1e-7)
+    half = resample(src, 120.0, 60.0)  # every other frame, both ends kept
+    assert half.num_frames == 5
+    np.testing.assert_allclose(half.root_position, np.asarray(src.root_position)[::2], atol=1e-15)
+    np.testing.assert_allclose(quat_distance(half.rotations, np.asarray(src.rotations)[::2]), 0.0, atol=1e-7)
+    double = resample(src, 120.0, 240.0)  # midpoints between frames
+    assert double.num_frames == 17
+    p = np.asarray(src.root_position)
+    np.testing.assert_allclose(double.root_position[1::2], 0.5 * (p[:-1] + p[1:]), atol=1e-15)
+    np.testing.assert_allclose(quat_distance(double.rotations[-1], src.rotations[-1]), 0.0, atol=1e-7)
+    r = np.asarray(src.rotations)
+    mid = np.asarray(double.rotations)[1::2]
+    np.testing.assert_allclose(quat_distance(mid, r[:-1]), quat_distance(mid, r[1:]), atol=1e-7)
+    np.testing.assert_allclose(2 * quat_distance(mid, r[:-1]), quat_distance(r[:-1], r[1:]), atol=1e-7)
+    odd = resample(src, 120.0, 50.0)  # frame times 0, 2.4, 4.8, 7.2 (in source frames)
+    assert odd.num_frames == 4
+    np.testing.assert_allclose(odd.root_position[0], p[0], atol=1e-15)
+    np.testing.assert_allclose(odd.root_position[1], 0.6 * p[2] + 0.4 * p[3], atol=1e-14)

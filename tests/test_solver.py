@@ -1,0 +1,184 @@
+"""The windowed structured LM solver: reference solves, seams, recovery and bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+
+from bcmocap.correspondences import Correspondences
+from bcmocap.eval import evaluate_motion
+from bcmocap.geometry import SE3, transform_points
+from bcmocap.kinematics import Motion, camera_poses
+from bcmocap.residuals import CauchyLoss, FrameTerm, JointSmoothness, Reprojection, RootSmoothness, pair_mask
+from bcmocap.solver import Problem, SolverOptions, motion_from_tangent, solve, whole_sequence_residual_function, window_starts
+from bcmocap.solver.objective import ObjectiveWeights, paper_problem
+
+from conftest import make_rig, make_skeleton, random_motion, scene_points
+
+T = 6
+
+
+def smooth_motion(skeleton, rng):
+    """A slowly changing motion of T frames."""
+    base = random_motion(skeleton, None, rng, max_angle=0.6)
+    steps = 0.03 * rng.normal(size=(T, skeleton.num_dofs))
+    return skeleton.retract(jax.tree.map(lambda a: jnp.broadcast_to(a, (T, *a.shape)), base), jnp.cumsum(steps, axis=0))
+
+
+def observe(skeleton, rig, motion, points, rng, sigma=0.5, outliers=0.0):
+    cam_from_world = camera_poses(skeleton, rig, motion).inverse()
+    n = len(points)
+    ids = np.full((T, rig.num_cameras, n), -1, np.int32)
+    pix = np.zeros((T, rig.num_cameras, n, 2))
+    w = np.zeros((T, rig.num_cameras, n))
+    for c in range(rig.num_cameras):
+        cam = jax.tree.map(lambda a: a[c], rig.intrinsics)
+        uv, valid = cam.project(transform_points(SE3(cam_from_world.wxyz_xyz[:, c, None]), points[None]))
+        valid = np.asarray(valid & cam.in_image(uv))
+        uv = np.asarray(uv) + sigma * rng.normal(size=uv.shape)
+        bad = rng.random(valid.shape) < outliers
+        uv[bad] = rng.uniform(0, 100, size=(bad.sum(), 2))
+        ids[:, c] = np.where(valid, np.arange(n), -1)
+        pix[:, c] = np.where(valid[..., None], uv, 0.0)
+        w[:, c] = valid / sigma**2
+    return ids, pix, w
+
+
+@pytest.fixture(scope="module")
+def setup():
+    rng = np.random.default_rng(7)
+    skeleton = make_skeleton()
+    rig = make_rig(skeleton)
+    truth = smooth_motion(skeleton, rng)
+    points = scene_points(rng, 40)
+    ids, pix, w = observe(skeleton, rig, truth, points, rng)
+    assert (w > 0).sum(axis=2).min() >= 6, "every camera-frame should see a few points"
+    init = skeleton.retract(truth, 0.02 * rng.normal(size=(T, skeleton.num_dofs)))
+    return skeleton, rig, truth, points, (ids, pix, w), init
+
+
+def make_problem(setup, loss=None, root=10.0, joints=1.0):
+    skeleton, rig, _, points, (ids, pix, w), _ = setup
+    kwargs = {} if loss is None else {"loss": loss}
+    terms = [
+        Reprojection({"point_ids": ids, "pixels": pix, "weights": w}, points=points, name="reprojection", **kwargs),
+        RootSmoothness(pair_mask(T), weight=root),
+        JointSmoothness(pair_mask(T), skeleton=skeleton, weight=joints),
+    ]
+    return Problem(skeleton, rig, terms)
+
+
+@pytest.mark.parametrize("loss", [None, CauchyLoss(3.0)], ids=["least-squares", "cauchy"])
+def test_whole_sequence_matches_scipy(setup, loss):
+    """One window over all frames reaches scipy's minimum of the same residuals to 1e-6 relative cost."""
+    skeleton, _, _, _, _, init = setup
+    problem = make_problem(setup, loss)
+    fn = whole_sequence_residual_function(problem, init)
+    jac = jax.jit(jax.jacfwd(fn))
+    ref = scipy.optimize.least_squares(
+        lambda y: np.asarray(fn(y)), np.zeros(T * skeleton.num_dofs), jac=lambda y: np.asarray(jac(y)),
+        method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=200,
+    )
+    ours = solve(problem, init, SolverOptions(window=T, overlap=0, rtol=1e-10, atol=1e-12, max_steps=60))
+    assert ours.converged
+    cost_ref = ref.cost
+    cost_ours = ours.reports[0].final_cost
+    assert abs(cost_ours - cost_ref) <= 1e-6 * cost_ref
+    # the same minimiser, too
+    y_ours = np.asarray(skeleton.difference(init, ours.motion)).ravel()
+    assert np.allclose(y_ours, ref.x, atol=1e-6)
+    assert cost_ours == pytest.approx(0.5 * np.sum(np.asarray(fn(ref.x)) ** 2), rel=1e-6)
+
+
+def test_windows_agree_with_whole_sequence(setup):
+    """Overlapping windows (the first frame of each held by the previous one) leave no visible seam."""
+    skeleton, rig, truth, _, _, init = setup
+    problem = make_problem(setup)
+    whole = solve(problem, init, SolverOptions(window=T, overlap=0, rtol=1e-10, atol=1e-12))
+    windowed = solve(problem, init, SolverOptions(window=3, overlap=1, rtol=1e-10, atol=1e-12))
+    assert [r.start for r in windowed.reports] == window_starts(T, 3, 1) == [0, 2, 3]
+    diff = evaluate_motion(skeleton, windowed.motion, whole.motion)
+    assert diff["joint_position_error_cm"]["max"] < 0.05
+    err = evaluate_motion(skeleton, windowed.motion, truth)
+    assert err["joint_position_error_cm"]["mean"] < 1.0
+
+
+def test_recovers_truth_with_outliers(setup):
+    """With 15 % outliers a Cauchy loss still recovers the motion."""
+    skeleton, rig, truth, points, _, init = setup
+    rng = np.random.default_rng(3)
+    ids, pix, w = observe(skeleton, rig, truth, points, rng, sigma=0.5, outliers=0.15)
+    problem = Problem(skeleton, rig, [
+        Reprojection({"point_ids": ids, "pixels": pix, "weights": w}, points=points, loss=CauchyLoss(3.0)),
+        RootSmoothness(pair_mask(T), weight=1.0),
+    ])
+    before = evaluate_motion(skeleton, init, truth)
+    after = evaluate_motion(skeleton, solve(problem, init, SolverOptions(window=T, overlap=0)).motion, truth)
+    assert after["joint_angle_error_deg"]["mean"] < 0.25 * before["joint_angle_error_deg"]["mean"]
+    assert after["joint_position_error_cm"]["mean"] < 0.5 * before["joint_position_error_cm"]["mean"]
+
+
+class JointLimit(FrameTerm):
+    """A tiny custom term: keep the knee angle below 0.1 rad."""
+
+    def residual(self, state, data):
+        angle = 2 * jnp.arctan2(jnp.linalg.norm(state.motion.rotations[4, 1:]), state.motion.rotations[4, 0])
+        return jnp.maximum(angle - 0.1, 0.0)[None, None], jnp.ones(1, bool)
+
+
+def test_custom_frame_term_is_honoured(setup):
+    skeleton, rig, truth, points, (ids, pix, w), init = setup
+    problem = Problem(skeleton, rig, [
+        Reprojection({"point_ids": ids, "pixels": pix, "weights": w}, points=points),
+        JointLimit(np.zeros(T), weight=1e8),
+    ])
+    result = solve(problem, init, SolverOptions(window=T, overlap=0))
+    knee = np.asarray(result.motion.rotations[:, 4])
+    angle = 2 * np.arctan2(np.linalg.norm(knee[:, 1:], axis=1), np.abs(knee[:, 0]))
+    assert angle.max() < 0.1 + 1e-3
+
+
+def test_bad_input_is_named(setup):
+    skeleton, rig, truth, points, (ids, pix, w), init = setup
+    bad = pix.copy()
+    bad[2, 1, np.argmax(w[2, 1] > 0)] = np.nan
+    with pytest.raises(ValueError, match=r"pixels has NaN/inf at frame 2, camera 1"):
+        Problem(skeleton, rig, [Reprojection({"point_ids": ids, "pixels": bad, "weights": w}, points=points)])
+    with pytest.raises(ValueError, match=r"data\['weights'\] has shape"):
+        Problem(skeleton, rig, [Reprojection({"point_ids": ids, "pixels": pix, "weights": w[:, :2]}, points=points)])
+    with pytest.raises(ValueError, match="point_ids reach"):
+        Problem(skeleton, rig, [Reprojection({"point_ids": ids + 100, "pixels": pix, "weights": w}, points=points)])
+    with pytest.raises(ValueError, match="cover different numbers of frames"):
+        Problem(skeleton, rig, [Reprojection({"point_ids": ids, "pixels": pix, "weights": w}, points=points),
+                                RootSmoothness(pair_mask(T + 1))])
+    empty = Problem(skeleton, rig, [Reprojection({"point_ids": ids, "pixels": pix, "weights": 0 * w}, points=points)])
+    with pytest.raises(ValueError, match=r"no usable observation in the window of frames \[0, 6\)"):
+        solve(empty, init, SolverOptions(window=T, overlap=0))
+    with pytest.raises(ValueError, match="initial_motion has 5 frames"):
+        solve(make_problem(setup), init[:5])
+    nan_init = Motion(np.where(np.arange(T)[:, None] == 3, np.nan, np.asarray(init.root_position)), init.rotations)
+    with pytest.raises(ValueError, match=r"initial_motion: root_position has NaN/inf \(first at index \(3, 0\)\)"):
+        solve(make_problem(setup), nan_init)
+    with pytest.raises(ValueError, match="overlap must be in"):
+        SolverOptions(window=4, overlap=4)
+
+
+def test_paper_problem_from_correspondences(setup):
+    skeleton, rig, truth, points, (ids, pix, w), init = setup
+    c = Correspondences(points, ids, pix, w, np.zeros((T, rig.num_cameras, 2, 2)), np.zeros((T, rig.num_cameras, 2, 2)),
+                        np.zeros((T, rig.num_cameras, 2)), np.zeros((T, rig.num_cameras, 7)),
+                        np.zeros((T, rig.num_cameras), bool), 60.0)
+    problem = paper_problem(c, skeleton, rig, ObjectiveWeights(loss="huber", loss_scale=2.0))
+    assert [t.label for t in problem.terms] == ["reprojection", "root smoothness", "joint smoothness"]
+    with pytest.raises(ValueError, match="correspondences have 6 cameras, the rig has 5"):
+        from bcmocap.kinematics import Rig
+        paper_problem(c, skeleton, Rig(rig.names[:5], rig.segments[:5], rig.segment_from_camera[:5],
+                                          jax.tree.map(lambda a: a[:5], rig.intrinsics)))
+
+
+def test_motion_from_tangent_roundtrip(setup):
+    skeleton, _, truth, _, _, init = setup
+    y = np.asarray(skeleton.difference(init, truth)).ravel()
+    back = motion_from_tangent(make_problem(setup), init, y)
+    assert evaluate_motion(skeleton, back, truth)["joint_position_error_cm"]["max"] < 1e-6
