@@ -30,10 +30,9 @@ class HingeLimits(FrameTerm):
     upper: float = 2.6
 
     def hinge_angles(self, rotations):
-        """Signed angle of every hinge about its axis, ``(J,)`` (0 for other joints)."""
-        q = rotations
-        along_axis = jnp.sum(q[:, 1:] * self.skeleton.hinge_axes, axis=-1)
-        return 2.0 * jnp.arctan2(along_axis, q[:, 0])
+        """Signed angle of every hinge about its axis, ``(..., J)`` from ``(..., J, 4)`` (0 for other joints)."""
+        along_axis = jnp.sum(rotations[..., 1:] * self.skeleton.hinge_axes, axis=-1)
+        return 2.0 * jnp.arctan2(along_axis, rotations[..., 0])
 
     def residual(self, state, data):
         hinge = np.array([t == JointType.HINGE for t in self.skeleton.joint_types])
@@ -54,7 +53,7 @@ def main(argv=None):
     problem = Problem(capture.skeleton, capture.rig, [*paper_terms(correspondences, capture.skeleton), limits])
     solution = solve(problem, initial, SolverOptions(window=min(40, capture.num_frames), overlap=10))
 
-    angles = np.asarray([limits.hinge_angles(r) for r in np.asarray(solution.motion.rotations)])
+    angles = np.asarray(limits.hinge_angles(solution.motion.rotations))
     hinges = [j for j, t in enumerate(capture.skeleton.joint_types) if t == JointType.HINGE]
     errors = evaluate_motion(capture.skeleton, solution.motion, capture.motion, capture.rig)
     print("hinge angle range (deg):", {capture.skeleton.names[j]: tuple(np.rad2deg([angles[:, j].min(), angles[:, j].max()]).round(1)) for j in hinges})
