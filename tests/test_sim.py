@@ -200,3 +200,21 @@ def test_resample(skeleton):
     assert odd.num_frames == 4
     np.testing.assert_allclose(odd.root_position[0], p[0], atol=1e-15)
     np.testing.assert_allclose(odd.root_position[1], 0.6 * p[2] + 0.4 * p[3], atol=1e-14)
+
+
+def test_lazy_problem_windows_equal_the_in_memory_problem(capture, corr):
+    """Simulating a window on demand gives the same terms as slicing the whole sequence's problem."""
+    from bcmocap.solver.objective import paper_terms
+
+    whole = paper_terms(corr, capture.skeleton, include_homography=True)
+    lazy = capture.lazy_problem()
+    assert lazy.num_frames == capture.num_frames
+    for start, stop in ((0, 2), (1, 3)):
+        expected = [t.window(start, stop) for t in whole]
+        got = lazy.window(start, stop)
+        assert [t.label for t in got] == [t.label for t in expected]
+        for g, e in zip(got[:2], expected[:2]):
+            for key in e.data:
+                np.testing.assert_array_equal(np.asarray(g.data[key]), np.asarray(e.data[key]))
+        for g in got[2:]:  # smoothness pairs: the sequence's first pair is dropped, later windows keep theirs
+            assert np.asarray(g.data)[0] == (0.0 if start == 0 else 1.0)

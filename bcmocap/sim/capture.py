@@ -73,27 +73,8 @@ class LazyProblem:
 
     def window(self, start: int, stop: int) -> tuple[Term, ...]:
         c = self.capture.correspondences(start, stop)
-        terms = paper_terms(c, self.skeleton, self.weights)
-        if not any(t.label == "homography" for t in terms):  # keep one term set for every window
-            from ..residuals import HomographyTransfer, loss_from_name
-
-            terms.insert(1, HomographyTransfer(
-                {"pixels": c.homography_pixels, "pixels_prev": c.homography_pixels_prev, "weights": c.homography_weights},
-                weight=self.weights.homography, loss=loss_from_name(self.weights.loss, self.weights.loss_scale),
-                name="homography"))
-        if start > 0:  # the first row pairs with the frame before the window
-            terms = [_with_first_pair(t) for t in terms]
+        terms = paper_terms(c, self.skeleton, self.weights, first_frame_has_previous=start > 0, include_homography=True)
         return tuple(t.window(0, stop - start) for t in terms)
-
-
-def _with_first_pair(term: Term) -> Term:
-    import equinox as eqx
-
-    if term.label in ("root smoothness", "joint smoothness"):
-        data = np.asarray(term.data).copy()
-        data[0] = 1.0
-        return eqx.tree_at(lambda t: t.data, term, data)
-    return term
 
 
 def standard_capture(

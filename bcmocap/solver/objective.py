@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 from ..correspondences import Correspondences
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Skeleton
@@ -31,8 +33,25 @@ class ObjectiveWeights:
     loss_scale: float = 8.0
 
 
-def paper_terms(correspondences: Correspondences, skeleton: Skeleton, weights: ObjectiveWeights = ObjectiveWeights()) -> list[Term]:
-    """The residual terms of Eq. (1) for a capture's correspondences."""
+def paper_terms(
+    correspondences: Correspondences,
+    skeleton: Skeleton,
+    weights: ObjectiveWeights = ObjectiveWeights(),
+    *,
+    first_frame_has_previous: bool = False,
+    include_homography: bool | None = None,
+) -> list[Term]:
+    """The residual terms of Eq. (1) for a capture's correspondences.
+
+    Args:
+        correspondences: measurements of consecutive frames.
+        skeleton: the model (for the joint smoothness term).
+        weights: λ's and robust loss.
+        first_frame_has_previous: True when the frames are a window inside a longer sequence, so the
+            first frame's smoothness pair (with the frame before it) is used.
+        include_homography: force the homography term in or out; by default it is included when
+            some camera-frame has matches. Windows of one sequence should agree (one compilation).
+    """
     c = correspondences
     loss = loss_from_name(weights.loss, weights.loss_scale)
     terms: list[Term] = [
@@ -41,12 +60,14 @@ def paper_terms(correspondences: Correspondences, skeleton: Skeleton, weights: O
             points=c.points, loss=loss, name="reprojection",
         ),
     ]
-    if (c.homography_weights > 0).any():
+    if include_homography is None:
+        include_homography = bool((c.homography_weights > 0).any())
+    if include_homography:
         terms.append(HomographyTransfer(
             {"pixels": c.homography_pixels, "pixels_prev": c.homography_pixels_prev, "weights": c.homography_weights},
             weight=weights.homography, loss=loss, name="homography",
         ))
-    mask = pair_mask(c.num_frames)
+    mask = np.ones(c.num_frames) if first_frame_has_previous else pair_mask(c.num_frames)
     if weights.root_smoothness > 0:
         terms.append(RootSmoothness(mask, weight=weights.root_smoothness, name="root smoothness"))
     if weights.joint_smoothness > 0:
