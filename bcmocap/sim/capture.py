@@ -80,8 +80,9 @@ class LazyProblem:
 def standard_capture(
     motion: str = "walk",
     *,
-    seconds: float = 2.0,
+    seconds: float | None = 2.0,
     start_seconds: float = 0.0,
+    repeat: bool = False,
     fps: float = 60.0,
     width: int = 640,
     height: int = 360,
@@ -92,12 +93,14 @@ def standard_capture(
 
     Args:
         motion: bundled CMU trial ("walk", "run", "jump").
-        seconds, start_seconds: part of the trial to use. fps: frame rate (Hz).
+        seconds, start_seconds: part of the trial to use (``seconds=None``: to its end).
+        repeat: play the trial back and forth when ``seconds`` is longer than it (long benchmarks).
+        fps: frame rate (Hz).
         width, height: image size of the 170° FOV-model cameras.
         noise: measurement model (1 px, 10 % outliers, 5 % unregistered by default).
         seed: random seed for the scene and the measurements.
     """
-    skeleton, truth = load_body_motion(motion, fps=fps, seconds=seconds, start_seconds=start_seconds)
+    skeleton, truth = load_body_motion(motion, fps=fps, seconds=seconds, start_seconds=start_seconds, repeat=repeat)
     rig = standard_rig(skeleton, width, height)
     world = make_world(np.asarray(truth.root_position)[:, :2], seed=seed)
     return SyntheticCapture(skeleton, rig, truth, world, noise, seed, fps)

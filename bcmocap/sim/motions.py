@@ -155,8 +155,22 @@ def cmu_trial_path(name: str) -> tuple[Path, Path]:
     return Path(str(base / asf)), Path(str(base / amc))
 
 
+def back_and_forth(motion: Motion, num_frames: int) -> Motion:
+    """Extend a motion to ``num_frames`` by playing it forward, then backward, and so on.
+
+    Positions and rotations stay continuous (no seam), so long benchmark sequences can be built from a
+    short real trial; the backward passes are the same real poses in reverse order.
+    """
+    n = motion.num_frames
+    if n < 2:
+        raise ValueError("back_and_forth: the motion needs at least 2 frames")
+    period = 2 * n - 2
+    idx = np.arange(num_frames) % period
+    return motion[np.where(idx < n, idx, period - idx)]
+
+
 def load_body_motion(
-    name: str, *, fps: float = 60.0, seconds: float | None = None, start_seconds: float = 0.0
+    name: str, *, fps: float = 60.0, seconds: float | None = None, start_seconds: float = 0.0, repeat: bool = False
 ) -> tuple[Skeleton, Motion]:
     """A bundled CMU trial reduced to the camera skeleton and resampled.
 
@@ -164,6 +178,8 @@ def load_body_motion(
         name: "walk", "run" or "jump" (see :data:`CMU_TRIALS`).
         fps: output frame rate.
         seconds: length to keep (None: all), starting at ``start_seconds``.
+        repeat: if ``seconds`` is longer than the trial, extend it with :func:`back_and_forth`
+            (otherwise the trial's own length is the limit).
     """
     from ..io.asf import load_cmu
 
@@ -176,7 +192,8 @@ def load_body_motion(
     skeleton, motion = reduce_motion(full_skeleton, full_motion[first:last])
     motion = resample(motion, CMU_FPS, fps)
     if seconds is not None:
-        motion = motion[: int(round(seconds * fps))]
+        wanted = int(round(seconds * fps))
+        motion = back_and_forth(motion, wanted) if repeat and wanted > motion.num_frames else motion[:wanted]
     return skeleton, motion
 
 

@@ -99,7 +99,10 @@ def _segment_distance2(p1, q1, p2, q2):
 
 
 def _visibility(rig: Rig, points, cam_from_world, capsule_ends, radii, noise: NoiseModel):
-    """Per camera: pixels ``(C, P, 2)`` and visibility ``(C, P)`` of all scene points at one frame."""
+    """Per camera: pixels ``(C, P, 2)`` and visibility ``(C, P)`` of all scene points at one frame.
+
+    ``capsule_ends`` may have zero capsules: visibility by lens, image and range only.
+    """
     p_cam = jax.vmap(lambda pose: transform_points(SE3(pose), points))(cam_from_world)  # (C, P, 3)
     uv, valid = jax.vmap(lambda cam, p: cam.project(p))(rig.intrinsics, p_cam)
     inside = jax.vmap(lambda cam, x: cam.in_image(x))(rig.intrinsics, uv)
@@ -132,7 +135,10 @@ class ObservationSimulator:
         self._cap_segments = np.array([c.segment for c in caps])
         self._cap_local = jnp.asarray(np.array([[c.a, c.b] for c in caps]))
         self._radii = np.array([c.radius for c in caps])
-        self._frame_fn = jax.jit(self._frame)
+        self._frames_fn = jax.jit(jax.vmap(self._frame))
+
+    #: frames simulated per vectorised call (the last chunk is padded, so one compilation serves all)
+    chunk = 16
 
     def _frame(self, frame_index, rotations, root_position):
         """Observations of frame t given the truth at frames (t−1, t) (arrays of shape (2, ...))."""
@@ -144,7 +150,9 @@ class ObservationSimulator:
         seg = SE3(world_from_segment.wxyz_xyz[1][self._cap_segments])
         ends = jnp.stack([seg @ self._cap_local[:, 0], seg @ self._cap_local[:, 1]], axis=1)  # (K, 2, 3)
         uv, visible = _visibility(rig, self.points, cam_from_world[1], ends, self._radii, noise)
-        prev_uv, prev_visible = _visibility(rig, self.points, cam_from_world[0], ends, self._radii, noise)
+        # Homography matches must also be seen at t-1; body occlusion is taken from frame t (it barely
+        # changes in one frame, and the capsule test is the simulator's most expensive step).
+        prev_uv, prev_visible = _visibility(rig, self.points, cam_from_world[0], ends[:0], self._radii[:0], noise)
 
         key = jax.random.fold_in(jax.random.PRNGKey(self.seed), frame_index)
         k_pick, k_noise, k_out, k_outpix, k_reg, k_rot, k_pos, k_hnoise = jax.random.split(key, 8)
@@ -186,10 +194,12 @@ class ObservationSimulator:
             raise ValueError(f"frames [{start}, {stop}) outside the capture's {self.motion.num_frames} frames")
         rot = np.asarray(self.motion.rotations)
         pos = np.asarray(self.motion.root_position)
-        outs = []
-        for t in range(start, stop):
-            pair = [max(t - 1, 0), t]
-            outs.append(self._frame_fn(jnp.asarray(t), jnp.asarray(rot[pair]), jnp.asarray(pos[pair])))
         keys = ("point_ids", "pixels", "weights", "homography_pixels", "homography_pixels_prev",
                 "homography_weights", "world_from_camera", "registered")
-        return {k: np.stack([np.asarray(o[i]) for o in outs]) for i, k in enumerate(keys)}
+        parts = []
+        for first in range(start, stop, self.chunk):
+            frames = np.minimum(np.arange(first, first + self.chunk), stop - 1)  # pad with the last frame
+            pairs = np.stack([np.maximum(frames - 1, 0), frames], axis=1)  # (chunk, 2): frames t-1, t
+            out = self._frames_fn(jnp.asarray(frames), jnp.asarray(rot[pairs]), jnp.asarray(pos[pairs]))
+            parts.append([np.asarray(a)[: min(self.chunk, stop - first)] for a in out])
+        return {k: np.concatenate([p[i] for p in parts]) for i, k in enumerate(keys)}
