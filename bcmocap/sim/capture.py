@@ -50,10 +50,25 @@ class SyntheticCapture:
         arrays = self._simulator.frames(start, stop)
         return Correspondences(points=self.world.points, fps=self.fps, **arrays)
 
+    def registered_poses(self, chunk_frames: int = 256) -> tuple[np.ndarray, np.ndarray]:
+        """Noisy registered ``world_from_camera`` ``(T, C, 7)`` and ``registered`` ``(T, C)``.
+
+        Simulated chunk by chunk, keeping only the poses, so memory does not grow with the measurements.
+        """
+        poses, registered = [], []
+        for start in range(0, self.num_frames, chunk_frames):
+            part = self._simulator.frames(start, min(start + chunk_frames, self.num_frames))
+            poses.append(part["world_from_camera"])
+            registered.append(part["registered"])
+        return np.concatenate(poses), np.concatenate(registered)
+
     def initial_motion(self, correspondences: Correspondences | None = None) -> Motion:
         """Motion from the noisy registered camera poses, as the solver's starting point."""
-        c = self.correspondences() if correspondences is None else correspondences
-        return motion_from_camera_poses(self.skeleton, self.rig, c.world_from_camera, c.registered)
+        if correspondences is None:
+            poses, registered = self.registered_poses()
+        else:
+            poses, registered = correspondences.world_from_camera, correspondences.registered
+        return motion_from_camera_poses(self.skeleton, self.rig, poses, registered)
 
     def lazy_problem(self, weights: ObjectiveWeights = ObjectiveWeights()) -> LazyProblem:
         """A problem that simulates each window's measurements when the solver asks for it."""
