@@ -204,24 +204,39 @@ def problems(skeleton, rig, scene):
     """The window with and without a previous frame (one compilation serves both: has_previous is traced).
 
     Robust losses on both image terms (Cauchy on reprojection, with 40 px outliers far beyond its 2 px
-    scale; Huber on homography) cover the plain least-squares case too: the solver scales residuals
-    before differentiating in both paths.
+    scale; Huber on homography); the smoothness terms are plain least squares.
     """
     terms = window_terms(skeleton, scene)
     return {has_previous: make_window_problem(skeleton, rig, terms, scene["reference"], has_previous)
             for has_previous in (False, True)}
 
 
+def irls_reference(problem, y):
+    """``Σ λ ρ'(s) JᵀJ`` from the dense Jacobian of the raw residual blocks (losses removed, λ = 1)."""
+    raw_terms = tuple(eqx.tree_at(lambda t: (t.loss, t.weight), t, (TrivialLoss(), jnp.asarray(1.0))) for t in problem.terms)
+    raw = eqx.tree_at(lambda p: p.terms, problem, raw_terms)
+    blocks = residuals(raw, y)
+    row_weights = [
+        jnp.broadcast_to((t.weight * t.loss.derivative(jnp.sum(b * b, axis=-1)))[..., None], b.shape).reshape(-1)
+        for t, b in zip(problem.terms, blocks)
+    ]
+    _, jac = dense_system(raw, y)
+    jac = np.asarray(jac).reshape(jac.shape[0], -1)
+    return jac.T @ (np.concatenate([np.asarray(w) for w in row_weights])[:, None] * jac)
+
+
 @pytest.mark.parametrize("has_previous", [False, True])
 def test_normal_equations_match_dense_jacobian(problems, skeleton, has_previous):
+    """The structured system equals the dense one: the exact gradient Jᵀr of the cost, and the IRLS
+    Gauss–Newton matrix Σ λρ'(s) JᵀJ of the raw residuals (what Ceres uses where ρ'' ≤ 0)."""
     problem = problems[has_previous]
     d = skeleton.num_dofs
     y = jnp.asarray(np.random.default_rng(3).normal(scale=0.01, size=(W, d)))
     r, jac = dense_system(problem, y)
     r, jac = np.asarray(r), np.asarray(jac).reshape(len(r), W * d)
     assert np.all(np.isfinite(jac)) and np.abs(r).max() > 1.0
-    hess = (jac.T @ jac).reshape(W, d, W, d)
     grad = (jac.T @ r).reshape(W, d)
+    hess = irls_reference(problem, y).reshape(W, d, W, d)
     ne = structured_system(problem, y)
     assert ne.diag.shape == (W, d, d) and ne.upper.shape == (W - 1, d, d) and ne.grad.shape == (W, d)
     scale = np.abs(hess).max()

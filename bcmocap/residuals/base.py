@@ -98,9 +98,17 @@ class Term(eqx.Module):
                 raise ValueError(f"{self.label}: data{jax.tree_util.keystr(path)} has NaN/inf at index {idx}")
 
     def finish(self, r: jax.Array, valid: jax.Array) -> jax.Array:
-        """Mask, robustify and weight raw residual blocks ``(..., k)``."""
-        r = jnp.where(valid[..., None], r, 0.0)
-        return jnp.sqrt(self.weight) * self.loss.scale_residual(r)
+        """Mask, robustify and weight raw residual blocks ``(..., k)``: the residuals whose squares are the cost."""
+        return jnp.sqrt(self.weight) * self.loss.scale_residual(self.masked(r, valid))
+
+    @staticmethod
+    def masked(r: jax.Array, valid: jax.Array) -> jax.Array:
+        """Raw residual blocks ``(..., k)`` with invalid ones set to zero."""
+        return jnp.where(valid[..., None], r, 0.0)
+
+    def irls_sqrt_weights(self, masked: jax.Array) -> jax.Array:
+        """``sqrt(λ ρ'(‖r‖²))`` per block ``(...)``: row scaling of the IRLS Gauss–Newton model."""
+        return jnp.sqrt(self.weight * self.loss.derivative(jnp.sum(masked * masked, axis=-1)))
 
 
 class FrameTerm(Term):
@@ -128,7 +136,13 @@ class CameraTerm(Term):
 
 
 class CameraPairTerm(Term):
-    """Measurements linking one camera at frames ``t-1`` and ``t`` (homography transfer)."""
+    """Measurements linking one camera at frames ``t-1`` and ``t`` (homography transfer).
+
+    Subclasses whose residual depends on the camera orientations only set ``rotation_only = True``;
+    the solver then differentiates with respect to the 3 rotation tangents of each pose, not all 6.
+    """
+
+    rotation_only = False
 
     @abc.abstractmethod
     def residual(

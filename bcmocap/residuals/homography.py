@@ -24,6 +24,8 @@ class HomographyTransfer(CameraPairTerm):
     px⁻² (0 for padding). Row ``t = 0`` of a sequence has no previous frame and is ignored.
     """
 
+    rotation_only = True  # camera translation is neglected between consecutive frames (Eq. 2)
+
     def check(self, num_frames: int, num_cameras: int) -> None:
         for key in ("pixels", "pixels_prev", "weights"):
             if key not in self.data:

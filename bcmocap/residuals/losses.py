@@ -1,8 +1,10 @@
 """Robust losses ρ(s) of a residual block's squared norm s = ‖r‖², as in Ceres.
 
-The solver minimises ½ Σ ρ(‖r‖²). With optimistix (which has no robust loss) each block is replaced
-by ``r · sqrt(ρ(s) / s)``, whose squared norm is ρ(s); autodiff through that scaling gives the exact
-Gauss–Newton Jacobian of the robustified problem.
+The solver minimises ½ Σ ρ(‖r‖²). optimistix has no robust loss, so the residual it sees is each block
+scaled by ``sqrt(ρ(s) / s)`` (squared norm ρ(s): the true cost). The structured normal equations use
+the IRLS model instead, as Ceres does where ρ'' ≤ 0: ``H = Σ ρ'(s) JᵀJ`` and ``g = Σ ρ'(s) Jᵀr`` on the
+raw residuals. The gradient is exact and H stays positive semi-definite; the Gauss–Newton matrix of the
+scaled residual is not, and in Cauchy's non-convex zone it proposed steps that raised the cost.
 """
 
 from __future__ import annotations
@@ -18,6 +20,10 @@ class RobustLoss(eqx.Module):
     def rho(self, s: jax.Array) -> jax.Array:
         return s
 
+    def derivative(self, s: jax.Array) -> jax.Array:
+        """ρ'(s), elementwise (autodiff of :meth:`rho`): the IRLS weight of a block."""
+        return jnp.vectorize(jax.grad(self.rho))(s)
+
     def scale_residual(self, r: jax.Array) -> jax.Array:
         """Scale residual blocks ``(..., k)`` so that their squared norms become ρ(s)."""
         s = jnp.sum(r * r, axis=-1, keepdims=True)
@@ -32,6 +38,9 @@ class TrivialLoss(RobustLoss):
 
     def scale_residual(self, r: jax.Array) -> jax.Array:
         return r
+
+    def derivative(self, s: jax.Array) -> jax.Array:
+        return jnp.ones_like(s)
 
 
 class HuberLoss(RobustLoss):

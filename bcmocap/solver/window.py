@@ -132,19 +132,34 @@ def _camera_pose_jacobians(problem: WindowProblem, y_ext: jax.Array) -> tuple[ja
     return jax.vmap(per_frame)(problem.reference, y_ext)
 
 
-def _camera_measurement_jacobians(residual_fn, poses: tuple[jax.Array, ...]):
-    """Finished residual ``(n, k)`` and its Jacobian ``(n, k, 6·len(poses))`` w.r.t. left pose perturbations."""
+def _camera_measurement_jacobians(residual_fn, poses: tuple[jax.Array, ...], rotation_only: bool = False):
+    """Residual blocks ``(n, k)`` and their Jacobian ``(n, k, 6·len(poses))`` w.r.t. left pose perturbations.
+
+    With ``rotation_only`` the residual is declared independent of the translations: only the rotation
+    tangents are differentiated and the translation columns are zero.
+    """
+    per_pose = 3 if rotation_only else 6
 
     def perturbed(xi):
-        perturbed_poses = [SE3.exp(xi[6 * i : 6 * i + 6]) @ SE3(p) for i, p in enumerate(poses)]
-        return residual_fn(*perturbed_poses)
+        tangents = [xi[per_pose * i : per_pose * (i + 1)] for i in range(len(poses))]
+        if rotation_only:
+            tangents = [jnp.concatenate([jnp.zeros(3), t]) for t in tangents]
+        return residual_fn(*[SE3.exp(t) @ SE3(p) for t, p in zip(tangents, poses)])
 
-    zero = jnp.zeros(6 * len(poses))
-    return perturbed(zero), jax.jacfwd(perturbed)(zero)
+    zero = jnp.zeros(per_pose * len(poses))
+    r, jac = perturbed(zero), jax.jacfwd(perturbed)(zero)
+    if rotation_only:  # back to (translation, rotation) blocks of 6 per pose
+        jac = jac.reshape(*jac.shape[:-1], len(poses), 3)
+        jac = jnp.concatenate([jnp.zeros_like(jac), jac], axis=-1).reshape(*jac.shape[:-2], 6 * len(poses))
+    return r, jac
 
 
 def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
-    """Assemble the block-tridiagonal Gauss–Newton system of the window at ``y`` ``(W, D)``."""
+    """Assemble the block-tridiagonal Gauss–Newton system of the window at ``y`` ``(W, D)``.
+
+    ``grad`` is the exact gradient of the window's cost; ``diag``/``upper`` are the IRLS Gauss–Newton
+    matrix ``Σ λ ρ'(s) JᵀJ`` (exactly ``JᵀJ`` of the residuals when no robust loss is used).
+    """
     w, d = y.shape
     y_ext = _extended(problem, y)
     diag = jnp.zeros((w + 1, d, d))  # index 0: the fixed previous frame (discarded)
@@ -156,11 +171,11 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
     for term in problem.terms:
         if isinstance(term, FrameTerm):
             def frame_residual(y_t, ref_t, data, term=term):
-                r, v = term.residual(frame_state(problem.skeleton, problem.rig, ref_t, y_t), data)
-                return term.finish(r, v).reshape(-1)
+                return term.masked(*term.residual(frame_state(problem.skeleton, problem.rig, ref_t, y_t), data))
 
             r = jax.vmap(frame_residual)(y, problem.reference[1:], term.data)
             jac = jax.vmap(jax.jacfwd(frame_residual))(y, problem.reference[1:], term.data)
+            r, jac = _irls_rows(term, r, jac)
             diag = diag.at[1:].add(jnp.einsum("tri,trj->tij", jac, jac))
             grad = grad.at[1:].add(jnp.einsum("tri,tr->ti", jac, r))
         elif isinstance(term, PairTerm):
@@ -168,18 +183,20 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
                 prev = frame_state(problem.skeleton, problem.rig, ref_prev, y_pair[0])
                 curr = frame_state(problem.skeleton, problem.rig, ref_curr, y_pair[1])
                 r, v = term.residual(prev, curr, data)
-                return term.finish(r, v & ok).reshape(-1)
+                return term.masked(r, v & ok)
 
             pairs = jnp.stack([y_ext[:-1], y_ext[1:]], axis=1)  # (W, 2, D)
             ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
             args = (pairs, problem.reference[:-1], problem.reference[1:], term.data, ok)
             r = jax.vmap(pair_residual)(*args)
-            jac = jax.vmap(jax.jacfwd(pair_residual))(*args)  # (W, m, 2, D)
+            jac = jax.vmap(jax.jacfwd(pair_residual))(*args)  # (W, n, k, 2, D)
+            r, jac = _irls_rows(term, r, jac.reshape(*jac.shape[:3], -1))
+            jac = jac.reshape(*jac.shape[:2], 2, d)
             diag, upper, grad = _add_pair_blocks(diag, upper, grad, r, jac[:, :, 0], jac[:, :, 1])
         elif isinstance(term, CameraTerm):
             def cam_blocks(pose, cam, data, term=term):
-                fn = lambda p: term.finish(*term.residual(p, cam, data)).reshape(-1)
-                r, jac = _camera_measurement_jacobians(fn, (pose,))
+                fn = lambda p: term.masked(*term.residual(p, cam, data))
+                r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,)))
                 return jac.T @ jac, jac.T @ r
 
             hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0)), in_axes=(0, None, 0))(
@@ -190,8 +207,8 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
             grad = grad.at[1:].add(jnp.einsum("tcai,tca->ti", jp, g))
         elif isinstance(term, CameraPairTerm):
             def cam_pair_blocks(prev, pose, cam, data, ok, term=term):
-                fn = lambda p0, p1: term.finish(*_and_valid(term.residual(p0, p1, cam, data), ok)).reshape(-1)
-                r, jac = _camera_measurement_jacobians(fn, (prev, pose))
+                fn = lambda p0, p1: term.masked(*_and_valid(term.residual(p0, p1, cam, data), ok))
+                r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (prev, pose), term.rotation_only))
                 return jac.T @ jac, jac.T @ r
 
             ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
@@ -209,6 +226,17 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
         else:
             raise TypeError(f"{term.label}: a term must subclass FrameTerm, PairTerm, CameraTerm or CameraPairTerm")
     return NormalEquations(diag[1:], upper[1:], grad[1:])
+
+
+def _irls_rows(term: Term, r: jax.Array, jac: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """IRLS-weighted rows: blocks ``(..., n, k)`` and Jacobians ``(..., n, k, P)`` → ``(..., n·k)``, ``(..., n·k, P)``.
+
+    Each block is scaled by ``sqrt(λ ρ'(‖r‖²))``, so ``JᵀJ = Σ λρ' JᵀJ`` and ``Jᵀr`` is the exact gradient
+    of ``λ ½ Σ ρ``.
+    """
+    scale = term.irls_sqrt_weights(r)[..., None]
+    r, jac = r * scale, jac * scale[..., None]
+    return r.reshape(*r.shape[:-2], -1), jac.reshape(*jac.shape[:-3], -1, jac.shape[-1])
 
 
 def _and_valid(result, ok):
