@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--motion", default="walk", choices=["walk", "run", "jump"])
     demo.add_argument("--seconds", type=float, default=2.0, help="length of the capture (s)")
     demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--window", type=int, default=40, help="frames per solver window")
+    demo.add_argument("--window", type=int, default=60, help="frames per solver window")
     demo.add_argument("--overlap", type=int, default=10, help="frames shared by consecutive windows")
     args = parser.parse_args(argv)
     if args.command == "demo":

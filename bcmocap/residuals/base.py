@@ -128,11 +128,24 @@ class PairTerm(Term):
 
 
 class CameraTerm(Term):
-    """Measurements of one camera at one frame (reprojection)."""
+    """Measurements of one camera at one frame (reprojection).
+
+    A term whose measurement ``i`` depends on the pose only through the camera-frame position of its own
+    world point ``i`` may say so by returning those points from :meth:`world_points` and implementing
+    :meth:`residual_in_camera`; the solver then differentiates the lens with 3 tangents instead of 6.
+    """
 
     @abc.abstractmethod
     def residual(self, cam_from_world: SE3, camera: CameraModel, data: Any) -> tuple[jax.Array, jax.Array]:
         """Args: one camera's pose (batch ``()``), its intrinsics and data slice ``data[t, c]``."""
+
+    def world_points(self, data: Any) -> jax.Array | None:
+        """``(n, 3)`` world points whose camera-frame positions alone determine the residuals, or None."""
+        return None
+
+    def residual_in_camera(self, points_cam: jax.Array, camera: CameraModel, data: Any) -> tuple[jax.Array, jax.Array]:
+        """The residual from camera-frame points ``(n, 3)``; block ``i`` may depend on point ``i`` only."""
+        raise NotImplementedError(f"{self.label}: world_points() is given but residual_in_camera() is not")
 
 
 class CameraPairTerm(Term):

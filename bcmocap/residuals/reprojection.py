@@ -65,6 +65,12 @@ class Reprojection(CameraTerm):
             raise ValueError(f"{self.label}: weights must be finite and non-negative")
 
     def residual(self, cam_from_world: SE3, camera: CameraModel, data):
-        predicted, valid = camera.project(transform_points(cam_from_world, data["points"]))
+        return self.residual_in_camera(transform_points(cam_from_world, data["points"]), camera, data)
+
+    def world_points(self, data):
+        return data["points"]
+
+    def residual_in_camera(self, points_cam, camera: CameraModel, data):
+        predicted, valid = camera.project(points_cam)
         r = (predicted - data["pixels"]) * jnp.sqrt(data["weights"])[:, None]
         return r, valid & (data["weights"] > 0)

@@ -75,8 +75,8 @@ class StructuredLevenbergMarquardt(optx.AbstractGaussNewton):
     def __init__(
         self,
         build: Callable,
-        rtol: float = 1e-6,
-        atol: float = 1e-6,
+        rtol: float = 1e-4,
+        atol: float = 1e-4,
         norm: Callable = optx.rms_norm,
         damping_scale: float = 1e-3,
     ):

@@ -14,7 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..geometry import SE3
+from ..geometry import SE3, transform_points
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
@@ -115,6 +115,18 @@ class NormalEquations(eqx.Module):
     grad: jax.Array
 
 
+def _log_near_identity(matrix: jax.Array) -> jax.Array:
+    """``(..., 6)`` (translation, rotation) of 4×4 transforms, with the derivative of SE(3) log at the identity.
+
+    Jacobians are only ever taken at the identity, where this linear map and ``SE3.log`` agree to first
+    order; it avoids differentiating jaxlie's log (branches for small angles) for every camera and DOF.
+    """
+    rot = matrix[..., :3, :3]
+    skew = 0.5 * (rot - jnp.swapaxes(rot, -1, -2))
+    omega = jnp.stack([skew[..., 2, 1], skew[..., 0, 2], skew[..., 1, 0]], axis=-1)
+    return jnp.concatenate([matrix[..., :3, 3], omega], axis=-1)
+
+
 def _camera_pose_jacobians(problem: WindowProblem, y_ext: jax.Array) -> tuple[jax.Array, jax.Array]:
     """``cam_from_world`` ``(W+1, C, 7)`` and its Jacobian ``(W+1, C, 6, D)`` w.r.t. each frame's variables.
 
@@ -126,7 +138,7 @@ def _camera_pose_jacobians(problem: WindowProblem, y_ext: jax.Array) -> tuple[ja
             return frame_state(problem.skeleton, problem.rig, reference, yy).world_from_camera.inverse()
 
         current = jax.lax.stop_gradient(pose(y_t))
-        tangent = lambda yy: (pose(yy) @ current.inverse()).log()
+        tangent = lambda yy: _log_near_identity((pose(yy) @ current.inverse()).as_matrix())
         return current.wxyz_xyz, jax.jacfwd(tangent)(y_t)
 
     return jax.vmap(per_frame)(problem.reference, y_ext)
@@ -168,35 +180,43 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
     needs_cameras = any(isinstance(t, (CameraTerm, CameraPairTerm)) for t in problem.terms)
     if needs_cameras:
         cam_poses, pose_jac = _camera_pose_jacobians(problem, y_ext)
-    for term in problem.terms:
-        if isinstance(term, FrameTerm):
-            def frame_residual(y_t, ref_t, data, term=term):
-                return term.masked(*term.residual(frame_state(problem.skeleton, problem.rig, ref_t, y_t), data))
+    frame_terms = [t for t in problem.terms if isinstance(t, FrameTerm)]
+    pair_terms = [t for t in problem.terms if isinstance(t, PairTerm)]
+    if frame_terms:  # one differentiation of the frame state serves every frame term
+        def frame_residuals(y_t, ref_t, data):
+            state = frame_state(problem.skeleton, problem.rig, ref_t, y_t)
+            return tuple(t.masked(*t.residual(state, dt)) for t, dt in zip(frame_terms, data))
 
-            r = jax.vmap(frame_residual)(y, problem.reference[1:], term.data)
-            jac = jax.vmap(jax.jacfwd(frame_residual))(y, problem.reference[1:], term.data)
+        args = (y, problem.reference[1:], tuple(t.data for t in frame_terms))
+        rs, jacs = jax.vmap(frame_residuals)(*args), jax.vmap(jax.jacfwd(frame_residuals))(*args)
+        for term, r, jac in zip(frame_terms, rs, jacs):
             r, jac = _irls_rows(term, r, jac)
             diag = diag.at[1:].add(jnp.einsum("tri,trj->tij", jac, jac))
             grad = grad.at[1:].add(jnp.einsum("tri,tr->ti", jac, r))
-        elif isinstance(term, PairTerm):
-            def pair_residual(y_pair, ref_prev, ref_curr, data, ok, term=term):
-                prev = frame_state(problem.skeleton, problem.rig, ref_prev, y_pair[0])
-                curr = frame_state(problem.skeleton, problem.rig, ref_curr, y_pair[1])
-                r, v = term.residual(prev, curr, data)
-                return term.masked(r, v & ok)
+    if pair_terms:  # likewise one differentiation of both frames of each pair
+        def pair_residuals(y_pair, ref_prev, ref_curr, data, ok):
+            prev = frame_state(problem.skeleton, problem.rig, ref_prev, y_pair[0])
+            curr = frame_state(problem.skeleton, problem.rig, ref_curr, y_pair[1])
+            return tuple(t.masked(*_and_valid(t.residual(prev, curr, dt), ok)) for t, dt in zip(pair_terms, data))
 
-            pairs = jnp.stack([y_ext[:-1], y_ext[1:]], axis=1)  # (W, 2, D)
-            ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
-            args = (pairs, problem.reference[:-1], problem.reference[1:], term.data, ok)
-            r = jax.vmap(pair_residual)(*args)
-            jac = jax.vmap(jax.jacfwd(pair_residual))(*args)  # (W, n, k, 2, D)
+        pairs = jnp.stack([y_ext[:-1], y_ext[1:]], axis=1)  # (W, 2, D)
+        ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
+        args = (pairs, problem.reference[:-1], problem.reference[1:], tuple(t.data for t in pair_terms), ok)
+        rs, jacs = jax.vmap(pair_residuals)(*args), jax.vmap(jax.jacfwd(pair_residuals))(*args)
+        for term, r, jac in zip(pair_terms, rs, jacs):  # jac: (W, n, k, 2, D)
             r, jac = _irls_rows(term, r, jac.reshape(*jac.shape[:3], -1))
             jac = jac.reshape(*jac.shape[:2], 2, d)
             diag, upper, grad = _add_pair_blocks(diag, upper, grad, r, jac[:, :, 0], jac[:, :, 1])
-        elif isinstance(term, CameraTerm):
+    for term in problem.terms:
+        if isinstance(term, (FrameTerm, PairTerm)):
+            continue
+        if isinstance(term, CameraTerm):
             def cam_blocks(pose, cam, data, term=term):
-                fn = lambda p: term.masked(*term.residual(p, cam, data))
-                r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,)))
+                if term.world_points(data) is None:
+                    fn = lambda p: term.masked(*term.residual(p, cam, data))
+                    r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,)))
+                else:
+                    r, jac = _irls_rows(term, *_point_measurement_jacobians(term, SE3(pose), cam, data))
                 return jac.T @ jac, jac.T @ r
 
             hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0)), in_axes=(0, None, 0))(
@@ -226,6 +246,19 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
         else:
             raise TypeError(f"{term.label}: a term must subclass FrameTerm, PairTerm, CameraTerm or CameraPairTerm")
     return NormalEquations(diag[1:], upper[1:], grad[1:])
+
+
+def _point_measurement_jacobians(term: CameraTerm, cam_from_world: SE3, camera, data):
+    """Residual blocks ``(n, k)`` and Jacobians ``(n, k, 6)`` of a term that acts on camera-frame points.
+
+    Block i depends on point i only, so one 3-tangent JVP shared by all points gives every per-point
+    Jacobian ∂r_i/∂p_i at once; it is chained with ∂p_i/∂ξ of the left perturbation ``exp(ξ) · p``.
+    """
+    points = transform_points(cam_from_world, term.world_points(data))
+    residual = lambda shift: term.masked(*term.residual_in_camera(points + shift, camera, data))
+    r, d_point = residual(jnp.zeros(3)), jax.jacfwd(residual)(jnp.zeros(3))  # (n, k), (n, k, 3)
+    d_action = jax.jacfwd(lambda xi: transform_points(SE3.exp(xi), points))(jnp.zeros(6))  # (n, 3, 6)
+    return r, jnp.einsum("nkj,nji->nki", d_point, d_action)
 
 
 def _irls_rows(term: Term, r: jax.Array, jac: jax.Array) -> tuple[jax.Array, jax.Array]:
