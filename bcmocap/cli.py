@@ -96,9 +96,7 @@ def run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bcmocap", description="Motion capture from body-mounted cameras.")
-    sub = parser.add_subparsers(dest="command", required=True)
+def add_demo_command(sub: argparse._SubParsersAction) -> None:
     demo = sub.add_parser("demo", help="simulate a short CMU capture, optimise it and report accuracy")
     demo.add_argument("--out", default="bcmocap-demo", help="output folder (default: ./bcmocap-demo)")
     demo.add_argument("--motion", default="walk", choices=["walk", "run", "jump"])
@@ -106,12 +104,29 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--window", type=int, default=60, help="frames per solver window")
     demo.add_argument("--overlap", type=int, default=10, help="frames shared by consecutive windows")
-    args = parser.parse_args(argv)
-    if args.command == "demo":
+
+    def run(args: argparse.Namespace) -> int:
         if args.seconds <= 0:
-            parser.error("--seconds must be positive")
+            demo.error("--seconds must be positive")
         return run_demo(args)
-    return 2
+
+    demo.set_defaults(run=run)
+
+
+# Each subcommand registers itself: ``add(subparsers)`` adds its parser and sets ``run=callable(args) -> int``.
+# Modules are imported lazily inside their ``run`` so that ``bcmocap --help`` stays fast.
+COMMANDS = [
+    add_demo_command,
+]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bcmocap", description="Motion capture from body-mounted cameras.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in COMMANDS:
+        add(sub)
+    args = parser.parse_args(argv)
+    return int(args.run(args))
 
 
 if __name__ == "__main__":
