@@ -1,76 +1,148 @@
 """Levenberg–Marquardt over a time window with optimistix in charge of the iteration.
 
-optimistix keeps the loop, the trust-region update (:class:`optimistix.ClassicalTrustRegion`), the
-stopping rule, ``max_steps`` and result codes. Its stock linear solvers would materialise the dense
-Jacobian of the window; instead :class:`StructuredDampedNewtonDescent` assembles the block-tridiagonal
-normal equations (:func:`bcmocap.solver.window.normal_equations`) once per accepted step and solves
-the damped system ``(H + μ diag(H)) δ = −g`` (Marquardt scaling, μ = 1/step size) by a block
-Cholesky scan at every trial step.
+optimistix keeps the loop (``optx.least_squares``: ``max_steps``, ``throw``, result codes) and the
+trust-region update (:class:`optimistix.ClassicalTrustRegion`). Its Gauss–Newton solvers would
+linearise the residual function at every trial point (a full tangent pass) and its stock linear
+solvers would materialise the dense Jacobian of the window. Here instead:
+
+- :class:`StructuredLevenbergMarquardt` evaluates only the residuals at a trial point; when the trust
+  region accepts it, it assembles the block-tridiagonal normal equations
+  (:func:`bcmocap.solver.window.normal_equations`) there, unless the step already satisfies the
+  stopping rule (then they would never be used). The model ``f + gᵀδ + ½ δᵀHδ`` is handed to the
+  trust region as :class:`optimistix.FunctionInfo.EvalGradHessian` with ``H`` a
+  :class:`BlockTridiagonalOperator`, so its predicted reduction costs one block matvec.
+- :class:`StructuredDampedNewtonDescent` solves the damped system ``(H + μ diag(H)) δ = −g``
+  (Marquardt scaling, μ = damping_scale / step size) by a block Cholesky scan at every trial step.
+
+With a robust loss, ``g`` is the exact gradient and ``H`` the IRLS Gauss–Newton model (as Ceres), so
+the trust region compares the true cost change with the reduction of the model the step minimises.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import optimistix as optx
 
-from .block_tridiagonal import solve_block_tridiagonal
+from .block_tridiagonal import block_tridiagonal_matvec, solve_block_tridiagonal
 from .window import NormalEquations
 
 
+class BlockTridiagonalOperator(lx.AbstractLinearOperator):
+    """Symmetric block-tridiagonal ``(W·D) × (W·D)`` operator on ``(W, D)`` arrays.
+
+    Attributes:
+        diag: ``(W, D, D)`` diagonal blocks; upper: ``(W-1, D, D)`` with ``upper[t] = A[t, t+1]``.
+    """
+
+    diag: jax.Array
+    upper: jax.Array
+
+    def mv(self, vector):
+        return block_tridiagonal_matvec(self.diag, self.upper, vector)
+
+    def as_matrix(self):
+        w, d, _ = self.diag.shape
+        dense = jnp.zeros((w, d, w, d), self.diag.dtype)
+        t = jnp.arange(w)
+        dense = dense.at[t, :, t, :].set(self.diag)
+        dense = dense.at[t[:-1], :, t[1:], :].set(self.upper)
+        dense = dense.at[t[1:], :, t[:-1], :].set(jnp.swapaxes(self.upper, -1, -2))
+        return dense.reshape(w * d, w * d)
+
+    def transpose(self):
+        return self
+
+    def in_structure(self):
+        return jax.ShapeDtypeStruct(self.diag.shape[:2], self.diag.dtype)
+
+    def out_structure(self):
+        return self.in_structure()
+
+
+@lx.is_symmetric.register(BlockTridiagonalOperator)
+def _(operator):
+    return True
+
+
 class _DescentState(eqx.Module):
-    system: NormalEquations
+    grad: jax.Array
+    hessian: BlockTridiagonalOperator
 
 
 class StructuredDampedNewtonDescent(optx.AbstractDescent):
-    """Damped Gauss–Newton step from structured normal equations.
+    """Damped Gauss–Newton step from the block-tridiagonal model in ``EvalGradHessian``.
 
     Attributes:
-        build: ``y ↦ NormalEquations`` (an ``eqx.Partial`` closing over the window problem).
         damping_scale: μ = damping_scale / step size; optimistix's trust region starts at step size 1.
             A good initial guess (registered cameras) deserves a nearly undamped first step.
         min_diagonal: floor on the Marquardt scaling so that variables no term sees stay put.
     """
 
-    build: Callable
     damping_scale: float = 1e-3
     min_diagonal: float = 1e-9
 
     def init(self, y, f_info_struct):
         del f_info_struct
-        shapes = jax.eval_shape(self.build, y)
-        return _DescentState(jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes))
+        zeros = lambda *shape: jnp.zeros(shape, y.dtype)
+        w, d = y.shape
+        return _DescentState(zeros(w, d), BlockTridiagonalOperator(zeros(w, d, d), zeros(max(w - 1, 0), d, d)))
 
     def query(self, y, f_info, state):
-        del f_info, state
-        return _DescentState(self.build(y))
+        del y, state
+        return _DescentState(f_info.grad, f_info.hessian)
 
     def step(self, step_size, state):
-        system = state.system
+        hessian = state.hessian
         mu = self.damping_scale / step_size
-        d = jnp.diagonal(system.diag, axis1=-2, axis2=-1)
+        d = jnp.diagonal(hessian.diag, axis1=-2, axis2=-1)
         floor = self.min_diagonal * jnp.maximum(jnp.max(d), 1.0)
         damping = mu * jnp.maximum(d, floor)
-        damped = system.diag + jax.vmap(jnp.diag)(damping)
-        delta = -solve_block_tridiagonal(damped, system.upper, system.grad)
+        damped = hessian.diag + jax.vmap(jnp.diag)(damping)
+        delta = -solve_block_tridiagonal(damped, hessian.upper, state.grad)
         ok = jnp.all(jnp.isfinite(delta))
         delta = jnp.where(ok, delta, 0.0)
         result = optx.RESULTS.where(ok, optx.RESULTS.successful, optx.RESULTS.singular)
         return delta, result
 
 
-class StructuredLevenbergMarquardt(optx.AbstractGaussNewton):
-    """optimistix Levenberg–Marquardt whose step comes from :class:`StructuredDampedNewtonDescent`."""
+class _SolverState(eqx.Module):
+    first_step: jax.Array
+    y_eval: jax.Array
+    f_info: optx.FunctionInfo.EvalGradHessian  # model at the last accepted point
+    aux: Any
+    search_state: Any
+    descent_state: _DescentState
+    terminate: jax.Array
+    result: optx.RESULTS
+    num_accepted_steps: jax.Array
+
+
+def _model(cost: jax.Array, system: NormalEquations) -> optx.FunctionInfo.EvalGradHessian:
+    return optx.FunctionInfo.EvalGradHessian(cost, system.grad, BlockTridiagonalOperator(system.diag, system.upper))
+
+
+class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
+    """Levenberg–Marquardt for a window: structured normal equations, optimistix trust region and loop.
+
+    Stops when an accepted step changes ``y`` by less than ``atol + rtol |y|`` (in ``norm``) and the
+    cost by less than ``atol + rtol · cost`` (optimistix's Cauchy rule, on the cost).
+
+    Attributes:
+        build: ``y ↦ NormalEquations`` (an ``eqx.Partial`` closing over the window problem).
+    """
 
     rtol: float
     atol: float
     norm: Callable
+    build: Callable
     descent: StructuredDampedNewtonDescent
     search: optx.ClassicalTrustRegion
-    verbose: Callable
 
     def __init__(
         self,
@@ -83,6 +155,75 @@ class StructuredLevenbergMarquardt(optx.AbstractGaussNewton):
         self.rtol = rtol
         self.atol = atol
         self.norm = norm
-        self.descent = StructuredDampedNewtonDescent(build, damping_scale)
+        self.build = build
+        self.descent = StructuredDampedNewtonDescent(damping_scale)
         self.search = optx.ClassicalTrustRegion()
-        self.verbose = lambda **kwargs: None
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        del fn, args, options, f_struct, tags
+        system = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(self.build, y))
+        f_info = _model(jnp.zeros((), y.dtype), system)
+        return _SolverState(
+            first_step=jnp.array(True),
+            y_eval=y,
+            f_info=f_info,
+            aux=jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), aux_struct),
+            search_state=self.search.init(y, f_info),
+            descent_state=self.descent.init(y, f_info),
+            terminate=jnp.array(False),
+            result=optx.RESULTS.successful,
+            num_accepted_steps=jnp.array(0),
+        )
+
+    def _converged(self, y, y_diff, cost, cost_diff):
+        y_small = self.norm(jnp.abs(y_diff) / (self.atol + self.rtol * jnp.abs(y))) < 1
+        cost_small = jnp.abs(cost_diff) < self.atol + self.rtol * jnp.abs(cost)
+        return y_small & cost_small
+
+    def step(self, fn, y, args, options, state, tags):
+        del options, tags
+        residual, aux_eval = fn(state.y_eval, args)
+        cost_eval = 0.5 * sum(jnp.sum(r * r) for r in jax.tree.leaves(residual))
+        trial = optx.FunctionInfo.EvalGradHessian(cost_eval, state.f_info.grad, state.f_info.hessian)
+        step_size, accept, search_result, search_state = self.search.step(
+            state.first_step, y, state.y_eval, state.f_info, trial, state.search_state
+        )
+
+        def accepted(_):
+            terminate = ~state.first_step & self._converged(
+                state.y_eval, state.y_eval - y, state.f_info.f, cost_eval - state.f_info.f
+            )
+            # The normal equations at the final point would never be used.
+            system = jax.lax.cond(
+                terminate,
+                lambda yy: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(self.build, yy)),
+                lambda yy: self.build(yy),
+                state.y_eval,
+            )
+            return state.y_eval, _model(cost_eval, system), aux_eval, terminate
+
+        def rejected(_):
+            return y, state.f_info, state.aux, jnp.array(False)
+
+        y, f_info, aux, terminate = jax.lax.cond(accept, accepted, rejected, None)
+        descent_state = self.descent.query(y, f_info, state.descent_state)
+        y_descent, descent_result = self.descent.step(step_size, descent_state)
+        result = optx.RESULTS.where(search_result == optx.RESULTS.successful, descent_result, search_result)
+        new_state = _SolverState(
+            first_step=jnp.array(False),
+            y_eval=y + y_descent,
+            f_info=f_info,
+            aux=aux,
+            search_state=search_state,
+            descent_state=descent_state,
+            terminate=terminate,
+            result=result,
+            num_accepted_steps=state.num_accepted_steps + jnp.where(accept, 1, 0),
+        )
+        return y, new_state, aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return state.terminate, state.result
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return y, aux, {}
