@@ -22,6 +22,7 @@ from bcmocap.residuals import (
     Reprojection,
     RootSmoothness,
     TrivialLoss,
+    camera_slots,
     loss_from_name,
     pair_mask,
 )
@@ -477,3 +478,52 @@ def test_homography_check_allows_nan_in_unused_slots(scene):
     data["pixels_prev"][0, 0] = np.nan
     data["weights"][0, 0] = 0.0
     HomographyTransfer(data, name="homography").check(W, 6)
+
+
+def test_camera_slots_keep_the_cameras_with_weight_in_order():
+    weights = np.zeros((3, 5, 2))
+    weights[0, 3, 1] = weights[0, 1, 0] = weights[2, 4, 0] = 1.0
+    pixels = np.arange(3 * 5 * 2 * 2, dtype=float).reshape(3, 5, 2, 2)
+    slots = camera_slots({"weights": weights, "pixels": pixels}, multiple=1)
+    np.testing.assert_array_equal(slots["camera"], [[1, 3], [0, 0], [4, 0]])
+    assert slots["camera"].dtype == np.int32
+    np.testing.assert_array_equal(slots["pixels"][0], pixels[0, [1, 3]])
+    np.testing.assert_array_equal(slots["pixels"][2, 0], pixels[2, 4])
+    np.testing.assert_array_equal(slots["weights"][1], 0.0)  # padded slots carry no weight
+    np.testing.assert_array_equal(slots["weights"][2, 1], 0.0)
+    assert camera_slots({"weights": weights}, multiple=4)["camera"].shape == (3, 4)
+    assert camera_slots({"weights": weights}, multiple=8)["camera"].shape == (3, 5)  # never more than C
+    with pytest.raises(ValueError, match="already has a 'camera' key"):
+        camera_slots(slots)
+
+
+def test_camera_slots_give_the_same_cost_and_normal_equations(skeleton, rig, scene, problems):
+    """A homography term in camera slots is the same term: same residuals, same structured system."""
+    sparse = {k: np.array(v) for k, v in scene["homography"].items()}
+    keep = np.zeros(sparse["weights"].shape[:2], bool)
+    keep[0, [1, 4]] = keep[1, 5] = keep[2, [0, 2]] = True
+    sparse["weights"] = np.where(keep[..., None], sparse["weights"], 0.0)
+    slotted = camera_slots(sparse, multiple=1)
+    assert slotted["camera"].shape == (W, 2)
+    y = jnp.asarray(np.random.default_rng(5).normal(scale=0.01, size=(W, skeleton.num_dofs)))
+    systems, costs = [], []
+    for data in (sparse, slotted):
+        term = HomographyTransfer(data, weight=0.5, loss=HuberLoss(1.0), name="homography")
+        term.check(W, rig.num_cameras)
+        terms = [t for t in window_terms(skeleton, scene) if t.label != "homography"] + [term.window(0, W)]
+        problem = make_window_problem(skeleton, rig, terms, scene["reference"], True)
+        costs.append(float(sum(jnp.sum(r * r) for r in residuals(problem, y))))
+        systems.append(structured_system(problem, y))
+    assert costs[0] == pytest.approx(costs[1], rel=1e-12)
+    for a, b in zip(jax.tree.leaves(systems[0]), jax.tree.leaves(systems[1])):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(a).max())
+
+
+def test_camera_slot_errors_are_named(scene):
+    slotted = camera_slots(dict(scene["homography"]), multiple=1)
+    bad = dict(slotted, camera=slotted["camera"] + 6)
+    with pytest.raises(ValueError, match=r"hom: data\['camera'\] names cameras outside \[0, 6\)"):
+        HomographyTransfer(bad, name="hom").check(W, 6)
+    bad = dict(slotted, camera=slotted["camera"].astype(float))
+    with pytest.raises(ValueError, match=r"hom: data\['camera'\] has shape .* expected integer camera indices"):
+        HomographyTransfer(bad, name="hom").check(W, 6)

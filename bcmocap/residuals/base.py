@@ -22,6 +22,12 @@ matrices belong in the data and are applied inside the residual function (whiten
 Camera terms are differentiated with respect to the 6-DOF camera pose only; the solver chains that
 with the Jacobian of the camera pose with respect to the frame's root pose and joint angles. That is
 exact and much cheaper than differentiating every measurement with respect to every joint.
+
+Camera slots: when only a few cameras per frame have data for a camera term (homography pairs exist
+only where a camera could not register), its data may be a dict with the reserved key ``"camera"``:
+``(T, K)`` integer camera indices; axis 1 of every other leaf then indexes those K slots instead of
+all C cameras. Padded slots name any camera and carry zero weight. :func:`camera_slots` builds this
+layout from per-camera data.
 """
 
 from __future__ import annotations
@@ -82,9 +88,29 @@ class Term(eqx.Module):
         data = jax.tree.map(lambda a: jnp.asarray(np.asarray(a[start:stop])), self.data)
         return eqx.tree_at(lambda t: t.data, self, data, is_leaf=lambda x: x is None)
 
+    def leading_axes(self, num_frames: int, num_cameras: int) -> tuple[int, ...]:
+        """The leading axes every data leaf must have: ``(T,)``, ``(T, C)`` or ``(T, K)`` camera slots.
+
+        Raises ValueError if the term's camera slots (``data["camera"]``) are malformed.
+        """
+        if not isinstance(self, (CameraTerm, CameraPairTerm)):
+            return (num_frames,)
+        slots = slot_cameras(self.data)
+        if slots is None:
+            return (num_frames, num_cameras)
+        slots = np.asarray(slots)
+        if slots.ndim != 2 or slots.shape[0] != num_frames or slots.dtype.kind not in "iu":
+            raise ValueError(
+                f"{self.label}: data['camera'] has shape {slots.shape} and dtype {slots.dtype}; expected "
+                f"integer camera indices of shape ({num_frames}, K)"
+            )
+        if slots.size and (slots.min() < 0 or slots.max() >= num_cameras):
+            raise ValueError(f"{self.label}: data['camera'] names cameras outside [0, {num_cameras})")
+        return slots.shape
+
     def check(self, num_frames: int, num_cameras: int) -> None:
         """Raise ValueError if the data's leading axes or values do not fit the problem."""
-        expected = (num_frames, num_cameras) if isinstance(self, (CameraTerm, CameraPairTerm)) else (num_frames,)
+        expected = self.leading_axes(num_frames, num_cameras)
         for path, leaf in jax.tree_util.tree_leaves_with_path(self.data):
             shape = np.shape(leaf)
             if shape[: len(expected)] != expected:
@@ -109,6 +135,45 @@ class Term(eqx.Module):
     def irls_sqrt_weights(self, masked: jax.Array) -> jax.Array:
         """``sqrt(λ ρ'(‖r‖²))`` per block ``(...)``: row scaling of the IRLS Gauss–Newton model."""
         return jnp.sqrt(self.weight * self.loss.derivative(jnp.sum(masked * masked, axis=-1)))
+
+
+def slot_cameras(data: Any) -> Any:
+    """The ``(T, K)`` camera index of each data slot of a camera term, or None (data per camera)."""
+    return data.get("camera") if isinstance(data, dict) else None
+
+
+def camera_slots(data: dict, weights_key: str = "weights", multiple: int = 4) -> dict:
+    """Per-camera data ``(T, C, ...)`` → camera slots ``(T, K, ...)`` keeping only cameras with weight.
+
+    Args:
+        data: dict of arrays with leading axes ``(T, C)``; ``data[weights_key]`` ``(T, C, ...)`` says
+            which camera-frames carry measurements (any weight > 0).
+        multiple: K is the largest number of such cameras in one frame rounded up to this multiple
+            (at least ``multiple``, at most C), so windows of one sequence rarely differ in shape.
+
+    Returns:
+        The same keys with axis 1 indexing slots, plus ``"camera"`` ``(T, K)`` int32; unused slots
+        repeat camera 0 with all weights 0.
+    """
+    if "camera" in data:
+        raise ValueError("camera_slots: data already has a 'camera' key")
+    weights = np.asarray(data[weights_key])
+    t, c = weights.shape[:2]
+    active = (weights > 0).reshape(t, c, -1).any(axis=-1)
+    k = min(c, max(multiple, -(-int(active.sum(axis=1).max(initial=0)) // multiple) * multiple))
+    order = np.argsort(~active, axis=1, kind="stable")[:, :k]  # active cameras first, in camera order
+    used = np.take_along_axis(active, order, axis=1)
+    cameras = np.where(used, order, 0).astype(np.int32)
+    out = {}
+    for key, value in data.items():
+        value = np.asarray(value)
+        index = order.reshape(t, k, *([1] * (value.ndim - 2)))
+        gathered = np.take_along_axis(value, index, axis=1)
+        if key == weights_key:
+            gathered = np.where(used.reshape(t, k, *([1] * (value.ndim - 2))), gathered, 0)
+        out[key] = gathered
+    out["camera"] = cameras
+    return out
 
 
 class FrameTerm(Term):

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..cameras import CameraModel
 from ..geometry import SE3, rotate_vectors
-from .base import CameraPairTerm
+from .base import CameraPairTerm, slot_cameras
 
 
 class HomographyTransfer(CameraPairTerm):
@@ -21,7 +21,9 @@ class HomographyTransfer(CameraPairTerm):
 
     Data ``(T, C, M, ...)`` indexed by the later frame ``t``: ``pixels`` ``(T, C, M, 2)`` in frame t,
     ``pixels_prev`` ``(T, C, M, 2)`` the matched pixels in frame t-1, ``weights`` ``(T, C, M)`` in
-    px⁻² (0 for padding). Row ``t = 0`` of a sequence has no previous frame and is ignored.
+    px⁻² (0 for padding). Row ``t = 0`` of a sequence has no previous frame and is ignored. Matches
+    exist only where a camera could not register, so the data may use camera slots (``"camera"``
+    ``(T, K)``, see :func:`bcmocap.residuals.camera_slots`): axis 1 then has K ≪ C entries.
     """
 
     rotation_only = True  # camera translation is neglected between consecutive frames (Eq. 2)
@@ -31,8 +33,11 @@ class HomographyTransfer(CameraPairTerm):
             if key not in self.data:
                 raise ValueError(f"{self.label}: data has no '{key}'")
         weights = np.asarray(self.data["weights"])
-        if weights.ndim != 3 or weights.shape[:2] != (num_frames, num_cameras):
-            raise ValueError(f"{self.label}: data['weights'] has shape {weights.shape}, expected ({num_frames}, {num_cameras}, M)")
+        slots = slot_cameras(self.data)
+        lead = self.leading_axes(num_frames, num_cameras)
+        if weights.ndim != 3 or weights.shape[:2] != lead:
+            across = "cameras" if slots is None else "camera slots"
+            raise ValueError(f"{self.label}: data['weights'] has shape {weights.shape}, expected ({lead[0]}, {lead[1]}, M) (frames, {across}, matches)")
         if not np.all(np.isfinite(weights)) or (weights < 0).any():
             raise ValueError(f"{self.label}: weights must be finite and non-negative")
         for key in ("pixels", "pixels_prev"):
@@ -42,6 +47,8 @@ class HomographyTransfer(CameraPairTerm):
             bad = (weights > 0) & ~np.all(np.isfinite(pixels), axis=-1)
             if bad.any():
                 t, c, i = np.argwhere(bad)[0]
+                if slots is not None:
+                    c = int(np.asarray(slots)[t, c])
                 raise ValueError(f"{self.label}: {key} has NaN/inf at frame {t}, camera {c}, match {i}")
 
     def residual(self, prev_cam_from_world: SE3, cam_from_world: SE3, camera: CameraModel, data):

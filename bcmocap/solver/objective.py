@@ -9,7 +9,7 @@ import numpy as np
 from ..correspondences import Correspondences
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Skeleton
-from ..residuals import HomographyTransfer, JointSmoothness, Reprojection, RootSmoothness, Term, loss_from_name, pair_mask
+from ..residuals import HomographyTransfer, camera_slots, JointSmoothness, Reprojection, RootSmoothness, Term, loss_from_name, pair_mask
 from .solve import Problem
 
 
@@ -63,8 +63,10 @@ def paper_terms(
     if include_homography is None:
         include_homography = bool((c.homography_weights > 0).any())
     if include_homography:
+        # Matches exist only where a camera did not register: keep those cameras' slots only.
+        homography = {"pixels": c.homography_pixels, "pixels_prev": c.homography_pixels_prev, "weights": c.homography_weights}
         terms.append(HomographyTransfer(
-            {"pixels": c.homography_pixels, "pixels_prev": c.homography_pixels_prev, "weights": c.homography_weights},
+            camera_slots(homography),
             weight=weights.homography, loss=loss, name="homography",
         ))
     mask = np.ones(c.num_frames) if first_frame_has_previous else pair_mask(c.num_frames)

@@ -85,10 +85,10 @@ class SolverOptions:
         window: frames per window (the whole sequence if it is shorter).
         overlap: frames each window hands to the next to solve again.
         max_steps: LM iterations per window (accepted or rejected).
-        rtol, atol: optimistix stopping tolerances on the step (rad, m) and on the residual change
-            (whitened units, e.g. px), RMS norm: stop when both are below ``atol + rtol·|value|``.
-            Gauss–Newton converges quadratically from registered cameras: once a step is below
-            1e-4 rad / 0.1 mm the cost is within ~1e-11 of its minimum.
+        rtol, atol: stopping tolerances: stop after an accepted step that changes the variables by less
+            than ``atol + rtol·|y|`` (RMS over the window; rad, m) and the cost by less than
+            ``atol + rtol·cost``. Gauss–Newton converges quadratically from registered cameras: once a
+            step is below 1e-4 rad / 0.1 mm the cost is within ~1e-11 of its minimum.
         damping_scale: initial Levenberg–Marquardt damping relative to the Marquardt diagonal.
     """
 

@@ -18,7 +18,7 @@ from ..geometry import SE3, transform_points
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
-from ..residuals.base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, PairTerm, Term
+from ..residuals.base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, PairTerm, Term, slot_cameras
 
 
 class WindowProblem(eqx.Module):
@@ -63,9 +63,20 @@ def _pair_valid(problem: WindowProblem, valid: jax.Array) -> jax.Array:
     return valid.at[0].set(valid[0] & problem.has_previous)
 
 
-def _vmap_cameras(fn, camera_axis_args):
-    """vmap ``fn`` over frames (axis 0) and cameras (axis 1 of per-frame arrays, axis 0 of intrinsics)."""
-    return jax.vmap(jax.vmap(fn, in_axes=camera_axis_args), in_axes=(0,) * len(camera_axis_args))
+def _slot_gather(term: Term, per_camera: jax.Array) -> jax.Array:
+    """``(W, C, ...)`` per-camera values → ``(W, K, ...)`` per data slot of a term with camera slots."""
+    index = slot_cameras(term.data)
+    if index is None:
+        return per_camera
+    return jnp.take_along_axis(per_camera, index.reshape(*index.shape, *([1] * (per_camera.ndim - 2))), axis=1)
+
+
+def _slot_intrinsics(term: Term, rig: Rig):
+    """Intrinsics to vmap over frames: ``(C, ...)`` shared by all frames (axis None) or ``(W, K, ...)`` per slot."""
+    index = slot_cameras(term.data)
+    if index is None:
+        return rig.intrinsics, None
+    return jax.tree.map(lambda a: a[index], rig.intrinsics), 0
 
 
 def residuals(problem: WindowProblem, y: jax.Array) -> tuple[jax.Array, ...]:
@@ -83,13 +94,16 @@ def residuals(problem: WindowProblem, y: jax.Array) -> tuple[jax.Array, ...]:
             v = _pair_valid(problem, v)
         elif isinstance(term, CameraTerm):
             fn = lambda pose, cam, data, term=term: term.residual(SE3(pose), cam, data)
-            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0)), in_axes=(0, None, 0))(
-                cam_from_world.wxyz_xyz[1:], problem.rig.intrinsics, term.data
+            cams, cam_axis = _slot_intrinsics(term, problem.rig)
+            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0)), in_axes=(0, cam_axis, 0))(
+                _slot_gather(term, cam_from_world.wxyz_xyz[1:]), cams, term.data
             )
         elif isinstance(term, CameraPairTerm):
             fn = lambda prev, pose, cam, data, term=term: term.residual(SE3(prev), SE3(pose), cam, data)
-            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0)), in_axes=(0, 0, None, 0))(
-                cam_from_world.wxyz_xyz[:-1], cam_from_world.wxyz_xyz[1:], problem.rig.intrinsics, term.data
+            cams, cam_axis = _slot_intrinsics(term, problem.rig)
+            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0)), in_axes=(0, 0, cam_axis, 0))(
+                _slot_gather(term, cam_from_world.wxyz_xyz[:-1]), _slot_gather(term, cam_from_world.wxyz_xyz[1:]),
+                cams, term.data,
             )
             v = _pair_valid(problem, v)
         else:
@@ -219,10 +233,11 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
                     r, jac = _irls_rows(term, *_point_measurement_jacobians(term, SE3(pose), cam, data))
                 return jac.T @ jac, jac.T @ r
 
-            hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0)), in_axes=(0, None, 0))(
-                cam_poses[1:], problem.rig.intrinsics, term.data
-            )  # (W, C, 6, 6), (W, C, 6)
-            jp = pose_jac[1:]
+            cams, cam_axis = _slot_intrinsics(term, problem.rig)
+            hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0)), in_axes=(0, cam_axis, 0))(
+                _slot_gather(term, cam_poses[1:]), cams, term.data
+            )  # (W, C, 6, 6), (W, C, 6) (C: cameras or slots)
+            jp = _slot_gather(term, pose_jac[1:])
             diag = diag.at[1:].add(jnp.einsum("tcai,tcab,tcbj->tij", jp, hess, jp))
             grad = grad.at[1:].add(jnp.einsum("tcai,tca->ti", jp, g))
         elif isinstance(term, CameraPairTerm):
@@ -232,10 +247,11 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
                 return jac.T @ jac, jac.T @ r
 
             ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
-            hess, g = jax.vmap(jax.vmap(cam_pair_blocks, in_axes=(0, 0, 0, 0, None)), in_axes=(0, 0, None, 0, 0))(
-                cam_poses[:-1], cam_poses[1:], problem.rig.intrinsics, term.data, ok
-            )  # (W, C, 12, 12), (W, C, 12)
-            jp_prev, jp_curr = pose_jac[:-1], pose_jac[1:]
+            cams, cam_axis = _slot_intrinsics(term, problem.rig)
+            hess, g = jax.vmap(jax.vmap(cam_pair_blocks, in_axes=(0, 0, 0, 0, None)), in_axes=(0, 0, cam_axis, 0, 0))(
+                _slot_gather(term, cam_poses[:-1]), _slot_gather(term, cam_poses[1:]), cams, term.data, ok
+            )  # (W, C, 12, 12), (W, C, 12) (C: cameras or slots)
+            jp_prev, jp_curr = _slot_gather(term, pose_jac[:-1]), _slot_gather(term, pose_jac[1:])
             h00 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, :6], jp_prev)
             h11 = jnp.einsum("tcai,tcab,tcbj->tij", jp_curr, hess[:, :, 6:, 6:], jp_curr)
             h01 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, 6:], jp_curr)
