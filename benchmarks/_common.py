@@ -51,3 +51,14 @@ def write_json(path: str | None, payload: dict) -> None:
         fh.write("\n")
     os.replace(tmp, target)
     print(f"wrote {target}")
+
+
+def solve_summary(solution, correspondences, solve_seconds: float, num_frames: int) -> dict:
+    """Solver figures shared by the accuracy rows: frames, time, converged windows, observation density."""
+    return {
+        "frames": num_frames,
+        "solve_seconds": solve_seconds,
+        "converged_windows": sum(r.converged for r in solution.reports),
+        "windows": len(solution.reports),
+        "observations_per_camera_frame": float((correspondences.weights > 0).sum() / correspondences.registered.sum()),
+    }

@@ -107,3 +107,25 @@ def test_root_without_cameras(skeleton):
 def test_one_dimensional_registered_mask_is_reported_with_shapes(skeleton, rig):
     with pytest.raises(ValueError, match=r"registered \(3, 6\)"):
         motion_from_camera_poses(skeleton, rig, np.zeros((3, 6, 7)), np.ones(3, bool))
+
+
+def test_robust_average_outvotes_a_badly_registered_root_camera(skeleton, rig, rng):
+    # A third pelvis camera (the paper's waist has three); one of them off by 20° and 30 cm at frame 1.
+    from conftest import fov_camera
+
+    from bcmocap.geometry import SE3
+    from bcmocap.kinematics import Rig
+
+    extra = SE3.from_rotation_and_translation(SO3.exp(np.array([0.1, -1.4, 0.2])), np.array([0.0, 0.17, 0.05]))
+    mounts = [(n, skeleton.names[s], m, fov_camera()) for n, s, m in zip(rig.names, rig.segments, np.asarray(rig.segment_from_camera))]
+    rig3 = Rig.from_mounts(skeleton, mounts + [("waist_side", "pelvis", extra, fov_camera())])
+    truth = random_motion(skeleton, 3, rng)
+    poses = np.array(camera_poses(skeleton, rig3, truth).wxyz_xyz)
+    poses[1, 0, :4] = np.asarray((SO3(poses[1, 0, :4]) @ SO3.exp(np.array([0.35, 0.0, 0.0]))).wxyz)
+    poses[1, 0, 4:] += 0.3
+    registered = np.ones((3, rig3.num_cameras), bool)
+    robust = motion_from_camera_poses(skeleton, rig3, poses, registered, robust=True)
+    plain = motion_from_camera_poses(skeleton, rig3, poses, registered)
+    assert_same_motion(robust, truth)
+    assert np.linalg.norm(np.asarray(plain.root_position[1] - truth.root_position[1])) > 0.05
+    assert_same_motion(plain[np.array([0, 2])], truth[np.array([0, 2])])  # the default (plain mean) is unchanged elsewhere

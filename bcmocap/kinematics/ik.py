@@ -5,6 +5,8 @@ Each segment's world orientation is the average over the cameras mounted on it o
 child segments along the chain (projected on hinge axes); the root position comes from the root
 segment's cameras only, as in the paper. Frames where a segment has no registered camera are filled
 by interpolation in time (slerp for rotations, linear for positions), nearest frame at the ends.
+With ``robust=True`` a segment's cameras are averaged like a virtual camera (§4.2): a Tukey-reweighted
+mean, so one camera of three that registered badly at a frame is outvoted.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import numpy as np
 from ..geometry import SE3, SO3, average_quaternions, slerp
 from .rig import Rig
 from .skeleton import Motion, Skeleton
+from .virtual import robust_average_poses
 
 
 def _fill_gaps(values: np.ndarray, known: np.ndarray, rotations: bool) -> np.ndarray:
@@ -36,7 +39,7 @@ def _fill_gaps(values: np.ndarray, known: np.ndarray, rotations: bool) -> np.nda
 
 
 def motion_from_camera_poses(
-    skeleton: Skeleton, rig: Rig, world_from_camera: np.ndarray, registered: np.ndarray
+    skeleton: Skeleton, rig: Rig, world_from_camera: np.ndarray, registered: np.ndarray, *, robust: bool = False
 ) -> Motion:
     """Root pose and joint rotations from registered camera poses.
 
@@ -44,6 +47,7 @@ def motion_from_camera_poses(
         skeleton, rig: the model with known camera mounts.
         world_from_camera: ``(T, C, 7)`` camera poses (wxyz_xyz).
         registered: ``(T, C)`` bool, which poses are known.
+        robust: average a segment's cameras robustly (matters from three cameras on a segment).
 
     Returns:
         A ``(T, J)`` motion. Segments without any camera keep the rest rotation.
@@ -78,6 +82,12 @@ def motion_from_camera_poses(
                 raise ValueError("motion_from_camera_poses: the root segment's cameras are never registered")
             continue
         has_camera[j] = True
+        if robust and len(cams) > 2:
+            mean, _ = robust_average_poses(world_from_segment[:, cams], registered[:, cams])
+            seg_rot[:, j] = _fill_gaps(np.where(known[:, None], mean[:, :4], 0.0), known, rotations=True)
+            if j == 0:
+                root_position = _fill_gaps(np.where(known[:, None], mean[:, 4:], 0.0), known, rotations=False)
+            continue
         q = np.zeros((t, 4))
         for frame in np.flatnonzero(known):
             use = [k for k in cams if registered[frame, k]]

@@ -1,0 +1,533 @@
+"""Skeleton and camera mounts from a range-of-motion trial (Appendix, Eqs. 12–17, and §4.2 Eqs. 3–5).
+
+The subject wears the cameras and exercises every joint; SfM gives each camera's pose over the trial.
+The cameras of one segment are first merged into a virtual camera ``V`` (:mod:`.virtual`). A joint
+then sits at a point fixed in both its parent's and its child's virtual camera frames (Eq. 12), so
+over all frames where both are known
+
+    parent_from_child(t) · c_child = c_parent        (Eq. 13)
+
+which is linear in ``y = (c_child, c_parent)``: ``[R(t), −I] y = −t(t)``. Eq. (14) stacks these rows
+differenced against the first frame to eliminate ``c_parent``; here every frame is stacked with
+``c_parent`` kept as an unknown (no frame is privileged, and both centres come out at once), and the
+system is solved in its inhomogeneous form (homogeneous coordinate 1) by least squares through the
+eigen-decomposition of its 6×6 normal matrix, i.e. the SVD of the stacked rows. The singular values
+say how well the trial determines the centre: a ball joint exercised about several axes has none
+near zero; a hinge (knee, elbow) has exactly one, whose singular vector is the hinge axis (the
+two-dimensional null space of Eq. 16 in homogeneous form); a joint the trial did not exercise has
+one or more and is reported, as is a centre whose standard error is large.
+
+Frame weights. A range-of-motion trial exercises one joint at a time, so for any joint most frames
+repeat one relative pose. Their rotation noise then acts as fake motion and biases least squares
+(errors in variables) toward the cameras, by ~30 % of the distance with 1° noise. Each frame is
+therefore weighted by ``1 / (number of frames within pose_radius_deg of its relative rotation)``:
+a static stretch counts as one pose. On top, frames are reweighted by a Tukey biweight of their
+residual (scale from its median) so that badly registered camera poses drop out. A hinge's centre
+is fixed on its axis by the straight rest pose: parent joint, hinge and child joint collinear at the
+rest frames (Eq. 17).
+
+Segment frames (a convention, stated here because joint angles and mounts depend on it). As in
+:mod:`bcmocap.kinematics.skeleton` and the simulator's BVH-style skeletons: each segment's origin is
+its joint centre, and in the **rest pose** every segment frame is parallel to one common frame,
+``world_from_rest`` (the world axes by default). The trial therefore starts (or contains) a few
+frames in which the subject holds the rest pose — the T-pose with straight limbs, as Vicon-style
+calibrations do — and ``rest_frames`` says which. Joint angles are then rotations relative to that
+pose and come out directly comparable with a skeleton built the same way (the simulator's). The
+root has no joint: its origin is the mean of chosen child joints (``root_origin``; the simulator's
+CMU skeletons put it at the lower-back joint, i.e. ``root_origin=("torso",)``).
+
+Bone vectors (Eq. 15) are differences of joint centres in a segment's frame; camera mounts follow
+from where each camera sits relative to its segment's virtual camera (Eq. 5). The result is the
+core's :class:`~bcmocap.kinematics.Skeleton` and :class:`~bcmocap.kinematics.Rig`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from ..cameras import CameraModel
+from .rig import Rig
+from .skeleton import JointType, Skeleton
+from .virtual import (
+    TUKEY_CUTOFF,
+    VirtualCamera,
+    _apply,
+    _compose,
+    _inverse,
+    _qinv,
+    _qmatrix,
+    _qmul,
+    _qrot,
+    estimate_virtual_camera,
+    robust_average_poses,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Topology:
+    """A predefined kinematic structure without dimensions: names, parents and joint types.
+
+    Attributes:
+        names: segment names; ``parents``: parent index per segment (``-1`` for the root, parents first);
+        joint_types: one :class:`JointType` per segment (root FREE; FIXED joints cannot be estimated).
+    """
+
+    names: tuple[str, ...]
+    parents: tuple[int, ...]
+    joint_types: tuple[JointType, ...]
+
+    def __post_init__(self):
+        # The skeleton's own checks (unique names, topological order, a FREE root) with placeholder sizes.
+        n = len(self.names)
+        sk = Skeleton(self.names, self.parents, np.zeros((n, 3)), self.joint_types, np.ones((n, 3)))
+        object.__setattr__(self, "names", sk.names)
+        object.__setattr__(self, "parents", sk.parents)
+        object.__setattr__(self, "joint_types", sk.joint_types)
+
+    @classmethod
+    def from_skeleton(cls, skeleton: Skeleton) -> Topology:
+        """The topology of an existing skeleton (its dimensions are ignored)."""
+        return cls(skeleton.names, skeleton.parents, skeleton.joint_types)
+
+    @classmethod
+    def from_segments(cls, segments: Sequence[tuple[str, str | None, JointType | str]]) -> Topology:
+        """From ``(name, parent name or None, joint type)`` triples, parents listed before children."""
+        names = [s[0] for s in segments]
+        parents = []
+        for name, parent, _ in segments:
+            if parent is not None and parent not in names:
+                raise ValueError(f"Topology: segment '{name}' has unknown parent '{parent}'; segments are {names}")
+            parents.append(-1 if parent is None else names.index(parent))
+        return cls(tuple(names), tuple(parents), tuple(s[2] for s in segments))
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise ValueError(f"unknown segment '{name}'; the topology has {list(self.names)}") from None
+
+    def children(self, j: int) -> tuple[int, ...]:
+        return tuple(k for k, p in enumerate(self.parents) if p == j)
+
+
+@dataclasses.dataclass(frozen=True)
+class RomOptions:
+    """Thresholds of the range-of-motion estimate.
+
+    Attributes:
+        min_frames: a camera (or a joint's parent/child pair) seen in fewer frames is reported.
+        min_spread: smallest normalised singular value of Eq. (13)'s system below which a direction
+            counts as not exercised (≈ the RMS rotation, in rad, that moves the centre along it, over
+            √2, between the distinct poses of the trial; 1° camera noise alone gives ≈ 0.025, a ball
+            joint swept through ±30° ≈ 0.2).
+        max_centre_std_m: a centre whose standard error along its worst direction exceeds this is
+            reported as not determined by the trial.
+        robust: reweight frames (Tukey) in the joint solves and the virtual-camera averages.
+        degenerate: what to do with a ball joint exercised about one axis only: "raise" (default), or
+            "hinge" — warn and fix its centre on that axis with the straight-rest-pose constraint
+            (Eq. 17), as for a knee.
+        centred_virtual: virtual cameras at the mean of their cameras (True) or at a reference camera.
+        pose_radius_deg: frames whose parent→child rotations are closer than this count as one pose
+            when weighting frames (a few times the rotation noise).
+    """
+
+    min_frames: int = 20
+    min_spread: float = 0.05
+    max_centre_std_m: float = 0.02
+    robust: bool = True
+    degenerate: str = "raise"
+    centred_virtual: bool = True
+    pose_radius_deg: float = 5.0
+
+    def __post_init__(self):
+        if self.degenerate not in ("raise", "hinge"):
+            raise ValueError(f"RomOptions: degenerate must be 'raise' or 'hinge', got {self.degenerate!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class JointEstimate:
+    """One joint's centre and how well the trial determined it.
+
+    Attributes:
+        segment, parent: the child and parent segment names.
+        joint_type: as declared in the topology.
+        centre_in_child, centre_in_parent: ``(3,)`` the centre in the child's and parent's virtual camera frames (m).
+        axis_in_child: ``(3,)`` unit hinge axis in the child's virtual camera frame (hinges only, else None).
+        frames: frames where both segments were known; inlier_fraction: share kept by the reweighting.
+        rms_residual_m: RMS over inlier frames of ``|parent_from_child · c_child − c_parent|`` (m).
+        spread: ``(6,)`` normalised singular values of Eq. (13)'s system, ascending.
+        std_m: standard error of the centre along its worst determined direction (m).
+    """
+
+    segment: str
+    parent: str
+    joint_type: JointType
+    centre_in_child: np.ndarray
+    centre_in_parent: np.ndarray
+    axis_in_child: np.ndarray | None
+    frames: int
+    inlier_fraction: float
+    rms_residual_m: float
+    spread: np.ndarray
+    std_m: float
+
+
+@dataclasses.dataclass(frozen=True)
+class RomEstimate:
+    """What a range-of-motion trial gives: the skeleton, the camera mounts and the diagnostics.
+
+    Attributes:
+        skeleton: the estimated :class:`Skeleton` (segment frames as in the module docstring).
+        rig: the estimated :class:`Rig` (None when no intrinsics were given).
+        segment_from_camera: ``(C, 7)`` estimated mounts, in the order of the camera assignment.
+        camera_names: camera names in that order; camera_segments: their segment indices.
+        joints: segment name → :class:`JointEstimate` (every segment but the root).
+        virtual_cameras: segment name → the :class:`VirtualCamera` of its cameras.
+        segment_from_virtual: ``(J, 7)`` where each virtual camera sits on its segment.
+    """
+
+    skeleton: Skeleton
+    rig: Rig | None
+    segment_from_camera: np.ndarray
+    camera_names: tuple[str, ...]
+    camera_segments: tuple[int, ...]
+    joints: dict[str, JointEstimate]
+    virtual_cameras: dict[str, VirtualCamera]
+    segment_from_virtual: np.ndarray
+
+    def summary(self) -> str:
+        """A table of the joints: type, frames, inliers, residual (mm), weakest spread, standard error (mm)."""
+        lines = [f"{'joint':<18}{'type':<7}{'frames':>7}{'inliers':>9}{'rms mm':>8}{'spread':>8}{'std mm':>8}"]
+        for name, j in self.joints.items():
+            weakest = j.spread[1] if j.joint_type == JointType.HINGE else j.spread[0]
+            lines.append(
+                f"{name:<18}{j.joint_type.name.lower():<7}{j.frames:>7}{100 * j.inlier_fraction:>8.0f}%"
+                f"{1e3 * j.rms_residual_m:>8.2f}{weakest:>8.3f}{1e3 * j.std_m:>8.2f}"
+            )
+        return "\n".join(lines)
+
+
+def _pose_density_weights(q: np.ndarray, radius_rad: float) -> np.ndarray:
+    """``1 / (number of frames whose rotation is within radius_rad of each frame's)`` for quaternions ``(N, 4)``."""
+    cos_half = np.cos(radius_rad / 2.0)
+    counts = np.concatenate([(np.abs(q[i : i + 512] @ q.T) >= cos_half).sum(axis=1) for i in range(0, len(q), 512)])
+    return 1.0 / counts
+
+
+def _solve_centre(parent_from_child: np.ndarray, drop: int, options: RomOptions, iterations: int = 15):
+    """Weighted least squares for ``y = (c_child, c_parent)`` from ``[R, −I] y = −t`` over frames.
+
+    Frame weights: ``1 / (number of frames in a similar relative pose)`` — a long stretch where the
+    joint does not move counts like one pose, so the rotation noise of those frames cannot pose as
+    motion and bias the centre toward the cameras (errors in variables) — times a Tukey weight of
+    the frame's residual when robust. ``drop`` smallest eigen-directions are left out (a hinge's
+    axis): the minimum-norm solution in the others.
+
+    Returns:
+        y ``(6,)``, eigenvectors ``(6, 6)`` (columns, ascending), normalised singular values ``(6,)``
+        ascending, the covariance of y ``(6, 6)`` (m²), residual norms ``(N,)`` and Tukey weights ``(N,)``.
+    """
+    rot = _qmatrix(parent_from_child[:, :4])
+    a = np.concatenate([rot, -np.broadcast_to(np.eye(3), rot.shape)], axis=2)  # (N, 3, 6)
+    b = -parent_from_child[:, 4:]
+    base = _pose_density_weights(parent_from_child[:, :4], np.deg2rad(options.pose_radius_deg))
+    tukey = np.ones(len(a))
+    for it in range(iterations if options.robust else 1):
+        w = base * tukey
+        normal = np.einsum("n,nia,nib->ab", w, a, a)
+        evals, evecs = np.linalg.eigh(normal)
+        keep = (np.arange(6) >= drop) & (evals > 1e-20 * evals[-1])
+        v = evecs[:, keep]
+        y = v @ ((v.T @ np.einsum("n,nia,ni->a", w, a, b)) / evals[keep])
+        r = np.linalg.norm(np.einsum("nij,j->ni", a, y) - b, axis=1)
+        if not options.robust or it == iterations - 1:
+            break
+        scale = max(float(np.median(r[tukey > 0])), 1e-9)
+        new = np.where(r < TUKEY_CUTOFF * scale, (1.0 - (r / (TUKEY_CUTOFF * scale)) ** 2) ** 2, 0.0)
+        if np.allclose(new, tukey, atol=1e-9):
+            break
+        tukey = new
+    # sandwich covariance: the weights are not inverse variances; residual variance per coordinate
+    inlier = tukey > 0
+    sigma2 = float(np.sum(r[inlier] ** 2) / max(3 * inlier.sum() - int(keep.sum()), 1))
+    inv = (v / evals[keep]) @ v.T
+    cov = sigma2 * inv @ np.einsum("n,nia,nib->ab", w**2, a, a) @ inv
+    spread = np.sqrt(np.maximum(evals, 0.0) / w.sum())
+    return y, evecs, spread, cov, r, tukey
+
+
+def _joint_estimate(segment, parent, joint_type, parent_from_child, drop, options, families) -> JointEstimate:
+    y, evecs, spread, cov, r, tukey = _solve_centre(parent_from_child, drop, options)
+    inlier = tukey > 0
+    std = float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
+    axis = None
+    if drop:
+        null = evecs[:, 0]
+        axis = null[:3] / np.linalg.norm(null[:3])
+        families[segment] = (y, null)
+    return JointEstimate(
+        segment, parent, joint_type, y[:3], y[3:], axis, len(parent_from_child), float(inlier.mean()),
+        float(np.sqrt(np.mean(r[inlier] ** 2))), spread, std,
+    )
+
+
+def _as_pairs(cameras) -> list[tuple[str, str]]:
+    pairs = list(cameras.items()) if isinstance(cameras, Mapping) else [tuple(p) for p in cameras]
+    for p in pairs:
+        if len(p) != 2:
+            raise ValueError(f"camera assignment: expected (camera, segment) pairs, got {p!r}")
+    return [(str(c), str(s)) for c, s in pairs]
+
+
+def _check_assignment(topology: Topology, pairs, world_from_camera, registered, options: RomOptions):
+    names = [c for c, _ in pairs]
+    if len(set(names)) != len(names):
+        raise ValueError(f"camera assignment: duplicate camera names {sorted({n for n in names if names.count(n) > 1})}")
+    unknown = sorted({s for _, s in pairs if s not in topology.names})
+    if unknown:
+        bad = [c for c, s in pairs if s in unknown]
+        raise ValueError(
+            f"camera assignment names unknown segments {unknown} (cameras {bad}); the topology has {list(topology.names)}"
+        )
+    c = len(pairs)
+    if world_from_camera.ndim != 3 or world_from_camera.shape[1:] != (c, 7) or registered.shape != world_from_camera.shape[:2]:
+        raise ValueError(
+            f"skeleton_from_range_of_motion: expected world_from_camera (T, {c}, 7) and registered (T, {c}) for the "
+            f"{c} assigned cameras, got {world_from_camera.shape} and {registered.shape}"
+        )
+    seg_cams = [[i for i, (_, s) in enumerate(pairs) if s == name] for name in topology.names]
+    missing = [topology.names[j] for j, cams in enumerate(seg_cams) if not cams]
+    if missing:
+        raise ValueError(f"segments {missing} have no camera: every segment needs one to place its joint and frame")
+    for j, t in enumerate(topology.joint_types):
+        if t == JointType.FIXED:
+            raise ValueError(
+                f"segment '{topology.names[j]}' has a FIXED joint: its centre cannot be found from motion; merge it "
+                "into its parent or declare it a ball joint"
+            )
+    counts = registered.sum(axis=0)
+    for j, cams in enumerate(seg_cams):
+        usable = [i for i in cams if counts[i] >= options.min_frames]
+        for i in cams:
+            if counts[i] >= options.min_frames:
+                continue
+            if not usable:
+                raise ValueError(
+                    f"camera '{names[i]}' is registered in only {counts[i]} frames of the range-of-motion trial "
+                    f"(< {options.min_frames}) and segment '{topology.names[j]}' has no better camera: its joint and "
+                    "frame cannot be estimated"
+                )
+            if counts[i] == 0:
+                raise ValueError(
+                    f"camera '{names[i]}' is never registered in the range-of-motion trial: its mount on "
+                    f"'{topology.names[j]}' is unknown; re-register it or remove it from the assignment"
+                )
+    return seg_cams
+
+
+def _average_rotation(quats: np.ndarray) -> np.ndarray:
+    poses = np.concatenate([quats, np.zeros((len(quats), 3))], axis=1)
+    return robust_average_poses(poses)[0][:4]
+
+
+def skeleton_from_range_of_motion(
+    topology: Topology | Skeleton,
+    cameras: Mapping[str, str] | Sequence[tuple[str, str]],
+    world_from_camera: np.ndarray,
+    registered: np.ndarray,
+    *,
+    rest_frames,
+    intrinsics: CameraModel | None = None,
+    root_origin: Sequence[str] | None = None,
+    world_from_rest: np.ndarray | None = None,
+    options: RomOptions = RomOptions(),
+) -> RomEstimate:
+    """Estimate a skeleton and its camera mounts from the camera poses of a range-of-motion trial.
+
+    Args:
+        topology: the predefined kinematic structure (a :class:`Topology`, or a skeleton whose
+            dimensions are ignored).
+        cameras: camera name → segment name, in the order of the camera axis of the poses.
+        world_from_camera: ``(T, C, 7)`` registered camera poses (wxyz_xyz, m); unregistered rows
+            are never read (they may hold NaN).
+        registered: ``(T, C)`` bool.
+        rest_frames: frames (indices, a slice or a bool mask) where the subject holds the rest pose:
+            they define the segment frames and the straight limbs of the hinge constraint.
+        intrinsics: the cameras' models stacked over C (calibrated beforehand) to build a :class:`Rig`.
+        root_origin: child segments whose joint centres' mean is the root's origin (default: all
+            of the root's children).
+        world_from_rest: ``(4,)`` quaternion, the common orientation of all segment frames in the
+            rest pose (default: the world axes).
+        options: thresholds and choices (:class:`RomOptions`).
+
+    Raises:
+        ValueError: an assignment naming unknown segments; a segment without cameras; a camera with
+            too few registered frames and no other camera on its segment; a joint the trial did not
+            exercise (naming it and what is missing); no rest frame for a segment.
+
+    Warns:
+        UserWarning: a camera registered with its segment's other cameras in few frames; a hinge whose
+            rotations are not about one axis; a degenerate ball joint regularised as a hinge.
+    """
+    if isinstance(topology, Skeleton):
+        topology = Topology.from_skeleton(topology)
+    pairs = _as_pairs(cameras)
+    world_from_camera = np.asarray(world_from_camera, dtype=np.float64)
+    registered = np.asarray(registered, dtype=bool)
+    seg_cams = _check_assignment(topology, pairs, world_from_camera, registered, options)
+    num_frames, n = registered.shape[0], len(topology.names)
+    rest = np.zeros(num_frames, bool)
+    rest[rest_frames] = True
+    if not rest.any():
+        raise ValueError("skeleton_from_range_of_motion: rest_frames selects no frame")
+
+    # ---- virtual cameras: one trajectory per segment --------------------------------------------
+    vcs: dict[str, VirtualCamera] = {}
+    world_v = np.full((num_frames, n, 7), np.nan)
+    known = np.zeros((num_frames, n), bool)
+    for j, cams in enumerate(seg_cams):
+        name = topology.names[j]
+        vc = estimate_virtual_camera(
+            [pairs[i][0] for i in cams], world_from_camera[:, cams], registered[:, cams], name=name,
+            centred=options.centred_virtual, min_frames=options.min_frames,
+        )
+        vcs[name] = vc
+        world_v[:, j], known[:, j] = vc.world_from_virtual(world_from_camera[:, cams], registered[:, cams], robust=options.robust)
+
+    # ---- joint centres (Eqs. 12-14, 16) ---------------------------------------------------------
+    joints: dict[str, JointEstimate] = {}
+    families: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for j in range(1, n):
+        name, p = topology.names[j], topology.parents[j]
+        pname, jtype = topology.names[p], topology.joint_types[j]
+        both = known[:, j] & known[:, p]
+        if both.sum() < options.min_frames:
+            raise ValueError(
+                f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {both.sum()} frames "
+                f"(< {options.min_frames}) of the trial"
+            )
+        rel = _compose(_inverse(world_v[both, p]), world_v[both, j])
+        hinge = jtype == JointType.HINGE
+        est = _joint_estimate(name, pname, jtype, rel, 1 if hinge else 0, options, families)
+        weak = int(np.sum(est.spread < options.min_spread))
+        what = f"joint '{name}' (between '{pname}' and '{name}', {jtype.name.lower()})"
+        if hinge:
+            if weak > 1 or est.std_m > options.max_centre_std_m:
+                raise ValueError(
+                    f"{what}: the trial did not exercise it: rotation spread about its axis {est.spread[1]:.4f} "
+                    f"(need ≥ {options.min_spread}), centre standard error {100 * est.std_m:.2f} cm; flex the joint "
+                    "through its range in the trial"
+                )
+            if est.spread[0] > max(options.min_spread, 0.3 * est.spread[1]):
+                warnings.warn(
+                    f"{what}: its rotations are not about a single axis (spreads {est.spread[0]:.3f} and "
+                    f"{est.spread[1]:.3f}); it is estimated as a hinge about the least-moving axis",
+                    stacklevel=2,
+                )
+        elif weak or est.std_m > options.max_centre_std_m:
+            if weak == 1 and options.degenerate == "hinge":
+                warnings.warn(
+                    f"{what}: the trial exercised it about one axis only (spread {est.spread[0]:.4f} < "
+                    f"{options.min_spread}); its centre is fixed on that axis by the straight rest pose",
+                    stacklevel=2,
+                )
+                est = _joint_estimate(name, pname, jtype, rel, 1, options, families)
+            else:
+                raise ValueError(
+                    f"{what}: the trial does not determine its centre: {max(weak, 1)} direction(s) with rotation spread "
+                    f"below {options.min_spread} (spreads {np.array2string(est.spread[:3], precision=4)}), centre "
+                    f"standard error {100 * est.std_m:.2f} cm; exercise the joint about more axes, or declare it a hinge"
+                )
+        joints[name] = est
+
+    # ---- rest pose: segment orientations, hinge centres on their axes (Eq. 17) -------------------
+    world_from_v_rest = np.zeros((n, 4))
+    for j in range(n):
+        ok = rest & known[:, j]
+        if not ok.any():
+            raise ValueError(f"segment '{topology.names[j]}': none of its cameras is registered in the rest frames")
+        world_from_v_rest[j] = _average_rotation(world_v[ok, j, :4])
+    for name, (y0, null) in families.items():
+        joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None])
+
+    # ---- segment frames, bone vectors (Eq. 15), mounts (Eq. 5) -----------------------------------
+    rest_q = np.array([1.0, 0, 0, 0]) if world_from_rest is None else np.asarray(world_from_rest, dtype=np.float64)
+    seg_from_v_rot = _qmul(_qinv(rest_q / np.linalg.norm(rest_q)), world_from_v_rest)
+    origin = np.zeros((n, 3))
+    kids = topology.children(0)
+    chosen = [topology.index(s) for s in root_origin] if root_origin is not None else list(kids)
+    for k in chosen:
+        if topology.parents[k] != 0:
+            raise ValueError(f"root_origin: '{topology.names[k]}' is not a child of the root '{topology.names[0]}'")
+    if chosen:  # (a lone root keeps its virtual camera's origin)
+        origin[0] = np.mean([joints[topology.names[k]].centre_in_parent for k in chosen], axis=0)
+    for j in range(1, n):
+        origin[j] = joints[topology.names[j]].centre_in_child
+    rot_sv = _qmatrix(seg_from_v_rot)  # (J, 3, 3)
+    seg_from_v = np.concatenate([seg_from_v_rot, -np.einsum("jab,jb->ja", rot_sv, origin)], axis=1)
+    offsets = np.zeros((n, 3))
+    axes = np.zeros((n, 3))
+    for j in range(1, n):
+        est, p = joints[topology.names[j]], topology.parents[j]
+        offsets[j] = rot_sv[p] @ (est.centre_in_parent - origin[p])
+        if topology.joint_types[j] == JointType.HINGE:
+            axes[j] = rot_sv[j] @ est.axis_in_child
+            axes[j] *= _flexion_sign(world_v, known, j, p, seg_from_v_rot, axes[j])
+    skeleton = Skeleton(topology.names, topology.parents, offsets, topology.joint_types, axes)
+    camera_segments = tuple(topology.index(s) for _, s in pairs)
+    mounts = np.zeros((len(pairs), 7))
+    for j, cams in enumerate(seg_cams):
+        vc = vcs[topology.names[j]]
+        mounts[cams] = _compose(seg_from_v[j], vc.virtual_from_camera)
+    names = tuple(c for c, _ in pairs)
+    rig = None if intrinsics is None else Rig(names, camera_segments, mounts, intrinsics)
+    return RomEstimate(skeleton, rig, mounts, names, camera_segments, joints, vcs, seg_from_v)
+
+
+def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known) -> JointEstimate:
+    """Pick the point on a hinge's axis that is collinear with the joints above and below at rest (Eq. 17)."""
+    j = topology.index(name)
+    p = topology.parents[j]
+    kids = topology.children(j)
+    if topology.parents[p] < 0 or len(kids) != 1:
+        raise ValueError(
+            f"joint '{name}': a hinge's centre is fixed by the collinearity of the joints above and below it in the "
+            f"rest pose, so its parent must have a joint (not the root) and it needs exactly one child (has {len(kids)})"
+        )
+    below = topology.names[kids[0]]
+    if joints[below].axis_in_child is not None or joints[topology.names[p]].axis_in_child is not None:
+        raise ValueError(f"joint '{name}': the joints next to a hinge must be ball joints (a chain of hinges is not supported)")
+    ok = rest_known[:, j] & rest_known[:, p]
+    if not ok.any():
+        raise ValueError(f"joint '{name}': its segments are never both known in the rest frames")
+    wp, wc = world_v[ok, p], world_v[ok, j]
+    upper = _apply(wp, joints[topology.names[p]].centre_in_child)  # e.g. the hip, (R, 3)
+    lower = _apply(wc, joints[below].centre_in_parent)  # e.g. the ankle
+    d = upper - lower
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rows, rhs = [], []
+    for pose, base, step in ((wc, y0[:3], null[:3]), (wp, y0[3:], null[3:])):
+        k0 = _apply(pose, base)
+        dk = _qrot(pose[:, :4], step)
+        rows.append(np.cross(d, dk).ravel())
+        rhs.append(-np.cross(d, k0 - lower).ravel())
+    rows, rhs = np.concatenate(rows), np.concatenate(rhs)
+    if np.linalg.norm(rows) < 1e-3 * np.sqrt(len(rows)):
+        raise ValueError(f"joint '{name}': its axis is parallel to the limb at rest, the straight pose cannot place it")
+    s = float(rows @ rhs / (rows @ rows))
+    y = y0 + s * null
+    return dataclasses.replace(joints[name], centre_in_child=y[:3], centre_in_parent=y[3:])
+
+
+def _flexion_sign(world_v, known, j, p, seg_from_v_rot, axis) -> float:
+    """+1 if the hinge angles over the trial are mostly positive about ``axis`` (flexion positive), else −1."""
+    ok = known[:, j] & known[:, p]
+    seg = _qmul(world_v[ok][:, [p, j], :4], _qinv(seg_from_v_rot[[p, j]]))
+    local = _qmul(_qinv(seg[:, 0]), seg[:, 1])
+    angle = 2.0 * np.arctan2(local[:, 1:] @ axis, local[:, 0])
+    return 1.0 if np.median(angle) >= 0 else -1.0
+

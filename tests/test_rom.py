@@ -1,0 +1,164 @@
+"""Tests for bcmocap.kinematics.rom: skeleton, joint centres and camera mounts from a range-of-motion trial."""
+
+import warnings
+
+import numpy as np
+import pytest
+from conftest import quat_distance
+from test_sim_rom import LEG_KNEE_AXIS, TRIAL, model, noiseless  # noqa: F401 (shared module fixtures)
+
+from bcmocap.geometry import SO3
+from bcmocap.kinematics import (
+    JointType,
+    RomOptions,
+    Topology,
+    camera_poses,
+    motion_from_camera_poses,
+    skeleton_from_range_of_motion,
+)
+from bcmocap.sim import range_of_motion_trial, skeleton_errors
+
+
+@pytest.fixture(scope="module")
+def noisy(model):
+    return range_of_motion_trial(*model, seed=2, **TRIAL)  # 1°, 1 cm, 10 % missing
+
+
+def assert_same_mounts(got, want, atol):
+    np.testing.assert_allclose(quat_distance(got[:, :4], want[:, :4]), 0.0, atol=atol)
+    np.testing.assert_allclose(got[:, 4:], want[:, 4:], atol=atol)
+
+
+def test_noiseless_trial_gives_the_exact_skeleton_and_mounts(model, noiseless):
+    skeleton, rig = model
+    est = noiseless.estimate()
+    np.testing.assert_allclose(est.skeleton.offsets, skeleton.offsets, atol=1e-9)
+    np.testing.assert_allclose(est.skeleton.hinge_axes, skeleton.hinge_axes, atol=1e-9)  # sign: flexion positive
+    assert est.skeleton.joint_types == skeleton.joint_types and est.rig.names == rig.names
+    assert_same_mounts(np.asarray(est.rig.segment_from_camera), np.asarray(rig.segment_from_camera), 1e-9)
+    errors = skeleton_errors(skeleton, rig, est.skeleton, est.segment_from_camera)
+    np.testing.assert_allclose(list(errors["joint_centre_m"].values()), 0.0, atol=1e-9)
+    for joint in est.joints.values():
+        assert joint.rms_residual_m < 1e-9 and joint.inlier_fraction == 1.0
+    # the knee is a hinge: one direction of Eq. (13) is free (its axis), the others are exercised
+    knee = est.joints["shin"]
+    assert knee.spread[0] < 1e-6 < 0.1 < knee.spread[1]
+    vc = est.virtual_cameras["shin"]
+    mount = np.asarray(rig.segment_from_camera)[rig.index("shin")]
+    axis_in_camera = SO3(mount[:4]).inverse() @ (LEG_KNEE_AXIS / np.linalg.norm(LEG_KNEE_AXIS))
+    axis_in_virtual = SO3(vc.virtual_from_camera[0, :4]) @ axis_in_camera
+    np.testing.assert_allclose(abs(np.dot(knee.axis_in_child, np.asarray(axis_in_virtual))), 1.0, atol=1e-9)
+    assert "shin" in est.summary() and "hinge" in est.summary()
+
+
+def test_fk_of_the_estimated_skeleton_reproduces_the_camera_poses(noiseless):
+    est = noiseless.estimate(root_origin=None)  # another root origin: a different but consistent skeleton
+    assert np.abs(np.asarray(est.skeleton.offsets[1])).max() > 0.01
+    poses, registered = noiseless.world_from_camera, noiseless.registered
+    motion = motion_from_camera_poses(est.skeleton, est.rig, poses, registered)
+    again = np.asarray(camera_poses(est.skeleton, est.rig, motion).wxyz_xyz)
+    assert_same_mounts(again.reshape(-1, 7), poses.reshape(-1, 7), 1e-9)
+
+
+def test_noisy_trial_with_missing_poses(model, noisy):
+    skeleton, rig = model
+    est = noisy.estimate()
+    errors = skeleton_errors(skeleton, rig, est.skeleton, est.segment_from_camera)
+    centre_cm = 100 * np.array(list(errors["joint_centre_m"].values()))
+    assert centre_cm.mean() < 1.0 and centre_cm.max() < 2.0
+    assert np.mean(list(errors["bone_length_pct"].values())) < 3.0
+    assert np.max(list(errors["mount_rotation_deg"].values())) < 1.0
+    assert errors["hinge_axis_deg"]["shin"] < 2.0
+    for joint in est.joints.values():
+        # the residual (about √2·√3 cm of position noise and rotation noise on the lever arms) says how
+        # well Eq. (13) holds; the standard error is consistent with the actual error
+        assert 0.01 < joint.rms_residual_m < 0.04
+        assert joint.std_m < 0.01
+    # FK through the estimated model lands near the registered poses (within the SfM noise)
+    motion = motion_from_camera_poses(est.skeleton, est.rig, noisy.world_from_camera, noisy.registered)
+    again = np.asarray(camera_poses(est.skeleton, est.rig, motion).wxyz_xyz)
+    reg = noisy.registered
+    assert np.median(np.linalg.norm(again[reg][:, 4:] - noisy.world_from_camera[reg][:, 4:], axis=-1)) < 0.04
+
+
+def test_gross_registration_errors_are_reweighted_away(model):
+    skeleton, rig = model
+    trial = range_of_motion_trial(skeleton, rig, outlier_fraction=0.05, seed=3, **TRIAL)
+    centre = {}
+    for robust in (True, False):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # without reweighting the outliers also blur the knee's hinge axis
+            est = trial.estimate(RomOptions(robust=robust, max_centre_std_m=1.0))
+        errors = skeleton_errors(skeleton, rig, est.skeleton, est.segment_from_camera)
+        centre[robust] = 100 * np.mean(list(errors["joint_centre_m"].values()))
+        if robust:
+            assert all(0.75 < j.inlier_fraction < 0.99 for j in est.joints.values())
+    assert centre[True] < 1.5 < 3 * centre[True] < centre[False]
+
+
+def test_joint_not_exercised_is_named(model):
+    skeleton, rig = model
+    trial = range_of_motion_trial(skeleton, rig, exercised=["pelvis", "torso", "shin", "foot"], seed=1, **TRIAL)
+    with pytest.raises(ValueError, match=r"joint 'thigh' \(between 'pelvis' and 'thigh', ball\): the trial does not determine"):
+        trial.estimate()
+    trial = range_of_motion_trial(skeleton, rig, exercised=["pelvis", "torso", "thigh", "foot"], seed=1, **TRIAL)
+    with pytest.raises(ValueError, match=r"joint 'shin' \(between 'thigh' and 'shin', hinge\): the trial did not exercise it"):
+        trial.estimate()
+
+
+def test_ball_joint_moved_about_one_axis(model, noiseless):
+    # The topology says the knee is a ball joint, but the trial only flexes it: one direction is free.
+    skeleton, _ = model
+    topology = Topology(skeleton.names, skeleton.parents, ("free", "ball", "ball", "ball", "ball"))
+    args = (topology, noiseless.assignment, noiseless.world_from_camera, noiseless.registered)
+    with pytest.raises(ValueError, match=r"joint 'shin'.*ball\): .*1 direction\(s\) with rotation spread below.*declare it a hinge"):
+        skeleton_from_range_of_motion(*args, rest_frames=noiseless.rest_frames)
+    with pytest.warns(UserWarning, match=r"joint 'shin'.*about one axis only.*straight rest pose"):
+        est = skeleton_from_range_of_motion(
+            *args, rest_frames=noiseless.rest_frames, root_origin=["torso"], options=RomOptions(degenerate="hinge")
+        )
+    # its centre is found on that axis where the leg is straight at rest
+    np.testing.assert_allclose(est.skeleton.offsets, skeleton.offsets, atol=1e-9)
+    assert est.skeleton.joint_types[3] == JointType.BALL
+
+
+def test_camera_with_too_few_registered_frames(model, noiseless):
+    skeleton, rig = model
+    registered = noiseless.registered.copy()
+    registered[5:, rig.index("thigh")] = False  # the thigh's only camera: 5 frames
+    with pytest.raises(ValueError, match=r"camera 'thigh' is registered in only 5 frames .* segment 'thigh' has no better camera"):
+        skeleton_from_range_of_motion(skeleton, noiseless.assignment, noiseless.world_from_camera, registered, rest_frames=range(15))
+    registered = noiseless.registered.copy()
+    registered[8:, rig.index("waist_left")] = False  # one of three pelvis cameras: its mount from 8 frames
+    with pytest.warns(UserWarning, match=r"camera 'waist_left' is registered with '.*' in only 8 frames"):
+        est = skeleton_from_range_of_motion(
+            skeleton, noiseless.assignment, noiseless.world_from_camera, registered, rest_frames=range(15), root_origin=["torso"]
+        )
+    assert_same_mounts(est.segment_from_camera, np.asarray(rig.segment_from_camera), 1e-9)  # noiseless: still exact
+    registered[:, rig.index("waist_left")] = False
+    with pytest.raises(ValueError, match=r"camera 'waist_left' is never registered .* remove it from the assignment"):
+        skeleton_from_range_of_motion(skeleton, noiseless.assignment, noiseless.world_from_camera, registered, rest_frames=range(15))
+
+
+def test_bad_assignments_and_topologies(model, noiseless):
+    skeleton, rig = model
+    poses, registered = noiseless.world_from_camera, noiseless.registered
+    bad = dict(noiseless.assignment, shin="calf", foot="toes")
+    with pytest.raises(ValueError, match=r"unknown segments \['calf', 'toes'\] \(cameras \['shin', 'foot'\]\)"):
+        skeleton_from_range_of_motion(skeleton, bad, poses, registered, rest_frames=range(15))
+    no_foot = dict(noiseless.assignment, foot="shin")
+    with pytest.raises(ValueError, match=r"segments \['foot'\] have no camera"):
+        skeleton_from_range_of_motion(skeleton, no_foot, poses, registered, rest_frames=range(15))
+    with pytest.raises(ValueError, match=r"expected world_from_camera \(T, 7, 7\) and registered \(T, 7\)"):
+        skeleton_from_range_of_motion(skeleton, noiseless.assignment, poses[:, :6], registered[:, :6], rest_frames=range(15))
+    fixed = Topology(skeleton.names, skeleton.parents, ("free", "ball", "ball", "hinge", "fixed"))
+    with pytest.raises(ValueError, match="segment 'foot' has a FIXED joint"):
+        skeleton_from_range_of_motion(fixed, noiseless.assignment, poses, registered, rest_frames=range(15))
+    with pytest.raises(ValueError, match="rest_frames selects no frame"):
+        skeleton_from_range_of_motion(skeleton, noiseless.assignment, poses, registered, rest_frames=[])
+    with pytest.raises(ValueError, match="unknown parent 'hip'"):
+        Topology.from_segments([("pelvis", None, "free"), ("thigh", "hip", "ball")])
+    topo = Topology.from_segments([("pelvis", None, "free"), ("torso", "pelvis", "ball")])
+    assert topo.parents == (-1, 0) and topo.joint_types == (JointType.FREE, JointType.BALL)
+    with pytest.raises(ValueError, match="degenerate must be"):
+        RomOptions(degenerate="ignore")
