@@ -8,6 +8,7 @@ Variables are tangent vectors ``y`` ``(W, D)`` relative to the reference motion 
 
 from __future__ import annotations
 
+from math import prod
 from typing import Sequence
 
 import equinox as eqx
@@ -202,7 +203,7 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
             return tuple(t.masked(*t.residual(state, dt)) for t, dt in zip(frame_terms, data))
 
         args = (y, problem.reference[1:], tuple(t.data for t in frame_terms))
-        rs, jacs = jax.vmap(frame_residuals)(*args), jax.vmap(jax.jacfwd(frame_residuals))(*args)
+        rs, jacs = jax.vmap(frame_residuals)(*args), jax.vmap(_jacobian(frame_residuals, args))(*args)
         for term, r, jac in zip(frame_terms, rs, jacs):
             r, jac = _irls_rows(term, r, jac)
             diag = diag.at[1:].add(jnp.einsum("tri,trj->tij", jac, jac))
@@ -216,7 +217,7 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
         pairs = jnp.stack([y_ext[:-1], y_ext[1:]], axis=1)  # (W, 2, D)
         ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
         args = (pairs, problem.reference[:-1], problem.reference[1:], tuple(t.data for t in pair_terms), ok)
-        rs, jacs = jax.vmap(pair_residuals)(*args), jax.vmap(jax.jacfwd(pair_residuals))(*args)
+        rs, jacs = jax.vmap(pair_residuals)(*args), jax.vmap(_jacobian(pair_residuals, args))(*args)
         for term, r, jac in zip(pair_terms, rs, jacs):  # jac: (W, n, k, 2, D)
             r, jac = _irls_rows(term, r, jac.reshape(*jac.shape[:3], -1))
             jac = jac.reshape(*jac.shape[:2], 2, d)
@@ -262,6 +263,18 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
         else:
             raise TypeError(f"{term.label}: a term must subclass FrameTerm, PairTerm, CameraTerm or CameraPairTerm")
     return NormalEquations(diag[1:], upper[1:], grad[1:])
+
+
+def _jacobian(fn, batched_args):
+    """``jacfwd`` or ``jacrev`` of ``fn`` w.r.t. its first argument, whichever needs fewer passes.
+
+    ``batched_args`` carry a leading frame axis (the caller vmaps). Smoothness pairs have 2·D
+    tangents but fewer residual rows, where reverse mode is several times cheaper.
+    """
+    one = jax.tree.map(lambda a: a[0], batched_args)
+    rows = sum(int(prod(o.shape)) for o in jax.tree.leaves(jax.eval_shape(fn, *one)))
+    tangents = int(prod(one[0].shape))
+    return jax.jacrev(fn) if rows < tangents else jax.jacfwd(fn)
 
 
 def _point_measurement_jacobians(term: CameraTerm, cam_from_world: SE3, camera, data):
