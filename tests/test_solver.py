@@ -89,6 +89,9 @@ def test_whole_sequence_matches_scipy(setup, loss):
     y_ours = np.asarray(skeleton.difference(init, ours.motion)).ravel()
     assert np.allclose(y_ours, ref.x, atol=1e-6)
     assert cost_ours == pytest.approx(0.5 * np.sum(np.asarray(fn(ref.x)) ** 2), rel=1e-6)
+    # the report's costs are those of the start and of the returned motion
+    assert ours.reports[0].initial_cost == pytest.approx(0.5 * np.sum(np.asarray(fn(np.zeros_like(ref.x))) ** 2), rel=1e-12)
+    assert cost_ours == pytest.approx(0.5 * np.sum(np.asarray(fn(y_ours)) ** 2), rel=1e-9)
 
 
 def test_windows_agree_with_whole_sequence(setup):

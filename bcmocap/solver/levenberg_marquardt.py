@@ -114,7 +114,8 @@ class StructuredDampedNewtonDescent(optx.AbstractDescent):
 class _SolverState(eqx.Module):
     first_step: jax.Array
     y_eval: jax.Array
-    f_info: optx.FunctionInfo.EvalGradHessian  # model at the last accepted point
+    f_info: optx.FunctionInfo.EvalGradHessian  # model at the last accepted point (f: its cost)
+    initial_cost: jax.Array  # cost at the starting point
     aux: Any
     search_state: Any
     descent_state: _DescentState
@@ -167,6 +168,7 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             first_step=jnp.array(True),
             y_eval=y,
             f_info=f_info,
+            initial_cost=jnp.zeros((), y.dtype),
             aux=jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), aux_struct),
             search_state=self.search.init(y, f_info),
             descent_state=self.descent.init(y, f_info),
@@ -213,6 +215,7 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             first_step=jnp.array(False),
             y_eval=y + y_descent,
             f_info=f_info,
+            initial_cost=jnp.where(state.first_step, cost_eval, state.initial_cost),
             aux=aux,
             search_state=search_state,
             descent_state=descent_state,

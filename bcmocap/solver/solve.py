@@ -152,13 +152,11 @@ def _solve_window(problem: WindowProblem, options: SolverOptions):
     fn = lambda y, args: residuals(args, y)
     y0 = jnp.zeros((w, d))
     sol = optx.least_squares(fn, solver, y0, args=problem, max_steps=options.max_steps, throw=False)
-    y = sol.value
-    cost = lambda yy: 0.5 * sum(jnp.sum(r * r) for r in residuals(problem, yy))
-    motion = problem.skeleton.retract(problem.reference[1:], y)
+    motion = problem.skeleton.retract(problem.reference[1:], sol.value)
     return (
         motion,
-        cost(y0),
-        cost(y),
+        sol.state.initial_cost,
+        sol.state.f_info.f,  # the cost at the returned point, the last accepted one
         sol.stats["num_steps"],
         sol.state.num_accepted_steps,
         sol.result == optx.RESULTS.successful,
