@@ -10,6 +10,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from .sim.studio_command import add_simulate_command
+
 
 def enable_compilation_cache() -> None:
     """Persist XLA compilations across runs (``BCMOCAP_CACHE_DIR``, default ``~/.cache/bcmocap/jax``)."""
@@ -117,6 +119,7 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
 # Modules are imported lazily inside their ``run`` so that ``bcmocap --help`` stays fast.
 COMMANDS = [
     add_demo_command,
+    add_simulate_command,
 ]
 
 

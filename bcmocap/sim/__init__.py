@@ -4,7 +4,10 @@ from .capture import LazyProblem, SyntheticCapture, standard_capture
 from .motions import BODY_SEGMENTS, CMU_TRIALS, BodySegment, back_and_forth, load_body_motion, reduce_motion, resample
 from .observe import NoiseModel, ObservationSimulator, body_capsules
 from .rig import fov_camera_for, standard_rig
+from .render import RenderOptions, Renderer, camera_rays
 from .rom import RangeOfMotionTrial, range_of_motion, range_of_motion_trial, skeleton_errors
+from .scene import TexturedScene, TextureParams, make_textured_scene
+from .studio import GroundTruth, StudioSettings, load_ground_truth, write_capture
 from .world import World, make_world
 
 __all__ = [
@@ -14,13 +17,22 @@ __all__ = [
     "LazyProblem",
     "NoiseModel",
     "ObservationSimulator",
+    "GroundTruth",
     "RangeOfMotionTrial",
+    "RenderOptions",
+    "Renderer",
+    "StudioSettings",
     "SyntheticCapture",
+    "TextureParams",
+    "TexturedScene",
     "World",
     "back_and_forth",
     "body_capsules",
+    "camera_rays",
     "fov_camera_for",
     "load_body_motion",
+    "load_ground_truth",
+    "make_textured_scene",
     "make_world",
     "range_of_motion",
     "range_of_motion_trial",
@@ -29,4 +41,5 @@ __all__ = [
     "skeleton_errors",
     "standard_capture",
     "standard_rig",
+    "write_capture",
 ]

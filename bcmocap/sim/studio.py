@@ -1,0 +1,917 @@
+"""Synthetic capture studio: the folder a user brings back from a body-mounted-camera shoot, and its truth.
+
+:func:`write_capture` renders a real CMU motion (and a generated range-of-motion trial) through the
+paper-like 18-camera rig in a textured room (:mod:`bcmocap.sim.scene`, :mod:`bcmocap.sim.render`),
+with one video and one soundtrack per camera, reference photos of the room taken from a hand-held path
+(§4.1), the intrinsics and the rig; and beside it the Vicon-style ground truth, which
+:func:`load_ground_truth` reads back in one call. The same settings and seed write the same bytes.
+
+Folder layout (``CAPTURE_DIR``)::
+
+    capture.json                  manifest: format "bcmocap-capture", version, the settings, camera
+                                  names, trials, and "complete" once everything is written
+    rig.json                      which camera is strapped to which body segment (mounts are unknown
+                                  in a real shoot: they are in ground_truth/rig.json)
+    intrinsics/<camera>.yml       cv2.fisheye calibration (image_width, image_height, camera_matrix,
+                                  dist_coeff), as bcmocap.cameras.read_opencv_fisheye_calibration reads;
+                                  for the default FOV lens it is the Kannala-Brandt fit of that lens
+    intrinsics/<camera>.json      the exact lens: {"model": "FOV" | "OPENCV_FISHEYE", "width", "height",
+                                  "params": [fx, fy, cx, cy, omega | k1..k4]} (OpenCV pixel convention:
+                                  the top-left pixel's centre is (0, 0)), and the fit's error in pixels
+    reference/photo_NNN.jpg       reference photos of the empty room from a hand-held camera walking a
+                                  loop around the capture area (JPEG quality 95)
+    reference/camera.json, .yml   their pinhole intrinsics (same conventions; .yml with
+                                  camera_matrix and 5 zero distortion_coefficients)
+    trials/<trial>/<camera>.mp4   one video per body camera (MPEG-4 part 2, "mp4v", via OpenCV)
+    trials/<trial>/<camera>.wav   that camera's soundtrack (mono 16-bit PCM), same start as the video
+    ground_truth/skeleton.json    segment names, parents, rest offsets (m), joint types, hinge axes
+    ground_truth/rig.json         cameras: segment, segment_from_camera (wxyz_xyz), exact intrinsics
+    ground_truth/scene.json       the textured scene's surfaces (bcmocap.sim.scene.TexturedScene)
+    ground_truth/world_points.npz points (N, 3) m on the textured surfaces and their materials (N,)
+    ground_truth/reference.npz    names (N,) and world_from_camera (N, 7) of the reference photos
+    ground_truth/<trial>.npz      per trial frame: root_position (T, 3), rotations (T, J, 4) (Motion),
+                                  joint_positions (T, J, 3), world_rotations (T, J, 4),
+                                  world_from_camera (T, C, 7); per camera: video_start_frame (C,),
+                                  num_video_frames (C,), clap_samples (C, 2), audio_gain (C,);
+                                  clap_frames (2,); fps, audio_rate; Vicon-style markers:
+                                  marker_names (M,), marker_segments (M,), marker_offsets (M, 3) m in
+                                  the segment frame, markers (T, M, 3) m with NaN in gaps
+    ground_truth/<trial>.bvh      the skeleton and the trial's motion (bcmocap.io.write_bvh)
+
+Trials are ``rom`` (range of motion, for skeleton estimation: every joint swung about all its axes at
+once by incommensurate sinusoids around the first pose of the capture, while the body turns in place)
+and ``capture`` (the CMU motion). Timing: video frame ``i`` of camera ``c``
+shows trial frame ``clip(i - video_start_frame[c], 0, T - 1)`` (the subject stands still before and
+after the trial), and its audio covers samples ``[i, i + 1) * audio_rate / fps``. The clapper board
+claps at trial frames ``clap_frames = (-lead, T - 1 + lead)``, i.e. at sample
+``(clap_frames + video_start_frame[c]) * audio_rate / fps`` of camera ``c``'s track. Cameras start
+recording at random whole frames apart (up to 0.5 s), so synchronising by the claps recovers frame
+offsets exactly. World frame Z up, metres; rotations as wxyz quaternions; camera frames as OpenCV.
+
+Why a WAV beside each MP4: OpenCV's VideoWriter writes video streams only, and muxing audio into the MP4
+would need an ffmpeg binary (a system install, or a pip wheel that ships one, such as imageio-ffmpeg): a
+new binary dependency for one feature. Readers that want one file can mux with
+``ffmpeg -i c.mp4 -i c.wav -c:v copy -c:a aac out.mp4``.
+
+Resuming: videos and tracks are written under temporary names and renamed when complete; running again
+with the same settings skips every complete camera. A non-empty folder that is not a capture, or a
+capture written with other settings, is refused (nothing in it is touched).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import functools
+import json
+import math
+import os
+import tempfile
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ..cameras import CameraModel, FOVCamera, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
+from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
+from ..kinematics.fk import forward_kinematics
+from ..kinematics.rig import Rig
+from ..kinematics.skeleton import JointType, Motion, Skeleton
+from .audio import soundtrack, write_wav
+from .motions import CMU_TRIALS, load_body_motion
+from .observe import body_capsules
+from .render import Renderer, RenderOptions, capsule_colors
+from .rig import standard_rig
+from .scene import TexturedScene, make_textured_scene
+
+__all__ = [
+    "CAPTURE_FORMAT",
+    "GroundTruth",
+    "MarkerTrajectories",
+    "StudioSettings",
+    "TrialTruth",
+    "capsule_ends",
+    "fit_opencv_fisheye",
+    "load_ground_truth",
+    "write_capture",
+]
+
+CAPTURE_FORMAT = "bcmocap-capture"
+CAPTURE_VERSION = 1
+TRIALS = ("rom", "capture")
+_BATCH = 4  # frames rendered per call (one compilation per camera size)
+_LEAD_S = 0.25  # clap before the first / after the last trial frame
+_ROLL_S = 0.1  # recording before the first clap / after the last one, plus the random offsets
+_MAX_OFFSET_S = 0.5  # spread of camera start (and stop) times
+
+
+@dataclasses.dataclass(frozen=True)
+class StudioSettings:
+    """What :func:`write_capture` renders (all of it goes into ``capture.json``).
+
+    Attributes:
+        motion: bundled CMU trial for the capture ("walk", "run", "jump").
+        seconds: length of the capture trial (s); longer than the CMU trial plays it back and forth.
+        rom_seconds: length of the range-of-motion trial (s).
+        seed: random seed (scene, camera offsets, audio, markers, sensor noise).
+        fps: frame rate of videos and ground truth (Hz).
+        width, height: body-camera image size (px).
+        lens: "fov" (the paper's FOV model, 170°) or "opencv_fisheye" (its Kannala-Brandt fit, so the
+            .yml calibration is exact).
+        reference_photos: number of reference photos; reference_width, reference_height their size (px);
+            reference_fov_deg their horizontal field of view (pinhole).
+        motion_blur, rolling_shutter: rendering effects (:class:`~bcmocap.sim.render.RenderOptions`).
+        audio_rate: sample rate of the soundtracks (Hz).
+        markers_per_segment: Vicon-style markers on each body capsule.
+    """
+
+    motion: str = "walk"
+    seconds: float = 2.0
+    rom_seconds: float = 2.0
+    seed: int = 0
+    fps: float = 60.0
+    width: int = 640
+    height: int = 360
+    lens: str = "fov"
+    reference_photos: int = 24
+    reference_width: int = 1024
+    reference_height: int = 768
+    reference_fov_deg: float = 80.0
+    motion_blur: bool = False
+    rolling_shutter: bool = False
+    audio_rate: int = 48000
+    markers_per_segment: int = 3
+
+    def __post_init__(self):
+        if self.motion not in CMU_TRIALS:
+            raise ValueError(f"StudioSettings.motion must be one of {sorted(CMU_TRIALS)}, got {self.motion!r}")
+        if self.lens not in ("fov", "opencv_fisheye"):
+            raise ValueError(f"StudioSettings.lens must be 'fov' or 'opencv_fisheye', got {self.lens!r}")
+        for name in ("seconds", "rom_seconds", "fps"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"StudioSettings.{name} must be positive, got {getattr(self, name)}")
+        for name in ("width", "height", "reference_width", "reference_height", "audio_rate"):
+            if int(getattr(self, name)) < 8:
+                raise ValueError(f"StudioSettings.{name} must be at least 8, got {getattr(self, name)}")
+        if self.reference_photos < 0 or self.markers_per_segment < 0:
+            raise ValueError("StudioSettings.reference_photos and markers_per_segment must be >= 0")
+        if round(self.seconds * self.fps) < 2 or round(self.rom_seconds * self.fps) < 2:
+            raise ValueError("StudioSettings: each trial needs at least 2 frames (seconds * fps >= 2)")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, where: str = "capture.json") -> StudioSettings:
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ValueError(f"{where}: unknown settings {unknown}")
+        return cls(**data)
+
+
+# ---------------------------------------------------------------------------------------------
+# Small deterministic writers (temporary file + rename; fixed zip timestamps so bytes repeat).
+
+
+def _atomic_bytes(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _write_json(path: Path, payload: dict) -> None:
+    _atomic_bytes(path, (json.dumps(payload, indent=1) + "\n").encode())
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    import io
+
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as z:
+        for name, value in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            body = io.BytesIO()
+            np.lib.format.write_array(body, np.asarray(value), allow_pickle=False)
+            z.writestr(info, body.getvalue())
+    _atomic_bytes(path, buffer.getvalue())
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: missing (not a complete bcmocap capture folder?)") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except FileNotFoundError:
+        raise ValueError(f"{path}: missing (not a complete bcmocap capture folder?)") from None
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{path}: not a readable .npz file ({err})") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# Cameras and skeletons as JSON.
+
+
+def _camera_to_dict(camera: CameraModel) -> dict:
+    fx, fy = (float(x) for x in np.asarray(camera.focal))
+    cx, cy = (float(x) for x in np.asarray(camera.principal_point))
+    if isinstance(camera, FOVCamera):
+        model, extra = "FOV", [float(camera.omega)]
+    elif isinstance(camera, OpenCVFisheyeCamera):
+        model, extra = "OPENCV_FISHEYE", [float(x) for x in np.asarray(camera.distortion)]
+    elif isinstance(camera, PinholeCamera):
+        model, extra = "PINHOLE", []
+    else:
+        raise ValueError(f"cannot describe camera class {type(camera).__name__}")
+    return {"model": model, "width": camera.width, "height": camera.height, "params": [fx, fy, cx, cy, *extra],
+            "pixel_convention": "OpenCV: the centre of the top-left pixel is (0, 0)"}
+
+
+def _camera_from_dict(data: dict, where: str) -> CameraModel:
+    try:
+        model, p = data["model"], [float(x) for x in data["params"]]
+        size = {"width": int(data["width"]), "height": int(data["height"])}
+        if model == "FOV" and len(p) == 5:
+            return FOVCamera(**size, focal=p[0:2], principal_point=p[2:4], omega=p[4])
+        if model == "OPENCV_FISHEYE" and len(p) == 8:
+            return OpenCVFisheyeCamera(**size, focal=p[0:2], principal_point=p[2:4], distortion=p[4:8])
+        if model == "PINHOLE" and len(p) == 4:
+            return PinholeCamera(**size, focal=p[0:2], principal_point=p[2:4])
+    except KeyError as err:
+        raise ValueError(f"{where}: camera is missing field {err}") from None
+    raise ValueError(f"{where}: unsupported camera model {data.get('model')!r} with {len(data.get('params', []))} params")
+
+
+def _skeleton_to_dict(skeleton: Skeleton) -> dict:
+    return {
+        "names": list(skeleton.names),
+        "parents": list(skeleton.parents),
+        "offsets_m": np.asarray(skeleton.offsets).tolist(),
+        "joint_types": [JointType(t).name.lower() for t in skeleton.joint_types],
+        "hinge_axes": np.asarray(skeleton.hinge_axes).tolist(),
+    }
+
+
+def _skeleton_from_dict(data: dict, where: str) -> Skeleton:
+    try:
+        return Skeleton(data["names"], data["parents"], data["offsets_m"], data["joint_types"], data["hinge_axes"])
+    except KeyError as err:
+        raise ValueError(f"{where}: missing field {err}") from None
+    except ValueError as err:
+        raise ValueError(f"{where}: {err}") from None
+
+
+def fit_opencv_fisheye(camera: CameraModel) -> tuple[OpenCVFisheyeCamera, float]:
+    """The Kannala-Brandt (``cv2.fisheye``) model closest to a camera over its image.
+
+    Fits ``r = f' theta (1 + k1 theta^2 + ... + k4 theta^8)`` to the camera's own image radius over the
+    angles its pixels see (reweighted linear least squares towards the smallest largest error), keeping
+    the principal point.
+
+    Returns:
+        ``(camera, max_error_px)``: the fitted model and its largest reprojection difference (px) over a
+        grid of the image.
+    """
+    if isinstance(camera, OpenCVFisheyeCamera):
+        return camera, 0.0
+    h, w = camera.height, camera.width
+    v, u = np.mgrid[0 : h : max(h // 48, 1), 0 : w : max(w // 64, 1)].astype(np.float64)
+    uv = np.stack([u.ravel(), v.ravel()], axis=-1)
+    uv = np.concatenate([uv, [[0.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0], [w - 1.0, 0.0]]])
+    rays = np.asarray(camera.unproject(uv))
+    theta = np.arccos(np.clip(rays[:, 2], -1.0, 1.0))
+    m = (uv - np.asarray(camera.principal_point)) / np.asarray(camera.focal)
+    radius = np.linalg.norm(m, axis=1)
+    basis = np.stack([theta ** (2 * i + 1) for i in range(5)], axis=1)
+    # Lawson's reweighting turns least squares into (nearly) the minimax fit: 0.95 -> 0.17 px at 170°.
+    weight = np.ones_like(radius)
+    for _ in range(20):
+        coef, *_ = np.linalg.lstsq(basis * weight[:, None], radius * weight, rcond=None)
+        err = np.abs(basis @ coef - radius)
+        weight = weight * np.sqrt(err / max(err.max(), 1e-15) + 1e-3)
+        weight /= weight.mean()
+    fitted = OpenCVFisheyeCamera(
+        width=w, height=h, focal=np.asarray(camera.focal) * coef[0], principal_point=np.asarray(camera.principal_point),
+        distortion=coef[1:] / coef[0],
+    )
+    back, ok = fitted.project(rays)
+    err = np.linalg.norm(np.asarray(back) - uv, axis=1)
+    return fitted, float(np.max(np.where(np.asarray(ok), err, np.inf)))
+
+
+def _write_opencv_yaml(path: Path, camera: CameraModel) -> None:
+    """cv2.FileStorage calibration: fisheye via bcmocap.cameras' writer, pinhole with 5 zero coefficients."""
+    import cv2
+
+    from ..cameras import write_opencv_fisheye_calibration
+
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    if isinstance(camera, OpenCVFisheyeCamera):
+        write_opencv_fisheye_calibration(tmp, camera)
+    else:
+        (fx, fy), (cx, cy) = np.asarray(camera.focal), np.asarray(camera.principal_point)
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        try:
+            fs.write("image_width", int(camera.width))
+            fs.write("image_height", int(camera.height))
+            fs.write("camera_matrix", np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
+            fs.write("distortion_coefficients", np.zeros((5, 1)))
+        finally:
+            fs.release()
+    os.replace(tmp, path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Motions, markers and timing.
+
+
+def _hinge_angle(q: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    return 2.0 * np.arctan2(q[..., 1:] @ axis, q[..., 0])
+
+
+_ROM_AMPLITUDE_DEG = {"torso": 20.0, "head": 30.0, "upper_arm": 55.0, "forearm": 80.0, "hand": 35.0,
+                      "thigh": 30.0, "shin": 60.0, "foot": 25.0}
+
+
+def _range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float, fps: float,
+                     rng: np.random.Generator) -> Motion:
+    """A generated range-of-motion trial: from the first pose of ``reference``, standing in place, each
+    joint swings about all its axes (incommensurate sinusoids under a smooth envelope) while the body
+    slowly turns; hinges flex to the side ``reference`` flexes them."""
+    n = int(round(seconds * fps))
+    t = np.arange(n) / fps
+    envelope = np.sin(np.pi * np.arange(n) / max(n - 1, 1)) ** 2
+    base = np.asarray(reference.rotations[0])
+    rot = np.broadcast_to(base, (n, *base.shape)).copy()
+    ref_rot = np.asarray(reference.rotations)
+    for j in range(1, skeleton.num_segments):
+        name = skeleton.names[j]
+        kind = name.split("_", 1)[1] if "_" in name else name
+        amp = np.deg2rad(_ROM_AMPLITUDE_DEG.get(kind, 20.0))
+        freq = rng.uniform(0.6, 1.4, 3)
+        phase = rng.uniform(0, 2 * np.pi, 3)
+        jt = skeleton.joint_types[j]
+        if jt == JointType.BALL:
+            rotvec = amp * envelope[:, None] * np.sin(2 * np.pi * freq * t[:, None] + phase)
+        elif jt == JointType.HINGE:
+            axis = np.asarray(skeleton.hinge_axes[j])
+            side = np.sign(np.mean(_hinge_angle(ref_rot[:, j], axis))) or 1.0
+            angle = side * amp * envelope * 0.5 * (1 - np.cos(2 * np.pi * freq[0] * t))
+            rotvec = angle[:, None] * axis
+        else:
+            continue
+        rot[:, j] = np.asarray((SO3(base[j]) @ SO3.exp(rotvec)).wxyz)
+    yaw = np.deg2rad(60.0) * envelope * np.sin(2 * np.pi * 0.2 * t)
+    turn = np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], axis=1)
+    rot[:, 0] = np.asarray((SO3(turn) @ SO3(base[0])).wxyz)
+    rot = np.asarray(skeleton.project_rotations(rot))
+    position = np.broadcast_to(np.asarray(reference.root_position[0]), (n, 3))
+    return Motion(np.array(position), rot)
+
+
+@dataclasses.dataclass(frozen=True)
+class MarkerTrajectories:
+    """Vicon-style optical markers: a few per segment, offset from the bone onto the body's surface.
+
+    Attributes:
+        names: ``(M,)`` marker names; segments ``(M,)`` segment index of each marker.
+        offsets: ``(M, 3)`` marker positions in their segment's frame (m).
+        positions: ``(T, M, 3)`` measured world positions (m): noisy, NaN where the marker was occluded.
+    """
+
+    names: tuple[str, ...]
+    segments: np.ndarray
+    offsets: np.ndarray
+    positions: np.ndarray
+
+
+def _marker_layout(skeleton: Skeleton, per_segment: int, rng: np.random.Generator):
+    names, segments, offsets = [], [], []
+    for cap in body_capsules(skeleton):
+        a, b = np.asarray(cap.a, float), np.asarray(cap.b, float)
+        axis = b - a
+        length = np.linalg.norm(axis)
+        axis = axis / length if length > 1e-9 else np.array([0.0, 0.0, 1.0])
+        helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        e1 = np.cross(axis, helper)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(axis, e1)
+        for i in range(per_segment):
+            ang = 2 * np.pi * i / max(per_segment, 1) + rng.uniform(-0.3, 0.3)
+            s = rng.uniform(0.2, 0.9)
+            offsets.append(a + s * (b - a) + (cap.radius + 0.012) * (np.cos(ang) * e1 + np.sin(ang) * e2))
+            segments.append(cap.segment)
+            names.append(f"{skeleton.names[cap.segment]}_{i + 1}")
+    return tuple(names), np.asarray(segments, np.int64), np.asarray(offsets, np.float64).reshape(-1, 3)
+
+
+def _simulate_markers(skeleton: Skeleton, motion: Motion, fps: float, per_segment: int, rng: np.random.Generator,
+                      noise_m: float = 0.001, gaps_per_second: float = 0.3,
+                      gap_frames: tuple[int, int] = (3, 30)) -> MarkerTrajectories:
+    names, segments, offsets = _marker_layout(skeleton, per_segment, rng)
+    world = SE3(np.asarray(forward_kinematics(skeleton, motion).wxyz_xyz)[:, segments])
+    positions = np.asarray(world @ offsets[None]) + rng.normal(scale=noise_m, size=(motion.num_frames, len(names), 3))
+    num_frames = motion.num_frames
+    for m in range(len(names)):
+        for _ in range(rng.poisson(gaps_per_second * num_frames / fps)):
+            length = rng.integers(gap_frames[0], gap_frames[1] + 1)
+            start = rng.integers(0, num_frames)
+            positions[start: start + length, m] = np.nan
+    return MarkerTrajectories(names, segments, offsets, positions)
+
+
+def _timeline(num_frames: int, num_cameras: int, fps: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    lead = int(round(_LEAD_S * fps))
+    roll = int(round(_ROLL_S * fps))
+    spread = int(round(_MAX_OFFSET_S * fps))
+    start = lead + roll + rng.integers(0, spread + 1, num_cameras)
+    tail = lead + roll + rng.integers(0, spread + 1, num_cameras)
+    return {
+        "video_start_frame": start.astype(np.int64),
+        "num_video_frames": (start + num_frames + tail).astype(np.int64),
+        "clap_frames": np.array([-lead, num_frames - 1 + lead], np.int64),
+        "audio_gain": rng.uniform(0.45, 1.0, num_cameras),
+    }
+
+
+def _reference_poses(scene: TexturedScene, path_xy: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``(N, 7)`` world_from_camera of hand-held photos along a loop around the capture area.
+
+    The first half of the loop looks outwards (towards the walls), the second inwards across the room;
+    the camera is held at 1.5-1.7 m, pitched 5-25° down, with a little roll.
+    """
+    lo, hi = path_xy.min(axis=0), path_xy.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    semi = np.maximum(0.5 * (hi - lo) + 1.2, 1.5)
+    poses = []
+    for i in range(count):
+        outward = i < (count + 1) // 2
+        k = i if outward else i - (count + 1) // 2
+        per_lap = (count + 1) // 2 if outward else max(count - (count + 1) // 2, 1)
+        angle = 2 * np.pi * (k + 0.5 * (not outward)) / per_lap + rng.uniform(-0.1, 0.1)
+        for shrink in np.linspace(1.0, 0.3, 15):
+            xy = centre + shrink * semi * np.array([np.cos(angle), np.sin(angle)])
+            p = np.array([xy[0], xy[1], rng.uniform(1.5, 1.7)])
+            if not scene.inside_clutter(p[None], margin_m=-1.0)[0]:
+                break
+        yaw = angle + (0.0 if outward else np.pi) + rng.uniform(-0.5, 0.5)
+        pitch = -np.deg2rad(rng.uniform(5.0, 25.0))
+        forward = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        roll = np.deg2rad(rng.uniform(-3.0, 3.0))
+        x = np.cos(roll) * right + np.sin(roll) * down
+        y = np.cross(forward, x)
+        rotation = np.stack([x, y, forward], axis=1)
+        poses.append(np.concatenate([quat_from_matrix(rotation), p]))
+    return np.asarray(poses, np.float64).reshape(-1, 7)
+
+
+# ---------------------------------------------------------------------------------------------
+# The capture.
+
+
+@dataclasses.dataclass
+class _Plan:
+    settings: StudioSettings
+    skeleton: Skeleton
+    rig: Rig
+    scene: TexturedScene
+    trials: dict[str, Motion]
+    timelines: dict[str, dict[str, np.ndarray]]
+    reference_camera: PinholeCamera
+    reference_poses: np.ndarray
+    fit_error_px: float
+
+
+def _rng(seed: int, *stream: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([seed, *stream]))
+
+
+@functools.lru_cache(maxsize=4)
+def _body_motion(name: str, fps: float, seconds: float) -> tuple[Skeleton, Motion]:
+    # Parsing and reducing a CMU trial takes seconds; a resumed or repeated capture in one process reuses it.
+    return load_body_motion(name, fps=fps, seconds=seconds, repeat=True)
+
+
+def _plan(settings: StudioSettings) -> _Plan:
+    s = settings
+    skeleton, motion = _body_motion(s.motion, s.fps, s.seconds)
+    rig = standard_rig(skeleton, s.width, s.height)
+    fitted, fit_error = fit_opencv_fisheye(camera_at(rig.intrinsics, 0))
+    if s.lens == "opencv_fisheye":
+        rig = Rig(rig.names, rig.segments, rig.segment_from_camera, stack_cameras([fitted] * rig.num_cameras))
+        fit_error = 0.0
+    rom = _range_of_motion(skeleton, motion, s.rom_seconds, s.fps, _rng(s.seed, 5))
+    path_xy = np.asarray(motion.root_position)[:, :2]
+    scene = make_textured_scene(path_xy, seed=s.seed)
+    trials = {"rom": rom, "capture": motion}
+    timelines = {name: _timeline(m.num_frames, rig.num_cameras, s.fps, _rng(s.seed, 1, i))
+                 for i, (name, m) in enumerate(trials.items())}
+    focal = 0.5 * s.reference_width / math.tan(math.radians(s.reference_fov_deg) / 2)
+    reference_camera = PinholeCamera(
+        width=s.reference_width, height=s.reference_height, focal=[focal, focal],
+        principal_point=[(s.reference_width - 1) / 2, (s.reference_height - 1) / 2],
+    )
+    reference_poses = _reference_poses(scene, path_xy, s.reference_photos, _rng(s.seed, 4))
+    return _Plan(s, skeleton, rig, scene, trials, timelines, reference_camera, reference_poses, fit_error)
+
+
+def _check_folder(path: Path, settings: StudioSettings) -> bool:
+    """Raise if ``path`` must not be written; True when it holds a capture to resume."""
+    if path.exists() and not path.is_dir():
+        raise FileExistsError(f"{path} exists and is not a folder")
+    if not path.exists() or not any(path.iterdir()):
+        return False
+    manifest = path / "capture.json"
+    try:
+        data = json.loads(manifest.read_text())
+    except (OSError, json.JSONDecodeError):
+        data = None
+    if not isinstance(data, dict) or data.get("format") != CAPTURE_FORMAT:
+        raise FileExistsError(
+            f"{path} is not empty and is not a bcmocap capture (no valid capture.json): refusing to write into it; "
+            "choose an empty or new folder"
+        )
+    if data.get("version") != CAPTURE_VERSION or data.get("settings") != json.loads(json.dumps(settings.to_dict())):
+        raise FileExistsError(
+            f"{path} holds a capture written with other settings ({data.get('settings')}); refusing to mix "
+            "captures: choose another folder or repeat the same settings to resume"
+        )
+    return True
+
+
+def _frame_key(seed: int, trial: int, camera: int, frame: np.ndarray) -> np.ndarray:
+    """Seeds of the sensor noise of frames (uint32), distinct per seed, trial, camera and frame."""
+    base = ((int(seed) * 1_000_003 + trial * 7_919 + camera * 104_729) * 65_537) & 0xFFFFFFFF
+    return ((base + np.asarray(frame, np.int64)) & 0xFFFFFFFF).astype(np.uint32)
+
+
+def capsule_ends(skeleton: Skeleton, motion: Motion) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The body's capsules over a motion: end points ``(T, K, 2, 3)`` (world, m), radii ``(K,)``, colours ``(K, 3)``."""
+    caps = body_capsules(skeleton)
+    segs = np.array([c.segment for c in caps])
+    local = np.array([[c.a, c.b] for c in caps], np.float64)
+    world = np.asarray(forward_kinematics(skeleton, motion).wxyz_xyz)[:, segs]  # (T, K, 7)
+    ends = np.asarray(SE3(world[:, :, None]) @ local[None])  # (T, K, 2, 3)
+    return ends, np.array([c.radius for c in caps]), capsule_colors(caps, skeleton.names)
+
+
+class _VideoSink:
+    """An mp4v video written under a temporary name and renamed when closed (calls run on one writer thread)."""
+
+    def __init__(self, path: Path, fps: float, size: tuple[int, int]):
+        import cv2
+
+        self.path = path
+        self.tmp = path.with_name(f".{path.stem}.partial.mp4")
+        self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), size)
+        if not self.writer.isOpened():
+            raise RuntimeError(f"{self.tmp}: OpenCV cannot open an mp4v video writer")
+
+    def write(self, frames_rgb: list[np.ndarray]) -> None:
+        for frame in frames_rgb:
+            self.writer.write(np.ascontiguousarray(frame[..., ::-1]))
+
+    def close(self) -> None:
+        self.writer.release()
+        os.replace(self.tmp, self.path)
+
+
+def _render_camera_trial(plan: _Plan, renderer: Renderer, trial_index: int, trial: str, camera: int,
+                         poses: np.ndarray, capsules: tuple, folder: Path, pool: concurrent.futures.Executor,
+                         advance: Callable[[int], None]) -> concurrent.futures.Future:
+    """Render one camera's trial batch by batch while a writer thread encodes the previous batches.
+
+    Returns the future of the video's completion (rename to its final name).
+    """
+    s = plan.settings
+    n = plan.trials[trial].num_frames
+    timeline = plan.timelines[trial]
+    head = int(timeline["video_start_frame"][camera])  # copies of frame 0 before the trial starts
+    tail = int(timeline["num_video_frames"][camera]) - head - n  # copies of frame n-1 after it ends
+    ends, radii, colors = capsules
+    sink = pool.submit(_VideoSink, folder / f"{plan.rig.names[camera]}.mp4", s.fps, (s.width, s.height)).result()
+    writes: list[concurrent.futures.Future] = []
+    for first in range(0, n, _BATCH):
+        frames = np.minimum(np.arange(first, first + _BATCH), n - 1)
+        rot, org = renderer.poses_at(poses, frames)
+        images = renderer.render(rot, org, renderer.capsules_at(ends, frames), radii, colors,
+                                 _frame_key(s.seed, trial_index, camera, frames))
+        video = []
+        for k, image in zip(range(first, min(first + _BATCH, n)), images):
+            video.extend([image] * ((head if k == 0 else 0) + 1 + (tail if k == n - 1 else 0)))
+        writes.append(pool.submit(sink.write, video))
+        if len(writes) > 2:  # back-pressure: at most a few batches wait for the encoder
+            writes.pop(0).result()
+        advance(min(_BATCH, n - first))
+    for w in writes:
+        w.result()
+    return pool.submit(sink.close)
+
+
+def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSettings(), *, progress: bool = True,
+                  timings: dict | None = None) -> Path:
+    """Render a synthetic capture folder and its ground truth (layout in the module docstring).
+
+    Args:
+        path: the capture folder: new, empty, or a capture with the same settings to resume.
+        settings: what to render.
+        progress: show a tqdm progress bar over rendered frames.
+        timings: if given, filled with wall-clock seconds per phase (``setup`` — motions, scene, static
+            files —, ``reference_photos``, ``trial:<name>`` rendering and encoding, compilations
+            included) and the frames rendered per trial (``frames:<name>``).
+
+    Returns:
+        The folder.
+
+    Raises:
+        FileExistsError: ``path`` is a file, a non-empty folder that is not a capture, or a capture made
+            with other settings (nothing is written).
+    """
+    import time
+
+    from tqdm import tqdm
+
+    clock = time.perf_counter()
+    timings = {} if timings is None else timings
+    folder = Path(path)
+    resume = _check_folder(folder, settings)
+    plan = _plan(settings)
+    s, rig, skeleton = settings, plan.rig, plan.skeleton
+    manifest = {
+        "format": CAPTURE_FORMAT,
+        "version": CAPTURE_VERSION,
+        "settings": s.to_dict(),
+        "cameras": list(rig.names),
+        "trials": list(TRIALS),
+        "complete": False,
+    }
+    folder.mkdir(parents=True, exist_ok=True)
+    if not resume:  # the manifest first: an interrupted capture is always recognised as one
+        _write_json(folder / "capture.json", manifest)
+    for sub in ("intrinsics", "reference", "ground_truth", *(f"trials/{t}" for t in TRIALS)):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    _write_static_files(folder, plan)
+
+    def written(trial: str, camera: int) -> bool:
+        base = folder / "trials" / trial / rig.names[camera]
+        return base.with_suffix(".mp4").exists() and base.with_suffix(".wav").exists()
+
+    todo = [(ti, t, c) for ti, t in enumerate(TRIALS) for c in range(rig.num_cameras) if not written(t, c)]
+    photos = [i for i in range(len(plan.reference_poses)) if not (folder / "reference" / f"photo_{i:03d}.jpg").exists()]
+    total = sum(plan.trials[t].num_frames for _, t, _ in todo) + len(photos)
+    options = RenderOptions(motion_blur=s.motion_blur, rolling_shutter=s.rolling_shutter)
+    with tqdm(total=total, unit="frame", desc="bcmocap simulate", disable=not progress, smoothing=0.1) as bar, \
+            concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
+        timings["setup"] = time.perf_counter() - clock
+        clock = time.perf_counter()
+        _write_reference_photos(folder, plan, photos, bar.update)
+        timings["reference_photos"] = time.perf_counter() - clock
+        renderers: dict[bytes, Renderer] = {}
+        trial_data = {}
+        closing: list[concurrent.futures.Future] = []
+        for trial_index, trial, camera in todo:
+            if trial not in trial_data:
+                for done in closing:  # the previous trial's videos are finished: its time is complete
+                    done.result()
+                if trial_data:
+                    timings[f"trial:{list(trial_data)[-1]}"] = time.perf_counter() - clock
+                timings[f"frames:{trial}"] = 0
+                clock = time.perf_counter()
+                motion = plan.trials[trial]
+                poses = np.asarray(rig.world_from_camera(forward_kinematics(skeleton, motion)).wxyz_xyz)
+                trial_data[trial] = (poses, capsule_ends(skeleton, motion))
+            poses, capsules = trial_data[trial]
+            cam = camera_at(rig.intrinsics, camera)
+            key = np.concatenate([np.ravel(np.asarray(leaf)) for leaf in jax.tree.leaves(cam)]).tobytes()
+            if key not in renderers:
+                renderers[key] = Renderer(plan.scene, cam, options)
+            out = folder / "trials" / trial
+            _write_soundtrack(out, plan, trial_index, trial, camera)
+            closing.append(_render_camera_trial(plan, renderers[key], trial_index, trial, camera, poses[:, camera],
+                                                capsules, out, pool, bar.update))
+            timings[f"frames:{trial}"] += plan.trials[trial].num_frames
+        for done in closing:
+            done.result()
+        if todo:
+            timings[f"trial:{todo[-1][1]}"] = time.perf_counter() - clock
+    _write_json(folder / "capture.json", {**manifest, "complete": True})
+    return folder
+
+
+def _clap_samples(timeline: dict[str, np.ndarray], settings: StudioSettings) -> np.ndarray:
+    """``(C, 2)`` first sample of each clap in each camera's track."""
+    frames = timeline["clap_frames"][None, :] + timeline["video_start_frame"][:, None]
+    return np.round(frames * settings.audio_rate / settings.fps).astype(np.int64)
+
+
+def _write_soundtrack(folder: Path, plan: _Plan, trial_index: int, trial: str, camera: int) -> None:
+    s = plan.settings
+    tl = plan.timelines[trial]
+    per_frame = s.audio_rate / s.fps
+    num_samples = int(round(int(tl["num_video_frames"][camera]) * per_frame))
+    claps = _clap_samples(tl, s)[camera].tolist()
+    track = soundtrack(num_samples, claps, s.audio_rate, _rng(s.seed, 2, trial_index, camera),
+                       gain=float(tl["audio_gain"][camera]))
+    write_wav(folder / f"{plan.rig.names[camera]}.wav", track, s.audio_rate)
+
+
+def _write_reference_photos(folder: Path, plan: _Plan, todo: list[int], advance: Callable[[int], None]) -> None:
+    import cv2
+
+    if not todo:
+        return
+    renderer = Renderer(plan.scene, plan.reference_camera, RenderOptions())
+    for first in range(0, len(todo), _BATCH):
+        idx = np.array([todo[min(i, len(todo) - 1)] for i in range(first, first + _BATCH)])
+        poses = plan.reference_poses[idx]
+        rot = np.asarray(matrix_from_quat(poses[:, :4]))[:, None, None]
+        org = poses[:, None, None, 4:]
+        images = renderer.render(rot, org, keys=_frame_key(plan.settings.seed, 9, 0, idx))
+        for i, image in zip(idx[: min(_BATCH, len(todo) - first)], images):
+            ok, data = cv2.imencode(".jpg", np.ascontiguousarray(image[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95])
+            if not ok:
+                raise RuntimeError("OpenCV could not encode a reference photo as JPEG")
+            _atomic_bytes(folder / "reference" / f"photo_{i:03d}.jpg", data.tobytes())
+        advance(min(_BATCH, len(todo) - first))
+
+
+def _write_static_files(folder: Path, plan: _Plan) -> None:
+    """Intrinsics, rig and ground truth (cheap and deterministic: rewritten on every run)."""
+    from ..io.bvh import write_bvh
+
+    s, rig, skeleton = plan.settings, plan.rig, plan.skeleton
+    cameras = []
+    for c, name in enumerate(rig.names):
+        cam = camera_at(rig.intrinsics, c)
+        fitted, err = fit_opencv_fisheye(cam)
+        _write_opencv_yaml(folder / "intrinsics" / f"{name}.yml", fitted)
+        _write_json(folder / "intrinsics" / f"{name}.json", {**_camera_to_dict(cam), "opencv_fisheye_fit_max_error_px": err})
+        cameras.append({"name": name, "segment": skeleton.names[rig.segments[c]], "intrinsics": f"intrinsics/{name}.yml",
+                        "lens": f"intrinsics/{name}.json", "video": {t: f"trials/{t}/{name}.mp4" for t in TRIALS},
+                        "audio": {t: f"trials/{t}/{name}.wav" for t in TRIALS}})
+    _write_json(folder / "rig.json", {"cameras": cameras, "segments": list(skeleton.names)})
+    _write_json(folder / "reference" / "camera.json", _camera_to_dict(plan.reference_camera))
+    _write_opencv_yaml(folder / "reference" / "camera.yml", plan.reference_camera)
+
+    gt = folder / "ground_truth"
+    _write_json(gt / "skeleton.json", _skeleton_to_dict(skeleton))
+    _write_json(gt / "rig.json", {"cameras": [
+        {"name": n, "segment": skeleton.names[rig.segments[c]],
+         "segment_from_camera": np.asarray(rig.segment_from_camera[c]).tolist(),
+         "intrinsics": _camera_to_dict(camera_at(rig.intrinsics, c))} for c, n in enumerate(rig.names)]})
+    _write_json(gt / "scene.json", plan.scene.to_dict())
+    points, materials = plan.scene.sample_points(seed=s.seed)
+    _write_npz(gt / "world_points.npz", {"points": points, "materials": materials})
+    _write_npz(gt / "reference.npz", {"names": np.array([f"photo_{i:03d}.jpg" for i in range(len(plan.reference_poses))]),
+                                      "world_from_camera": plan.reference_poses})
+    for ti, (trial, motion) in enumerate(plan.trials.items()):
+        fk = forward_kinematics(skeleton, motion)
+        markers = _simulate_markers(skeleton, motion, s.fps, s.markers_per_segment, _rng(s.seed, 3, ti))
+        _write_npz(gt / f"{trial}.npz", {
+            "root_position": np.asarray(motion.root_position),
+            "rotations": np.asarray(motion.rotations),
+            "joint_positions": np.asarray(fk.translation()),
+            "world_rotations": np.asarray(fk.rotation().wxyz),
+            "world_from_camera": np.asarray(rig.world_from_camera(fk).wxyz_xyz),
+            **plan.timelines[trial],
+            "clap_samples": _clap_samples(plan.timelines[trial], s),
+            "fps": np.float64(s.fps),
+            "audio_rate": np.int64(s.audio_rate),
+            "marker_names": np.array(markers.names),
+            "marker_segments": markers.segments,
+            "marker_offsets": markers.offsets,
+            "markers": markers.positions,
+        })
+        write_bvh(gt / f"{trial}.bvh", skeleton, motion, 1.0 / s.fps)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading the ground truth back.
+
+
+@dataclasses.dataclass(frozen=True)
+class TrialTruth:
+    """Ground truth of one trial (arrays over trial frames ``T`` and cameras ``C``).
+
+    Attributes:
+        motion: the true motion (root position and joint rotations).
+        joint_positions: ``(T, J, 3)`` m; world_rotations ``(T, J, 4)`` segment orientations (wxyz).
+        world_from_camera: ``(T, C, 7)`` camera poses.
+        video_start_frame, num_video_frames: ``(C,)`` video frame showing trial frame 0; video length.
+        clap_frames: ``(2,)`` trial frames of the claps; clap_samples ``(C, 2)`` their first audio sample
+            in each camera's track; audio_gain ``(C,)``.
+        markers: Vicon-style marker trajectories.
+        fps, audio_rate: Hz.
+    """
+
+    name: str
+    motion: Motion
+    joint_positions: np.ndarray
+    world_rotations: np.ndarray
+    world_from_camera: np.ndarray
+    video_start_frame: np.ndarray
+    num_video_frames: np.ndarray
+    clap_frames: np.ndarray
+    clap_samples: np.ndarray
+    audio_gain: np.ndarray
+    markers: MarkerTrajectories
+    fps: float
+    audio_rate: int
+
+
+@dataclasses.dataclass(frozen=True)
+class GroundTruth:
+    """Everything :func:`write_capture` knows about a capture.
+
+    Attributes:
+        settings: the settings it was written with.
+        skeleton, rig: the true skeleton and camera mounts (exact intrinsics).
+        scene: the textured scene; world_points ``(N, 3)`` m on its surfaces and their ``materials``.
+        reference_camera, reference_names, reference_poses: the photos' intrinsics, file names and
+            ``world_from_camera`` ``(N, 7)``.
+        trials: ``{"rom": TrialTruth, "capture": TrialTruth}``.
+    """
+
+    path: Path
+    settings: StudioSettings
+    skeleton: Skeleton
+    rig: Rig
+    scene: TexturedScene
+    world_points: np.ndarray
+    world_point_materials: np.ndarray
+    reference_camera: CameraModel
+    reference_names: tuple[str, ...]
+    reference_poses: np.ndarray
+    trials: dict[str, TrialTruth]
+
+
+def load_ground_truth(path: str | os.PathLike) -> GroundTruth:
+    """Read the ground truth of a capture folder written by :func:`write_capture`.
+
+    Raises:
+        ValueError: naming the file that is missing or malformed.
+    """
+    folder = Path(path)
+    manifest = _read_json(folder / "capture.json")
+    if manifest.get("format") != CAPTURE_FORMAT:
+        raise ValueError(f"{folder / 'capture.json'}: format is {manifest.get('format')!r}, expected {CAPTURE_FORMAT!r}")
+    settings = StudioSettings.from_dict(manifest.get("settings", {}), str(folder / "capture.json"))
+    gt = folder / "ground_truth"
+    skeleton = _skeleton_from_dict(_read_json(gt / "skeleton.json"), str(gt / "skeleton.json"))
+    rig_data = _read_json(gt / "rig.json")
+    where = str(gt / "rig.json")
+    try:
+        cams = rig_data["cameras"]
+        rig = Rig([c["name"] for c in cams], [skeleton.index(c["segment"]) for c in cams],
+                  np.array([c["segment_from_camera"] for c in cams], np.float64),
+                  stack_cameras([_camera_from_dict(c["intrinsics"], where) for c in cams]))
+    except (KeyError, TypeError) as err:
+        raise ValueError(f"{where}: missing or malformed field {err}") from None
+    scene = TexturedScene.from_dict(_read_json(gt / "scene.json"), str(gt / "scene.json"))
+    points = _read_npz(gt / "world_points.npz")
+    reference = _read_npz(gt / "reference.npz")
+    ref_camera = _camera_from_dict(_read_json(folder / "reference" / "camera.json"), str(folder / "reference" / "camera.json"))
+    trials = {}
+    for name in manifest.get("trials", TRIALS):
+        d = _read_npz(gt / f"{name}.npz")
+        try:
+            trials[name] = TrialTruth(
+                name=name,
+                motion=Motion(d["root_position"], d["rotations"]),
+                joint_positions=d["joint_positions"],
+                world_rotations=d["world_rotations"],
+                world_from_camera=d["world_from_camera"],
+                video_start_frame=d["video_start_frame"],
+                num_video_frames=d["num_video_frames"],
+                clap_frames=d["clap_frames"],
+                clap_samples=d["clap_samples"],
+                audio_gain=d["audio_gain"],
+                markers=MarkerTrajectories(tuple(str(x) for x in d["marker_names"]), d["marker_segments"],
+                                           d["marker_offsets"], d["markers"]),
+                fps=float(d["fps"]),
+                audio_rate=int(d["audio_rate"]),
+            )
+        except KeyError as err:
+            raise ValueError(f"{gt / f'{name}.npz'}: missing array {err}") from None
+    return GroundTruth(folder, settings, skeleton, rig, scene, points["points"], points["materials"], ref_camera,
+                       tuple(str(x) for x in reference["names"]), reference["world_from_camera"], trials)

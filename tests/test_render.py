@@ -1,0 +1,216 @@
+"""Tests for the textured scene and the ray-cast renderer (bcmocap.sim.scene, bcmocap.sim.render).
+
+Tiny images, one shared scene per kind: each distinct image size compiles the renderer once.
+"""
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from bcmocap.cameras import FOVCamera, OpenCVFisheyeCamera, PinholeCamera
+from bcmocap.sim.render import Renderer, RenderOptions, camera_rays, interpolate_poses
+from bcmocap.sim.rig import fov_camera_for
+from bcmocap.sim.scene import TexturedScene, TextureParams, make_textured_scene, surface_texture
+
+W, H = 96, 72
+# A big empty room with a texture down to 6 cm: a pixel's colour is the texture at its ray's floor hit,
+# filtered for the pixel's footprint there.
+ROOM = TexturedScene(
+    lower=np.array([-30.0, -30.0, 0.0]),
+    upper=np.array([30.0, 30.0, 10.0]),
+    boxes=np.zeros((0, 2, 3)),
+    pillars=np.zeros((0, 3)),
+    colors=np.tile([0.9, 0.8, 0.7], (6, 1)),
+    texture=TextureParams(octaves=6, seed=3),
+)
+NO_NOISE = RenderOptions(noise_dn=0.0)
+HEIGHT_M = 1.0
+# Looking straight down: camera z = world -z, camera x = world x, camera y = world -y.
+DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+ORIGIN = np.array([0.3, -0.2, HEIGHT_M])
+
+CAMERAS = {
+    "fov": fov_camera_for(W, H, fov_deg=150.0),
+    "opencv_fisheye": OpenCVFisheyeCamera(W, H, focal=(30.0, 31.0), principal_point=(47.2, 35.6),
+                                          distortion=(0.05, -0.01, 0.002, -0.0005)),
+    "pinhole": PinholeCamera(W, H, focal=(50.0, 50.0), principal_point=(47.5, 35.5)),
+}
+
+
+def render_one(renderer, rotation, origin, capsules=None, radii=None, colors=None):
+    caps = None if capsules is None else np.asarray(capsules)[None, None]
+    return renderer.render(rotation[None, None, None], origin[None, None, None], caps, radii, colors)[0]
+
+
+def expected_floor_colour(scene, points, footprint, options):
+    """The renderer's shading of floor points seen from above (normal +z), in 8-bit levels."""
+    grey = np.asarray(surface_texture(points[:, 0], points[:, 1], np.zeros(len(points), np.int32), footprint, scene.texture))
+    light = np.asarray(options.light) / np.linalg.norm(options.light)
+    lit = options.ambient + (1 - options.ambient) * max(light[2], 0.0)
+    return scene.colors[0] * ((0.15 + 0.85 * grey) * lit)[:, None] * 255.0
+
+
+@pytest.mark.parametrize("model", sorted(CAMERAS))
+def test_floor_texel_lands_where_project_puts_it(model):
+    camera = CAMERAS[model]
+    renderer = Renderer(ROOM, camera, NO_NOISE)
+    image = render_one(renderer, DOWN, ORIGIN).astype(float)
+    rng = np.random.default_rng(0)
+    # Floor points in view (within 55° of the nadir), chosen so that they project to pixel centres.
+    pix = np.stack([rng.integers(4, W - 4, 300), rng.integers(4, H - 4, 300)], axis=1).astype(float)
+    rays = np.asarray(camera.unproject(pix))
+    keep = rays[:, 2] > np.cos(np.radians(55))
+    pix, rays = pix[keep][:60], rays[keep][:60]
+    world = ORIGIN + (HEIGHT_M / rays[:, 2])[:, None] * (rays @ DOWN.T)  # floor hit of each pixel's ray
+    assert np.allclose(world[:, 2], 0.0, atol=1e-9)
+    back, ok = camera.project((world - ORIGIN) @ DOWN)  # world -> camera frame -> pixel
+    assert np.all(np.asarray(ok))
+    np.testing.assert_allclose(np.asarray(back), pix, atol=1e-6)
+    # Footprint: distance times the pixel's angular size, stretched by the incidence (render.py's rule).
+    iv, iu = pix[:, 1].astype(int), pix[:, 0].astype(int)
+    distance = HEIGHT_M / rays[:, 2]
+    footprint = distance * renderer.rays.pixel_angle[iv, iu] / np.sqrt(rays[:, 2])
+    want = expected_floor_colour(ROOM, world, footprint, NO_NOISE)
+    got = image[iv, iu]
+    np.testing.assert_allclose(got, want, atol=1.5)  # float32 rendering, 8-bit rounding
+    # The test can tell a one-pixel shift: the texture changes that much between neighbours.
+    shifted = image[iv, iu + 1]
+    assert np.abs(shifted - want).mean() > 4 * np.abs(got - want).mean() + 2
+
+
+def test_depth_of_the_floor_and_of_a_wall():
+    camera = CAMERAS["fov"]
+    renderer = Renderer(ROOM, camera, NO_NOISE)
+    depth, body = renderer.depth(DOWN, ORIGIN)
+    rays = camera_rays(camera).directions[0]  # (3, H, W)
+    floor = HEIGHT_M / np.maximum(rays[2], 1e-9)
+    down = rays[2] > 0.2  # pixels whose ray reaches the floor before a wall
+    np.testing.assert_allclose(depth[down], floor[down], rtol=1e-4)
+    assert not body.any()
+    # Looking horizontally along +x: the wall at x = 30 m.
+    along_x = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    depth, _ = renderer.depth(along_x, np.array([0.0, 0.0, 5.0]))
+    assert depth[H // 2, W // 2] == pytest.approx(30.0 / rays[2, H // 2, W // 2], rel=1e-4)
+
+
+def _ray_segment_distance(rays, a, b):
+    """Distance between rays from the origin (N, 3 unit) and the segment [a, b] (numpy, by dense sampling)."""
+    s = np.linspace(0.0, 1.0, 2001)
+    pts = a + s[:, None] * (b - a)  # (S, 3)
+    along = np.clip(rays @ pts.T, 0.0, None)  # (N, S)
+    closest = along[..., None] * rays[:, None, :]
+    return np.linalg.norm(closest - pts[None], axis=-1).min(axis=1)
+
+
+def test_a_capsule_in_front_of_the_camera_masks_its_pixels():
+    camera = CAMERAS["fov"]
+    renderer = Renderer(ROOM, camera, NO_NOISE)
+    a, b, radius = np.array([-0.25, 0.1, 0.5]), np.array([0.3, -0.15, 0.6]), 0.08  # camera frame, metres
+    capsule = np.stack([a, b]) @ DOWN.T + ORIGIN  # world
+    depth, body = renderer.depth(DOWN, ORIGIN, capsule[None], np.array([radius]))
+    rays = camera_rays(camera).directions[0].reshape(3, -1).T
+    dist = _ray_segment_distance(rays, a, b).reshape(H, W)
+    inside, outside = dist < radius - 2e-3, dist > radius + 2e-3
+    assert inside.sum() > 100
+    assert body[inside].all() and not body[outside].any()
+    # The image shows the body's colour there, and the floor elsewhere.
+    colour = np.array([[0.2, 0.4, 0.9]])
+    image = render_one(renderer, DOWN, ORIGIN, capsule[None], np.array([radius]), colour).astype(float)
+    hue = image / np.maximum(image.sum(axis=-1, keepdims=True), 1)
+    np.testing.assert_allclose(hue[inside], np.broadcast_to(colour / colour.sum(), hue[inside].shape), atol=0.02)
+    # Depth of the capsule's nearest point is its distance minus the radius along the central ray.
+    u, v = np.unravel_index(np.argmin(np.where(inside, depth, np.inf)), depth.shape)
+    assert depth[u, v] >= np.linalg.norm(a + 0.5 * (b - a)) - 0.3
+    # A camera inside a capsule (its own mount) sees through it.
+    _, body = renderer.depth(DOWN, ORIGIN, np.stack([ORIGIN - [0, 0, 0.05], ORIGIN + [0, 0, 0.05]])[None], np.array([0.1]))
+    assert not body.any()
+
+
+def test_rendering_is_deterministic_and_noise_follows_the_key():
+    renderer = Renderer(ROOM, CAMERAS["fov"], RenderOptions(noise_dn=2.0))
+    rot = np.broadcast_to(DOWN, (2, 1, 1, 3, 3))
+    org = np.broadcast_to(ORIGIN, (2, 1, 1, 3))
+    first = renderer.render(rot, org, keys=np.array([7, 8]))
+    again = Renderer(ROOM, CAMERAS["fov"], RenderOptions(noise_dn=2.0)).render(rot, org, keys=np.array([7, 8]))
+    assert first.tobytes() == again.tobytes()
+    diff = first[0].astype(int) - first[1].astype(int)  # same pose, other noise
+    assert 0 < np.abs(diff).mean() < 4 and np.abs(diff).max() <= 12
+
+
+def _yawed(yaw):
+    """world_from_camera (wxyz, xyz) looking down from ORIGIN, turned by ``yaw`` about the vertical."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ DOWN
+    q = cv2.Rodrigues(rotation)[0].ravel()
+    angle = np.linalg.norm(q)
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * q / angle, ORIGIN])
+
+
+def test_motion_blur_and_rolling_shutter_change_only_moving_views():
+    camera = CAMERAS["fov"]
+    still = np.stack([_yawed(0.3)] * 3)
+    moving = np.stack([_yawed(0.3 + 0.5 * k) for k in range(3)])  # a fast turn: 30 rad/s at 60 fps
+    plain = Renderer(ROOM, camera, NO_NOISE)
+    for opts in (dataclasses.replace(NO_NOISE, motion_blur=True, blur_samples=2),
+                 dataclasses.replace(NO_NOISE, rolling_shutter=True)):
+        effect = Renderer(ROOM, camera, opts)
+        for poses, changed in ((still, False), (moving, True)):
+            image = effect.render(*effect.poses_at(poses, np.array([1])))[0].astype(int)
+            reference = plain.render(*plain.poses_at(poses, np.array([1])))[0].astype(int)
+            if changed:
+                assert np.abs(image - reference).mean() > 3, opts
+            else:
+                assert np.abs(image - reference).max() <= 1
+
+
+def test_interpolate_poses_holds_ends_and_slerps():
+    poses = np.array([[1.0, 0, 0, 0, 0, 0, 0], [np.cos(0.5), 0, 0, np.sin(0.5), 2.0, 0, 0]])
+    rot, x = interpolate_poses(poses, np.array([-1.0, 0.5, 3.0]))
+    np.testing.assert_allclose(x[:, 0], [0.0, 1.0, 2.0])
+    np.testing.assert_allclose(rot[1], cv2.Rodrigues(np.array([0.0, 0.0, 0.5]))[0], atol=1e-12)
+    np.testing.assert_allclose(rot[0], np.eye(3), atol=1e-12)
+
+
+def test_sift_keeps_many_inliers_between_consecutive_frames():
+    # A camera carried at walking speed (1.4 m/s, turning 20°/s) past the clutter, 320x180, 170° FOV.
+    scene = make_textured_scene(np.array([[0.0, 0.0], [3.0, 0.0]]), seed=1)
+    camera = fov_camera_for(320, 180)
+    renderer = Renderer(scene, camera)
+    frames = []
+    for k in range(2):
+        yaw = np.radians(20.0) * k / 60
+        forward = np.array([np.cos(yaw), np.sin(yaw), -0.3])
+        forward /= np.linalg.norm(forward)
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        rot = np.stack([right, np.cross(forward, right), forward], axis=1)
+        frames.append(render_one(renderer, rot, np.array([1.4 * k / 60, 0.0, 1.0])))
+    sift = cv2.SIFT_create()
+    (ka, da), (kb, db) = (sift.detectAndCompute(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), None) for f in frames)
+    matches = [m for m, n in cv2.BFMatcher().knnMatch(da, db, k=2) if m.distance < 0.8 * n.distance]
+    ra = np.asarray(camera.unproject(np.float64([ka[m.queryIdx].pt for m in matches])))
+    rb = np.asarray(camera.unproject(np.float64([kb[m.trainIdx].pt for m in matches])))
+    ok = (ra[:, 2] > 0.2) & (rb[:, 2] > 0.2)
+    _, mask = cv2.findEssentialMat(ra[ok, :2] / ra[ok, 2:], rb[ok, :2] / rb[ok, 2:], np.eye(3), method=cv2.RANSAC,
+                                   prob=0.999, threshold=1.0 / float(camera.focal[0]))
+    assert int(mask.sum()) >= 150, f"{int(mask.sum())} inliers of {len(matches)} matches"
+
+
+def test_scene_validation_and_round_trip():
+    scene = make_textured_scene(np.array([[0.0, 0.0], [4.0, 1.0]]), seed=2)
+    again = TexturedScene.from_dict(scene.to_dict())
+    for field in ("lower", "upper", "boxes", "pillars", "colors"):
+        np.testing.assert_array_equal(getattr(again, field), getattr(scene, field))
+    assert again.texture == scene.texture
+    points, materials = scene.sample_points(density_per_m2=1.0, seed=0)
+    assert not scene.inside_clutter(points).any() and materials.max() < scene.num_materials
+    with pytest.raises(ValueError, match="colors must have shape"):
+        dataclasses.replace(scene, colors=scene.colors[:3])
+    with pytest.raises(ValueError, match="missing field"):
+        TexturedScene.from_dict({"lower": [0, 0, 0]}, "scene.json")
+    with pytest.raises(ValueError, match="samples_per_pixel"):
+        RenderOptions(samples_per_pixel=3)
+    with pytest.raises(ValueError, match="single camera"):
+        camera_rays(FOVCamera(8, 8, focal=[[5.0, 5.0]] * 2, principal_point=[[3.5, 3.5]] * 2, omega=[1.0, 1.0]))

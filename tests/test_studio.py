@@ -1,0 +1,144 @@
+"""Tests for the synthetic capture studio (bcmocap.sim.studio, ``bcmocap simulate``).
+
+One tiny capture (64x36 px, 6 frames per trial, 2 reference photos) is written once through the command
+line and shared by every test; the resume test re-renders parts of a copy of it.
+"""
+
+import filecmp
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from bcmocap.cameras import FOVCamera, camera_at, read_opencv_fisheye_calibration
+from bcmocap.cli import main
+from bcmocap.geometry import SE3
+from bcmocap.io import read_bvh
+from bcmocap.kinematics import forward_kinematics
+from bcmocap.sim.audio import clap_onsets, read_wav
+from bcmocap.sim.studio import StudioSettings, load_ground_truth, write_capture
+
+ARGS = ["--seconds", "0.1", "--rom-seconds", "0.1", "--width", "64", "--height", "36", "--reference-photos", "2",
+        "--reference-size", "64x48", "--seed", "3", "--no-progress"]
+SETTINGS = StudioSettings(seconds=0.1, rom_seconds=0.1, width=64, height=36, reference_photos=2, reference_width=64,
+                          reference_height=48, seed=3)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("studio") / "capture"
+    assert main(["simulate", str(folder), *ARGS]) == 0
+    return folder
+
+
+def all_files(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+def test_folder_layout_and_ground_truth_round_trip(capture):
+    manifest = json.loads((capture / "capture.json").read_text())
+    assert manifest["complete"] and manifest["settings"] == SETTINGS.to_dict()
+    gt = load_ground_truth(capture)
+    assert gt.settings == SETTINGS and gt.rig.num_cameras == 18 and set(gt.trials) == {"rom", "capture"}
+    rig_json = json.loads((capture / "rig.json").read_text())
+    assert [c["segment"] for c in rig_json["cameras"]] == [gt.skeleton.names[s] for s in gt.rig.segments]
+    files = set(all_files(capture))
+    for name in gt.rig.names:
+        for trial in ("rom", "capture"):
+            assert {f"trials/{trial}/{name}.mp4", f"trials/{trial}/{name}.wav"} <= files
+        # The exact lens and its cv2.fisheye calibration file agree to a fraction of a pixel.
+        lens = json.loads((capture / "intrinsics" / f"{name}.json").read_text())
+        assert lens["model"] == "FOV" and lens["opencv_fisheye_fit_max_error_px"] < 0.3
+        exact = camera_at(gt.rig.intrinsics, gt.rig.index(name))
+        assert isinstance(exact, FOVCamera)
+        fitted = read_opencv_fisheye_calibration(capture / "intrinsics" / f"{name}.yml")
+        uv = np.array([[5.0, 4.0], [32.0, 18.0], [60.0, 30.0]])
+        back, _ = fitted.project(np.asarray(exact.unproject(uv)))
+        np.testing.assert_allclose(np.asarray(back), uv, atol=0.3)
+    assert not any(".partial" in f for f in files)
+    for i in range(2):
+        photo = cv2.imread(str(capture / "reference" / gt.reference_names[i]))
+        assert photo.shape == (48, 64, 3)
+    assert gt.reference_poses.shape == (2, 7) and gt.reference_camera.width == 64
+    assert gt.world_points.shape[1] == 3 and len(gt.world_points) > 300
+    assert not gt.scene.inside_clutter(gt.world_points).any()
+
+    for name, trial in gt.trials.items():
+        frames = trial.motion.num_frames
+        assert frames == 6
+        fk = forward_kinematics(gt.skeleton, trial.motion)
+        np.testing.assert_allclose(trial.joint_positions, np.asarray(fk.translation()), atol=1e-12)
+        np.testing.assert_allclose(trial.world_from_camera, np.asarray(gt.rig.world_from_camera(fk).wxyz_xyz), atol=1e-12)
+        # Markers: offsets on their segments, 1 mm noise, NaN in gaps.
+        markers = trial.markers
+        assert markers.positions.shape == (frames, len(markers.names), 3) and len(markers.names) >= 3 * 15
+        truth = np.asarray(SE3(np.asarray(fk.wxyz_xyz)[:, markers.segments]) @ markers.offsets[None])
+        seen = ~np.isnan(markers.positions[..., 0])
+        assert 0.5 < seen.mean() <= 1.0
+        assert np.abs(markers.positions[seen] - truth[seen]).max() < 0.006
+        bvh = read_bvh(capture / "ground_truth" / f"{name}.bvh")
+        assert bvh.motion.num_frames == frames
+        # Videos: one frame per video frame of the timeline, at the body cameras' size.
+        for c in (0, 17):
+            video = cv2.VideoCapture(str(capture / "trials" / name / f"{gt.rig.names[c]}.mp4"))
+            assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == trial.num_video_frames[c]
+            ok, image = video.read()
+            assert ok and image.shape == (36, 64, 3)
+        assert len(set(trial.video_start_frame.tolist())) > 3  # random start per camera
+
+
+def test_claps_in_each_track_at_the_written_samples(capture):
+    gt = load_ground_truth(capture)
+    for name, trial in gt.trials.items():
+        per_frame = trial.audio_rate / trial.fps
+        for c, camera in enumerate(gt.rig.names):
+            samples, rate = read_wav(capture / "trials" / name / f"{camera}.wav")
+            assert rate == trial.audio_rate == 48000
+            assert len(samples) == round(trial.num_video_frames[c] * per_frame)
+            np.testing.assert_array_equal(clap_onsets(samples, rate), trial.clap_samples[c])
+            np.testing.assert_array_equal(trial.clap_samples[c],
+                                          np.round((trial.clap_frames + trial.video_start_frame[c]) * per_frame))
+        # Synchronising by the first clap gives each camera's start offset in whole frames.
+        offsets = (trial.clap_samples[:, 0] - trial.clap_samples[0, 0]) / per_frame
+        np.testing.assert_array_equal(offsets, trial.video_start_frame - trial.video_start_frame[0])
+
+
+def test_resume_renders_missing_parts_byte_for_byte(capture, tmp_path):
+    """Deleted videos, tracks and photos come back identical to the first run; complete ones are skipped."""
+    copy = tmp_path / "copy"
+    shutil.copytree(capture, copy)
+    missing = ["trials/capture/head.mp4", "trials/rom/left_foot.wav", "reference/photo_001.jpg"]
+    for rel in missing:
+        (copy / rel).unlink()
+    (copy / "trials/capture/.head.partial.mp4").write_bytes(b"left by an interrupted run")
+    manifest = json.loads((copy / "capture.json").read_text())
+    (copy / "capture.json").write_text(json.dumps({**manifest, "complete": False}))
+    kept = copy / "trials/capture/chest.mp4"
+    stamp = kept.stat().st_mtime_ns
+    write_capture(copy, SETTINGS, progress=False)
+    assert kept.stat().st_mtime_ns == stamp  # a complete camera is not rendered again
+    assert all_files(copy) == all_files(capture)
+    match, mismatch, errors = filecmp.cmpfiles(capture, copy, all_files(capture), shallow=False)
+    assert not mismatch and not errors
+
+
+def test_refuses_folders_it_must_not_write(capture, tmp_path):
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep me")
+    assert main(["simulate", str(foreign), *ARGS]) == 2
+    assert all_files(foreign) == ["notes.txt"] and (foreign / "notes.txt").read_text() == "keep me"
+    before = (capture / "capture.json").read_bytes()
+    assert main(["simulate", str(capture), *ARGS[:-3], "--seed", "4", "--no-progress"]) == 2  # other settings
+    assert (capture / "capture.json").read_bytes() == before
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    with pytest.raises(FileExistsError, match="not a folder"):
+        write_capture(a_file, SETTINGS, progress=False)
+    with pytest.raises(ValueError, match="lens"):
+        StudioSettings(lens="pinhole")
+    with pytest.raises(ValueError, match="missing"):
+        load_ground_truth(foreign)
