@@ -1,0 +1,261 @@
+"""Reading a capture folder: manifest, rig, intrinsics, trials, videos (decoded lazily) and soundtracks.
+
+The layout is the one :mod:`bcmocap.sim.studio` writes (and a real shoot is arranged into)::
+
+    capture.json, rig.json, intrinsics/<camera>.yml|.json, reference/photo_*.jpg, reference/camera.json|.yml,
+    trials/<trial>/<camera>.mp4, trials/<trial>/<camera>.wav
+
+:func:`read_capture` checks that every file the frontend needs exists and parses the small ones; the
+videos are only opened when :meth:`Capture.frames` is iterated, one camera at a time, so a long capture
+never has to fit in memory. Errors are ``ValueError`` naming the file and what was expected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from ..cameras import CameraModel, from_pycolmap, read_opencv_fisheye_calibration
+
+__all__ = ["Capture", "CaptureCamera", "VideoInfo", "read_capture", "read_camera_json"]
+
+CAPTURE_FORMAT = "bcmocap-capture"
+
+
+def _load_json(path: Path) -> dict:
+    if not path.is_file():
+        raise ValueError(f"{path}: missing (expected by the capture folder layout)")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def read_camera_json(path: str | os.PathLike) -> CameraModel:
+    """A lens file ``{"model": "FOV" | "OPENCV_FISHEYE" | "PINHOLE", "width", "height", "params"}``
+    (OpenCV pixel convention) as a camera model."""
+    import pycolmap
+
+    path = Path(path)
+    data = _load_json(path)
+    try:
+        params = [float(x) for x in data["params"]]
+        width, height, model = int(data["width"]), int(data["height"]), str(data["model"])
+    except KeyError as err:
+        raise ValueError(f"{path}: missing field {err} (need model, width, height, params)") from None
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: malformed camera field ({err})") from None
+    expected = {"FOV": 5, "OPENCV_FISHEYE": 8, "PINHOLE": 4}
+    if expected.get(model) != len(params):
+        raise ValueError(f"{path}: model {model!r} with {len(params)} params; expected one of "
+                         f"{', '.join(f'{m} ({n} params)' for m, n in expected.items())}")
+    colmap_params = list(params)
+    colmap_params[2] += 0.5  # OpenCV -> COLMAP pixel convention (from_pycolmap shifts back)
+    colmap_params[3] += 0.5
+    return from_pycolmap(pycolmap.Camera(model=model, width=width, height=height, params=colmap_params))
+
+
+@dataclasses.dataclass(frozen=True)
+class VideoInfo:
+    """What the container says about one video: frame count, size (px) and rate (Hz)."""
+
+    num_frames: int
+    width: int
+    height: int
+    fps: float
+
+
+@dataclasses.dataclass(frozen=True)
+class CaptureCamera:
+    """One body camera: its name, the body segment it is strapped to, and its intrinsics."""
+
+    name: str
+    segment: str
+    intrinsics: CameraModel
+    intrinsics_file: Path
+
+
+@dataclasses.dataclass(frozen=True)
+class Capture:
+    """A capture folder, read by :func:`read_capture`.
+
+    Attributes:
+        path: the folder.
+        manifest: ``capture.json``.
+        fps: video frame rate (Hz); audio_rate: soundtrack sample rate (Hz), if the manifest gives it.
+        cameras: the body cameras, in manifest order.
+        segments: body segment names from ``rig.json``.
+        trials: trial names (e.g. ``("rom", "capture")``).
+        reference_photos: paths of the reference photos (sorted); reference_camera their intrinsics
+            (``None`` without ``reference/camera.json``; the pinhole ``.yml`` beside it is not read).
+    """
+
+    path: Path
+    manifest: dict
+    fps: float
+    audio_rate: int | None
+    cameras: tuple[CaptureCamera, ...]
+    segments: tuple[str, ...]
+    trials: tuple[str, ...]
+    reference_photos: tuple[Path, ...]
+    reference_camera: CameraModel | None
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.cameras)
+
+    def camera_index(self, camera: str | int) -> int:
+        if isinstance(camera, (int, np.integer)):
+            if not 0 <= int(camera) < len(self.cameras):
+                raise ValueError(f"camera index {camera} out of range [0, {len(self.cameras)})")
+            return int(camera)
+        try:
+            return self.camera_names.index(camera)
+        except ValueError:
+            raise ValueError(f"{self.path}: no camera {camera!r}; cameras are {list(self.camera_names)}") from None
+
+    def _trial(self, trial: str) -> str:
+        if trial not in self.trials:
+            raise ValueError(f"{self.path}: no trial {trial!r}; trials are {list(self.trials)}")
+        return trial
+
+    def video_path(self, trial: str, camera: str | int) -> Path:
+        return self.path / "trials" / self._trial(trial) / f"{self.cameras[self.camera_index(camera)].name}.mp4"
+
+    def audio_path(self, trial: str, camera: str | int) -> Path:
+        return self.path / "trials" / self._trial(trial) / f"{self.cameras[self.camera_index(camera)].name}.wav"
+
+    def _open(self, trial: str, camera: str | int):
+        import cv2
+
+        path = self.video_path(trial, camera)
+        if not path.is_file():
+            raise ValueError(f"{path}: video missing")
+        video = cv2.VideoCapture(str(path))
+        if not video.isOpened():
+            raise ValueError(f"{path}: OpenCV cannot open this video (unreadable or unsupported codec)")
+        return path, video
+
+    def video_info(self, trial: str, camera: str | int) -> VideoInfo:
+        import cv2
+
+        _, video = self._open(trial, camera)
+        try:
+            return VideoInfo(int(video.get(cv2.CAP_PROP_FRAME_COUNT)), int(video.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                             int(video.get(cv2.CAP_PROP_FRAME_HEIGHT)), float(video.get(cv2.CAP_PROP_FPS)))
+        finally:
+            video.release()
+
+    def frames(self, trial: str, camera: str | int, *, stride: int = 1, start: int = 0, stop: int | None = None,
+               gray: bool = False) -> Iterator[tuple[int, np.ndarray]]:
+        """Decode one camera's video lazily: ``(frame index, image)`` for ``start, start + stride, …``
+        before ``stop`` (BGR ``uint8 (H, W, 3)``, or ``(H, W)`` with ``gray``).
+
+        Frames in between are grabbed without being decoded to images. The video is opened when
+        iteration begins and closed when it ends.
+
+        Raises:
+            ValueError: naming the video if it is missing or unreadable, or if it ends before its first
+                requested frame could be read.
+        """
+        import cv2
+
+        if stride < 1 or start < 0:
+            raise ValueError(f"frames: stride must be >= 1 and start >= 0, got stride={stride}, start={start}")
+        path, video = self._open(trial, camera)
+        try:
+            index = 0
+            while stop is None or index < stop:
+                wanted = index >= start and (index - start) % stride == 0
+                if not video.grab():
+                    if index == 0:
+                        raise ValueError(f"{path}: no frame could be decoded")
+                    return
+                if wanted:
+                    ok, image = video.retrieve()
+                    if not ok:
+                        raise ValueError(f"{path}: frame {index} could not be decoded")
+                    yield index, (cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if gray else image)
+                index += 1
+        finally:
+            video.release()
+
+
+def read_capture(path: str | os.PathLike, *, check_files: bool = True) -> Capture:
+    """Read a capture folder's manifest, rig and intrinsics, and list its trials, videos and photos.
+
+    Each camera's intrinsics come from ``intrinsics/<camera>.json`` (the exact lens) when present,
+    else from the ``cv2.fisheye`` calibration ``intrinsics/<camera>.yml``.
+
+    Args:
+        path: the capture folder.
+        check_files: check that every trial has a video and a soundtrack per camera.
+
+    Raises:
+        ValueError: naming the missing or malformed file (and field).
+    """
+    folder = Path(path)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: capture folder does not exist")
+    manifest_path = folder / "capture.json"
+    manifest = _load_json(manifest_path)
+    if manifest.get("format") != CAPTURE_FORMAT:
+        raise ValueError(f"{manifest_path}: format is {manifest.get('format')!r}, expected {CAPTURE_FORMAT!r}")
+    if manifest.get("complete") is False:
+        raise ValueError(f"{manifest_path}: the capture is marked incomplete (still being written?)")
+    settings = manifest.get("settings", {})
+    fps = manifest.get("fps", settings.get("fps"))
+    if not isinstance(fps, (int, float)) or not fps > 0:
+        raise ValueError(f"{manifest_path}: missing or invalid frame rate (field 'fps' or 'settings.fps'), got {fps!r}")
+    audio_rate = manifest.get("audio_rate", settings.get("audio_rate"))
+    trials = manifest.get("trials")
+    if not isinstance(trials, list) or not all(isinstance(t, str) for t in trials) or not trials:
+        raise ValueError(f"{manifest_path}: field 'trials' must be a non-empty list of names, got {trials!r}")
+
+    rig_path = folder / "rig.json"
+    rig = _load_json(rig_path)
+    entries = rig.get("cameras")
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(f"{rig_path}: field 'cameras' must be a non-empty list")
+    cameras = []
+    for i, entry in enumerate(entries):
+        if not isinstance(entry, dict) or "name" not in entry or "segment" not in entry:
+            raise ValueError(f"{rig_path}: cameras[{i}] needs fields 'name' and 'segment'")
+        name = str(entry["name"])
+        lens = folder / entry.get("lens", f"intrinsics/{name}.json")
+        calib = folder / entry.get("intrinsics", f"intrinsics/{name}.yml")
+        if lens.is_file():
+            cameras.append(CaptureCamera(name, str(entry["segment"]), read_camera_json(lens), lens))
+        elif calib.is_file():
+            cameras.append(CaptureCamera(name, str(entry["segment"]), read_opencv_fisheye_calibration(calib), calib))
+        else:
+            raise ValueError(f"{calib}: intrinsics of camera {name!r} missing (nor {lens.name} beside it)")
+    names = [c.name for c in cameras]
+    if "cameras" in manifest and list(manifest["cameras"]) != names:
+        raise ValueError(f"{rig_path}: cameras {names} differ from those in {manifest_path}: {manifest['cameras']}")
+
+    if check_files:
+        for trial in trials:
+            for name in names:
+                for ext in ("mp4", "wav"):
+                    f = folder / "trials" / trial / f"{name}.{ext}"
+                    if not f.is_file():
+                        raise ValueError(f"{f}: missing ({'video' if ext == 'mp4' else 'soundtrack'} of camera "
+                                         f"{name!r} in trial {trial!r})")
+
+    ref = folder / "reference"
+    photos = tuple(sorted(p for p in ref.glob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png"))) if ref.is_dir() else ()
+    if (ref / "camera.json").is_file():
+        ref_camera = read_camera_json(ref / "camera.json")
+    else:
+        ref_camera = None
+    return Capture(folder, manifest, float(fps), None if audio_rate is None else int(audio_rate), tuple(cameras),
+                   tuple(str(s) for s in rig.get("segments", ())), tuple(trials), photos, ref_camera)

@@ -1,0 +1,234 @@
+"""Reference reconstruction from the reference photos (§4.1): OpenCV SIFT, FLANN matching with a ratio
+test, fundamental-matrix RANSAC, then pycolmap's incremental mapper.
+
+:func:`build_reference` runs the whole chain on a folder of photos:
+
+1. :func:`extract_sift` — ``cv2.SIFT_create`` keypoints (x, y, scale, orientation) and uint8 descriptors;
+2. :func:`match_descriptors` — approximate nearest neighbours (FLANN k-d trees), Lowe's ratio test and,
+   by default, mutual consistency;
+3. :func:`verify_matches` — ``cv2.findFundamentalMat`` with RANSAC keeps the epipolar inliers;
+4. keypoints (shifted by +0.5 px into COLMAP's pixel convention), descriptors and the verified matches
+   go into a pycolmap database; ``pycolmap.geometric_verification`` estimates each pair's two-view
+   geometry from them and ``pycolmap.incremental_mapping`` builds the model.
+
+The result, :class:`ReferenceModel`, holds the largest ``pycolmap.Reconstruction`` and reports how many
+photos were registered and the mean reprojection error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..cameras import CameraModel, to_pycolmap
+
+__all__ = ["ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "verify_matches"]
+
+
+def extract_sift(image: np.ndarray, *, max_features: int = 8000) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT features of an image (BGR or gray uint8).
+
+    Returns:
+        ``keypoints (N, 4)`` float32 (x, y in OpenCV pixels, scale, orientation in radians) and
+        ``descriptors (N, 128)`` uint8.
+    """
+    import cv2
+
+    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    sift = cv2.SIFT_create(nfeatures=max_features)
+    kps, desc = sift.detectAndCompute(gray, None)
+    if desc is None or not kps:
+        return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
+    keypoints = np.array([[k.pt[0], k.pt[1], k.size, np.deg2rad(k.angle)] for k in kps], np.float32)
+    return keypoints, np.clip(np.round(desc), 0, 255).astype(np.uint8)
+
+
+def _knn(matcher, a: np.ndarray, b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices into ``b`` of the nearest neighbour of each row of ``a`` and a ratio-test mask."""
+    pairs = matcher.knnMatch(a, b, k=2)
+    nearest = np.full(len(a), -1, np.int64)
+    good = np.zeros(len(a), bool)
+    for m in pairs:
+        if len(m) == 2:
+            nearest[m[0].queryIdx] = m[0].trainIdx
+            good[m[0].queryIdx] = m[0].distance < ratio * m[1].distance
+    return nearest, good
+
+
+
+def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, *, ratio: float = 0.8,
+                      mutual: bool = True) -> np.ndarray:
+    """Approximate nearest-neighbour matches (FLANN k-d trees) passing Lowe's ratio test.
+
+    Returns:
+        ``(K, 2)`` uint32 pairs of indices into ``desc_a`` and ``desc_b``; with ``mutual`` only pairs
+        that are each other's nearest neighbour (and pass the test both ways).
+    """
+    import cv2
+
+    if len(desc_a) < 2 or len(desc_b) < 2:
+        return np.zeros((0, 2), np.uint32)
+    matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
+    a, b = np.asarray(desc_a, np.float32), np.asarray(desc_b, np.float32)
+    ab, good_ab = _knn(matcher, a, b, ratio)
+    idx = np.flatnonzero(good_ab)
+    if mutual:
+        ba, good_ba = _knn(matcher, b, a, ratio)
+        back = ab[idx]
+        idx = idx[(ba[back] == idx) & good_ba[back]]
+    return np.stack([idx, ab[idx]], axis=1).astype(np.uint32)
+
+
+def verify_matches(xy_a: np.ndarray, xy_b: np.ndarray, matches: np.ndarray, *, threshold_px: float = 1.5,
+                   confidence: float = 0.999, min_inliers: int = 15) -> np.ndarray:
+    """Matches consistent with one fundamental matrix (``cv2.findFundamentalMat``, RANSAC).
+
+    Returns:
+        The inlier rows of ``matches`` (empty when fewer than ``min_inliers`` survive).
+    """
+    import cv2
+
+    if len(matches) < max(min_inliers, 8):
+        return np.zeros((0, 2), np.uint32)
+    pa = np.asarray(xy_a, np.float64)[matches[:, 0], :2]
+    pb = np.asarray(xy_b, np.float64)[matches[:, 1], :2]
+    F, mask = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, threshold_px, confidence, 10000)
+    if F is None or mask is None:
+        return np.zeros((0, 2), np.uint32)
+    inliers = matches[mask.ravel().astype(bool)]
+    return inliers if len(inliers) >= min_inliers else np.zeros((0, 2), np.uint32)
+
+
+@dataclasses.dataclass
+class ReferenceModel:
+    """The reference reconstruction.
+
+    Attributes:
+        reconstruction: the largest ``pycolmap.Reconstruction`` the mapper built.
+        image_names: every photo given; registered: those in the model.
+        mean_reprojection_error_px: over all observations of the model's 3D points.
+        num_points3D: 3D points in the model.
+        database_path: the pycolmap database (keypoints, descriptors, matches, two-view geometries).
+        pair_inliers: ``{(name_a, name_b): number of F-RANSAC inliers}`` of the pairs written.
+        seconds: wall time per stage (``features``, ``matching``, ``mapping``).
+    """
+
+    reconstruction: object
+    image_names: tuple[str, ...]
+    registered: tuple[str, ...]
+    mean_reprojection_error_px: float
+    num_points3D: int
+    database_path: Path
+    pair_inliers: dict
+    seconds: dict
+
+    @property
+    def num_registered(self) -> int:
+        return len(self.registered)
+
+
+def _reader_options(camera):
+    import pycolmap
+
+    options = pycolmap.ImageReaderOptions()
+    if camera is None:
+        return options
+    if isinstance(camera, CameraModel):
+        camera = to_pycolmap(camera)
+    options.camera_model = camera.model.name
+    options.camera_params = ",".join(f"{float(p):.12g}" for p in camera.params)
+    return options
+
+
+def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | None = None, *,
+                    camera: CameraModel | object | None = None, workdir: str | os.PathLike | None = None,
+                    max_features: int = 8000, ratio: float = 0.8, threshold_px: float = 1.5,
+                    min_inliers: int = 15, refine_intrinsics: bool = True) -> ReferenceModel:
+    """Build the reference model of a set of photos (the module docstring lists the steps).
+
+    Args:
+        image_dir: folder of the photos; image_names: which ones (default: every .jpg/.jpeg/.png, sorted).
+        camera: intrinsics shared by all photos (a :class:`~bcmocap.cameras.CameraModel` in OpenCV's
+            pixel convention, or a ``pycolmap.Camera`` in COLMAP's); ``None`` lets pycolmap guess.
+        workdir: where the database and the model go (default: a temporary folder that is kept).
+        max_features: SIFT features per photo; ratio: Lowe's ratio; threshold_px: RANSAC epipolar
+            threshold; min_inliers: fewest verified matches for a pair to be written.
+        refine_intrinsics: let bundle adjustment refine focal length and distortion.
+
+    Raises:
+        ValueError: if the folder or a photo is missing or unreadable, or nothing could be reconstructed.
+    """
+    import cv2
+    import pycolmap
+
+    image_dir = Path(image_dir)
+    if not image_dir.is_dir():
+        raise ValueError(f"{image_dir}: photo folder does not exist")
+    if image_names is None:
+        image_names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    names = tuple(image_names)
+    if len(names) < 2:
+        raise ValueError(f"{image_dir}: need at least 2 photos, found {len(names)}")
+    work = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="bcmocap_reference_"))
+    work.mkdir(parents=True, exist_ok=True)
+    seconds = {}
+
+    clock = time.perf_counter()
+    features = {}
+    for name in names:
+        image = cv2.imread(str(image_dir / name), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise ValueError(f"{image_dir / name}: missing or not a readable image")
+        features[name] = extract_sift(image, max_features=max_features)
+    seconds["features"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    verified = {}
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            (ka, da), (kb, db) = features[a], features[b]
+            m = verify_matches(ka, kb, match_descriptors(da, db, ratio=ratio), threshold_px=threshold_px,
+                               min_inliers=min_inliers)
+            if len(m):
+                verified[(a, b)] = m
+    seconds["matching"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    db_path = work / "database.db"
+    if db_path.exists():
+        db_path.unlink()
+    pycolmap.Database.open(str(db_path)).close()
+    pycolmap.import_images(str(db_path), str(image_dir), pycolmap.CameraMode.SINGLE, list(names),
+                           _reader_options(camera))
+    with pycolmap.Database.open(str(db_path)) as db:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        for name in names:
+            kp, desc = features[name]
+            kp = kp.copy()
+            kp[:, :2] += 0.5  # OpenCV -> COLMAP pixel convention
+            db.write_keypoints(ids[name], kp)
+            db.write_descriptors(ids[name], pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, desc))
+        for (a, b), m in verified.items():
+            db.write_matches(ids[a], ids[b], np.ascontiguousarray(m, np.uint32))
+    pycolmap.geometric_verification(str(db_path))
+    options = pycolmap.IncrementalPipelineOptions()
+    if not refine_intrinsics:
+        options.ba_refine_focal_length = False
+        options.ba_refine_extra_params = False
+    out = work / "sparse"
+    out.mkdir(exist_ok=True)
+    models = pycolmap.incremental_mapping(str(db_path), str(image_dir), str(out), options=options)
+    seconds["mapping"] = time.perf_counter() - clock
+    if not models:
+        raise ValueError(f"{image_dir}: pycolmap could not reconstruct the photos "
+                         f"({len(verified)} of {len(names) * (len(names) - 1) // 2} pairs verified)")
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    registered = tuple(sorted(rec.image(i).name for i in rec.reg_image_ids()))
+    return ReferenceModel(rec, names, registered, float(rec.compute_mean_reprojection_error()), int(rec.num_points3D()),
+                          db_path, {k: len(v) for k, v in verified.items()}, seconds)

@@ -1,0 +1,181 @@
+"""Audio synchronisation of the body cameras by the clapper board's two claps (§4.1, footnote 1).
+
+Each camera starts recording at its own moment, so the claps at the start and the end of a trial land at
+different samples of each camera's soundtrack, but always the same time apart. For each camera,
+:func:`clap_candidates` finds onsets on the track's envelope (a short moving RMS): the loudest local
+peaks well above the noise floor, each dated to the first sample of its rise. :func:`synchronize` then
+tries every duration between two candidates of any camera, keeps the one most cameras agree on (within
+``tolerance_s``; ties go to the louder claps), and takes in each camera the pair closest to it.
+
+Convention: ``offsets[c]`` is the video frame of camera ``c`` in which the first clap happens, so video
+frame ``i`` of camera ``c`` shows the common time ``i - offsets[c]`` frames after the first clap, and
+``offsets[c] - offsets[d]`` is how many frames camera ``c`` started before camera ``d``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from ..sim.audio import read_wav
+from .capture import Capture
+
+__all__ = ["SyncResult", "clap_candidates", "given_offsets", "synchronize", "synchronize_tracks"]
+
+
+@dataclasses.dataclass(frozen=True)
+class SyncResult:
+    """Per-camera frame offsets of one trial.
+
+    Attributes:
+        cameras: camera names.
+        offsets: ``(C,)`` int, video frame of the first clap in each camera (see the module docstring).
+        clap_samples: ``(C, 2)`` int, first sample of each clap in each track (-1 when offsets were given).
+        duration_s: time between the two claps (s), NaN when offsets were given.
+        agreeing: number of cameras whose claps agree with ``duration_s``.
+    """
+
+    cameras: tuple[str, ...]
+    offsets: np.ndarray
+    clap_samples: np.ndarray
+    duration_s: float
+    agreeing: int
+
+    def offset(self, camera: str) -> int:
+        return int(self.offsets[self.cameras.index(camera)])
+
+
+def _envelope(samples: np.ndarray, window: int) -> np.ndarray:
+    x2 = np.asarray(samples, np.float64) ** 2
+    csum = np.concatenate([[0.0], np.cumsum(x2)])
+    n = len(x2)
+    hi = np.minimum(np.arange(n) + window, n)
+    return np.sqrt((csum[hi] - csum[np.arange(n)]) / window)  # forward-looking: rises at the onset
+
+
+def clap_candidates(samples: np.ndarray, rate: int, *, max_count: int = 8, min_gap_s: float = 0.15,
+                    window_s: float = 0.002, snr: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
+    """Onsets of loud transients in a track: ``(first samples (K,), peak envelope (K,))``, sorted in time.
+
+    The envelope is a forward moving RMS over ``window_s``; a candidate is its maximum over a
+    ``min_gap_s`` neighbourhood that exceeds ``snr`` times the median envelope (the noise floor). Its
+    onset is the first sample, within two windows of the peak, whose magnitude reaches half the peak
+    sample magnitude there. At most the ``max_count`` loudest are kept.
+    """
+    x = np.asarray(samples, np.float64)
+    if x.ndim != 1 or len(x) == 0:
+        raise ValueError(f"clap_candidates: expected a non-empty mono track, got shape {x.shape}")
+    window = max(int(round(window_s * rate)), 1)
+    env = _envelope(x, window)
+    floor = max(float(np.median(env)), 1e-9)
+    gap = max(int(round(min_gap_s * rate)), 1)
+    # Greedy non-maximum suppression from the loudest sample down.
+    order = np.argsort(env)[::-1]
+    peaks: list[int] = []
+    for i in order:
+        if env[i] < snr * floor or len(peaks) >= max_count:
+            break
+        if all(abs(int(i) - p) >= gap for p in peaks):
+            peaks.append(int(i))
+    onsets, levels = [], []
+    mag = np.abs(x)
+    for p in peaks:
+        lo = max(p - 2 * window, 0)
+        seg = mag[lo: p + 2 * window]
+        first = lo + int(np.flatnonzero(seg >= 0.5 * seg.max())[0])
+        onsets.append(first)
+        levels.append(float(env[p]))
+    order = np.argsort(onsets)
+    return np.asarray(onsets, np.int64)[order], np.asarray(levels)[order]
+
+
+def synchronize_tracks(tracks: Sequence[np.ndarray], rate: int, fps: float, *, cameras: Sequence[str] | None = None,
+                       tolerance_s: float | None = None, min_duration_s: float = 0.2) -> SyncResult:
+    """Frame offsets from the claps in each camera's track (module docstring for the method).
+
+    Args:
+        tracks: one mono track per camera, all starting with their camera's first video frame.
+        rate: audio sample rate (Hz); fps: video frame rate (Hz).
+        cameras: names (default ``"0", "1", …``).
+        tolerance_s: how far two cameras' clap durations may differ and still agree (default: a quarter
+            of a frame).
+        min_duration_s: shortest plausible time between the two claps.
+
+    Raises:
+        ValueError: if a camera has no pair of claps agreeing with the chosen duration (names them).
+    """
+    names = tuple(cameras) if cameras is not None else tuple(str(i) for i in range(len(tracks)))
+    if len(names) != len(tracks) or not tracks:
+        raise ValueError(f"synchronize_tracks: {len(tracks)} tracks for {len(names)} camera names")
+    tol = (0.25 / fps if tolerance_s is None else tolerance_s) * rate
+    cands = [clap_candidates(t, rate) for t in tracks]
+    # Every pair (i < j) of candidates of every camera: its duration and loudness.
+    pairs = []
+    for onsets, levels in cands:
+        i, j = np.triu_indices(len(onsets), 1)
+        d = (onsets[j] - onsets[i]).astype(np.float64)
+        keep = d >= min_duration_s * rate
+        pairs.append((i[keep], j[keep], d[keep], np.minimum(levels[i], levels[j])[keep]))
+    durations = np.concatenate([p[2] for p in pairs]) if pairs else np.zeros(0)
+    if len(durations) == 0:
+        raise ValueError(f"synchronize_tracks: no two claps at least {min_duration_s} s apart in any track")
+    best, best_key = None, None
+    for d in np.unique(durations):
+        agree, loud = 0, 0.0
+        for _, _, dc, lc in pairs:
+            ok = np.abs(dc - d) <= tol
+            if ok.any():
+                agree += 1
+                loud += float(lc[ok].max())
+        key = (agree, loud)
+        if best_key is None or key > best_key:
+            best, best_key = d, key
+    samples = np.full((len(tracks), 2), -1, np.int64)
+    missing = []
+    for c, ((onsets, _), (i, j, dc, lc)) in enumerate(zip(cands, pairs)):
+        ok = np.flatnonzero(np.abs(dc - best) <= tol)
+        if len(ok) == 0:
+            missing.append(names[c])
+            continue
+        k = ok[np.argmax(lc[ok])]
+        samples[c] = onsets[i[k]], onsets[j[k]]
+    if missing:
+        raise ValueError(f"synchronize_tracks: no pair of claps {best / rate:.4f} s apart (the duration "
+                         f"{best_key[0]} of {len(tracks)} cameras agree on) in cameras {missing}; give offsets instead")
+    offsets = np.round(samples[:, 0] * fps / rate).astype(np.int64)
+    duration = float(np.mean(samples[:, 1] - samples[:, 0]) / rate)
+    return SyncResult(names, offsets, samples, duration, int(best_key[0]))
+
+
+def synchronize(capture: Capture, trial: str, **options) -> SyncResult:
+    """Frame offsets of one trial of a capture from its soundtracks (``trials/<trial>/<camera>.wav``)."""
+    tracks, rate = [], None
+    for name in capture.camera_names:
+        path = capture.audio_path(trial, name)
+        if not path.is_file():
+            raise ValueError(f"{path}: soundtrack missing")
+        samples, r = read_wav(path)
+        if rate is not None and r != rate:
+            raise ValueError(f"{path}: sample rate {r} Hz differs from the other cameras' {rate} Hz")
+        tracks.append(samples)
+        rate = r
+    return synchronize_tracks(tracks, rate, capture.fps, cameras=capture.camera_names, **options)
+
+
+def given_offsets(capture: Capture, offsets: Mapping[str, int] | Sequence[int]) -> SyncResult:
+    """A :class:`SyncResult` from known offsets (by camera name, or one per camera in order)."""
+    names = capture.camera_names
+    if isinstance(offsets, Mapping):
+        missing = [n for n in names if n not in offsets]
+        unknown = sorted(set(offsets) - set(names))
+        if missing or unknown:
+            raise ValueError(f"given_offsets: missing cameras {missing}, unknown cameras {unknown}")
+        values = [offsets[n] for n in names]
+    else:
+        values = list(offsets)
+        if len(values) != len(names):
+            raise ValueError(f"given_offsets: {len(values)} offsets for {len(names)} cameras")
+    return SyncResult(names, np.asarray(values, np.int64), np.full((len(names), 2), -1, np.int64), float("nan"),
+                      len(names))

@@ -1,0 +1,53 @@
+"""Tests for the reference reconstruction (bcmocap.frontend.reference) on 4 real SceauxCastle photos
+(640 px wide copies; terms in tests/data/sceaux/README.md)."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from bcmocap.cameras import PinholeCamera
+from bcmocap.frontend.reference import build_reference, extract_sift, match_descriptors, verify_matches
+
+SCEAUX = Path(__file__).parent / "data" / "sceaux"
+NAMES = ["100_7100.jpg", "100_7101.jpg", "100_7102.jpg", "100_7103.jpg"]
+SCALE = 640 / 2832  # K.txt is for the 2832x2128 originals
+
+
+def test_sift_flann_ratio_and_fundamental_ransac():
+    a, b = (cv2.imread(str(SCEAUX / n), cv2.IMREAD_GRAYSCALE) for n in NAMES[:2])
+    (ka, da), (kb, db) = extract_sift(a, max_features=1500), extract_sift(b, max_features=1500)
+    assert ka.shape[1] == 4 and da.dtype == np.uint8 and da.shape == (len(ka), 128) and len(ka) > 1000
+    matches = match_descriptors(da, db)
+    assert matches.dtype == np.uint32 and 100 < len(matches) < len(ka)
+    assert len(set(matches[:, 1].tolist())) == len(matches)  # mutual: one-to-one
+    inliers = verify_matches(ka, kb, matches)
+    assert 0.5 * len(matches) < len(inliers) <= len(matches)
+    # A shuffled pairing has no epipolar geometry: only what a random F explains by chance survives.
+    shuffled = np.stack([matches[:, 0], np.random.default_rng(0).permutation(matches[:, 1])], axis=1)
+    assert len(verify_matches(ka, kb, shuffled)) < 0.1 * len(inliers)
+    assert len(verify_matches(ka, kb, shuffled, min_inliers=len(inliers) // 2)) == 0
+
+
+def test_reference_model_on_real_photos(tmp_path):
+    pycolmap.logging.minloglevel = 2
+    camera = PinholeCamera(width=640, height=481, focal=[2905.88 * SCALE] * 2,
+                           principal_point=[1416 * SCALE, 1064 * SCALE])
+    model = build_reference(SCEAUX, NAMES, camera=camera, workdir=tmp_path, max_features=1500)
+    assert model.registered == tuple(NAMES) and model.num_points3D > 300
+    assert model.mean_reprojection_error_px < 1.0
+    assert (tmp_path / "database.db").is_file() and len(model.pair_inliers) == 6
+    # The reconstruction's camera is the one given (COLMAP convention: +0.5 px).
+    params = np.asarray(model.reconstruction.cameras[1].params)
+    assert params[2] == pytest.approx(1416 * SCALE + 0.5)
+
+
+def test_errors(tmp_path):
+    with pytest.raises(ValueError, match="photo folder does not exist"):
+        build_reference(tmp_path / "nowhere")
+    with pytest.raises(ValueError, match="need at least 2 photos, found 0"):
+        build_reference(tmp_path)
+    with pytest.raises(ValueError, match=r"nope\.jpg: missing or not a readable image"):
+        build_reference(SCEAUX, [NAMES[0], "nope.jpg"])
