@@ -6,14 +6,19 @@
    registered photos and mean reprojection error on the real SceauxCastle photos (downscaled to
    ``--sceaux-width``) and on the rendered capture's reference photos; for the rendered ones also the
    photos' rotation and position errors against the truth after a similarity alignment (§5.1).
+3. Absolute registration of the body-camera frames of the rendered capture's "capture" trial (every
+   ``--register-stride``-th frame of every camera) to the rendered reference model: registered fraction,
+   rotation and position errors of the registered frames against the truth after the same similarity
+   alignment (photo centres), frames per second.
 
-Not built yet, so not reported: absolute and relative registration of body-camera frames (registered
-fraction, rotation and position errors), homographies, the end-to-end joint errors, images per second.
+Not built yet, so not reported: relative registration, homographies, the end-to-end joint errors,
+parallel throughput.
 
     python benchmarks/frontend.py --json benchmarks/results/frontend.json [--capture DIR]
 
-Without ``--capture`` a small capture (0.1 s trials, 64x36 body cameras, 24 reference photos of
-640x480) is rendered into a temporary folder first (about a minute on 2 cores).
+Without ``--capture`` a small capture (0.1 s trials, ``--body-width`` x ``--body-height`` body cameras,
+default 640x360 as the standard rig, 24 reference photos of 640x480) is rendered into a temporary folder
+first (about a minute on 2 cores; the whole benchmark takes about 4 minutes).
 """
 
 from __future__ import annotations
@@ -32,10 +37,11 @@ from _common import write_json  # noqa: E402
 
 from bcmocap.frontend import read_capture, synchronize  # noqa: E402
 from bcmocap.frontend.reference import build_reference  # noqa: E402
+from bcmocap.frontend.register import reference_index, register_trial, similarity  # noqa: E402
 from bcmocap.sim.studio import StudioSettings, load_ground_truth, write_capture  # noqa: E402
 
 SCEAUX = Path("/work/shared/data/images/SceauxCastle/images")
-NOT_BUILT = ["absolute registration", "relative registration", "homographies", "correspondences output",
+NOT_BUILT = ["relative registration", "homographies", "correspondences output",
              "parallel throughput (images_per_second)", "end_to_end"]
 
 
@@ -57,17 +63,6 @@ def sync_figures(capture_dir: Path) -> dict:
     return out
 
 
-def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama: ``(s, R, t)`` minimising ``sum |s R src + t - dst|^2`` over points ``(N, 3)``."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    u, sig, vt = np.linalg.svd(b.T @ a / len(src))
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rot = u @ d @ vt
-    scale = float(np.trace(np.diag(sig) @ d) / (a ** 2).sum(1).mean())
-    return scale, rot, mu_d - scale * rot @ mu_s
-
-
 def pose_errors(model, truth: dict[str, np.ndarray]) -> dict:
     """Registered photos against their true ``world_from_camera`` after a similarity alignment (§5.1)."""
     from bcmocap.geometry import matrix_from_quat
@@ -86,7 +81,44 @@ def pose_errors(model, truth: dict[str, np.ndarray]) -> dict:
             "position_error_cm": {"median": float(np.median(pos_cm)), "mean": float(pos_cm.mean())}}
 
 
-def reference_figures(label: str, image_dir: Path, names, camera, truth: dict | None = None) -> dict:
+def registration_figures(model, capture, truth, stride: int) -> dict:
+    """Absolute registration of the "capture" trial's frames of every camera (see the module docstring)."""
+    from bcmocap.geometry import matrix_from_quat
+
+    rec, poses = model.reconstruction, dict(zip(truth.reference_names, truth.reference_poses))
+    images = [rec.image(i) for i in rec.reg_image_ids()]
+    scale, rot, shift = similarity(np.array([im.projection_center() for im in images]),
+                                   np.array([poses[im.name][4:] for im in images]))
+    clock = time.perf_counter()
+    index = reference_index(model)
+    tt = truth.trials["capture"]
+    total, rot_deg, pos_cm = 0, [], []
+    for c, name in enumerate(capture.camera_names):
+        start = int(tt.video_start_frame[c])
+        out = register_trial(capture, "capture", name, index, stride=stride, start=start,
+                             stop=start + len(tt.world_from_camera))
+        total += len(out.frames)
+        for frame, pose in zip(out.frames[out.registered], out.poses[out.registered]):
+            true = tt.world_from_camera[frame - start, c]
+            rel = np.asarray(matrix_from_quat(true[:4])).T @ rot @ np.asarray(matrix_from_quat(pose[:4]))
+            rot_deg.append(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1, 1))))
+            pos_cm.append(100 * np.linalg.norm(scale * rot @ pose[4:] + shift - true[4:]))
+    seconds = time.perf_counter() - clock
+    rot_deg, pos_cm = np.array(rot_deg), np.array(pos_cm)
+    stats = (lambda e: {"median": float(np.median(e)), "mean": float(e.mean())} if len(e) else None)
+    row = {"frames": total, "registered": len(rot_deg), "registered_fraction": len(rot_deg) / max(total, 1),
+           "rotation_error_deg": stats(rot_deg), "position_error_cm": stats(pos_cm), "stride": stride,
+           "seconds": seconds, "frames_per_second": total / seconds, "index_descriptors": len(index.descriptors)}
+    print(f"absolute registration: {row['registered']}/{total} body-camera frames registered "
+          f"({100 * row['registered_fraction']:.1f} %), {row['frames_per_second']:.1f} frames/s")
+    if len(rot_deg):
+        print(f"absolute registration: rotation error median {np.median(rot_deg):.3f}° mean {rot_deg.mean():.3f}°, "
+              f"position error median {np.median(pos_cm):.2f} cm mean {pos_cm.mean():.2f} cm")
+    return row
+
+
+def reference_figures(label: str, image_dir: Path, names, camera, truth: dict | None = None,
+                      use_model=None) -> dict:
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
@@ -94,6 +126,7 @@ def reference_figures(label: str, image_dir: Path, names, camera, truth: dict | 
         clock = time.perf_counter()
         model = build_reference(image_dir, names, camera=camera, workdir=work)
         seconds = time.perf_counter() - clock
+        used = use_model(model) if use_model is not None else None
     row = {"registered": model.num_registered, "total": len(model.image_names),
            "mean_reprojection_error_px": model.mean_reprojection_error_px, "points3D": model.num_points3D,
            "verified_pairs": len(model.pair_inliers), "seconds": seconds,
@@ -106,6 +139,8 @@ def reference_figures(label: str, image_dir: Path, names, camera, truth: dict | 
     if "rotation_error_deg" in row:
         print(f"reference {label:9s} photo poses after similarity alignment: rotation error median "
               f"{row['rotation_error_deg']['median']:.3f}°, position error median {row['position_error_cm']['median']:.2f} cm")
+    if used is not None:
+        row["used_model"] = used
     return row
 
 
@@ -132,16 +167,20 @@ def main(argv=None) -> int:
     parser.add_argument("--json", help="write the figures to this file")
     parser.add_argument("--capture", type=Path, help="a rendered capture folder (default: render a small one)")
     parser.add_argument("--sceaux-width", type=int, default=640)
+    parser.add_argument("--body-width", type=int, default=640, help="body-camera width of the rendered capture")
+    parser.add_argument("--body-height", type=int, default=360)
+    parser.add_argument("--register-stride", type=int, default=1, help="register every n-th frame")
     args = parser.parse_args(argv)
 
-    print("frontend benchmark: built so far = capture reading, audio sync, reference reconstruction")
+    print("frontend benchmark: built so far = capture reading, audio sync, reference reconstruction, "
+          "absolute registration")
     print("not built, so not reported: " + ", ".join(NOT_BUILT))
     with tempfile.TemporaryDirectory() as tmp:
         capture_dir = args.capture
         if capture_dir is None:
             capture_dir = Path(tmp) / "capture"
             clock = time.perf_counter()
-            write_capture(capture_dir, StudioSettings(seconds=0.1, rom_seconds=0.1, width=64, height=36,
+            write_capture(capture_dir, StudioSettings(seconds=0.1, rom_seconds=0.1, width=args.body_width, height=args.body_height,
                                                       reference_photos=24, reference_width=640,
                                                       reference_height=480, seed=5), progress=False)
             print(f"rendered a small capture in {time.perf_counter() - clock:.0f} s")
@@ -149,7 +188,9 @@ def main(argv=None) -> int:
         capture, truth = read_capture(capture_dir), load_ground_truth(capture_dir)
         poses = dict(zip(truth.reference_names, truth.reference_poses))
         rendered = reference_figures("rendered", capture.path / "reference", [p.name for p in capture.reference_photos],
-                                     capture.reference_camera, poses)
+                                     capture.reference_camera, poses,
+                                     lambda model: registration_figures(model, capture, truth, args.register_stride))
+        absolute = rendered.pop("used_model")
         sceaux_dir = Path(tmp) / "sceaux"
         sceaux_dir.mkdir()
         names, camera = sceaux_copies(sceaux_dir, args.sceaux_width)
@@ -161,6 +202,7 @@ def main(argv=None) -> int:
         "sync": sync,
         "real_photos": {**real, "dataset": "SceauxCastle", "width_px": args.sceaux_width},
         "rendered_reference": {**rendered, "capture_settings": settings},
+        "absolute_registration": absolute,
         "not_built": NOT_BUILT,
     }
     write_json(args.json, payload)

@@ -1,19 +1,34 @@
 """Frontend: from a capture folder to what the solver consumes (issue 5, in progress).
 
 The only package that imports ``cv2`` and ``pycolmap``. Done so far: reading a capture folder
-(:mod:`.capture`), audio synchronisation by the claps (:mod:`.sync`) and the reference reconstruction
-from the reference photos (:mod:`.reference`).
+(:mod:`.capture`), audio synchronisation by the claps (:mod:`.sync`), the reference reconstruction
+from the reference photos (:mod:`.reference`) and absolute registration of body-camera frames to it
+(:mod:`.register`).
 """
 
 from .capture import Capture, CaptureCamera, VideoInfo, read_camera_json, read_capture
 from .reference import ReferenceModel, build_reference, extract_sift, match_descriptors, verify_matches
+from .register import (
+    FrameRegistration,
+    ReferenceIndex,
+    RegistrationOptions,
+    TrialRegistration,
+    reference_index,
+    register_frame,
+    register_trial,
+    similarity,
+)
 from .sync import SyncResult, clap_candidates, given_offsets, synchronize, synchronize_tracks
 
 __all__ = [
     "Capture",
     "CaptureCamera",
+    "FrameRegistration",
+    "ReferenceIndex",
     "ReferenceModel",
+    "RegistrationOptions",
     "SyncResult",
+    "TrialRegistration",
     "VideoInfo",
     "build_reference",
     "clap_candidates",
@@ -22,6 +37,10 @@ __all__ = [
     "match_descriptors",
     "read_camera_json",
     "read_capture",
+    "reference_index",
+    "register_frame",
+    "register_trial",
+    "similarity",
     "synchronize",
     "synchronize_tracks",
     "verify_matches",

@@ -1,0 +1,130 @@
+"""Tests for absolute registration (bcmocap.frontend.register): a rendered textured room, 8 pinhole
+reference photos → reference model; FOV fisheye (170°) frames from known poses are registered and
+compared with the truth after aligning the model to the world by a similarity (photo centres)."""
+
+import types
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from bcmocap.cameras import PinholeCamera
+from bcmocap.frontend.reference import build_reference
+from bcmocap.frontend.register import RegistrationOptions, reference_index, register_frame, register_trial, similarity
+from bcmocap.geometry import matrix_from_quat, quat_from_matrix
+from bcmocap.sim import Renderer, fov_camera_for, make_textured_scene
+
+W, H = 640, 480
+
+
+def _look(position, yaw, pitch=-0.2):
+    f = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    return np.concatenate([quat_from_matrix(np.stack([r, np.cross(f, r), f], axis=1)), position])
+
+
+def _render(scene, camera, poses):
+    poses = np.asarray(poses)
+    rot = np.asarray(matrix_from_quat(poses[:, :4]))[:, None, None]
+    return Renderer(scene, camera).render(rot, poses[:, None, None, 4:])
+
+
+@pytest.fixture(scope="module")
+def studio(tmp_path_factory):
+    pycolmap.logging.minloglevel = 2
+    folder = tmp_path_factory.mktemp("register")
+    scene = make_textured_scene(np.array([[0.0, 0.0], [1.0, 0.0]]), seed=3, num_pillars=4, num_boxes=4)
+    camera = PinholeCamera(width=W, height=H, focal=[400.0, 400.0], principal_point=[(W - 1) / 2, (H - 1) / 2])
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    poses = np.array([_look(np.array([0.5 + 0.4 * np.cos(a), 0.4 * np.sin(a), 1.6]), 0.3 * np.sin(a)) for a in angles])
+    for i, image in enumerate(_render(scene, camera, poses)):
+        cv2.imwrite(str(folder / f"p{i}.png"), np.ascontiguousarray(image[..., ::-1]))
+    model = build_reference(folder, camera=camera, workdir=folder / "work", max_features=2000,
+                            refine_intrinsics=False)
+    assert model.num_registered == 8
+    rec = model.reconstruction
+    images = [rec.image(i) for i in rec.reg_image_ids()]
+    est = np.array([im.projection_center() for im in images])
+    true = np.array([poses[int(im.name[1:-4])][4:] for im in images])
+    fisheye = fov_camera_for(W, H)
+    queries = np.array([_look(np.array([0.55, 0.1, 1.55]), 0.1, -0.1), _look(np.array([0.3, -0.2, 1.4]), -0.2, -0.25)])
+    frames = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in _render(scene, fisheye, queries)]
+    return types.SimpleNamespace(model=model, index=reference_index(model), align=similarity(est, true),
+                                 fisheye=fisheye, queries=queries, frames=frames)
+
+
+def test_similarity_recovers_a_known_transform():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(10, 3))
+    rot = np.asarray(matrix_from_quat(np.array([0.8, 0.2, -0.4, 0.4]) / np.linalg.norm([0.8, 0.2, -0.4, 0.4])))
+    s, r, t = similarity(src, 2.5 * src @ rot.T + [1.0, -2.0, 0.5])
+    assert s == pytest.approx(2.5) and np.allclose(r, rot) and np.allclose(t, [1.0, -2.0, 0.5])
+
+
+def _errors(align, estimate, truth):
+    s, rot, shift = align
+    centre = s * rot @ estimate[4:] + shift
+    rel = np.asarray(matrix_from_quat(truth[:4])).T @ rot @ np.asarray(matrix_from_quat(estimate[:4]))
+    angle = np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1, 1)))
+    return angle, 100 * np.linalg.norm(centre - truth[4:])
+
+
+def test_reference_index_holds_observations_of_3d_points(studio):
+    idx, rec = studio.index, studio.model.reconstruction
+    assert idx.descriptors.shape == (len(idx.point3D_ids), 128) and idx.descriptors.dtype == np.float32
+    assert len(set(idx.point3D_ids.tolist())) == rec.num_points3D()
+    k = len(idx.point3D_ids) // 2
+    assert np.allclose(idx.xyz[k], rec.point3D(int(idx.point3D_ids[k])).xyz)
+
+
+def test_register_fisheye_frames_to_true_pose(studio):
+    for frame, truth in zip(studio.frames, studio.queries):
+        result = register_frame(frame, studio.fisheye, studio.index)
+        assert result.registered and result.num_inliers > 50 and result.mean_error_px < 1.0
+        assert result.points2D.shape == (result.num_inliers, 2) and len(result.point3D_ids) == result.num_inliers
+        assert np.isclose(np.linalg.norm(result.world_from_camera[:4]), 1.0)
+        rot_deg, pos_cm = _errors(studio.align, result.world_from_camera, truth)
+        assert rot_deg < 0.5 and pos_cm < 2.0, (rot_deg, pos_cm)
+        # Inliers reproject through the model: the 3D points project near their 2D pixels.
+        cam = studio.fisheye
+        p = result.world_from_camera
+        r = np.asarray(matrix_from_quat(p[:4]))
+        xyz = np.array([studio.model.reconstruction.point3D(int(i)).xyz for i in result.point3D_ids])
+        uv = np.asarray(cam.project((xyz - p[4:]) @ r)[0])
+        assert np.median(np.linalg.norm(uv - result.points2D, axis=1)) < 1.0
+
+
+def test_thresholds_reject(studio):
+    strict = register_frame(studio.frames[0], studio.fisheye, studio.index, RegistrationOptions(min_inliers=100000))
+    assert not strict.registered and np.isfinite(strict.world_from_camera).all()
+    blank = register_frame(np.zeros((H, W), np.uint8), studio.fisheye, studio.index)
+    assert not blank.registered and np.isnan(blank.world_from_camera).all() and blank.num_inliers == 0
+
+
+def test_register_trial_with_stride_and_progress(studio):
+    frames = [studio.frames[0], np.zeros((H, W), np.uint8), studio.frames[1]]
+    camera = types.SimpleNamespace(name="cam0", intrinsics=studio.fisheye)
+
+    class FakeCapture:  # the Capture methods register_trial uses
+        cameras = (camera,)
+
+        def camera_index(self, name):
+            return 0
+
+        def video_info(self, trial, name):
+            return types.SimpleNamespace(num_frames=2 * len(frames))
+
+        def frames(self, trial, name, *, stride, start, stop, gray):
+            assert gray and stride == 2
+            for k, image in enumerate(frames):
+                yield start + stride * k, image
+
+    calls = []
+    out = register_trial(FakeCapture(), "capture", "cam0", studio.index, stride=2,
+                         progress=lambda done, total: calls.append((done, total)))
+    assert out.frames.tolist() == [0, 2, 4] and out.poses.shape == (3, 7)
+    assert out.registered.tolist() == [True, False, True] and out.registered_fraction == pytest.approx(2 / 3)
+    assert np.isnan(out.poses[1]).all() and np.isfinite(out.poses[[0, 2]]).all()
+    assert calls == [(1, 3), (2, 3), (3, 3)]
