@@ -2,6 +2,16 @@
 
 from .block_tridiagonal import solve_block_tridiagonal
 from .levenberg_marquardt import StructuredDampedNewtonDescent, StructuredLevenbergMarquardt
+from .refine import (
+    RefineOptions,
+    RefineReport,
+    RefinedSolution,
+    Refinement,
+    RoundReport,
+    refine_skeleton_and_rig,
+    reprojection_cost,
+    solve_with_refinement,
+)
 from .solve import (
     Problem,
     Solution,
@@ -17,6 +27,11 @@ from .window import NormalEquations, WindowProblem, cost, normal_equations, resi
 __all__ = [
     "NormalEquations",
     "Problem",
+    "RefineOptions",
+    "RefineReport",
+    "RefinedSolution",
+    "Refinement",
+    "RoundReport",
     "Solution",
     "SolverOptions",
     "StructuredDampedNewtonDescent",
@@ -26,9 +41,12 @@ __all__ = [
     "cost",
     "motion_from_tangent",
     "normal_equations",
+    "refine_skeleton_and_rig",
+    "reprojection_cost",
     "residuals",
     "solve",
     "solve_block_tridiagonal",
+    "solve_with_refinement",
     "whole_sequence_residual_function",
     "window_starts",
 ]
