@@ -119,6 +119,7 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
 # Modules are imported lazily inside their ``run`` so that ``bcmocap --help`` stays fast.
 COMMANDS = [
     add_demo_command,
+    __import__("bcmocap.markers.command", fromlist=["add_markers_command"]).add_markers_command,
     add_simulate_command,
 ]
 

@@ -3,6 +3,7 @@ and :class:`~bcmocap.kinematics.Motion`, converted to bcmocap's Z-up world in me
 
 from .asf import AsfBone, AsfData, load_cmu, read_amc, read_asf
 from .bvh import BvhData, read_bvh, write_bvh
+from .c3d import C3dData, read_c3d  # noqa: F401  (C3D marker trajectories, via ezc3d)
 
 __all__ = [
     "AsfBone",

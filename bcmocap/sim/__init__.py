@@ -1,6 +1,7 @@
 """Vicon-style synthetic ground truth: CMU motions, the paper's rig, a scene and its measurements."""
 
 from .capture import LazyProblem, SyntheticCapture, standard_capture
+from .markers import MarkerNoise, MarkerSpec, SimulatedMarkers, calibration_motion, full_body_markers, simulate_markers  # noqa: F401
 from .motions import BODY_SEGMENTS, CMU_TRIALS, BodySegment, back_and_forth, load_body_motion, reduce_motion, resample
 from .observe import NoiseModel, ObservationSimulator, body_capsules
 from .rig import fov_camera_for, standard_rig

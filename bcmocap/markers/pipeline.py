@@ -1,0 +1,369 @@
+"""The whole optical-marker pipeline of Kirk et al.: trajectories in, skeleton and motion out.
+
+    trajectories ──preprocess──▶ (merge identities) ──segment──▶ groups ──joint costs, MST──▶ topology
+        ──re-solve joints on all frames──▶ joints ──rigid fit──▶ Skeleton + marker offsets ──IK──▶ Motion
+
+:func:`fit_marker_skeleton` runs it on a :class:`~bcmocap.markers.MarkerTrajectories` (from a C3D file via
+:func:`bcmocap.io.read_c3d`, or from a ``(frames, markers, 3)`` array) and returns a
+:class:`MarkerSkeleton`, which can write a BVH file, a JSON description and a text report.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..kinematics.fk import joint_positions
+from ..kinematics.skeleton import Motion, Skeleton
+from .identities import IdentityMerge, merge_identities
+from .ik import IkResult, initial_motion, solve_ik
+from .joints import JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
+from .preprocess import MarkerTrajectories, PreprocessReport, preprocess
+from .rigid import RigidSkeleton, build_skeleton
+from .segmentation import Segmentation, segment_markers
+
+__all__ = ["MarkerOptions", "MarkerSkeleton", "fit_marker_skeleton"]
+
+
+@dataclasses.dataclass(frozen=True)
+class MarkerOptions:
+    """Settings of :func:`fit_marker_skeleton` (defaults as in the paper where it gives them).
+
+    Attributes:
+        num_groups: number of segments, or None for the eigengap.
+        max_groups: largest number of segments the eigengap may choose.
+        trim_frames: frames trimmed at both ends of every visible stretch.
+        min_run_seconds: markers never seen this long at a stretch are ignored.
+        spike_threshold_m: jumps farther than this from the local median are removed (None: keep).
+        merge: marker identity merging: "auto" (when more labels than markers seen at once), "yes", "no".
+        num_markers: physical markers for merging (None: most labels seen in one frame).
+        merge_method: "linkage" or "spectral" (see :mod:`bcmocap.markers.identities`).
+        num_samplings: jittered samplings for segmentation.
+        segmentation_scale_m: σ of the segmentation affinity (None: from the data).
+        alpha_topology: distance penalty of the all-pairs joint costs.
+        alpha_final: penalty stages of the final joint solve on all frames.
+        topology_frames: frames (evenly spaced) used for the all-pairs joint costs.
+        root: index of the marker group to make the root (None: the centre of the tree).
+        ik_chunk: frames solved together in inverse kinematics.
+        seed: random seed (samplings, k-means).
+    """
+
+    num_groups: int | None = None
+    max_groups: int = 20
+    trim_frames: int = 2
+    min_run_seconds: float = 0.5
+    spike_threshold_m: float | None = 0.03
+    merge: str = "auto"
+    num_markers: int | None = None
+    merge_method: str = "linkage"
+    num_samplings: int = 8
+    segmentation_scale_m: float | None = None
+    alpha_topology: float = 1e-3
+    alpha_final: tuple[float, ...] = (1e-2, 1e-4)
+    topology_frames: int = 200
+    root: int | None = None
+    ik_chunk: int = 256
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class MarkerSkeleton:
+    """What the pipeline found.
+
+    Attributes:
+        skeleton: the rigid skeleton (BALL joints, FREE root, world-aligned rest frames at the pose of
+            ``rigid.reference_frame``).
+        motion: ``(F,)`` per-frame poses.
+        fps: frame rate (Hz).
+        trajectories: the markers the skeleton was fitted to (after preprocessing and merging).
+        marker_segment: ``(M,)`` segment index of each of those markers.
+        marker_offsets: ``(M, 3)`` their positions in their segment frames (m).
+        segmentation: the marker groups.
+        joint_costs: ``(G, G)`` all-pairs joint costs ``Q`` (m², by group).
+        joints: the re-solved joints of the tree, by segment: ``joints[j - 1]`` connects segment ``j`` to its parent.
+        rigid: the rigid fit.
+        ik: inverse kinematics (filled marker positions, residuals).
+        preprocess_report: what preprocessing removed.
+        identities: the identity merge (None if not run).
+        input_labels: the labels given to the pipeline.
+        notes: warnings raised along the way (also emitted as :class:`UserWarning`).
+        seconds: time per stage.
+    """
+
+    skeleton: Skeleton
+    motion: Motion
+    fps: float
+    trajectories: MarkerTrajectories
+    marker_segment: np.ndarray
+    marker_offsets: np.ndarray
+    segmentation: Segmentation
+    joint_costs: np.ndarray
+    joints: tuple[JointSolution, ...]
+    rigid: RigidSkeleton
+    ik: IkResult
+    preprocess_report: PreprocessReport
+    identities: IdentityMerge | None
+    input_labels: tuple[str, ...]
+    notes: tuple[str, ...]
+    seconds: dict
+
+    @property
+    def edges(self) -> list[tuple[str, str]]:
+        """``(parent, child)`` segment names of every joint."""
+        s = self.skeleton
+        return [(s.names[s.parents[j]], s.names[j]) for j in range(1, s.num_segments)]
+
+    def segment_markers(self, j: int) -> list[str]:
+        """Labels of the markers on segment ``j``."""
+        return [self.trajectories.labels[m] for m in np.flatnonzero(self.marker_segment == j)]
+
+    def segment_lengths(self) -> dict[str, float]:
+        """Distance (m) between every two joints of a segment, keyed ``"segment: joint–joint"``."""
+        s = self.skeleton
+        out = {}
+        for j in range(s.num_segments):
+            points = ([(s.names[j], np.zeros(3))] if j > 0 else []) + [(s.names[c], np.asarray(s.offsets[c])) for c in s.children(j)]
+            for a in range(len(points)):
+                for b in range(a + 1, len(points)):
+                    out[f"{s.names[j]}: {points[a][0]}–{points[b][0]}"] = float(np.linalg.norm(points[a][1] - points[b][1]))
+        return out
+
+    def tree_lines(self) -> list[str]:
+        """The topology as an indented tree, each segment with its markers."""
+        s = self.skeleton
+        lines = []
+
+        def walk(j, depth):
+            marks = ", ".join(self.segment_markers(j))
+            lines.append(f"{'  ' * depth}{s.names[j]}  [{marks}]")
+            for c in s.children(j):
+                walk(c, depth + 1)
+
+        walk(0, 0)
+        return lines
+
+    def report(self) -> str:
+        """A short human-readable report."""
+        s = self.skeleton
+        f = self.motion.num_frames
+        lines = [
+            f"{f} frames at {self.fps:g} Hz ({f / self.fps:.1f} s), {len(self.input_labels)} labels in, "
+            f"{self.trajectories.num_markers} markers used",
+        ]
+        rep = self.preprocess_report
+        if rep.dropped:
+            lines.append(f"ignored {len(rep.dropped)} labels: " + "; ".join(f"{a} ({b})" for a, b in rep.dropped[:8])
+                         + (" …" if len(rep.dropped) > 8 else ""))
+        lines.append(f"trimmed {rep.trimmed_samples} marker-frames at stretch ends, removed {rep.spikes_removed} jumps")
+        if self.identities is not None and self.identities.num_markers < len(self.identities.marker_of_label):
+            lines.append(f"merged {len(self.identities.marker_of_label)} labels into {self.identities.num_markers} markers")
+        seg = self.segmentation
+        lines.append(f"{seg.num_groups} segments ({seg.chosen_by}; affinity σ {seg.scale_m * 1000:.1f} mm, "
+                     f"within-group cost {seg.cost * 1000:.2f} mm)")
+        lines.append("topology (root first):")
+        lines += ["  " + x for x in self.tree_lines()]
+        lines.append("joints (segment ← parent): cost Q, distance residual RMS, free directions")
+        for j in range(1, s.num_segments):
+            sol = self.joints[j - 1]
+            free = {0: "", 1: "  (hinge-like: one axis exercised)"}.get(sol.null_dims, "  (NOT EXERCISED)")
+            lines.append(f"  {s.names[j]:<18} ← {s.names[s.parents[j]]:<18} Q {sol.cost:.3g} m²  rms {sol.rms_m * 1000:.2f} mm{free}")
+        lines.append("segment lengths (joint to joint, cm):")
+        for k, v in self.segment_lengths().items():
+            lines.append(f"  {k}: {v * 100:.1f}")
+        rms = self.ik.residual_rms_m
+        lines.append(f"inverse kinematics: marker RMS {np.nanmean(rms) * 1000:.2f} mm (median frame "
+                     f"{np.nanmedian(rms) * 1000:.2f}, worst {np.nanmax(rms) * 1000:.2f}); "
+                     f"{int((~np.isfinite(self.trajectories.positions[..., 0])).sum())} marker-frames filled")
+        for note in self.notes:
+            lines.append(f"warning: {note}")
+        lines.append("time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()))
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """A JSON-friendly description: segments, markers, joints and the report's figures."""
+        s = self.skeleton
+        return {
+            "frames": int(self.motion.num_frames),
+            "fps": self.fps,
+            "segments": [
+                {
+                    "name": s.names[j],
+                    "parent": None if j == 0 else s.names[s.parents[j]],
+                    "offset_m": np.asarray(s.offsets[j]).tolist(),
+                    "markers": self.segment_markers(j),
+                }
+                for j in range(s.num_segments)
+            ],
+            "markers": {
+                label: {"segment": s.names[int(self.marker_segment[m])], "offset_m": self.marker_offsets[m].tolist()}
+                for m, label in enumerate(self.trajectories.labels)
+            },
+            "joints": [
+                {
+                    "child": s.names[j],
+                    "parent": s.names[s.parents[j]],
+                    "cost_m2": self.joints[j - 1].cost,
+                    "rms_m": self.joints[j - 1].rms_m,
+                    "free_directions": self.joints[j - 1].null_dims,
+                }
+                for j in range(1, s.num_segments)
+            ],
+            "segment_lengths_m": self.segment_lengths(),
+            "ik_rms_m": float(np.nanmean(self.ik.residual_rms_m)),
+            "ignored_labels": [list(x) for x in self.preprocess_report.dropped],
+            "merged_labels": None if self.identities is None else {
+                self.input_labels[k]: self.trajectories.labels[int(m)]
+                for k, m in zip(self.preprocess_report.kept, self.identities.marker_of_label)
+            },
+            "notes": list(self.notes),
+            "seconds": self.seconds,
+        }
+
+    def save(self, folder: str | Path) -> dict[str, Path]:
+        """Write ``skeleton.bvh``, ``skeleton.json``, ``poses.npz`` and ``report.txt`` into ``folder``."""
+        from ..io.bvh import write_bvh
+
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        paths = {
+            "bvh": folder / "skeleton.bvh",
+            "json": folder / "skeleton.json",
+            "poses": folder / "poses.npz",
+            "report": folder / "report.txt",
+        }
+        write_bvh(paths["bvh"], self.skeleton, self.motion, 1.0 / self.fps)
+        paths["json"].write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        np.savez_compressed(
+            paths["poses"],
+            root_position=np.asarray(self.motion.root_position),
+            rotations=np.asarray(self.motion.rotations),
+            joint_positions=np.asarray(joint_positions(self.skeleton, self.motion)),
+            marker_positions=self.ik.marker_positions,
+            marker_labels=np.array(self.trajectories.labels),
+            segment_names=np.array(self.skeleton.names),
+        )
+        paths["report"].write_text(self.report() + "\n")
+        return paths
+
+
+def _segment_names(trajectories: MarkerTrajectories, groups: np.ndarray) -> list[str]:
+    names = []
+    for g in range(int(groups.max()) + 1):
+        first = trajectories.labels[int(np.flatnonzero(groups == g)[0])]
+        first = re.sub(r"[^A-Za-z0-9_]", "", first.split(":")[-1]) or "m"
+        names.append(f"seg{g}_{first}")
+    return names
+
+
+def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions = MarkerOptions()) -> MarkerSkeleton:
+    """Estimate a skeleton and its motion from marker trajectories (Kirk, O'Brien & Forsyth 2005).
+
+    Args:
+        trajectories: ``(F, M, 3)`` marker positions in metres with NaN gaps, and the frame rate.
+        options: see :class:`MarkerOptions`.
+
+    Raises:
+        ValueError: input the pipeline cannot use; the message names the marker, group or segment.
+    """
+    notes: list[str] = []
+    seconds: dict[str, float] = {}
+
+    def note(message: str) -> None:
+        notes.append(message)
+        warnings.warn(message, UserWarning, stacklevel=3)
+
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        clean, report = preprocess(
+            trajectories,
+            trim_frames=options.trim_frames,
+            min_run_seconds=options.min_run_seconds,
+            spike_threshold_m=options.spike_threshold_m,
+        )
+    for w in caught:
+        note(str(w.message))
+    most = int(clean.visible.sum(1).max())
+    identities = None
+    if options.merge not in ("auto", "yes", "no"):
+        raise ValueError(f"options.merge must be 'auto', 'yes' or 'no', got {options.merge!r}")
+    if options.merge == "yes" or (options.merge == "auto" and clean.num_markers > (options.num_markers or most)):
+        clean, identities = merge_identities(clean, options.num_markers, method=options.merge_method, seed=options.seed)
+    seconds["preprocess"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    seg = segment_markers(
+        clean,
+        options.num_groups,
+        num_samplings=options.num_samplings,
+        scale_m=options.segmentation_scale_m,
+        max_groups=options.max_groups,
+        seed=options.seed,
+    )
+    seconds["segmentation"] = time.perf_counter() - t0
+    names = _segment_names(clean, seg.groups)
+    for g in range(seg.num_groups):
+        if (seg.groups == g).sum() == 1:
+            note(f"segment '{names[g]}' has a single marker ({clean.labels[int(np.flatnonzero(seg.groups == g)[0])]}): "
+                 "its rotation about the joint-marker line is not determined")
+
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        q, _ = joint_cost_matrix(clean, seg.groups, alpha=options.alpha_topology, max_frames=options.topology_frames)
+    for w in caught:
+        note(str(w.message))
+    edges = minimum_spanning_tree(q, names)
+    seconds["topology"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    joints = solve_joints(clean, seg.groups, edges, alpha=options.alpha_final, max_iterations=400)
+    for sol in joints:
+        a, b = sol.groups
+        if sol.null_dims >= 2:
+            note(f"the joint between segments '{names[a]}' and '{names[b]}' is not exercised (the two barely move "
+                 "relative to each other): its position is set by the distance prior only")
+        if not sol.converged:
+            note(f"the joint between segments '{names[a]}' and '{names[b]}' did not converge")
+    seconds["joints"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    rigid = build_skeleton(clean.positions, seg.groups, joints, root=options.root, names=names)
+    seg_of_group = {int(g): k for k, g in enumerate(rigid.segment_groups)}
+    by_child: dict[int, JointSolution] = {}
+    joint_positions_by_edge = {}
+    for sol in joints:
+        a, b = seg_of_group[sol.groups[0]], seg_of_group[sol.groups[1]]
+        parent, child = (a, b) if rigid.skeleton.parents[b] == a else (b, a)
+        by_child[child] = sol
+        joint_positions_by_edge[(parent, child)] = sol.positions
+    seconds["rigid"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    start = initial_motion(rigid, clean.positions, joint_positions_by_edge)
+    ik = solve_ik(rigid, clean.positions, start, chunk=options.ik_chunk)
+    seconds["ik"] = time.perf_counter() - t0
+    return MarkerSkeleton(
+        skeleton=rigid.skeleton,
+        motion=ik.motion,
+        fps=clean.fps,
+        trajectories=clean,
+        marker_segment=rigid.marker_segment,
+        marker_offsets=rigid.marker_offsets,
+        segmentation=seg,
+        joint_costs=q,
+        joints=tuple(by_child[j] for j in range(1, rigid.skeleton.num_segments)),
+        rigid=rigid,
+        ik=ik,
+        preprocess_report=report,
+        identities=identities,
+        input_labels=trajectories.labels,
+        notes=tuple(notes),
+        seconds=seconds,
+    )

@@ -1,0 +1,90 @@
+"""The whole marker pipeline and `bcmocap markers` on small simulated captures (and its errors)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from bcmocap.cli import main
+from bcmocap.io import read_bvh
+from bcmocap.markers import MarkerOptions, MarkerTrajectories, fit_marker_skeleton
+from bcmocap.sim.markers import MarkerNoise, linkage_markers, linkage_motion, linkage_skeleton, simulate_markers
+from test_io_c3d import write_c3d
+
+LENGTHS = (0.30, 0.341, 0.30)
+
+
+def linkage_capture(seed=5, seconds=8.0, fps=60.0, noise=None, frozen_second_joint=False):
+    skeleton = linkage_skeleton(LENGTHS)
+    motion = linkage_motion(seconds, fps, seed=seed)
+    if frozen_second_joint:
+        rot = np.array(motion.rotations)
+        rot[:, 2] = rot[0, 2]
+        motion = type(motion)(motion.root_position, rot)
+    noise = noise or MarkerNoise(sigma_m=0.0005, spike_probability=1e-3, gap_rate_hz=0.05, gap_seconds=(0.05, 0.2),
+                                 relabel_after_gap=1.0, label_break_rate_hz=0.0)
+    return simulate_markers(skeleton, motion, linkage_markers(LENGTHS, seed=seed), fps, noise, seed=seed)
+
+
+def middle_length(result):
+    s = result.skeleton
+    j = int(np.argmax([sum(label.startswith("R2") for label in result.segment_markers(k)) for k in range(3)]))
+    pts = ([np.zeros(3)] if j else []) + [np.asarray(s.offsets[c]) for c in s.children(j)]
+    return float(np.linalg.norm(pts[0] - pts[1]))
+
+
+def test_cli_on_a_c3d_file_with_broken_labels(tmp_path, capsys):
+    sim = linkage_capture()
+    assert len(sim.labels) > 9  # gaps gave new labels: the pipeline must merge them back
+    path = write_c3d(tmp_path / "linkage.c3d", sim.positions, sim.labels, rate=60.0, units="mm")
+    out = tmp_path / "out"
+    assert main(["markers", str(path), "--out", str(out), "--groups", "3"]) == 0
+    text = capsys.readouterr().out
+    assert "merged" in text and "topology (root first)" in text
+    desc = json.loads((out / "skeleton.json").read_text())
+    assert len(desc["segments"]) == 3 and desc["fps"] == 60.0 and len(desc["markers"]) == 9
+    lengths = [v for k, v in desc["segment_lengths_m"].items() if k.startswith(desc["segments"][0]["name"])]
+    assert lengths == pytest.approx([LENGTHS[1]], abs=0.005)  # the middle rod is the root, two joints
+    bvh = read_bvh(out / "skeleton.bvh", up_axis="z")
+    assert bvh.num_frames == sim.positions.shape[0] and bvh.frame_time_s == pytest.approx(1 / 60)
+    poses = np.load(out / "poses.npz")
+    assert poses["marker_positions"].shape == (sim.positions.shape[0], 9, 3)
+    assert (out / "report.txt").read_text().startswith(f"{sim.positions.shape[0]} frames at 60 Hz")
+
+
+def test_pipeline_on_an_array_fills_gaps_and_recovers_the_middle_rod():
+    sim = linkage_capture(seed=6, noise=MarkerNoise(sigma_m=0.0005, spike_probability=0.0, gap_rate_hz=0.1,
+                                                       gap_seconds=(0.1, 0.3), relabel_after_gap=0.0, label_break_rate_hz=0.0))
+    traj = MarkerTrajectories.from_array(sim.positions, sim.fps, sim.labels)
+    result = fit_marker_skeleton(traj, MarkerOptions(num_groups=3))
+    assert middle_length(result) == pytest.approx(LENGTHS[1], abs=0.004)
+    gaps = ~np.isfinite(result.trajectories.positions[..., 0])
+    assert gaps.any()
+    # the model markers fill the gaps where the true (noise-free) markers are
+    truth = sim.true_positions[:, [sim.marker_names.index(x) for x in result.trajectories.labels]]
+    err = np.linalg.norm(result.ik.marker_positions - truth, axis=-1)
+    assert np.median(err[gaps]) < 0.005 and np.median(err[~gaps]) < 0.003
+    assert result.skeleton.joint_types[0].name == "FREE" and all(t.name == "BALL" for t in result.skeleton.joint_types[1:])
+
+
+def test_a_joint_not_exercised_is_reported():
+    sim = linkage_capture(seed=7, frozen_second_joint=True,
+                          noise=MarkerNoise(sigma_m=0.0005, spike_probability=0.0, gap_rate_hz=0.0, label_break_rate_hz=0.0))
+    traj = MarkerTrajectories.from_array(sim.positions, sim.fps, sim.labels)
+    with pytest.warns(UserWarning, match=r"the joint between segments '.*' and '.*' is not exercised"):
+        fit_marker_skeleton(traj, MarkerOptions(num_groups=3))
+
+
+def test_bad_input_is_named(tmp_path, capsys):
+    sim = linkage_capture(seed=8, noise=MarkerNoise.clean())
+    p = sim.positions.copy()
+    p[:, 4] = np.nan
+    traj = MarkerTrajectories.from_array(p, sim.fps, sim.labels)
+    with pytest.raises(ValueError, match=r"cannot split 8 markers into 9 groups"):
+        with pytest.warns(UserWarning, match=r"markers with no data were ignored: \['R2M2'\]"):
+            fit_marker_skeleton(traj, MarkerOptions(num_groups=9))
+    assert main(["markers", str(tmp_path / "missing.c3d"), "--out", str(tmp_path / "o")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    np.save(tmp_path / "a.npy", sim.positions)
+    assert main(["markers", str(tmp_path / "a.npy"), "--out", str(tmp_path / "o")]) == 2
+    assert "needs --fps" in capsys.readouterr().err
