@@ -38,13 +38,16 @@ def test_reference_model_on_real_photos(tmp_path):
     model = build_reference(SCEAUX, NAMES, camera=camera, workdir=tmp_path, max_features=1500)
     assert model.registered == tuple(NAMES) and model.num_points3D > 300
     assert model.mean_reprojection_error_px < 1.0
-    assert (tmp_path / "database.db").is_file() and len(model.pair_inliers) == 6
+    assert model.database_path.parent == tmp_path and model.database_path.is_file() and len(model.pair_inliers) == 6
+    assert 1 <= model.mapping_attempts <= 3
     # The reconstruction's camera is the one given (COLMAP convention: +0.5 px).
     params = np.asarray(model.reconstruction.cameras[1].params)
     assert params[2] == pytest.approx(1416 * SCALE + 0.5)
 
 
 def test_errors(tmp_path):
+    with pytest.raises(ValueError, match="attempts must be >= 1, got 0"):
+        build_reference(SCEAUX, NAMES, attempts=0)
     with pytest.raises(ValueError, match="photo folder does not exist"):
         build_reference(tmp_path / "nowhere")
     with pytest.raises(ValueError, match="need at least 2 photos, found 0"):
