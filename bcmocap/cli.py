@@ -40,6 +40,15 @@ def write_json_atomic(path: Path, payload: dict) -> None:
             os.unlink(tmp)
 
 
+def output_folder(command: str, out: str | os.PathLike) -> Path | None:
+    """``--out`` as a Path, or None after telling the user (on stderr) that it exists and is not a folder."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        print(f"bcmocap {command}: --out {out} exists and is not a folder", file=sys.stderr)
+        return None
+    return out
+
+
 def _table(rows: list[tuple[str, dict]]) -> str:
     lines = [f"{'metric':<28}{'mean':>10}{'median':>10}{'max':>10}"]
     for name, stats in rows:
@@ -55,9 +64,8 @@ def run_demo(args: argparse.Namespace) -> int:
     from .solver import SolverOptions, solve
     from .solver.objective import paper_problem
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        print(f"bcmocap demo: --out {out} exists and is not a folder", file=sys.stderr)
+    out = output_folder("demo", args.out)
+    if out is None:
         return 2
     start = time.perf_counter()
     print(f"simulating {args.seconds:g} s of CMU '{args.motion}' through the 18-camera rig ...", flush=True)
@@ -121,6 +129,7 @@ COMMANDS = [
     add_demo_command,
     __import__("bcmocap.markers.command", fromlist=["add_markers_command"]).add_markers_command,
     add_simulate_command,
+    __import__("bcmocap.kcs.command", fromlist=["add_kcs_command"]).add_kcs_command,
 ]
 
 

@@ -129,3 +129,15 @@ def test_robust_average_outvotes_a_badly_registered_root_camera(skeleton, rig, r
     assert_same_motion(robust, truth)
     assert np.linalg.norm(np.asarray(plain.root_position[1] - truth.root_position[1])) > 0.05
     assert_same_motion(plain[np.array([0, 2])], truth[np.array([0, 2])])  # the default (plain mean) is unchanged elsewhere
+
+
+def test_fill_gaps_interpolates_inside_and_holds_at_the_ends():
+    from bcmocap.kinematics.ik import fill_gaps
+
+    known = np.array([False, True, False, False, True, False])
+    values = np.array([[0.0], [1.0], [9.0], [9.0], [4.0], [9.0]])
+    assert fill_gaps(values, known, rotations=False).ravel().tolist() == [1.0, 1.0, 2.0, 3.0, 4.0, 4.0]
+    half = np.array([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)])  # 90 degrees about z
+    quats = np.array([[1.0, 0, 0, 0], [0.0, 0, 0, 0], half])
+    mid = fill_gaps(quats, np.array([True, False, True]), rotations=True)[1]
+    assert np.allclose(mid, [np.cos(np.pi / 8), 0, 0, np.sin(np.pi / 8)])

@@ -19,8 +19,12 @@ from .skeleton import Motion, Skeleton
 from .virtual import robust_average_poses
 
 
-def _fill_gaps(values: np.ndarray, known: np.ndarray, rotations: bool) -> np.ndarray:
-    """Interpolate ``(T, k)`` values over frames where ``known`` ``(T,)`` is False."""
+def fill_gaps(values: np.ndarray, known: np.ndarray, rotations: bool) -> np.ndarray:
+    """Interpolate ``(T, k)`` values over frames where ``known`` ``(T,)`` is False.
+
+    Linear interpolation, or slerp when ``rotations`` (rows are (w, x, y, z) unit quaternions); frames
+    before the first or after the last known one hold that value.
+    """
     t_known = np.flatnonzero(known)
     out = values.copy()
     if len(t_known) == len(known):
@@ -84,21 +88,21 @@ def motion_from_camera_poses(
         has_camera[j] = True
         if robust and len(cams) > 2:
             mean, _ = robust_average_poses(world_from_segment[:, cams], registered[:, cams])
-            seg_rot[:, j] = _fill_gaps(np.where(known[:, None], mean[:, :4], 0.0), known, rotations=True)
+            seg_rot[:, j] = fill_gaps(np.where(known[:, None], mean[:, :4], 0.0), known, rotations=True)
             if j == 0:
-                root_position = _fill_gaps(np.where(known[:, None], mean[:, 4:], 0.0), known, rotations=False)
+                root_position = fill_gaps(np.where(known[:, None], mean[:, 4:], 0.0), known, rotations=False)
             continue
         q = np.zeros((t, 4))
         for frame in np.flatnonzero(known):
             use = [k for k in cams if registered[frame, k]]
             q[frame] = average_quaternions(world_from_segment[frame, use, :4])
-        seg_rot[:, j] = _fill_gaps(q, known, rotations=True)
+        seg_rot[:, j] = fill_gaps(q, known, rotations=True)
         if j == 0:
             p = np.zeros((t, 3))
             for frame in np.flatnonzero(known):
                 use = [k for k in cams if registered[frame, k]]
                 p[frame] = world_from_segment[frame, use, 4:].mean(axis=0)
-            root_position = _fill_gaps(p, known, rotations=False)
+            root_position = fill_gaps(p, known, rotations=False)
     if root_position is None:
         raise ValueError("motion_from_camera_poses: no camera is mounted on the root segment")
     # segments without cameras inherit their parent's orientation (identity local rotation)

@@ -28,15 +28,14 @@ def _load(args: argparse.Namespace):
 
 
 def run_markers(args: argparse.Namespace) -> int:
-    from ..cli import enable_compilation_cache
+    from ..cli import enable_compilation_cache, output_folder
 
     enable_compilation_cache()
     from .pipeline import MarkerOptions, fit_marker_skeleton
     from .preprocess import MarkerTrajectories
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        print(f"bcmocap markers: --out {out} exists and is not a folder", file=sys.stderr)
+    out = output_folder("markers", args.out)
+    if out is None:
         return 2
     try:
         trajectories, note = _load(args)

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..geometry import SO3, quat_from_matrix
 from ..kinematics.fk import forward_kinematics
-from ..kinematics.ik import _fill_gaps  # slerp / linear interpolation over unknown frames
+from ..kinematics.ik import fill_gaps
 from ..kinematics.skeleton import Motion, Skeleton
 from .rigid import RigidSkeleton, kabsch
 
@@ -93,9 +93,9 @@ def initial_motion(rigid: RigidSkeleton, positions: np.ndarray, joint_positions:
             raise ValueError(f"segment '{skel.names[j]}' is never seen with two markers or joints; it cannot be posed")
         r, t = kabsch(np.broadcast_to(model, obs.shape), obs, w)
         q = np.asarray(quat_from_matrix(np.where(known[:, None, None], r, np.eye(3))))
-        world_q[:, j] = _fill_gaps(q, known, rotations=True)
+        world_q[:, j] = fill_gaps(q, known, rotations=True)
         if j == 0:
-            origin = _fill_gaps(t, known, rotations=False)
+            origin = fill_gaps(t, known, rotations=False)
     local = world_q.copy()
     for j in range(1, skel.num_segments):
         p = skel.parents[j]

@@ -1,0 +1,144 @@
+"""``bcmocap kcs INPUT --out DIR``: monocular 3-D reconstruction of a kinematic chain from 2-D joints.
+
+Heavy modules (JAX, the solver) are imported inside :func:`run_kcs`, so ``bcmocap --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+_DESCRIPTION = """\
+Reconstruct the 3-D motion of a kinematic chain (a person, an animal, a robot arm) from its 2-D joints in
+one uncalibrated, (nearly) static camera, with no training data and no known bone lengths: the kinematic
+chain space method of Wandt, Ackermann & Rosenhahn (nuclear norm in the KCS, per-frame weak-perspective
+cameras, Algorithm 1).
+
+INPUT is a .npz file (joints_2d (F,J,2) px with NaN for missing joints, names (J,), parents (J,),
+rest (J,3) m; optional mask, links, fps) or a folder with topology.csv (joint,parent,x,y,z) and
+joints_2d.csv (frame,joint,x,y; absent rows = missing joints) and optionally links.csv (joint_a,joint_b).
+See bcmocap/kcs/inputs.py. Writes DIR/joints_3d.csv, DIR/result.npz, DIR/motion.bvh, DIR/report.json.
+"""
+
+
+def add_kcs_command(sub: argparse._SubParsersAction) -> None:
+    """Register ``bcmocap kcs`` on the CLI's subparsers."""
+    kcs = sub.add_parser(
+        "kcs",
+        help="3-D motion of a kinematic chain from 2-D joints in one camera (kinematic chain space)",
+        description=_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    kcs.add_argument("input", help=".npz file or folder with topology.csv and joints_2d.csv")
+    kcs.add_argument("--out", required=True, help="output folder (created if needed)")
+    kcs.add_argument("--fps", type=float, default=None, help="frame rate for the BVH (default: the input's, else 30)")
+    kcs.add_argument("--max-iterations", type=int, default=None, help="outer iterations of Algorithm 1 (default 30)")
+    kcs.add_argument("--nuclear-weight", type=float, default=None, help="nuclear-norm weight τ in metres (default 0.03)")
+    kcs.add_argument(
+        "--no-bone-lengths",
+        action="store_true",
+        help="solve Eq. 21 as printed, without the constant-bone-length projection",
+    )
+
+    def run(args: argparse.Namespace) -> int:
+        if args.fps is not None and not args.fps > 0:
+            kcs.error("--fps must be positive")
+        if args.max_iterations is not None and args.max_iterations < 1:
+            kcs.error("--max-iterations must be at least 1")
+        if args.nuclear_weight is not None and args.nuclear_weight < 0:
+            kcs.error("--nuclear-weight must be non-negative")
+        return run_kcs(args)
+
+    kcs.set_defaults(run=run)
+
+
+def run_kcs(args: argparse.Namespace) -> int:
+    from ..cli import enable_compilation_cache, output_folder, write_json_atomic
+
+    enable_compilation_cache()
+    import numpy as np
+
+    from ..io import write_bvh
+    from .chain_space import KinematicChainSpace
+    from .export import motion_from_joints
+    from .inputs import read_input
+    from .solve import KCSOptions, reconstruct
+
+    out = output_folder("kcs", args.out)
+    if out is None:
+        return 2
+    try:
+        data = read_input(args.input)
+    except ValueError as exc:
+        print(f"bcmocap kcs: {exc}", file=sys.stderr)
+        return 2
+    overrides = {}
+    if args.max_iterations is not None:
+        overrides["max_iterations"] = args.max_iterations
+    if args.nuclear_weight is not None:
+        overrides["nuclear_weight"] = args.nuclear_weight
+    if args.no_bone_lengths:
+        overrides["constant_bone_lengths"] = False
+    options = KCSOptions(**overrides)
+    chain = data.chain
+    frames, joints = data.joints_2d.shape[:2]
+    missing = float(np.mean(~np.isfinite(data.joints_2d).all(-1)))
+    print(f"{frames} frames, {joints} joints, {chain.num_bones} bones ({len(chain.extra_links)} extra links), "
+          f"{missing * 100:.1f} % joint observations missing", flush=True)
+    start = time.perf_counter()
+    try:
+        result = reconstruct(chain, data.joints_2d, data.rest, options=options)
+    except ValueError as exc:
+        print(f"bcmocap kcs: {exc}", file=sys.stderr)
+        return 2
+    joints_3d = np.asarray(result.joints)
+    seconds = time.perf_counter() - start
+    history = np.asarray(result.reprojection_px)
+    history = history[np.isfinite(history)]
+
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "joints_3d.csv", "w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow(["frame", "joint", "x", "y", "z"])
+        for k in range(frames):
+            for j, name in enumerate(chain.names):
+                writer.writerow([k, name, *(f"{v:.6f}" for v in joints_3d[k, j])])
+    np.savez(
+        out / "result.npz",
+        joints=joints_3d,
+        joints_camera=np.asarray(result.joints_camera),
+        camera_rotation=np.asarray(result.cameras.rotation),
+        camera_scale=np.asarray(result.cameras.scale),
+        bone_lengths=np.asarray(result.bone_lengths),
+        bone_names=np.array(chain.bone_names),
+        reprojection_px=history,
+        names=np.array(chain.names),
+        parents=np.array(chain.parents),
+    )
+    # BVH joint names may not contain whitespace or braces.
+    safe = ["".join("_" if c.isspace() or c in "{}" else c for c in n) for n in chain.names]
+    bvh_chain = KinematicChainSpace(safe, chain.parents) if len(set(safe)) == len(safe) else chain
+    skeleton, motion = motion_from_joints(bvh_chain, joints_3d, rest_joints=data.rest)
+    fps = args.fps or data.fps or 30.0
+    write_bvh(out / "motion.bvh", skeleton, motion, 1.0 / fps)
+    report = {
+        "frames": frames,
+        "joints": list(chain.names),
+        "bones": list(chain.bone_names),
+        "bone_lengths_m": np.asarray(result.bone_lengths).round(6).tolist(),
+        "iterations": int(result.iterations),
+        "converged": bool(result.converged),
+        "reprojection_px": history.round(6).tolist(),
+        "missing_fraction": missing,
+        "seconds": seconds,
+        "fps": fps,
+        "options": options.__dict__,
+    }
+    write_json_atomic(out / "report.json", report)
+    print(f"{int(result.iterations)} iterations ({'converged' if report['converged'] else 'stopped at the limit'}), "
+          f"reprojection error {history[0]:.3f} -> {history[-1]:.3f} px RMS, {seconds:.1f} s")
+    print(f"wrote {out / 'joints_3d.csv'}, {out / 'result.npz'}, {out / 'motion.bvh'} and {out / 'report.json'}")
+    return 0

@@ -1,0 +1,394 @@
+"""Algorithm 1: alternate per-frame weak-perspective cameras and a nuclear-norm shape step in the KCS.
+
+Model (Eqs. 5, 14): the bones of frame ``k`` are ``B_k = B0 + A_k S`` with ``B0 = X0 C`` the initial bone
+configuration (a mean pose), ``S`` (r × b, orthonormal rows) a shape basis and ``A_k`` (3 × r); the
+observation is ``Y_k = X′_k C = P_k B_k``. The shape step solves Eq. 21,
+
+    min ‖Â‖_*  s.t.  ‖W C − P(Â S + B̂0)‖_F = 0,
+
+in its penalty form ``½ Σ_k ‖(Y_k − P_k B_k)‖²/s̄² + τ ‖Â‖_*`` (``s̄`` the largest camera scale, so ``τ`` is
+in model units, metres) by proximal gradient: a gradient step on the reprojection term, then singular
+value thresholding (the proximal map of ``τ‖·‖_*``, Cai, Candès & Shen). As ``τ → 0`` its minimiser tends
+to Eq. 21's.
+
+**Why a constancy projection.** With the cameras fixed, the reprojection constraint fixes each frame's
+bones in the image plane and leaves their depth free; the nuclear norm of ``Â`` (invariant to the per-frame
+rotations) is then smallest when the depth rows of ``Â`` vanish, i.e. Eq. 21 alone returns every bone at
+the depth of ``B0`` in the camera frame — a flat deviation from the mean pose (on CMU walking with
+near-static cameras about 60–70 mm of 3-D error). Proposition 1's premise, constant bone lengths, is what
+carries the depth; the paper relaxes it away. With ``constant_bone_lengths=True`` (default) each
+proximal step is followed by a (relaxed) projection onto the set of bones with constant lengths
+``l`` (``l`` = the current mean length of each bone over the sequence): in the camera frame a bone keeps
+its image-plane part and gets depth ``±√(l² − ‖u‖²)``. The sign of the depth — the classical
+monocular ambiguity — is taken from the nuclear-norm estimate and, every ``sign_every`` steps, chosen
+jointly over the sequence per bone by dynamic programming: agreement with the nuclear-norm estimate plus
+``sign_smoothness`` × the squared second difference of the bone over time (a bone passes smoothly through
+the image plane rather than bouncing off it). Set ``constant_bone_lengths=False`` for the paper's
+relaxation as printed.
+
+Everything is jitted and vmaps over independent sequences or camera paths; shapes are static and
+missing joints are masked (a bone is observed when both its joints are).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .cameras import WeakPerspectiveCameras, fit_cameras, initial_cameras, reprojection_rms
+from .chain_space import KinematicChainSpace
+
+__all__ = ["KCSOptions", "KCSResult", "reconstruct", "singular_value_threshold", "solve_bones"]
+
+
+@dataclasses.dataclass(frozen=True)
+class KCSOptions:
+    """Settings of Algorithm 1 (hashable: a static argument of the jitted solver).
+
+    Attributes:
+        max_iterations: outer iterations (one shape step and one camera step each).
+        tolerance: stop when the bones change by less than this, relative (Frobenius), in one iteration.
+        shape_steps: proximal-gradient steps per shape step (a multiple of ``sign_every``).
+        camera_steps: EM steps of Eq. 22 per frame per camera step.
+        initial_camera_steps: EM steps per start when fitting the first cameras to ``B0``.
+        nuclear_weight: ``τ``, the nuclear-norm weight (model units, metres).
+        rank: rank ``3K`` of the shape basis ``S`` from the SVD of ``Ŵ C`` (Eq. 4); ``None`` = all bones.
+        constant_bone_lengths: project onto constant bone lengths after each proximal step (see above).
+        length_weight: relaxation of that projection (1 = exact projection).
+        sign_smoothness: weight of the temporal second difference when choosing depth signs.
+        sign_every: choose depth signs over the whole sequence every this many proximal steps.
+        depth_smoothing: σ (frames) of a Gaussian smoothing of the squared depths ``l² − ‖u‖²`` over time
+            in the constancy projection (0 = none); see :func:`_project_lengths`.
+    """
+
+    max_iterations: int = 30
+    tolerance: float = 1e-3
+    shape_steps: int = 20
+    camera_steps: int = 10
+    initial_camera_steps: int = 40
+    nuclear_weight: float = 0.03
+    rank: int | None = None
+    constant_bone_lengths: bool = True
+    length_weight: float = 0.5
+    sign_smoothness: float = 30.0
+    sign_every: int = 5
+    depth_smoothing: float = 3.0
+
+    def __post_init__(self):
+        for name in ("max_iterations", "shape_steps", "camera_steps", "initial_camera_steps", "sign_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"KCSOptions: {name} must be at least 1, got {getattr(self, name)}")
+        if self.shape_steps % self.sign_every:
+            raise ValueError(
+                f"KCSOptions: shape_steps ({self.shape_steps}) must be a multiple of sign_every ({self.sign_every})"
+            )
+        if not min(self.nuclear_weight, self.tolerance, self.sign_smoothness, self.depth_smoothing) >= 0:
+            raise ValueError(
+                "KCSOptions: nuclear_weight, tolerance, sign_smoothness and depth_smoothing must be non-negative"
+            )
+        if not 0 < self.length_weight <= 1:
+            raise ValueError(f"KCSOptions: length_weight must be in (0, 1], got {self.length_weight}")
+        if self.rank is not None and int(self.rank) < 1:
+            raise ValueError(f"KCSOptions: rank must be positive or None, got {self.rank}")
+
+
+class KCSResult(eqx.Module):
+    """Output of Algorithm 1 (leading batch axes ``...`` as in the input).
+
+    Attributes:
+        joints: ``(..., F, J, 3)`` reconstructed joints in the model frame (the mean pose's), root at the
+            origin, in the mean pose's units (metres).
+        joints_camera: ``(..., F, J, 3)`` the same in each frame's camera frame (x, y image axes, z depth).
+        bones: ``(..., F, b, 3)`` bone vectors ``(Â S + B̂0)ᵀ`` in the model frame.
+        cameras: per-frame weak-perspective cameras.
+        bone_lengths: ``(..., b)`` mean bone lengths over the sequence.
+        reprojection_px: ``(..., 2 · max_iterations + 1)`` RMS reprojection error of the observed bones
+            (pixels per coordinate): entry 0 after the first cameras (``A = 0``), then after each shape step
+            (odd entries) and each camera step (even entries), as in the paper's Fig. 5; NaN after the
+            last iteration.
+        iterations: ``(...)`` outer iterations run.
+        converged: ``(...)`` whether the tolerance was met before ``max_iterations``.
+    """
+
+    joints: jax.Array
+    joints_camera: jax.Array
+    bones: jax.Array
+    cameras: WeakPerspectiveCameras
+    bone_lengths: jax.Array
+    reprojection_px: jax.Array
+    iterations: jax.Array
+    converged: jax.Array
+
+
+def singular_value_threshold(matrix: jax.Array, threshold) -> jax.Array:
+    """Proximal map of ``threshold · ‖·‖_*``: shrink the singular values of ``matrix`` (m × n) by ``threshold``.
+
+    Computed from the eigen-decomposition of the small Gram matrix (n × n for a tall matrix, m × m for a
+    wide one): ``M V diag(max(σ − t, 0)/σ) Vᵀ``. Same result as thresholding a full SVD (singular values
+    below ``threshold`` vanish, so squaring the condition number costs nothing that is kept), and far
+    cheaper under ``vmap`` on CPU, where batched SVDs of tall matrices are slow.
+    """
+    wide = matrix.shape[-2] < matrix.shape[-1]
+    m = jnp.swapaxes(matrix, -1, -2) if wide else matrix
+    lam, v = jnp.linalg.eigh(jnp.swapaxes(m, -1, -2) @ m)
+    s = jnp.sqrt(jnp.maximum(lam, 0.0))
+    factor = jnp.where(s > threshold, (s - threshold) / jnp.where(s > 0, s, 1.0), 0.0)
+    out = m @ (v * factor[..., None, :]) @ jnp.swapaxes(v, -1, -2)
+    return jnp.swapaxes(out, -1, -2) if wide else out
+
+
+def _viterbi_signs(candidates: jax.Array, target: jax.Array, smoothness) -> jax.Array:
+    """Depth signs of one bone over time (second-order dynamic programming).
+
+    Args:
+        candidates: ``(F, 2, 3)`` the bone with positive (index 0) and negative (1) depth, camera frame.
+        target: ``(F, 3)`` the unconstrained estimate to agree with.
+        smoothness: weight of ``‖b_{k−1} − 2 b_k + b_{k+1}‖²``.
+
+    Returns:
+        ``(F,)`` chosen candidate index per frame.
+    """
+    unary = jnp.sum((candidates - target[:, None]) ** 2, axis=-1)  # (F, 2)
+    cost0 = unary[0][:, None] + unary[1][None, :]  # states (s_{k-1}, s_k)
+
+    def forward(cost, k):
+        acc = candidates[k - 2][:, None, None] - 2 * candidates[k - 1][None, :, None] + candidates[k][None, None, :]
+        total = cost[:, :, None] + smoothness * jnp.sum(acc**2, axis=-1)  # (a, b, c)
+        back = jnp.argmin(total, axis=0)  # (b, c)
+        return jnp.min(total, axis=0) + unary[k][None, :], back
+
+    cost, backs = jax.lax.scan(forward, cost0, jnp.arange(2, candidates.shape[0]))
+    last = jnp.argmin(cost)
+    s_prev, s_last = last // 2, last % 2
+
+    def backward(carry, back):
+        b, c = carry
+        a = back[b, c]
+        return (a, b), a
+
+    _, rest = jax.lax.scan(backward, (s_prev, s_last), backs, reverse=True)
+    return jnp.concatenate([rest, jnp.stack([s_prev, s_last])])
+
+
+def _smooth_in_time(x, sigma: float):
+    """Gaussian smoothing (σ in frames) of ``(F, b)`` along frames, renormalised at the ends."""
+    if sigma <= 0 or x.shape[0] < 2:
+        return x
+    half = max(1, int(np.ceil(3 * sigma)))
+    k = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma) ** 2)
+    k = jnp.asarray(k / k.sum())
+    conv = jax.vmap(lambda c: jnp.convolve(c, k, mode="same"), in_axes=1, out_axes=1)
+    return conv(x) / conv(jnp.ones_like(x))
+
+
+def _project_lengths(bones, rotation, observed, lengths, weight, smoothness, choose_signs: bool, depth_sigma=0.0):
+    """Relaxed projection of ``(F, 3, b)`` bones onto constant ``lengths`` (b,).
+
+    An observed bone keeps its image-plane part (pinned by the data) and gets its depth from its length;
+    an unobserved one (``observed`` (F, b) false) is scaled to its length (the nearest point). The squared
+    depth ``l² − ‖u‖²`` is smoothed over ``depth_sigma`` frames first: its square root amplifies image
+    noise wherever a bone lies near the image plane (1 px at 200 px/m gives ~7 cm on a 40 cm bone).
+    """
+    cam = rotation @ bones  # (F, 3, b)
+    norm = jnp.linalg.norm(cam, axis=1)
+    radial = cam * (lengths / jnp.where(norm > 0, norm, 1.0))[:, None]
+    u = jnp.where(observed[:, None], cam[:, :2], radial[:, :2])
+    norm_u = jnp.linalg.norm(u, axis=1)
+    shrink = jnp.minimum(1.0, lengths / jnp.where(norm_u > 0, norm_u, 1.0))
+    u = u * shrink[:, None]
+    depth = jnp.sqrt(jnp.maximum(_smooth_in_time(lengths**2 - jnp.sum(u * u, axis=1), depth_sigma), 0.0))
+    if choose_signs and bones.shape[0] >= 3:
+        cand = jnp.stack([jnp.concatenate([u, depth[:, None]], 1), jnp.concatenate([u, -depth[:, None]], 1)], 1)
+        pick = jax.vmap(_viterbi_signs, in_axes=(3, 2, None), out_axes=1)(cand, cam, smoothness)  # (F, b)
+        sign = 1.0 - 2.0 * pick
+    else:
+        sign = jnp.where(cam[:, 2] < 0, -1.0, 1.0)
+    projected = rotation.swapaxes(1, 2) @ jnp.concatenate([u, (sign * depth)[:, None]], axis=1)
+    return bones + weight * (projected - bones)
+
+
+def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptions()):
+    """Algorithm 1 on one sequence in the KCS (pure, jittable, vmappable; no input checks).
+
+    Args:
+        bones_2d: ``(F, 2, b)`` observed bones ``W C`` (pixels; anything at masked bones).
+        weights: ``(F, b)`` 1 where the bone is observed, 0 where not.
+        initial_bones: ``(3, b)`` ``B0 = X0 C`` (metres).
+        options: settings (static).
+
+    Returns:
+        ``(bones (F, 3, b), cameras, lengths (b,), reprojection history, iterations, converged)``.
+    """
+    y = jnp.where(weights[:, None, :] > 0, bones_2d, 0.0)
+    w = weights
+    b0 = initial_bones
+    f, _, nb = y.shape
+    cams = initial_cameras(y, w, b0, options.initial_camera_steps)
+    if options.rank is None or options.rank >= nb:
+        basis = jnp.eye(nb)
+    else:
+        residual = (y - cams.matrices() @ b0) * w[:, None, :]  # Ŵ C (Eq. 4 in the KCS)
+        _, _, vt = jnp.linalg.svd(residual.reshape(2 * f, nb), full_matrices=False)
+        basis = vt[: options.rank]
+    r = basis.shape[0]
+    tau = options.nuclear_weight
+    history = jnp.full(2 * options.max_iterations + 1, jnp.nan).at[0].set(reprojection_rms(y, w, b0, cams))
+
+    def prox_step(a, cams, choose_signs):
+        bones = b0 + a @ basis
+        p = cams.matrices()
+        s_max = jnp.max(cams.scale)
+        res = w[:, None, :] * (y - p @ bones)
+        grad = -(p.swapaxes(1, 2) @ res) / s_max**2
+        a = a - grad @ basis.T
+        a = singular_value_threshold(a.reshape(3 * f, r), tau).reshape(f, 3, r)
+        if options.constant_bone_lengths:
+            bones = b0 + a @ basis
+            lengths = jnp.mean(jnp.linalg.norm(bones, axis=1), axis=0)
+            bones = _project_lengths(
+                bones,
+                cams.rotation,
+                w > 0,
+                lengths,
+                options.length_weight,
+                options.sign_smoothness,
+                choose_signs,
+                options.depth_smoothing,
+            )
+            a = (bones - b0) @ basis.T
+        return a
+
+    def shape_step(a, cams):
+        def block(_, a):
+            a = jax.lax.fori_loop(0, options.sign_every - 1, lambda _, a: prox_step(a, cams, False), a)
+            return prox_step(a, cams, True)
+
+        return jax.lax.fori_loop(0, options.shape_steps // options.sign_every, block, a)
+
+    def cond(state):
+        it, _, _, _, converged = state
+        return (it < options.max_iterations) & ~converged
+
+    def body(state):
+        it, a, cams, history, _ = state
+        old = b0 + a @ basis
+        a = shape_step(a, cams)
+        bones = b0 + a @ basis
+        history = history.at[2 * it + 1].set(reprojection_rms(y, w, bones, cams))
+        cams = fit_cameras(y, w, bones, cams, options.camera_steps)
+        history = history.at[2 * it + 2].set(reprojection_rms(y, w, bones, cams))
+        change = jnp.linalg.norm(bones - old) / jnp.maximum(jnp.linalg.norm(old), 1e-300)
+        return it + 1, a, cams, history, change < options.tolerance
+
+    a0 = jnp.zeros((f, 3, r))
+    it, a, cams, history, converged = jax.lax.while_loop(cond, body, (0, a0, cams, history, jnp.array(False)))
+    bones = b0 + a @ basis
+    lengths = jnp.mean(jnp.linalg.norm(bones, axis=1), axis=0)
+    return bones, cams, lengths, history, it, converged
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def _solve_batch(bones_2d, weights, initial_bones, d_joints, options):
+    def one(y, w, b0):
+        bones, cams, lengths, history, it, converged = solve_bones(y, w, b0, options)
+        joints = (bones @ d_joints).swapaxes(1, 2)  # (F, J, 3)
+        joints_camera = joints @ cams.rotation.swapaxes(1, 2)
+        return KCSResult(joints, joints_camera, bones.swapaxes(1, 2), cams, lengths, history, it, converged)
+
+    return jax.vmap(one)(bones_2d, weights, initial_bones)
+
+
+def _prepare(chain: KinematicChainSpace, joints_2d, mean_pose, mask):
+    """Checks and converts the inputs of :func:`reconstruct` (numpy, before tracing)."""
+    j = chain.num_joints
+    x = np.asarray(joints_2d, dtype=np.float64)
+    if x.ndim < 3 or x.shape[-2:] != (j, 2):
+        raise ValueError(
+            f"reconstruct: joints_2d must have shape (..., F, {j}, 2) (frames, the {j} joints {list(chain.names)}, "
+            f"image x y), got {x.shape}"
+        )
+    if x.shape[-3] < 1:
+        raise ValueError("reconstruct: joints_2d has no frames")
+    if np.isinf(x).any():
+        idx = tuple(int(i) for i in np.argwhere(np.isinf(x))[0])
+        raise ValueError(f"reconstruct: joints_2d holds an infinite value at index {idx}; mark missing joints with NaN or the mask")
+    observed = np.all(np.isfinite(x), axis=-1)
+    if mask is not None:
+        m = np.asarray(mask)
+        if m.shape != x.shape[:-1]:
+            raise ValueError(f"reconstruct: mask must have shape {x.shape[:-1]} (..., F, J), got {m.shape}")
+        observed &= m.astype(bool)
+    batch = x.shape[:-3]
+    x0 = np.asarray(mean_pose, dtype=np.float64)
+    if x0.shape[-2:] != (j, 3):
+        raise ValueError(f"reconstruct: mean_pose must have shape (..., {j}, 3), got {x0.shape}")
+    try:
+        x0 = np.broadcast_to(x0, (*batch, j, 3))
+    except ValueError:
+        raise ValueError(f"reconstruct: mean_pose {x0.shape} does not broadcast to the batch shape {batch}") from None
+    if not np.all(np.isfinite(x0)):
+        raise ValueError("reconstruct: mean_pose holds NaN or inf")
+    c = chain.C
+    start = np.array([a for a, _ in chain.links])
+    end = np.array([b for _, b in chain.links])
+    weights = (observed[..., start] & observed[..., end]).astype(np.float64)  # (..., F, b)
+    per_frame = weights.sum(-1)
+    good = (per_frame >= 2).any(-1)
+    if not np.all(good):
+        which = tuple(int(i) for i in np.argwhere(~np.asarray(good).reshape(batch))[0]) if batch else ()
+        raise ValueError(
+            f"reconstruct: sequence {which} has no frame with at least 2 observed bones (both joints of a bone must "
+            "be observed); nothing to fit a camera to"
+        )
+    y = np.einsum("jb,...fjd->...fdb", c, np.where(observed[..., None], x, 0.0))  # (..., F, 2, b)
+    b0 = np.einsum("jb,...jd->...db", c, x0)  # (..., 3, b)
+    return y, weights, b0, batch
+
+
+def reconstruct(
+    chain: KinematicChainSpace,
+    joints_2d,
+    mean_pose,
+    mask=None,
+    options: KCSOptions = KCSOptions(),
+) -> KCSResult:
+    """3-D motion of a kinematic chain from its 2-D joints in one uncalibrated camera (Algorithm 1).
+
+    Args:
+        chain: the topology (and extra rigid links).
+        joints_2d: ``(..., F, J, 2)`` image positions (pixels); NaN marks a missing joint. Leading axes are
+            independent sequences or camera paths, solved in one vmapped, jitted call.
+        mean_pose: ``(J, 3)`` or ``(..., J, 3)`` the initial configuration ``X0`` (metres): any reasonable
+            pose of the chain, e.g. :func:`~bcmocap.kcs.mean_pose` of other sequences; it fixes the scale.
+        mask: optional ``(..., F, J)`` booleans, False for missing joints.
+        options: solver settings.
+
+    Returns:
+        A :class:`KCSResult` with the batch shape of ``joints_2d``.
+
+    Raises:
+        ValueError: wrong shapes (naming the expected and actual ones), infinite values, a mean pose with
+            NaN, or a sequence where no frame observes two bones.
+    """
+    if options.rank is not None:
+        frames = np.shape(joints_2d)[-3] if np.ndim(joints_2d) >= 3 else 0
+        if options.rank > min(2 * frames, chain.num_bones):
+            raise ValueError(
+                f"reconstruct: rank {options.rank} exceeds min(2 F, b) = {min(2 * frames, chain.num_bones)} "
+                f"for {frames} frames and {chain.num_bones} bones"
+            )
+    y, w, b0, batch = _prepare(chain, joints_2d, mean_pose, mask)
+    f, b = y.shape[-3], y.shape[-1]
+    flat = _solve_batch(
+        jnp.asarray(y.reshape(-1, f, 2, b)),
+        jnp.asarray(w.reshape(-1, f, b)),
+        jnp.asarray(b0.reshape(-1, 3, b)),
+        jnp.asarray(chain.D_least_squares),
+        options,
+    )
+    return jax.tree.map(lambda a: a.reshape(*batch, *a.shape[1:]), flat)

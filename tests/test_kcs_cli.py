@@ -1,0 +1,116 @@
+"""`bcmocap kcs` on a tiny quadruped capture (CSV and NPZ input), extra rigid links, and input errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from test_kcs import FRAMES, NAMES, PARENTS, camera_rotations, images, quadruped
+
+from bcmocap.cli import main
+from bcmocap.io import read_bvh
+from bcmocap.kcs import KinematicChainSpace, aligned_joint_errors, reconstruct
+from bcmocap.kcs.inputs import read_input
+
+
+@pytest.fixture(scope="module")
+def capture():
+    skeleton, joints, rest = quadruped()
+    uv = images(joints, camera_rotations(FRAMES, np.random.default_rng(11)))
+    return joints, rest, uv
+
+
+def write_csv_folder(folder, rest, uv, drop=()):
+    folder.mkdir()
+    with open(folder / "topology.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["joint", "parent", "x", "y", "z"])
+        for name, parent, p in zip(NAMES, PARENTS, rest):
+            w.writerow([name, NAMES[parent] if parent >= 0 else "", *p])
+    with open(folder / "joints_2d.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["frame", "joint", "x", "y"])
+        for k in range(uv.shape[0]):
+            for j, name in enumerate(NAMES):
+                if (k, name) not in drop:
+                    w.writerow([k, name, *uv[k, j]])
+    return folder
+
+
+def test_cli_reconstructs_a_csv_capture(tmp_path, capture, capsys):
+    joints, rest, uv = capture
+    folder = write_csv_folder(tmp_path / "in", rest, uv, drop={(3, "lknee"), (10, "head")})
+    data = read_input(folder)
+    assert np.isnan(data.joints_2d[3, NAMES.index("lknee")]).all() and np.isfinite(data.joints_2d[4]).all()
+    out = tmp_path / "out"
+    assert main(["kcs", str(folder), "--out", str(out), "--fps", "30"]) == 0
+    printed = capsys.readouterr().out
+    assert "wrote" in printed and "0.3 % joint observations missing" in printed
+    rows = list(csv.DictReader(open(out / "joints_3d.csv")))
+    assert len(rows) == FRAMES * len(NAMES) and set(rows[0]) == {"frame", "joint", "x", "y", "z"}
+    result = np.load(out / "result.npz")
+    err = np.asarray(aligned_joint_errors(result["joints"], joints)).mean()
+    start = np.asarray(aligned_joint_errors(np.broadcast_to(rest, joints.shape), joints)).mean()
+    assert err < 0.6 * start
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == FRAMES and len(report["reprojection_px"]) == 2 * report["iterations"] + 1
+    bvh = read_bvh(out / "motion.bvh", up_axis="y")
+    assert bvh.motion.num_frames == FRAMES and bvh.frame_time_s == pytest.approx(1 / 30)
+    assert "lknee" in bvh.skeleton.names
+
+
+def test_cli_reads_npz_with_mask_and_reports_bad_input(tmp_path, capture, capsys):
+    joints, rest, uv = capture
+    mask = np.ones(uv.shape[:2], bool)
+    mask[7, 2] = False
+    npz = tmp_path / "capture.npz"
+    np.savez(npz, joints_2d=uv, names=np.array(NAMES), parents=np.array(PARENTS), rest=rest, mask=mask, fps=25.0)
+    data = read_input(npz)
+    assert np.isnan(data.joints_2d[7, 2]).all() and data.fps == 25.0
+    out = tmp_path / "out"
+    assert main(["kcs", str(npz), "--out", str(out)]) == 0
+    assert read_bvh(out / "motion.bvh").frame_time_s == pytest.approx(1 / 25)
+
+    cyclic = tmp_path / "cyclic.npz"
+    parents = list(PARENTS)
+    parents[1] = 2  # chest -> neck -> chest
+    np.savez(cyclic, joints_2d=uv, names=np.array(NAMES), parents=np.array(parents), rest=rest)
+    assert main(["kcs", str(cyclic), "--out", str(tmp_path / "x")]) == 2
+    assert "cycle: chest -> neck -> chest" in capsys.readouterr().err
+
+    short = tmp_path / "short.npz"
+    np.savez(short, joints_2d=uv[:, :5], names=np.array(NAMES), parents=np.array(PARENTS), rest=rest)
+    assert main(["kcs", str(short), "--out", str(tmp_path / "x")]) == 2
+    assert "joints_2d must have shape (F, 18, 2)" in capsys.readouterr().err
+
+    folder = write_csv_folder(tmp_path / "bad", rest, uv[:2])
+    with open(folder / "joints_2d.csv", "a") as f:
+        f.write("1,tentacle,3,4\n")
+    assert main(["kcs", str(folder), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "joints_2d.csv:38: unknown joint 'tentacle'" in err
+    (folder / "topology.csv").write_text("joint,parent\nroot,\n")
+    assert main(["kcs", str(folder), "--out", str(tmp_path / "x")]) == 2
+    assert "topology.csv:1: expected the header 'joint,parent,x,y,z'" in capsys.readouterr().err
+    assert main(["kcs", str(tmp_path / "nothing.npz"), "--out", str(tmp_path / "x")]) == 2
+    assert "no such file or folder" in capsys.readouterr().err
+
+
+def test_extra_rigid_link_keeps_a_held_object_rigid():
+    """The sword-fight idea (§4.3): front hooves joined by a rigid bar; the link keeps its length constant."""
+    skeleton, joints, rest = quadruped(seed=1, front_in_phase=True)
+    bar = np.linalg.norm(joints[:, NAMES.index("lfhoof")] - joints[:, NAMES.index("rfhoof")], axis=-1)
+    assert np.ptp(bar) < 1e-9  # the simulated bar is rigid
+    uv = images(joints, camera_rotations(FRAMES, np.random.default_rng(5)))
+    plain = KinematicChainSpace.from_skeleton(skeleton)
+    linked = KinematicChainSpace.from_skeleton(skeleton, extra_links=[("lfhoof", "rfhoof")])
+
+    def spread(chain):
+        x = np.asarray(reconstruct(chain, uv, rest).joints)
+        d = np.linalg.norm(x[:, NAMES.index("lfhoof")] - x[:, NAMES.index("rfhoof")], axis=-1)
+        return d.std() / d.mean()
+
+    with_link, without = spread(linked), spread(plain)
+    assert with_link < 0.02 and with_link < without
