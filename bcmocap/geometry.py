@@ -88,9 +88,12 @@ def quat_from_matrix(matrix: np.ndarray) -> np.ndarray:
 
 
 def matrix_from_quat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` from quaternions ``(..., 4)`` (numpy)."""
-    q = np.asarray(q, dtype=np.float64)
-    return np.asarray(SO3(jnp.asarray(q)).as_matrix())
+    """Rotation matrices ``(..., 3, 3)`` from unit quaternions ``(..., 4)`` wxyz (numpy, no JAX dispatch)."""
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    rows = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def euler_to_matrix(angles_rad: np.ndarray, order: str) -> np.ndarray:

@@ -134,3 +134,92 @@ def test_register_trial_with_stride_and_progress(studio):
     assert out.registered.tolist() == [True, False, True] and out.registered_fraction == pytest.approx(2 / 3)
     assert np.isnan(out.poses[1]).all() and np.isfinite(out.poses[[0, 2]]).all()
     assert calls == [(1, 3), (2, 3), (3, 3)]
+
+
+def test_triangulate_rays_meets_the_point():
+    from bcmocap.frontend.relative import triangulate_rays
+
+    point = np.array([1.0, 2.0, 3.0])
+    centres = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0]])
+    rays = (point - centres) / np.linalg.norm(point - centres, axis=1, keepdims=True)
+    assert np.allclose(triangulate_rays(centres, rays), point)
+    assert triangulate_rays(np.stack([centres, centres + 1]), np.stack([rays, rays])).shape == (2, 3)
+
+
+def test_relative_registration_reaches_frames_the_reference_does_not_see(studio):
+    """Body frames turned away from the reference photos' views (yaw 1.6 rad) fail absolute registration;
+    new points triangulated between the registered frames register them relatively, accurately."""
+    from bcmocap.frontend.reference import extract_sift
+    from bcmocap.frontend.relative import register_capture
+
+    scene = make_textured_scene(np.array([[0.0, 0.0], [1.0, 0.0]]), seed=3, num_pillars=4, num_boxes=4)
+    yaws = [0.1, 0.8, 1.6]
+    # Cameras 0.25 m from the body's centre, as on a person: baselines between cameras at one time.
+    poses = np.array([[_look(np.array([0.4 + 0.1 * k + 0.25 * np.cos(y), 0.05 * k + 0.25 * np.sin(y), 1.5]), y, -0.1)
+                       for y in yaws] for k in range(2)])
+    features = []
+    for row in poses:
+        images = _render(scene, studio.fisheye, row)
+        features.append([(kp[:, :2], desc) for kp, desc in
+                         (extract_sift(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)) for im in images)])
+    calls = []
+    out = register_capture(features, [studio.fisheye] * 3, studio.index,
+                           progress=lambda stage, done, total: calls.append(stage))
+    how = [[s.how for s in row] for row in out.states]
+    assert how == [["absolute", "absolute", "relative"]] * 2, how
+    assert out.registered_fraction == 1.0 and out.rounds[1]["registered"] == 2 and out.rounds[1]["new_points"] > 500
+    assert out.registered.shape == (2, 3) and out.world_from_camera.shape == (2, 3, 7)
+    for k in range(2):
+        for c in range(3):
+            rot_deg, pos_cm = _errors(studio.align, out.states[k][c].world_from_camera, poses[k, c])
+            assert rot_deg < 0.5 and pos_cm < 2.0, (k, c, rot_deg, pos_cm)
+    # New points sit where the frames see them: each observation reprojects within the threshold.
+    s = out.states[1][2]
+    has = np.flatnonzero(s.point_ids >= 0)
+    xyz = np.array([out.points[int(p)] for p in s.point_ids[has]])
+    p = s.world_from_camera
+    uv = np.asarray(studio.fisheye.project((xyz - p[4:]) @ np.asarray(matrix_from_quat(p[:4])))[0])
+    assert np.median(np.linalg.norm(uv - s.keypoints[has], axis=1)) < 1.0
+    assert calls[0] == "absolute" and "relative round 1" in calls
+    corr = out.correspondences(fps=60.0)
+    assert corr.point_ids.shape[:2] == (2, 3) and corr.registered.all() and corr.fps == 60.0
+    k = corr.point_ids[1, 2] >= 0
+    assert k.sum() == len(has) and np.allclose(corr.points[corr.point_ids[1, 2, k]], xyz)
+    assert np.allclose(corr.pixels[1, 2, k], s.keypoints[has]) and np.all(corr.weights[1, 2, k] == 1.0)
+    with pytest.raises(ValueError, match="features hold 3 cameras per frame, cameras 2"):
+        register_capture(features, [studio.fisheye] * 2, studio.index)
+
+
+def test_extract_trial_features_reads_every_camera_from_its_start(studio, tmp_path):
+    from bcmocap.frontend.relative import extract_trial_features
+
+    reads = []
+
+    class FakeCapture:
+        camera_names = ("a", "b")
+
+        def video_info(self, trial, name):
+            return types.SimpleNamespace(num_frames={"a": 5, "b": 7}[name])
+
+        def frames(self, trial, name, *, stride, start, stop, gray):
+            reads.append((name, start, stop, stride))
+            for k in range(start, stop, stride):
+                yield k, studio.frames[k % 2]
+
+    calls = []
+    out = extract_trial_features(FakeCapture(), "capture", starts=[1, 2], stride=2,
+                                 progress=lambda done, total: calls.append((done, total)))
+    assert reads == [("a", 1, 5, 2), ("b", 2, 6, 2)]  # 4 frames from each start: the shorter video's count
+    assert len(out) == 2 and len(out[0]) == 2 and out[0][0][0].shape[1] == 2 and out[0][0][1].shape[1] == 128
+    assert calls[-1] == (4, 4)
+    with pytest.raises(ValueError, match=r"starts must have shape \(2,\)"):
+        extract_trial_features(FakeCapture(), "capture", starts=[0])
+    # Cached: the second call decodes nothing and returns the same features; other settings recompute.
+    first = extract_trial_features(FakeCapture(), "capture", starts=[1, 2], stride=2, cache_dir=tmp_path)
+    reads.clear()
+    again = extract_trial_features(FakeCapture(), "capture", starts=[1, 2], stride=2, cache_dir=tmp_path)
+    assert reads == [] and sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "b.npz"]
+    assert all(np.array_equal(x[0], y[0]) and np.array_equal(x[1], y[1])
+               for rx, ry in zip(first, again) for x, y in zip(rx, ry))
+    extract_trial_features(FakeCapture(), "capture", starts=[1, 2], stride=1, cache_dir=tmp_path)
+    assert [r[3] for r in reads] == [1, 1]

@@ -2,8 +2,10 @@
 
 The only package that imports ``cv2`` and ``pycolmap``. Done so far: reading a capture folder
 (:mod:`.capture`), audio synchronisation by the claps (:mod:`.sync`), the reference reconstruction
-from the reference photos (:mod:`.reference`) and absolute registration of body-camera frames to it
-(:mod:`.register`).
+from the reference photos (:mod:`.reference`), absolute registration of body-camera frames to it
+(:mod:`.register`), and for a whole trial new points, bundle adjustment with the reference fixed and
+rounds of relative registration (:mod:`.relative`). Not built yet: homographies, the Correspondences
+output, parallel extraction, the ``bcmocap frontend`` command.
 """
 
 from .capture import Capture, CaptureCamera, VideoInfo, read_camera_json, read_capture
@@ -18,11 +20,17 @@ from .register import (
     register_trial,
     similarity,
 )
+from .relative import CaptureRegistration, FrameState, RelativeOptions, extract_trial_features, register_capture
 from .sync import SyncResult, clap_candidates, given_offsets, synchronize, synchronize_tracks
 
 __all__ = [
     "Capture",
     "CaptureCamera",
+    "CaptureRegistration",
+    "FrameState",
+    "RelativeOptions",
+    "extract_trial_features",
+    "register_capture",
     "FrameRegistration",
     "ReferenceIndex",
     "ReferenceModel",

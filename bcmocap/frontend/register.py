@@ -16,8 +16,8 @@ A frame is registered on its own against the reference reconstruction:
 Poses are ``world_from_camera`` as ``wxyz_xyz`` (bcmocap's convention; COLMAP's ``cam_from_world``
 inverted). :func:`register_trial` does it for every ``stride``-th frame of one camera of a trial.
 
-Not built yet (rest of item 4): triangulating new points from registered frames and bundle adjustment
-with the reference structure held fixed.
+New points, bundle adjustment with the reference fixed and relative registration of a whole trial are in
+:mod:`bcmocap.frontend.relative`.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from ..cameras import CameraModel, to_pycolmap
 from .reference import ReferenceModel, _knn, extract_sift
 
 __all__ = ["ReferenceIndex", "FrameRegistration", "RegistrationOptions", "TrialRegistration",
-           "reference_index", "register_frame", "register_trial", "similarity"]
+           "match_to_reference", "reference_index", "register_frame", "register_trial", "similarity"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,6 +157,15 @@ def _failed(num_matches: int, num_inliers: int = 0, error: float = np.inf, pose=
     return FrameRegistration(False, pose, np.zeros((0, 2)), np.zeros(0, np.int64), num_matches, num_inliers, error)
 
 
+def match_to_reference(descriptors: np.ndarray, index: ReferenceIndex, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """2D–3D candidates: ``(query, rows)`` indices into ``descriptors`` and into ``index``, nearest neighbours
+    passing the ratio test, one 2D feature per 3D point (the first in keypoint order)."""
+    nearest, good = _knn(index.matcher(), np.asarray(descriptors, np.float32), index.descriptors, ratio)
+    query = np.flatnonzero(good)
+    _, first = np.unique(index.point3D_ids[nearest[query]], return_index=True)
+    return query[first], nearest[query][first]
+
+
 def register_frame(image: np.ndarray, camera: CameraModel | object, index: ReferenceIndex,
                    options: RegistrationOptions = RegistrationOptions()) -> FrameRegistration:
     """Register one frame (gray or BGR uint8) of a camera (a :class:`~bcmocap.cameras.CameraModel` in
@@ -167,12 +176,7 @@ def register_frame(image: np.ndarray, camera: CameraModel | object, index: Refer
     keypoints, desc = extract_sift(image, max_features=options.max_features)
     if len(desc) < 2:
         return _failed(0)
-    nearest, good = _knn(index.matcher(), desc.astype(np.float32), index.descriptors, options.ratio)
-    query = np.flatnonzero(good)
-    pids = index.point3D_ids[nearest[query]]
-    # Keep one 2D feature per 3D point (the first in keypoint order); each feature has one 3D point.
-    _, first = np.unique(pids, return_index=True)
-    query, rows = query[first], nearest[query][first]
+    query, rows = match_to_reference(desc, index, options.ratio)
     if len(query) < 4:
         return _failed(len(query))
     xy = keypoints[query, :2].astype(np.float64) + 0.5  # OpenCV -> COLMAP pixels

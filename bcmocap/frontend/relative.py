@@ -1,0 +1,554 @@
+"""Registration of a whole trial: absolute registration, new points, relative registration rounds
+(§4.1, issue 5 items 4–5).
+
+:func:`register_capture` works on the frames of all cameras of one trial at once:
+
+1. SIFT features of every frame (:func:`extract_trial_features`);
+2. **absolute registration** of each frame to the reference model (:func:`register_features`, as
+   :func:`~bcmocap.frontend.register.register_frame`);
+3. rounds, until a round registers nothing new (at most ``max_rounds``):
+
+   a. **new points**: registered frames that may see the same scene (same time, other cameras; same camera,
+      up to ``max_time_gap`` frames apart) are matched (FLANN, ratio test, mutual); a match of two
+      features without a 3D point is triangulated (least squares over the two rays) and kept when both
+      reprojection errors are below ``max_reprojection_error_px`` and the rays meet at
+      ``min_triangulation_angle_deg`` or more; a match of a feature with a point to one without extends
+      that point's track when it reprojects there within the same threshold;
+   b. **bundle adjustment with the reference held fixed**, by block coordinate descent on the
+      reprojection error: every new point is re-triangulated from all its observations (tracks whose
+      error stays above the threshold lose the offending observations), then every pose registered in
+      this trial is refined (``pycolmap.refine_absolute_pose``) on its reference and new points;
+   c. **relative registration**: each unregistered frame is matched to the registered frames of the same
+      time and of nearby times of its camera; features matched to features with a 3D point give 2D–3D
+      correspondences, and the pose is estimated and accepted as in absolute registration (more than
+      ``min_inliers`` inliers, mean inlier error below ``max_mean_error_px``).
+
+Poses are ``world_from_camera`` ``wxyz_xyz`` in the reference model's frame; pixels are in OpenCV's
+convention (COLMAP's +0.5 px is applied only at the pycolmap calls).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+
+from ..cameras import CameraModel, to_pycolmap
+from .reference import extract_sift, match_descriptors
+from .register import ReferenceIndex, RegistrationOptions, _pose_wxyz_xyz, match_to_reference
+
+__all__ = ["FrameState", "RelativeOptions", "CaptureRegistration", "extract_trial_features", "register_features",
+           "register_capture", "triangulate_rays"]
+
+
+@dataclasses.dataclass(frozen=True)
+class RelativeOptions:
+    """Settings of :func:`register_capture`.
+
+    Attributes:
+        registration: thresholds of absolute and relative registration (same for both).
+        max_time_gap: frames of one camera this far apart (in the frames processed) are matched.
+        min_triangulation_angle_deg, max_reprojection_error_px: a new point must pass both.
+        max_rounds: at most this many rounds of new points + relative registration.
+        min_track_length: new points seen in fewer frames are not used to register frames.
+        max_view_angle_deg: frames of other cameras are matched only when their optical axes are this
+            close (for an unregistered frame: to the axis its camera had at the nearest registered time;
+            all cameras when it has none).
+        enough_correspondences: relative registration stops matching a frame to more registered frames
+            (most similar views first) once it has this many 2D–3D correspondences.
+    """
+
+    registration: RegistrationOptions = RegistrationOptions()
+    max_time_gap: int = 3
+    min_triangulation_angle_deg: float = 2.0
+    max_reprojection_error_px: float = 1.0
+    max_rounds: int = 8
+    min_track_length: int = 2
+    max_view_angle_deg: float = 90.0
+    enough_correspondences: int = 400
+
+
+@dataclasses.dataclass
+class FrameState:
+    """One frame of one camera.
+
+    Attributes:
+        keypoints: ``(N, 2)`` SIFT keypoint pixels; descriptors: ``(N, 128)`` float32.
+        point_ids: ``(N,)`` the 3D point each keypoint observes (−1: none).
+        world_from_camera: ``(7,)`` wxyz_xyz, NaN while unregistered.
+        how: "" (unregistered), "absolute" or "relative"; round: the round that registered it (0 = absolute).
+    """
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    point_ids: np.ndarray
+    world_from_camera: np.ndarray
+    how: str = ""
+    round: int = -1
+
+    @property
+    def registered(self) -> bool:
+        return bool(self.how)
+
+
+@dataclasses.dataclass
+class CaptureRegistration:
+    """Result of :func:`register_capture` for ``T`` frames of ``C`` cameras.
+
+    Attributes:
+        frames: ``(T,)`` frame numbers (per camera: ``frames + start offset`` of that camera).
+        states: ``states[t][c]`` :class:`FrameState`.
+        points: ``{point id: (3,) position}`` of the reference's and the new points.
+        new_point_ids: ids of the points triangulated here.
+        rounds: per round ``{"registered": frames registered, "new_points": points added}``.
+    """
+
+    frames: np.ndarray
+    states: list
+    points: dict
+    new_point_ids: set
+    rounds: list
+
+    @property
+    def registered(self) -> np.ndarray:
+        """``(T, C)`` bool."""
+        return np.array([[s.registered for s in row] for row in self.states], bool).reshape(len(self.states), -1)
+
+    @property
+    def world_from_camera(self) -> np.ndarray:
+        """``(T, C, 7)`` poses, NaN where unregistered."""
+        return np.array([[s.world_from_camera for s in row] for row in self.states]).reshape(len(self.states), -1, 7)
+
+    @property
+    def registered_fraction(self) -> float:
+        reg = self.registered
+        return float(reg.mean()) if reg.size else 0.0
+
+    def correspondences(self, fps: float, *, pixel_sigma: float = 1.0):
+        """What the solver consumes: a :class:`~bcmocap.correspondences.Correspondences` with every point
+        (reference and new, renumbered ``0 … P−1``), per registered frame and camera the pixels of its
+        keypoints that observe one (weight ``1 / pixel_sigma²``), the poses and the registered mask. Points
+        and poses are in the reference model's frame. No homography pairs (``M = 0``): not built yet."""
+        from ..correspondences import Correspondences
+
+        ids = np.array(sorted(self.points), np.int64)
+        xyz = np.array([self.points[int(i)] for i in ids], np.float64).reshape(-1, 3)
+        t_count, c_count = self.registered.shape
+        per = [[np.flatnonzero(s.point_ids >= 0) if s.registered else np.zeros(0, np.int64) for s in row]
+               for row in self.states]
+        n = max((len(k) for row in per for k in row), default=0)
+        point_ids = np.full((t_count, c_count, n), -1, np.int32)
+        pixels = np.zeros((t_count, c_count, n, 2))
+        weights = np.zeros((t_count, c_count, n))
+        for t, row in enumerate(self.states):
+            for c, s in enumerate(row):
+                k = per[t][c]
+                point_ids[t, c, : len(k)] = np.searchsorted(ids, s.point_ids[k])
+                pixels[t, c, : len(k)] = s.keypoints[k]
+                weights[t, c, : len(k)] = 1.0 / pixel_sigma**2
+        poses = self.world_from_camera.copy()
+        poses[~self.registered] = np.array([1.0, 0, 0, 0, 0, 0, 0])
+        empty = np.zeros((t_count, c_count, 0))
+        return Correspondences(xyz, point_ids, pixels, weights, np.zeros((t_count, c_count, 0, 2)),
+                               np.zeros((t_count, c_count, 0, 2)), empty, poses, self.registered, float(fps))
+
+
+def _load_cached_features(path, settings: dict):
+    """A camera's cached features if ``path`` holds them for exactly these ``settings``, else None."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            if any(int(z[k]) != v for k, v in settings.items()):
+                return None
+            counts, kp, desc = z["counts"], z["keypoints"], z["descriptors"]
+    except (OSError, ValueError, KeyError):
+        return None
+    cut = np.cumsum(counts)[:-1]
+    return list(zip(np.split(kp, cut), (d.astype(np.float32) for d in np.split(desc, cut))))
+
+
+def _save_features(path, settings: dict, feats: list) -> None:
+    import os
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")
+    os.close(fd)
+    try:
+        np.savez(tmp, counts=np.array([len(k) for k, _ in feats], np.int64),
+                 keypoints=np.concatenate([k for k, _ in feats]).reshape(-1, 2),
+                 descriptors=np.concatenate([d for _, d in feats]).reshape(-1, 128).astype(np.uint8),
+                 **{k: np.int64(v) for k, v in settings.items()})
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None, num_frames: int | None = None,
+                           max_features: int = 8000, cache_dir=None,
+                           progress: Callable[[int, int], None] | None = None) -> list:
+    """SIFT features of every ``stride``-th frame of every camera of a trial.
+
+    Args:
+        starts: ``(C,)`` first frame of each camera's video (e.g. the synchronisation offsets; default 0).
+        num_frames: frames per camera to read from its start (default: as many as the shortest video has).
+        cache_dir: if given, each camera's features are kept in ``cache_dir/<camera>.npz`` and read back
+            instead of recomputed when start, stride, frame count and ``max_features`` are the same.
+
+    Returns:
+        ``features[t][c] = (keypoints (N, 2), descriptors (N, 128) float32)``.
+    """
+    from pathlib import Path
+
+    names = capture.camera_names
+    starts = np.zeros(len(names), np.int64) if starts is None else np.asarray(starts, np.int64)
+    if starts.shape != (len(names),):
+        raise ValueError(f"extract_trial_features: starts must have shape ({len(names)},), got {starts.shape}")
+    if num_frames is None:
+        num_frames = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(names, starts))
+    per_camera = []
+    per_video = max(0, -(-num_frames // stride))
+    total = len(names) * per_video
+    done = 0
+    for name, start in zip(names, starts):
+        settings = {"start": int(start), "stride": int(stride), "num_frames": int(num_frames),
+                    "max_features": int(max_features)}
+        path = Path(cache_dir) / f"{name}.npz" if cache_dir is not None else None
+        feats = _load_cached_features(path, settings) if path is not None else None
+        if feats is None:
+            feats = []
+            for _, gray in capture.frames(trial, name, stride=stride, start=int(start),
+                                          stop=int(start) + num_frames, gray=True):
+                kp, desc = extract_sift(gray, max_features=max_features)
+                feats.append((kp[:, :2].astype(np.float64), desc.astype(np.float32)))
+                if progress is not None:
+                    progress(done + len(feats), total)
+            if path is not None:
+                _save_features(path, settings, feats)
+        done += per_video
+        if progress is not None:
+            progress(done, total)
+        per_camera.append(feats)
+    count = min(len(f) for f in per_camera)
+    return [[per_camera[c][t] for c in range(len(names))] for t in range(count)]
+
+
+def _estimate_pose(xy: np.ndarray, xyz: np.ndarray, cam, options: RegistrationOptions):
+    """pycolmap LO-RANSAC + refinement; returns ``(cam_from_world, inlier mask, mean error)`` or None."""
+    import pycolmap
+
+    if len(xy) < 4:
+        return None
+    est = pycolmap.AbsolutePoseEstimationOptions()
+    est.ransac.max_error = options.ransac_max_error_px
+    result = pycolmap.estimate_and_refine_absolute_pose(xy + 0.5, xyz, cam, est)
+    if result is None:
+        return None
+    inl = np.asarray(result["inlier_mask"], bool).reshape(-1)
+    pose = result["cam_from_world"]
+    proj = np.asarray(cam.img_from_cam(np.asarray(pose * xyz[inl])), np.float64) - 0.5
+    err = float(np.nanmean(np.linalg.norm(proj - xy[inl], axis=1))) if inl.any() else np.inf
+    if not (int(inl.sum()) > options.min_inliers and err < options.max_mean_error_px):
+        return None
+    return pose, inl, err
+
+
+def register_features(keypoints: np.ndarray, descriptors: np.ndarray, cam, index: ReferenceIndex,
+                      options: RegistrationOptions = RegistrationOptions()):
+    """Absolute registration of one frame's features (pycolmap camera ``cam``) to the reference index.
+
+    Returns:
+        ``(world_from_camera (7,), point_ids (N,))`` or None when the thresholds reject it.
+    """
+    if len(descriptors) < 2:
+        return None
+    query, rows = match_to_reference(descriptors, index, options.ratio)
+    found = _estimate_pose(keypoints[query], index.xyz[rows], cam, options)
+    if found is None:
+        return None
+    pose, inl, _ = found
+    ids = np.full(len(keypoints), -1, np.int64)
+    ids[query[inl]] = index.point3D_ids[rows[inl]]
+    return _pose_wxyz_xyz(pose), ids
+
+
+def triangulate_rays(centres: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """The point nearest (least squares) to ``K`` rays: ``centres (..., K, 3)``, unit ``directions (..., K, 3)``."""
+    eye = np.eye(3)
+    proj = eye - directions[..., :, None] * directions[..., None, :]  # (..., K, 3, 3)
+    a = proj.sum(-3)
+    b = np.einsum("...kij,...kj->...i", proj, centres)
+    return np.linalg.solve(a, b[..., None])[..., 0]
+
+
+class _Geometry:
+    """Per-frame pycolmap camera, rotation and centre, rays and reprojection."""
+
+    def __init__(self, cams):
+        self.cams = cams
+
+    @staticmethod
+    def rotation_centre(pose: np.ndarray):
+        from ..geometry import matrix_from_quat
+
+        return np.asarray(matrix_from_quat(pose[:4]), np.float64), pose[4:]
+
+    def rays(self, c: int, pose: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        rot, _ = self.rotation_centre(pose)
+        xy = np.asarray(self.cams[c].cam_from_img(pixels + 0.5), np.float64).reshape(-1, 2)
+        d = np.concatenate([xy, np.ones((len(xy), 1))], 1)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return d @ rot.T
+
+    def reproject(self, c: int, pose: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """``(K, 2)`` pixels of world points (NaN behind the camera)."""
+        rot, centre = self.rotation_centre(pose)
+        local = (np.asarray(xyz, np.float64).reshape(-1, 3) - centre) @ rot
+        uv = np.asarray(self.cams[c].img_from_cam(local), np.float64).reshape(-1, 2) - 0.5
+        uv[local[:, 2] <= 1e-9] = np.nan
+        return uv
+
+
+def _axis(pose: np.ndarray) -> np.ndarray:
+    """World direction of a camera's optical axis (its z) from a wxyz_xyz pose."""
+    w, x, y, z = pose[:4]
+    return np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+
+
+def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, states=None, max_angle_deg=180.0):
+    """Frames that may see what frame ``(t, c)`` sees: other cameras at ``t`` (when ``states`` is given,
+    only those whose axis is within ``max_angle_deg`` of this camera's nearest registered axis), then the
+    same camera up to ``gap`` frames away."""
+    axis = None
+    if states is not None:
+        near = sorted((abs(t2 - t), t2) for t2 in range(num_frames) if states[t2][c].registered)
+        if near:
+            axis = _axis(states[near[0][1]][c].world_from_camera)
+    cos_max = np.cos(np.radians(max_angle_deg))
+    others = []
+    for c2 in range(num_cameras):
+        if c2 == c:
+            continue
+        cos = 1.0
+        if axis is not None and states[t][c2].registered:
+            cos = float(axis @ _axis(states[t][c2].world_from_camera))
+            if cos < cos_max:
+                continue
+        others.append((-cos, c2))
+    for _, c2 in sorted(others):  # most similar view first
+        yield t, c2
+    for dt in range(1, gap + 1):
+        for t2 in (t - dt, t + dt):
+            if 0 <= t2 < num_frames:
+                yield t2, c
+
+
+def register_capture(features: list, cameras, index: ReferenceIndex, options: RelativeOptions = RelativeOptions(),
+                     *, frames: np.ndarray | None = None,
+                     progress: Callable[[str, int, int], None] | None = None) -> CaptureRegistration:
+    """Register every frame of a trial (module docstring): absolute, then rounds of new points and relative
+    registration.
+
+    Args:
+        features: ``features[t][c] = (keypoints (N, 2), descriptors (N, 128))`` (:func:`extract_trial_features`).
+        cameras: ``(C,)`` intrinsics (:class:`~bcmocap.cameras.CameraModel` or ``pycolmap.Camera``).
+        index: the reference model's :func:`~bcmocap.frontend.register.reference_index`.
+        frames: ``(T,)`` frame numbers to report (default ``0 … T−1``).
+        progress: called as ``progress(stage, done, total)``.
+    """
+    num_t = len(features)
+    num_c = len(cameras)
+    if num_t and len(features[0]) != num_c:
+        raise ValueError(f"register_capture: features hold {len(features[0])} cameras per frame, cameras {num_c}")
+    cams = [to_pycolmap(c) if isinstance(c, CameraModel) else c for c in cameras]
+    geo = _Geometry(cams)
+    reg = options.registration
+    states = [[FrameState(np.asarray(kp, np.float64).reshape(-1, 2), np.asarray(d, np.float32),
+                          np.full(len(kp), -1, np.int64), np.full(7, np.nan)) for kp, d in row] for row in features]
+    points = {int(i): np.asarray(x, np.float64) for i, x in zip(index.point3D_ids, index.xyz)}
+    next_id = max(points, default=-1) + 1
+    new_ids: set[int] = set()
+    tracks: dict[int, list[tuple[int, int, int]]] = {}  # new point -> [(t, c, keypoint)]
+
+    # 2. absolute registration
+    for k, (t, c) in enumerate((t, c) for t in range(num_t) for c in range(num_c)):
+        s = states[t][c]
+        found = register_features(s.keypoints, s.descriptors, cams[c], index, reg)
+        if found is not None:
+            s.world_from_camera, s.point_ids = found
+            s.how, s.round = "absolute", 0
+        if progress is not None:
+            progress("absolute", k + 1, num_t * num_c)
+    rounds = [{"registered": int(sum(s.registered for row in states for s in row)), "new_points": 0}]
+
+    matched: set = set()
+
+    def match(a, b):
+        sa, sb = states[a[0]][a[1]], states[b[0]][b[1]]
+        return match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio).astype(np.int64)
+
+    def add_points() -> int:
+        nonlocal next_id
+        added = 0
+        pairs = [((t, c), n) for t in range(num_t) for c in range(num_c) if states[t][c].registered
+                 for n in _neighbours(t, c, num_t, num_c, options.max_time_gap, states, options.max_view_angle_deg)
+                 if states[n[0]][n[1]].registered and (t, c) < n and ((t, c), n) not in matched]
+        for a, b in pairs:
+            matched.add((a, b))
+            m = match(a, b)
+            if not len(m):
+                continue
+            sa, sb = states[a[0]][a[1]], states[b[0]][b[1]]
+            pa, pb = sa.point_ids[m[:, 0]], sb.point_ids[m[:, 1]]
+            # Track extension: one side has a point, the other none.
+            for src, dst, i_src, i_dst, s_dst, cd in ((pa, pb, m[:, 0], m[:, 1], sb, b[1]),
+                                                       (pb, pa, m[:, 1], m[:, 0], sa, a[1])):
+                sel = (src >= 0) & (dst < 0)
+                if sel.any():
+                    xyz = np.array([points[int(p)] for p in src[sel]])
+                    err = np.linalg.norm(geo.reproject(cd, s_dst.world_from_camera, xyz) - s_dst.keypoints[i_dst[sel]], axis=1)
+                    ok = err < options.max_reprojection_error_px
+                    for p, i in zip(src[sel][ok], i_dst[sel][ok]):
+                        if s_dst.point_ids[i] < 0:
+                            s_dst.point_ids[i] = p
+                            if int(p) in tracks:
+                                tracks[int(p)].append((*(b if s_dst is sb else a), int(i)))
+            # New points: neither side has one.
+            sel = (sa.point_ids[m[:, 0]] < 0) & (sb.point_ids[m[:, 1]] < 0)
+            if not sel.any():
+                continue
+            ia, ib = m[sel, 0], m[sel, 1]
+            ra = geo.rays(a[1], sa.world_from_camera, sa.keypoints[ia])
+            rb = geo.rays(b[1], sb.world_from_camera, sb.keypoints[ib])
+            ca, cb = sa.world_from_camera[4:], sb.world_from_camera[4:]
+            centres = np.stack([np.broadcast_to(ca, ra.shape), np.broadcast_to(cb, rb.shape)], 1)
+            xyz = triangulate_rays(centres, np.stack([ra, rb], 1))
+            angle = np.degrees(np.arccos(np.clip(np.sum(ra * rb, 1), -1, 1)))
+            ea = np.linalg.norm(geo.reproject(a[1], sa.world_from_camera, xyz) - sa.keypoints[ia], axis=1)
+            eb = np.linalg.norm(geo.reproject(b[1], sb.world_from_camera, xyz) - sb.keypoints[ib], axis=1)
+            ok = (angle >= options.min_triangulation_angle_deg) & (ea < options.max_reprojection_error_px) \
+                & (eb < options.max_reprojection_error_px)
+            for x, i, j in zip(xyz[ok], ia[ok], ib[ok]):
+                points[next_id] = x
+                new_ids.add(next_id)
+                tracks[next_id] = [(a[0], a[1], int(i)), (b[0], b[1], int(j))]
+                sa.point_ids[i] = sb.point_ids[j] = next_id
+                next_id += 1
+                added += 1
+        return added
+
+    def adjust() -> None:
+        """Block coordinate descent on the reprojection error, reference points and poses fixed."""
+        if tracks:
+            ids = np.array(list(tracks), np.int64)
+            count = np.array([len(tracks[int(p)]) for p in ids])
+            owner = np.repeat(np.arange(len(ids)), count)
+            obs = np.array([o for p in ids for o in tracks[int(p)]], np.int64).reshape(-1, 3)
+            frame_key = obs[:, 0] * num_c + obs[:, 1]
+            rays = np.zeros((len(obs), 3))
+            centres = np.zeros((len(obs), 3))
+            for key in np.unique(frame_key):
+                sel = frame_key == key
+                t, c = divmod(int(key), num_c)
+                pose = states[t][c].world_from_camera
+                rays[sel] = geo.rays(c, pose, states[t][c].keypoints[obs[sel, 2]])
+                centres[sel] = pose[4:]
+            proj = np.eye(3) - rays[:, :, None] * rays[:, None, :]
+            a_sum = np.zeros((len(ids), 3, 3))
+            b_sum = np.zeros((len(ids), 3))
+            np.add.at(a_sum, owner, proj)
+            np.add.at(b_sum, owner, np.einsum("kij,kj->ki", proj, centres))
+            xyz = np.linalg.solve(a_sum, b_sum[..., None])[..., 0]
+            err = np.full(len(obs), np.inf)
+            for key in np.unique(frame_key):
+                sel = frame_key == key
+                t, c = divmod(int(key), num_c)
+                uv = geo.reproject(c, states[t][c].world_from_camera, xyz[owner[sel]])
+                err[sel] = np.linalg.norm(uv - states[t][c].keypoints[obs[sel, 2]], axis=1)
+            keep = err < options.max_reprojection_error_px  # NaN (behind the camera) is dropped too
+            kept = np.bincount(owner[keep], minlength=len(ids))
+            for k, (t, c, i) in enumerate(obs):
+                if not keep[k] or kept[owner[k]] < 2:
+                    states[t][c].point_ids[i] = -1
+            rows = np.split(np.arange(len(obs)), np.cumsum(count)[:-1])  # obs are grouped by owner
+            for k, pid in enumerate(ids.tolist()):
+                if kept[k] < 2:
+                    del tracks[pid], points[pid]
+                    new_ids.discard(pid)
+                else:
+                    r = rows[k][keep[rows[k]]]
+                    tracks[pid] = [tuple(o) for o in obs[r].tolist()]
+                    points[pid] = xyz[k]
+        import pycolmap
+
+        for t in range(num_t):
+            for c in range(num_c):
+                s = states[t][c]
+                if not s.registered:
+                    continue
+                has = np.flatnonzero(s.point_ids >= 0)
+                if len(has) < 4:
+                    continue
+                xyz = np.array([points[int(p)] for p in s.point_ids[has]])
+                rot, centre = geo.rotation_centre(s.world_from_camera)
+                cfw = pycolmap.Rigid3d(pycolmap.Rotation3d(rot.T), -rot.T @ centre)
+                out = pycolmap.refine_absolute_pose(cfw, s.keypoints[has] + 0.5, xyz, np.ones(len(has), bool), cams[c])
+                if out is not None:
+                    s.world_from_camera = _pose_wxyz_xyz(out["cam_from_world"])
+
+    def register_relative(round_no: int) -> int:
+        count = 0
+        todo = [(t, c) for t in range(num_t) for c in range(num_c) if not states[t][c].registered]
+        for k, (t, c) in enumerate(todo):
+            s = states[t][c]
+            xy, pid, kp_idx = [], [], []
+            for n in _neighbours(t, c, num_t, num_c, options.max_time_gap, states, options.max_view_angle_deg):
+                sn = states[n[0]][n[1]]
+                if not sn.registered:
+                    continue
+                m = match((t, c), n)
+                if not len(m):
+                    continue
+                p = sn.point_ids[m[:, 1]]
+                sel = p >= 0
+                if options.min_track_length > 2:
+                    sel &= np.array([int(q) not in tracks or len(tracks[int(q)]) >= options.min_track_length for q in p])
+                xy.append(s.keypoints[m[sel, 0]])
+                pid.append(p[sel])
+                kp_idx.append(m[sel, 0])
+                if sum(len(q) for q in pid) >= options.enough_correspondences:
+                    break
+            if progress is not None:
+                progress(f"relative round {round_no}", k + 1, len(todo))
+            if not xy:
+                continue
+            xy, pid, kp_idx = np.concatenate(xy), np.concatenate(pid), np.concatenate(kp_idx)
+            _, first = np.unique(pid, return_index=True)
+            xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
+            _, first = np.unique(kp_idx, return_index=True)
+            xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
+            found = _estimate_pose(xy, np.array([points[int(p)] for p in pid]), cams[c], reg)
+            if found is None:
+                continue
+            pose, inl, _ = found
+            s.world_from_camera = _pose_wxyz_xyz(pose)
+            s.point_ids[kp_idx[inl]] = pid[inl]
+            for i, p in zip(kp_idx[inl], pid[inl]):
+                if int(p) in tracks:
+                    tracks[int(p)].append((t, c, int(i)))
+            s.how, s.round = "relative", round_no
+            count += 1
+        return count
+
+    for round_no in range(1, options.max_rounds + 1):
+        added = add_points()
+        adjust()
+        count = register_relative(round_no)
+        rounds.append({"registered": count, "new_points": added})
+        if count == 0:
+            break
+    frames = np.arange(num_t) if frames is None else np.asarray(frames)
+    return CaptureRegistration(frames, states, points, new_ids, rounds)
