@@ -130,6 +130,7 @@ COMMANDS = [
     __import__("bcmocap.markers.command", fromlist=["add_markers_command"]).add_markers_command,
     add_simulate_command,
     __import__("bcmocap.kcs.command", fromlist=["add_kcs_command"]).add_kcs_command,
+    __import__("bcmocap.frontend.command", fromlist=["add_frontend_command"]).add_frontend_command,
 ]
 
 

@@ -9,7 +9,14 @@ import pycolmap
 import pytest
 
 from bcmocap.cameras import PinholeCamera
-from bcmocap.frontend.reference import build_reference, extract_sift, match_descriptors, verify_matches
+from bcmocap.frontend.reference import (
+    build_reference,
+    extract_sift,
+    load_reference,
+    match_descriptors,
+    save_reference,
+    verify_matches,
+)
 
 SCEAUX = Path(__file__).parent / "data" / "sceaux"
 NAMES = ["100_7100.jpg", "100_7101.jpg", "100_7102.jpg", "100_7103.jpg"]
@@ -43,6 +50,14 @@ def test_reference_model_on_real_photos(tmp_path):
     # The reconstruction's camera is the one given (COLMAP convention: +0.5 px).
     params = np.asarray(model.reconstruction.cameras[1].params)
     assert params[2] == pytest.approx(1416 * SCALE + 0.5)
+    # Saved and read back (to resume without rebuilding).
+    save_reference(model, tmp_path)
+    again = load_reference(tmp_path)
+    assert again.registered == model.registered and again.num_points3D == model.num_points3D
+    assert again.reconstruction.num_points3D() == model.num_points3D and again.database_path == model.database_path
+    assert again.pair_inliers == model.pair_inliers and again.mapping_attempts == model.mapping_attempts
+    with pytest.raises(ValueError, match="reference.json: not a readable reference report"):
+        load_reference(tmp_path / "model")
 
 
 def test_errors(tmp_path):

@@ -280,3 +280,52 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
     registered = tuple(sorted(rec.image(i).name for i in rec.reg_image_ids()))
     return ReferenceModel(rec, names, registered, float(rec.compute_mean_reprojection_error()), int(rec.num_points3D()),
                           db_path, {k: len(v) for k, v in verified.items()}, seconds, attempt + 1)
+
+
+def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
+    """Write the model (``folder/model/``, COLMAP's binary format) and its report (``folder/reference.json``)
+    so :func:`load_reference` can resume without rebuilding it. Returns the JSON's path."""
+    import json
+
+    folder = Path(folder)
+    (folder / "model").mkdir(parents=True, exist_ok=True)
+    model.reconstruction.write(str(folder / "model"))
+    report = {"image_names": list(model.image_names), "registered": list(model.registered),
+              "mean_reprojection_error_px": model.mean_reprojection_error_px, "num_points3D": model.num_points3D,
+              "database": os.path.relpath(model.database_path, folder),
+              "pair_inliers": [[a, b, n] for (a, b), n in model.pair_inliers.items()],
+              "seconds": model.seconds, "mapping_attempts": model.mapping_attempts}
+    path = folder / "reference.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(report, indent=1))
+    os.replace(tmp, path)
+    return path
+
+
+def load_reference(folder: str | os.PathLike) -> ReferenceModel:
+    """Read a model written by :func:`save_reference`.
+
+    Raises:
+        ValueError: naming the file that is missing or unreadable.
+    """
+    import json
+
+    import pycolmap
+
+    folder = Path(folder)
+    path = folder / "reference.json"
+    try:
+        report = json.loads(path.read_text())
+        database = folder / report["database"]
+    except (OSError, ValueError, KeyError) as err:
+        raise ValueError(f"{path}: not a readable reference report ({err})") from None
+    if not database.is_file():
+        raise ValueError(f"{database}: the reference database is missing")
+    try:
+        rec = pycolmap.Reconstruction(str(folder / "model"))
+    except Exception as err:  # pycolmap raises its own error types
+        raise ValueError(f"{folder / 'model'}: not a readable reconstruction ({err})") from None
+    return ReferenceModel(rec, tuple(report["image_names"]), tuple(report["registered"]),
+                          float(report["mean_reprojection_error_px"]), int(report["num_points3D"]), database,
+                          {(a, b): n for a, b, n in report["pair_inliers"]}, dict(report["seconds"]),
+                          int(report["mapping_attempts"]))

@@ -1,0 +1,145 @@
+"""``bcmocap frontend CAPTURE_DIR --out DIR``: from a capture folder to the solver's Correspondences.
+
+Stages, each saved under ``DIR`` and reused when rerun (delete a stage's output to redo it):
+
+1. ``reference/``: the reference model of the reference photos (:func:`~.reference.build_reference`,
+   saved by :func:`~.reference.save_reference`);
+2. per trial, audio synchronisation (:func:`~.sync.synchronize`; ``--offsets`` gives them instead), then
+   SIFT of every ``--stride``-th frame of every camera from its first clap on
+   (``features/<trial>/<camera>.npz``);
+3. per trial, registration (:func:`~.relative.register_capture`) and ``<trial>/correspondences.npz``
+   (:class:`~bcmocap.correspondences.Correspondences`, in the reference model's frame and scale) with
+   ``<trial>/registration.json``.
+
+Heavy modules are imported inside :func:`run_frontend`, so ``bcmocap --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+
+def add_frontend_command(sub: argparse._SubParsersAction) -> None:
+    """Register ``bcmocap frontend`` on the CLI's subparsers."""
+    cmd = sub.add_parser(
+        "frontend",
+        help="capture folder → reference model, sync, registration, correspondences (issue 5, in progress)",
+        description=__doc__.split("\n\n", 1)[1].rsplit("\n\nHeavy", 1)[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    cmd.add_argument("capture", help="capture folder (the layout `bcmocap simulate` writes)")
+    cmd.add_argument("--out", required=True, help="output folder (created if needed; stages found there are reused)")
+    cmd.add_argument("--trial", action="append", help="trial to process (repeatable; default: every trial)")
+    cmd.add_argument("--stride", type=int, default=1, help="use every n-th frame (default 1)")
+    cmd.add_argument("--frames", type=int, default=None, help="at most this many frames per camera from the first clap")
+    cmd.add_argument("--offsets", help="comma-separated video frame of the first clap per camera (skips audio sync)")
+    cmd.add_argument("--max-features", type=int, default=8000, help="SIFT features per image (default 8000)")
+
+    def run(args: argparse.Namespace) -> int:
+        if args.stride < 1:
+            cmd.error("--stride must be at least 1")
+        if args.frames is not None and args.frames < 1:
+            cmd.error("--frames must be at least 1")
+        return run_frontend(args)
+
+    cmd.set_defaults(run=run)
+
+
+def _progress(label: str):
+    state = {"last": 0.0}
+
+    def report(done: int, total: int) -> None:
+        now = time.perf_counter()
+        if done == total or now - state["last"] > 2.0:
+            state["last"] = now
+            print(f"  {label}: {done}/{total}", flush=True)
+
+    return report
+
+
+def run_frontend(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..cli import output_folder, write_json_atomic
+    from .capture import read_capture
+    from .reference import build_reference, load_reference, save_reference
+    from .register import reference_index
+    from .relative import extract_trial_features, register_capture
+    from .sync import given_offsets, synchronize
+
+    out = output_folder("frontend", args.out)
+    if out is None:
+        return 2
+    try:
+        capture = read_capture(args.capture)
+        trials = args.trial or list(capture.trials)
+        unknown = [t for t in trials if t not in capture.trials]
+        if unknown:
+            raise ValueError(f"{args.capture}: no trial {unknown[0]!r} (trials: {', '.join(capture.trials)})")
+        offsets = None
+        if args.offsets:
+            offsets = [int(v) for v in args.offsets.split(",")]
+            if len(offsets) != len(capture.camera_names):
+                raise ValueError(f"--offsets gives {len(offsets)} values for {len(capture.camera_names)} cameras")
+    except ValueError as exc:
+        print(f"bcmocap frontend: {exc}", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2
+    ref_dir = out / "reference"
+    if (ref_dir / "reference.json").is_file():
+        model = load_reference(ref_dir)
+        print(f"reference: read {ref_dir} ({model.num_registered}/{len(model.image_names)} photos)", flush=True)
+    else:
+        if not capture.reference_photos:
+            print(f"bcmocap frontend: {capture.path / 'reference'}: no reference photos", file=sys.stderr)
+            return 2
+        print(f"reference: {len(capture.reference_photos)} photos ...", flush=True)
+        model = build_reference(capture.path / "reference", [p.name for p in capture.reference_photos],
+                                camera=capture.reference_camera, workdir=ref_dir / "work")
+        save_reference(model, ref_dir)
+    print(f"reference: {model.num_registered}/{len(model.image_names)} photos registered, "
+          f"{model.num_points3D} points, mean reprojection error {model.mean_reprojection_error_px:.3f} px", flush=True)
+    index = reference_index(model)
+    cameras = [c.intrinsics for c in capture.cameras]
+    for trial in trials:
+        if offsets is not None:
+            sync = given_offsets(capture, offsets)
+        else:
+            sync = synchronize(capture, trial)
+        starts = np.asarray(sync.offsets, np.int64)
+        available = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(capture.camera_names, starts))
+        frames = available if args.frames is None else min(available, args.frames)
+        print(f"{trial}: first clap at video frames {starts.tolist()}; {frames} frames per camera", flush=True)
+        features = extract_trial_features(capture, trial, stride=args.stride, starts=starts, num_frames=frames,
+                                          max_features=args.max_features, cache_dir=out / "features" / trial,
+                                          progress=_progress(f"{trial} features"))
+        stages: dict[str, object] = {}
+
+        def progress(stage, done, total):
+            stages.setdefault(stage, _progress(f"{trial} {stage}"))(done, total)
+
+        clock = time.perf_counter()
+        result = register_capture(features, cameras, index, frames=np.arange(len(features)) * args.stride,
+                                  progress=progress)
+        corr = result.correspondences(fps=capture.fps / args.stride)
+        corr.save(out / trial / "correspondences.npz")
+        reg = result.registered
+        report = {"trial": trial, "first_clap_frames": starts.tolist(), "stride": args.stride,
+                  "frames": int(reg.shape[0]), "cameras": list(capture.camera_names),
+                  "registered_fraction": result.registered_fraction,
+                  "registered_per_camera": reg.mean(axis=0).tolist(),
+                  "registered_absolute": int(sum(s.how == "absolute" for row in result.states for s in row)),
+                  "registered_relative": int(sum(s.how == "relative" for row in result.states for s in row)),
+                  "rounds": result.rounds, "points": len(result.points), "new_points": len(result.new_point_ids),
+                  "seconds": time.perf_counter() - clock,
+                  "note": "poses and points are in the reference model's frame and scale; no homographies yet"}
+        write_json_atomic(out / trial / "registration.json", report)
+        print(f"{trial}: {reg.sum()}/{reg.size} frames registered ({100 * result.registered_fraction:.1f} %: "
+              f"{report['registered_absolute']} absolute, {report['registered_relative']} relative); "
+              f"wrote {out / trial / 'correspondences.npz'}", flush=True)
+    return 0

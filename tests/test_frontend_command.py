@@ -1,0 +1,20 @@
+"""Errors of ``bcmocap frontend`` (the whole chain runs in benchmarks/frontend.py and by hand on a rendered
+capture; its stages are tested in test_frontend_*.py)."""
+
+from test_frontend_capture import make_capture
+
+from bcmocap.cli import main
+
+
+def test_frontend_command_errors(tmp_path, capsys):
+    assert main(["frontend", str(tmp_path / "nowhere"), "--out", str(tmp_path / "out")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    capture = make_capture(tmp_path / "capture")
+    assert main(["frontend", str(capture), "--out", str(tmp_path / "out"), "--trial", "walk"]) == 2
+    assert "no trial 'walk' (trials: rom, capture)" in capsys.readouterr().err
+    assert main(["frontend", str(capture), "--out", str(tmp_path / "out"), "--offsets", "1,2,3"]) == 2
+    assert "--offsets gives 3 values for 2 cameras" in capsys.readouterr().err
+    a_file = tmp_path / "file"
+    a_file.write_text("keep me")
+    assert main(["frontend", str(capture), "--out", str(a_file)]) == 2
+    assert "exists and is not a folder" in capsys.readouterr().err and a_file.read_text() == "keep me"
