@@ -4,8 +4,9 @@ The only package that imports ``cv2`` and ``pycolmap``. Done so far: reading a c
 (:mod:`.capture`), audio synchronisation by the claps (:mod:`.sync`), the reference reconstruction
 from the reference photos (:mod:`.reference`), absolute registration of body-camera frames to it
 (:mod:`.register`), and for a whole trial new points, bundle adjustment with the reference fixed and
-rounds of relative registration (:mod:`.relative`). Not built yet: homographies, the Correspondences
-output, parallel extraction, the ``bcmocap frontend`` command.
+rounds of relative registration (:mod:`.relative`), homographies for the frames left
+(:mod:`.homography`), and ``bcmocap frontend`` (:mod:`.command`). Not built yet: parallel extraction and
+matching, scaling the reference model to metres for the solver.
 """
 
 from .capture import Capture, CaptureCamera, VideoInfo, read_camera_json, read_capture
@@ -20,6 +21,7 @@ from .register import (
     register_trial,
     similarity,
 )
+from .homography import HomographyFill, HomographyOptions, fill_with_homographies, rotation_between_frames
 from .relative import CaptureRegistration, FrameState, RelativeOptions, extract_trial_features, register_capture
 from .sync import SyncResult, clap_candidates, given_offsets, synchronize, synchronize_tracks
 
@@ -28,6 +30,10 @@ __all__ = [
     "CaptureCamera",
     "CaptureRegistration",
     "FrameState",
+    "HomographyFill",
+    "HomographyOptions",
+    "fill_with_homographies",
+    "rotation_between_frames",
     "RelativeOptions",
     "extract_trial_features",
     "register_capture",

@@ -7,7 +7,8 @@ Stages, each saved under ``DIR`` and reused when rerun (delete a stage's output 
 2. per trial, audio synchronisation (:func:`~.sync.synchronize`; ``--offsets`` gives them instead), then
    SIFT of every ``--stride``-th frame of every camera from its first clap on
    (``features/<trial>/<camera>.npz``);
-3. per trial, registration (:func:`~.relative.register_capture`) and ``<trial>/correspondences.npz``
+3. per trial, registration (:func:`~.relative.register_capture`), homographies for the frames left
+   (:func:`~.homography.fill_with_homographies`) and ``<trial>/correspondences.npz``
    (:class:`~bcmocap.correspondences.Correspondences`, in the reference model's frame and scale) with
    ``<trial>/registration.json``.
 
@@ -66,6 +67,7 @@ def run_frontend(args: argparse.Namespace) -> int:
     from .capture import read_capture
     from .reference import build_reference, load_reference, save_reference
     from .register import reference_index
+    from .homography import fill_with_homographies
     from .relative import extract_trial_features, register_capture
     from .sync import given_offsets, synchronize
 
@@ -126,7 +128,8 @@ def run_frontend(args: argparse.Namespace) -> int:
         clock = time.perf_counter()
         result = register_capture(features, cameras, index, frames=np.arange(len(features)) * args.stride,
                                   progress=progress)
-        corr = result.correspondences(fps=capture.fps / args.stride)
+        fill = fill_with_homographies(result, cameras)
+        corr = result.correspondences(fps=capture.fps / args.stride, homographies=fill)
         corr.save(out / trial / "correspondences.npz")
         reg = result.registered
         report = {"trial": trial, "first_clap_frames": starts.tolist(), "stride": args.stride,
@@ -136,8 +139,10 @@ def run_frontend(args: argparse.Namespace) -> int:
                   "registered_absolute": int(sum(s.how == "absolute" for row in result.states for s in row)),
                   "registered_relative": int(sum(s.how == "relative" for row in result.states for s in row)),
                   "rounds": result.rounds, "points": len(result.points), "new_points": len(result.new_point_ids),
+                  "filled_by_homographies": int(fill.filled.sum()),
+                  "homography_pairs": len(fill.pixels),
                   "seconds": time.perf_counter() - clock,
-                  "note": "poses and points are in the reference model's frame and scale; no homographies yet"}
+                  "note": "poses and points are in the reference model's frame and scale"}
         write_json_atomic(out / trial / "registration.json", report)
         print(f"{trial}: {reg.sum()}/{reg.size} frames registered ({100 * result.registered_fraction:.1f} %: "
               f"{report['registered_absolute']} absolute, {report['registered_relative']} relative); "

@@ -125,11 +125,13 @@ class CaptureRegistration:
         reg = self.registered
         return float(reg.mean()) if reg.size else 0.0
 
-    def correspondences(self, fps: float, *, pixel_sigma: float = 1.0):
+    def correspondences(self, fps: float, *, pixel_sigma: float = 1.0, homographies=None):
         """What the solver consumes: a :class:`~bcmocap.correspondences.Correspondences` with every point
         (reference and new, renumbered ``0 … P−1``), per registered frame and camera the pixels of its
-        keypoints that observe one (weight ``1 / pixel_sigma²``), the poses and the registered mask. Points
-        and poses are in the reference model's frame. No homography pairs (``M = 0``): not built yet."""
+        keypoints that observe one (weight ``1 / pixel_sigma²``), the poses and the registered mask, and
+        the homography pairs of unregistered frames from ``homographies`` (a
+        :class:`~bcmocap.frontend.homography.HomographyFill`; none without it). Points and poses are in the
+        reference model's frame."""
         from ..correspondences import Correspondences
 
         ids = np.array(sorted(self.points), np.int64)
@@ -149,9 +151,17 @@ class CaptureRegistration:
                 weights[t, c, : len(k)] = 1.0 / pixel_sigma**2
         poses = self.world_from_camera.copy()
         poses[~self.registered] = np.array([1.0, 0, 0, 0, 0, 0, 0])
-        empty = np.zeros((t_count, c_count, 0))
-        return Correspondences(xyz, point_ids, pixels, weights, np.zeros((t_count, c_count, 0, 2)),
-                               np.zeros((t_count, c_count, 0, 2)), empty, poses, self.registered, float(fps))
+        pairs = {} if homographies is None else homographies.pixels
+        m = max((len(v) for v in pairs.values()), default=0)
+        h_pixels = np.zeros((t_count, c_count, m, 2))
+        h_prev = np.zeros((t_count, c_count, m, 2))
+        h_weights = np.zeros((t_count, c_count, m))
+        for (t, c), px in pairs.items():
+            h_pixels[t, c, : len(px)] = px
+            h_prev[t, c, : len(px)] = homographies.pixels_prev[(t, c)]
+            h_weights[t, c, : len(px)] = 1.0 / pixel_sigma**2
+        return Correspondences(xyz, point_ids, pixels, weights, h_pixels, h_prev, h_weights, poses, self.registered,
+                               float(fps))
 
 
 def _load_cached_features(path, settings: dict):
