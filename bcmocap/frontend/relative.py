@@ -30,7 +30,10 @@ convention (COLMAP's +0.5 px is applied only at the pycolmap calls).
 from __future__ import annotations
 
 import dataclasses
+import os
+import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -57,6 +60,7 @@ class RelativeOptions:
             all cameras when it has none).
         enough_correspondences: relative registration stops matching a frame to more registered frames
             (most similar views first) once it has this many 2D–3D correspondences.
+        workers: threads matching pairs of frames for new points (default: the CPU count).
     """
 
     registration: RegistrationOptions = RegistrationOptions()
@@ -67,6 +71,7 @@ class RelativeOptions:
     min_track_length: int = 2
     max_view_angle_deg: float = 90.0
     enough_correspondences: int = 400
+    workers: int | None = None
 
 
 @dataclasses.dataclass
@@ -198,7 +203,7 @@ def _save_features(path, settings: dict, feats: list) -> None:
 
 
 def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None, num_frames: int | None = None,
-                           max_features: int = 8000, cache_dir=None,
+                           max_features: int = 8000, cache_dir=None, workers: int | None = None,
                            progress: Callable[[int, int], None] | None = None) -> list:
     """SIFT features of every ``stride``-th frame of every camera of a trial.
 
@@ -207,6 +212,7 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
         num_frames: frames per camera to read from its start (default: as many as the shortest video has).
         cache_dir: if given, each camera's features are kept in ``cache_dir/<camera>.npz`` and read back
             instead of recomputed when start, stride, frame count and ``max_features`` are the same.
+        workers: cameras processed at once (threads; default: the CPU count).
 
     Returns:
         ``features[t][c] = (keypoints (N, 2), descriptors (N, 128) float32)``.
@@ -219,31 +225,45 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
         raise ValueError(f"extract_trial_features: starts must have shape ({len(names)},), got {starts.shape}")
     if num_frames is None:
         num_frames = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(names, starts))
-    per_camera = []
     per_video = max(0, -(-num_frames // stride))
     total = len(names) * per_video
-    done = 0
-    for name, start in zip(names, starts):
+    lock = threading.Lock()
+    counter = {"done": 0}
+
+    def tick(n: int) -> None:
+        with lock:
+            counter["done"] += n
+            if progress is not None:
+                progress(counter["done"], total)
+
+    def one_camera(name: str, start: int) -> list:
         settings = {"start": int(start), "stride": int(stride), "num_frames": int(num_frames),
                     "max_features": int(max_features)}
         path = Path(cache_dir) / f"{name}.npz" if cache_dir is not None else None
         feats = _load_cached_features(path, settings) if path is not None else None
-        if feats is None:
-            feats = []
-            for _, gray in capture.frames(trial, name, stride=stride, start=int(start),
-                                          stop=int(start) + num_frames, gray=True):
-                kp, desc = extract_sift(gray, max_features=max_features)
-                feats.append((kp[:, :2].astype(np.float64), desc.astype(np.float32)))
-                if progress is not None:
-                    progress(done + len(feats), total)
-            if path is not None:
-                _save_features(path, settings, feats)
-        done += per_video
-        if progress is not None:
-            progress(done, total)
-        per_camera.append(feats)
+        if feats is not None:
+            tick(per_video)
+            return feats
+        feats = []
+        for _, gray in capture.frames(trial, name, stride=stride, start=int(start),
+                                      stop=int(start) + num_frames, gray=True):
+            kp, desc = extract_sift(gray, max_features=max_features)
+            feats.append((kp[:, :2].astype(np.float64), desc.astype(np.float32)))
+            tick(1)
+        tick(per_video - len(feats))
+        if path is not None:
+            _save_features(path, settings, feats)
+        return feats
+
+    # OpenCV releases the GIL while decoding and in SIFT, so threads run the cameras in parallel.
+    with ThreadPoolExecutor(max_workers=_workers(workers)) as pool:
+        per_camera = list(pool.map(one_camera, names, starts.tolist()))
     count = min(len(f) for f in per_camera)
     return [[per_camera[c][t] for c in range(len(names))] for t in range(count)]
+
+
+def _workers(workers: int | None) -> int:
+    return max(1, int(workers) if workers is not None else (os.cpu_count() or 1))
 
 
 def _estimate_pose(xy: np.ndarray, xyz: np.ndarray, cam, options: RegistrationOptions):
@@ -406,9 +426,11 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         pairs = [((t, c), n) for t in range(num_t) for c in range(num_c) if states[t][c].registered
                  for n in _neighbours(t, c, num_t, num_c, options.max_time_gap, states, options.max_view_angle_deg)
                  if states[n[0]][n[1]].registered and (t, c) < n and ((t, c), n) not in matched]
-        for a, b in pairs:
+        # FLANN releases the GIL: match all pairs in threads, then use the matches in order.
+        with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
+            all_matches = list(pool.map(lambda ab: match(*ab), pairs))
+        for (a, b), m in zip(pairs, all_matches):
             matched.add((a, b))
-            m = match(a, b)
             if not len(m):
                 continue
             sa, sb = states[a[0]][a[1]], states[b[0]][b[1]]
