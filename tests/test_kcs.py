@@ -373,3 +373,16 @@ def test_motion_from_joints_reproduces_rigid_joints(scene):
     fk = np.asarray(joint_positions(skeleton, motion))
     order = [skeleton.index(n) for n in chain.names]
     np.testing.assert_allclose(fk[:, order], joints, atol=1e-6)
+
+
+def test_smoothing_in_time_is_a_renormalised_gaussian_and_handles_short_sequences():
+    from bcmocap.kcs.solve import _smooth_in_time
+
+    x = np.random.default_rng(0).normal(size=(50, 3))
+    k = np.exp(-0.5 * (np.arange(-9, 10) / 3.0) ** 2)
+    k /= k.sum()
+    ones = np.convolve(np.ones(50), k, "same")
+    expected = np.stack([np.convolve(x[:, j], k, "same") / ones for j in range(3)], 1)
+    np.testing.assert_allclose(np.asarray(_smooth_in_time(jnp.asarray(x), 3.0)), expected, atol=1e-12)
+    short = np.asarray(_smooth_in_time(jnp.asarray(x[:5]), 3.0))  # shorter than the 19-tap kernel
+    assert short.shape == (5, 3) and np.allclose(_smooth_in_time(jnp.ones((5, 3)), 3.0), 1.0)

@@ -181,8 +181,15 @@ def _smooth_in_time(x, sigma: float):
         return x
     half = max(1, int(np.ceil(3 * sigma)))
     k = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma) ** 2)
-    k = jnp.asarray(k / k.sum())
-    conv = jax.vmap(lambda c: jnp.convolve(c, k, mode="same"), in_axes=1, out_axes=1)
+    k = k / k.sum()
+    f = x.shape[0]
+
+    # A sum of shifted copies rather than jnp.convolve: the kernel is short, and batched XLA CPU
+    # convolutions under vmap were the suspect of segfaults in XLA's Eigen threads on long sequences.
+    def conv(v):
+        padded = jnp.pad(v, ((half, half), (0, 0)))
+        return sum(float(w) * padded[i : i + f] for i, w in enumerate(k))
+
     return conv(x) / conv(jnp.ones_like(x))
 
 
