@@ -9,8 +9,6 @@ sizes with zero weights so every window has static shapes.
 from __future__ import annotations
 
 import dataclasses
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -113,16 +111,10 @@ class Correspondences:
 
     def save(self, path: str | Path) -> None:
         """Write an ``.npz`` file atomically (a temporary file in the same folder, then renamed)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")
-        os.close(fd)
-        try:
+        from .io.atomic import atomic_path
+
+        with atomic_path(path, suffix=".npz") as tmp:
             np.savez_compressed(tmp, **{f.name: np.asarray(getattr(self, f.name)) for f in dataclasses.fields(self)})
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
 
     @classmethod
     def load(cls, path: str | Path) -> Correspondences:

@@ -23,6 +23,7 @@ import numpy as np
 from ..cameras import CameraModel, to_pycolmap
 from ..geometry import matrix_from_quat, quat_from_matrix, slerp
 from .reference import match_descriptors
+from .relative import pixel_rays
 
 __all__ = ["HomographyOptions", "HomographyFill", "rotation_between_frames", "fill_with_homographies"]
 
@@ -61,12 +62,6 @@ class HomographyFill:
     relative: dict
 
 
-def _rays(cam, pixels: np.ndarray) -> np.ndarray:
-    xy = np.asarray(cam.cam_from_img(np.asarray(pixels, np.float64) + 0.5), np.float64).reshape(-1, 2)
-    d = np.concatenate([xy, np.ones((len(xy), 1))], 1)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
 def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Rotation ``R`` minimising ``Σ |a_i − R b_i|²`` (rows are vectors)."""
     u, _, vt = np.linalg.svd(a.T @ b)
@@ -90,7 +85,7 @@ def rotation_between_frames(pixels_prev: np.ndarray, pixels: np.ndarray, camera,
     cam = to_pycolmap(camera) if isinstance(camera, CameraModel) else camera
     if len(pixels) < max(4, options.min_inliers):
         return None
-    prev, cur = _rays(cam, pixels_prev), _rays(cam, pixels)
+    prev, cur = pixel_rays(cam, pixels_prev), pixel_rays(cam, pixels)
     focal = float(cam.mean_focal_length())
     h, mask = cv2.findHomography(cur[:, :2] / cur[:, 2:], prev[:, :2] / prev[:, 2:], cv2.RANSAC,
                                  options.ransac_px / focal, maxIters=2000, confidence=0.999)

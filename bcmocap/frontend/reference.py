@@ -295,10 +295,11 @@ def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
               "database": os.path.relpath(model.database_path, folder),
               "pair_inliers": [[a, b, n] for (a, b), n in model.pair_inliers.items()],
               "seconds": model.seconds, "mapping_attempts": model.mapping_attempts}
+    from ..io.atomic import atomic_path
+
     path = folder / "reference.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(report, indent=1))
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(report, indent=1))
     return path
 
 

@@ -185,21 +185,13 @@ def _load_cached_features(path, settings: dict):
 
 
 def _save_features(path, settings: dict, feats: list) -> None:
-    import os
-    import tempfile
+    from ..io.atomic import atomic_path
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, counts=np.array([len(k) for k, _ in feats], np.int64),
                  keypoints=np.concatenate([k for k, _ in feats]).reshape(-1, 2),
                  descriptors=np.concatenate([d for _, d in feats]).reshape(-1, 128).astype(np.uint8),
                  **{k: np.int64(v) for k, v in settings.items()})
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None, num_frames: int | None = None,
@@ -314,6 +306,14 @@ def triangulate_rays(centres: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return np.linalg.solve(a, b[..., None])[..., 0]
 
 
+def pixel_rays(cam, pixels: np.ndarray) -> np.ndarray:
+    """``(K, 3)`` unit rays in the camera frame of ``(K, 2)`` pixels (OpenCV convention) of a
+    ``pycolmap.Camera`` (fields of view below 180°)."""
+    xy = np.asarray(cam.cam_from_img(np.asarray(pixels, np.float64) + 0.5), np.float64).reshape(-1, 2)
+    d = np.concatenate([xy, np.ones((len(xy), 1))], 1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
 class _Geometry:
     """Per-frame pycolmap camera, rotation and centre, rays and reprojection."""
 
@@ -328,10 +328,7 @@ class _Geometry:
 
     def rays(self, c: int, pose: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         rot, _ = self.rotation_centre(pose)
-        xy = np.asarray(self.cams[c].cam_from_img(pixels + 0.5), np.float64).reshape(-1, 2)
-        d = np.concatenate([xy, np.ones((len(xy), 1))], 1)
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return d @ rot.T
+        return pixel_rays(self.cams[c], pixels) @ rot.T
 
     def reproject(self, c: int, pose: np.ndarray, xyz: np.ndarray) -> np.ndarray:
         """``(K, 2)`` pixels of world points (NaN behind the camera)."""

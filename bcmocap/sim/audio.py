@@ -13,12 +13,13 @@ audio stream to an MP4; see :mod:`bcmocap.sim.studio`).
 from __future__ import annotations
 
 import os
-import tempfile
 import wave
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+
+from ..io.atomic import atomic_path
 
 __all__ = ["CLAP_SECONDS", "clap_onsets", "read_wav", "soundtrack", "write_wav"]
 
@@ -67,19 +68,11 @@ def write_wav(path: str | os.PathLike, samples: np.ndarray, rate: int) -> Path:
     """Write mono samples in [-1, 1] as 16-bit PCM WAV (atomically: temporary file, then rename)."""
     path = Path(path)
     pcm = np.round(np.clip(np.asarray(samples, np.float64), -1.0, 1.0) * 32767.0).astype("<i2")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        with wave.open(tmp, "wb") as out:
-            out.setnchannels(1)
-            out.setsampwidth(2)
-            out.setframerate(int(rate))
-            out.writeframes(pcm.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp, wave.open(str(tmp), "wb") as out:
+        out.setnchannels(1)
+        out.setsampwidth(2)
+        out.setframerate(int(rate))
+        out.writeframes(pcm.tobytes())
     return path
 
 

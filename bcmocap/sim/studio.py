@@ -66,7 +66,6 @@ import functools
 import json
 import math
 import os
-import tempfile
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -76,6 +75,7 @@ import numpy as np
 
 from ..cameras import CameraModel, FOVCamera, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
 from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
+from ..io.atomic import atomic_path
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import JointType, Motion, Skeleton
@@ -177,15 +177,8 @@ class StudioSettings:
 
 
 def _atomic_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def _write_json(path: Path, payload: dict) -> None:
@@ -322,20 +315,19 @@ def _write_opencv_yaml(path: Path, camera: CameraModel) -> None:
 
     from ..cameras import write_opencv_fisheye_calibration
 
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
-    if isinstance(camera, OpenCVFisheyeCamera):
-        write_opencv_fisheye_calibration(tmp, camera)
-    else:
-        (fx, fy), (cx, cy) = np.asarray(camera.focal), np.asarray(camera.principal_point)
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-        try:
-            fs.write("image_width", int(camera.width))
-            fs.write("image_height", int(camera.height))
-            fs.write("camera_matrix", np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
-            fs.write("distortion_coefficients", np.zeros((5, 1)))
-        finally:
-            fs.release()
-    os.replace(tmp, path)
+    with atomic_path(path, suffix=path.suffix) as tmp:  # OpenCV picks the format from the suffix
+        if isinstance(camera, OpenCVFisheyeCamera):
+            write_opencv_fisheye_calibration(tmp, camera)
+        else:
+            (fx, fy), (cx, cy) = np.asarray(camera.focal), np.asarray(camera.principal_point)
+            fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+            try:
+                fs.write("image_width", int(camera.width))
+                fs.write("image_height", int(camera.height))
+                fs.write("camera_matrix", np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
+                fs.write("distortion_coefficients", np.zeros((5, 1)))
+            finally:
+                fs.release()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,18 @@
+"""bcmocap.io.atomic: a file is replaced whole or not at all."""
+
+import pytest
+
+from bcmocap.io.atomic import atomic_path
+
+
+def test_atomic_path_replaces_on_success_and_leaves_the_original_on_failure(tmp_path):
+    target = tmp_path / "sub" / "out.npz"
+    with atomic_path(target, suffix=".npz") as tmp:
+        assert tmp.parent == target.parent and tmp.suffix == ".npz" and not target.exists()
+        tmp.write_text("first")
+    assert target.read_text() == "first"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target, suffix=".npz") as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("interrupted")
+    assert target.read_text() == "first" and sorted(p.name for p in target.parent.iterdir()) == ["out.npz"]
