@@ -16,3 +16,14 @@ def test_atomic_path_replaces_on_success_and_leaves_the_original_on_failure(tmp_
             tmp.write_text("half")
             raise RuntimeError("interrupted")
     assert target.read_text() == "first" and sorted(p.name for p in target.parent.iterdir()) == ["out.npz"]
+
+
+def test_atomic_path_gives_the_permissions_of_a_plain_open(tmp_path):
+    import os
+
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    target = tmp_path / "atomic.txt"
+    with atomic_path(target) as tmp:
+        tmp.write_text("x")
+    assert os.stat(target).st_mode & 0o777 == os.stat(plain).st_mode & 0o777

@@ -60,16 +60,88 @@ def _progress(label: str):
     return report
 
 
-def run_frontend(args: argparse.Namespace) -> int:
+def prepare_reference(capture, ref_dir, log=print):
+    """The reference model of ``capture``'s photos: read from ``ref_dir`` if saved there, else built and saved.
+
+    Raises:
+        ValueError: the capture has no reference photos.
+    """
+    import pycolmap
+
+    from .reference import build_reference, load_reference, save_reference
+
+    pycolmap.logging.minloglevel = 2
+    if (ref_dir / "reference.json").is_file():
+        model = load_reference(ref_dir)
+        log(f"reference: read {ref_dir} ({model.num_registered}/{len(model.image_names)} photos)")
+    else:
+        if not capture.reference_photos:
+            raise ValueError(f"{capture.path / 'reference'}: no reference photos")
+        log(f"reference: {len(capture.reference_photos)} photos ...")
+        model = build_reference(capture.path / "reference", [p.name for p in capture.reference_photos],
+                                camera=capture.reference_camera, workdir=ref_dir / "work")
+        save_reference(model, ref_dir)
+    log(f"reference: {model.num_registered}/{len(model.image_names)} photos registered, "
+        f"{model.num_points3D} points, mean reprojection error {model.mean_reprojection_error_px:.3f} px")
+    return model
+
+
+def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
+                  max_features: int = 8000, offsets=None, homographies: bool = True, log=print) -> dict:
+    """One trial through sync, features, registration and homographies, written under ``out``.
+
+    Writes ``out/<trial>/correspondences.npz`` and ``out/<trial>/registration.json`` (features are cached
+    in ``out/features/<trial>/``) and returns the registration report (the JSON's content).
+    """
     import numpy as np
 
-    from ..cli import output_folder, write_json_atomic
-    from .capture import read_capture
-    from .reference import build_reference, load_reference, save_reference
-    from .register import reference_index
+    from ..cli import write_json_atomic
     from .homography import fill_with_homographies
     from .relative import extract_trial_features, register_capture
     from .sync import given_offsets, synchronize
+
+    sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
+    starts = np.asarray(sync.offsets, np.int64)
+    available = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(capture.camera_names, starts))
+    frames = available if frames is None else min(available, frames)
+    log(f"{trial}: first clap at video frames {starts.tolist()}; {frames} frames per camera")
+    features = extract_trial_features(capture, trial, stride=stride, starts=starts, num_frames=frames,
+                                      max_features=max_features, cache_dir=out / "features" / trial,
+                                      progress=_progress(f"{trial} features"))
+    stages: dict[str, object] = {}
+
+    def progress(stage, done, total):
+        stages.setdefault(stage, _progress(f"{trial} {stage}"))(done, total)
+
+    clock = time.perf_counter()
+    cameras = [c.intrinsics for c in capture.cameras]
+    result = register_capture(features, cameras, index, frames=np.arange(len(features)) * stride, progress=progress)
+    fill = fill_with_homographies(result, cameras) if homographies else None
+    corr = result.correspondences(fps=capture.fps / stride, homographies=fill)
+    corr.save(out / trial / "correspondences.npz")
+    reg = result.registered
+    report = {"trial": trial, "first_clap_frames": starts.tolist(), "stride": stride,
+              "frames": int(reg.shape[0]), "cameras": list(capture.camera_names),
+              "registered_fraction": result.registered_fraction,
+              "registered_per_camera": reg.mean(axis=0).tolist(),
+              "registered_absolute": int(sum(s.how == "absolute" for row in result.states for s in row)),
+              "registered_relative": int(sum(s.how == "relative" for row in result.states for s in row)),
+              "rounds": result.rounds, "points": len(result.points), "new_points": len(result.new_point_ids),
+              "filled_by_homographies": int(fill.filled.sum()) if fill is not None else 0,
+              "homography_pairs": len(fill.pixels) if fill is not None else 0,
+              "seconds": time.perf_counter() - clock,
+              "note": "poses and points are in the reference model's frame and scale"}
+    write_json_atomic(out / trial / "registration.json", report)
+    log(f"{trial}: {reg.sum()}/{reg.size} frames registered ({100 * result.registered_fraction:.1f} %: "
+        f"{report['registered_absolute']} absolute, {report['registered_relative']} relative); "
+        f"wrote {out / trial / 'correspondences.npz'}")
+    return report
+
+
+def run_frontend(args: argparse.Namespace) -> int:
+    from ..cli import output_folder
+    from .capture import read_capture
+    from .register import reference_index
 
     out = output_folder("frontend", args.out)
     if out is None:
@@ -85,66 +157,13 @@ def run_frontend(args: argparse.Namespace) -> int:
             offsets = [int(v) for v in args.offsets.split(",")]
             if len(offsets) != len(capture.camera_names):
                 raise ValueError(f"--offsets gives {len(offsets)} values for {len(capture.camera_names)} cameras")
+        out.mkdir(parents=True, exist_ok=True)
+        model = prepare_reference(capture, out / "reference", log=lambda m: print(m, flush=True))
     except ValueError as exc:
         print(f"bcmocap frontend: {exc}", file=sys.stderr)
         return 2
-    out.mkdir(parents=True, exist_ok=True)
-    import pycolmap
-
-    pycolmap.logging.minloglevel = 2
-    ref_dir = out / "reference"
-    if (ref_dir / "reference.json").is_file():
-        model = load_reference(ref_dir)
-        print(f"reference: read {ref_dir} ({model.num_registered}/{len(model.image_names)} photos)", flush=True)
-    else:
-        if not capture.reference_photos:
-            print(f"bcmocap frontend: {capture.path / 'reference'}: no reference photos", file=sys.stderr)
-            return 2
-        print(f"reference: {len(capture.reference_photos)} photos ...", flush=True)
-        model = build_reference(capture.path / "reference", [p.name for p in capture.reference_photos],
-                                camera=capture.reference_camera, workdir=ref_dir / "work")
-        save_reference(model, ref_dir)
-    print(f"reference: {model.num_registered}/{len(model.image_names)} photos registered, "
-          f"{model.num_points3D} points, mean reprojection error {model.mean_reprojection_error_px:.3f} px", flush=True)
     index = reference_index(model)
-    cameras = [c.intrinsics for c in capture.cameras]
     for trial in trials:
-        if offsets is not None:
-            sync = given_offsets(capture, offsets)
-        else:
-            sync = synchronize(capture, trial)
-        starts = np.asarray(sync.offsets, np.int64)
-        available = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(capture.camera_names, starts))
-        frames = available if args.frames is None else min(available, args.frames)
-        print(f"{trial}: first clap at video frames {starts.tolist()}; {frames} frames per camera", flush=True)
-        features = extract_trial_features(capture, trial, stride=args.stride, starts=starts, num_frames=frames,
-                                          max_features=args.max_features, cache_dir=out / "features" / trial,
-                                          progress=_progress(f"{trial} features"))
-        stages: dict[str, object] = {}
-
-        def progress(stage, done, total):
-            stages.setdefault(stage, _progress(f"{trial} {stage}"))(done, total)
-
-        clock = time.perf_counter()
-        result = register_capture(features, cameras, index, frames=np.arange(len(features)) * args.stride,
-                                  progress=progress)
-        fill = fill_with_homographies(result, cameras)
-        corr = result.correspondences(fps=capture.fps / args.stride, homographies=fill)
-        corr.save(out / trial / "correspondences.npz")
-        reg = result.registered
-        report = {"trial": trial, "first_clap_frames": starts.tolist(), "stride": args.stride,
-                  "frames": int(reg.shape[0]), "cameras": list(capture.camera_names),
-                  "registered_fraction": result.registered_fraction,
-                  "registered_per_camera": reg.mean(axis=0).tolist(),
-                  "registered_absolute": int(sum(s.how == "absolute" for row in result.states for s in row)),
-                  "registered_relative": int(sum(s.how == "relative" for row in result.states for s in row)),
-                  "rounds": result.rounds, "points": len(result.points), "new_points": len(result.new_point_ids),
-                  "filled_by_homographies": int(fill.filled.sum()),
-                  "homography_pairs": len(fill.pixels),
-                  "seconds": time.perf_counter() - clock,
-                  "note": "poses and points are in the reference model's frame and scale"}
-        write_json_atomic(out / trial / "registration.json", report)
-        print(f"{trial}: {reg.sum()}/{reg.size} frames registered ({100 * result.registered_fraction:.1f} %: "
-              f"{report['registered_absolute']} absolute, {report['registered_relative']} relative); "
-              f"wrote {out / trial / 'correspondences.npz'}", flush=True)
+        process_trial(capture, index, trial, out, stride=args.stride, frames=args.frames,
+                      max_features=args.max_features, offsets=offsets, log=lambda m: print(m, flush=True))
     return 0

@@ -9,7 +9,9 @@ with one video and one soundtrack per camera, reference photos of the room taken
 Folder layout (``CAPTURE_DIR``)::
 
     capture.json                  manifest: format "bcmocap-capture", version, the settings, camera
-                                  names, trials, and "complete" once everything is written
+                                  names, trials, the subject (topology, tape measurements, when the
+                                  rest pose was held: :func:`subject_record`), and "complete" once
+                                  everything is written
     rig.json                      which camera is strapped to which body segment (mounts are unknown
                                   in a real shoot: they are in ground_truth/rig.json)
     intrinsics/<camera>.yml       cv2.fisheye calibration (image_width, image_height, camera_matrix,
@@ -73,9 +75,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ..cameras import CameraModel, FOVCamera, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
+from ..cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
 from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
 from ..io.atomic import atomic_path
+from ..io.model_json import camera_from_dict, camera_to_dict, rig_from_dict, rig_to_dict, skeleton_from_dict, skeleton_to_dict
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import JointType, Motion, Skeleton
@@ -222,55 +225,6 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
 # Cameras and skeletons as JSON.
 
 
-def _camera_to_dict(camera: CameraModel) -> dict:
-    fx, fy = (float(x) for x in np.asarray(camera.focal))
-    cx, cy = (float(x) for x in np.asarray(camera.principal_point))
-    if isinstance(camera, FOVCamera):
-        model, extra = "FOV", [float(camera.omega)]
-    elif isinstance(camera, OpenCVFisheyeCamera):
-        model, extra = "OPENCV_FISHEYE", [float(x) for x in np.asarray(camera.distortion)]
-    elif isinstance(camera, PinholeCamera):
-        model, extra = "PINHOLE", []
-    else:
-        raise ValueError(f"cannot describe camera class {type(camera).__name__}")
-    return {"model": model, "width": camera.width, "height": camera.height, "params": [fx, fy, cx, cy, *extra],
-            "pixel_convention": "OpenCV: the centre of the top-left pixel is (0, 0)"}
-
-
-def _camera_from_dict(data: dict, where: str) -> CameraModel:
-    try:
-        model, p = data["model"], [float(x) for x in data["params"]]
-        size = {"width": int(data["width"]), "height": int(data["height"])}
-        if model == "FOV" and len(p) == 5:
-            return FOVCamera(**size, focal=p[0:2], principal_point=p[2:4], omega=p[4])
-        if model == "OPENCV_FISHEYE" and len(p) == 8:
-            return OpenCVFisheyeCamera(**size, focal=p[0:2], principal_point=p[2:4], distortion=p[4:8])
-        if model == "PINHOLE" and len(p) == 4:
-            return PinholeCamera(**size, focal=p[0:2], principal_point=p[2:4])
-    except KeyError as err:
-        raise ValueError(f"{where}: camera is missing field {err}") from None
-    raise ValueError(f"{where}: unsupported camera model {data.get('model')!r} with {len(data.get('params', []))} params")
-
-
-def _skeleton_to_dict(skeleton: Skeleton) -> dict:
-    return {
-        "names": list(skeleton.names),
-        "parents": list(skeleton.parents),
-        "offsets_m": np.asarray(skeleton.offsets).tolist(),
-        "joint_types": [JointType(t).name.lower() for t in skeleton.joint_types],
-        "hinge_axes": np.asarray(skeleton.hinge_axes).tolist(),
-    }
-
-
-def _skeleton_from_dict(data: dict, where: str) -> Skeleton:
-    try:
-        return Skeleton(data["names"], data["parents"], data["offsets_m"], data["joint_types"], data["hinge_axes"])
-    except KeyError as err:
-        raise ValueError(f"{where}: missing field {err}") from None
-    except ValueError as err:
-        raise ValueError(f"{where}: {err}") from None
-
-
 def fit_opencv_fisheye(camera: CameraModel) -> tuple[OpenCVFisheyeCamera, float]:
     """The Kannala-Brandt (``cv2.fisheye``) model closest to a camera over its image.
 
@@ -338,41 +292,87 @@ def _hinge_angle(q: np.ndarray, axis: np.ndarray) -> np.ndarray:
     return 2.0 * np.arctan2(q[..., 1:] @ axis, q[..., 0])
 
 
-_ROM_AMPLITUDE_DEG = {"torso": 20.0, "head": 30.0, "upper_arm": 55.0, "forearm": 80.0, "hand": 35.0,
-                      "thigh": 30.0, "shin": 60.0, "foot": 25.0}
+#: Swing per kind of segment in the studio's range-of-motion trial, as a share of
+#: :data:`bcmocap.sim.rom.ROM_AMPLITUDE_DEG` (every joint moves at once here, so less than one at a time).
+_ROM_SHARE = 0.6
+
+
+def rom_rest_frames(num_frames: int, fps: float) -> np.ndarray:
+    """Indices of the rest-pose hold that starts the studio's range-of-motion trial (1/5 of it, at most 0.5 s)."""
+    return np.arange(_rest_hold(num_frames, fps))
+
+
+def _rest_hold(num_frames: int, fps: float) -> int:
+    return max(1, min(int(round(0.5 * fps)), num_frames // 5))
+
+
+#: Tape-measured distances the studio records for the subject: joint centre to joint centre, rest pose.
+MEASURED_JOINTS = (("left_thigh", "left_foot"), ("right_thigh", "right_foot"),
+                   ("left_upper_arm", "left_hand"), ("right_upper_arm", "right_hand"))
+
+
+def subject_record(skeleton: Skeleton, rom_frames: int, fps: float) -> dict:
+    """The ``"subject"`` entry of ``capture.json``: what a shoot's log holds besides the videos.
+
+    ``topology``: ``[name, parent, joint type]`` per segment (the predefined kinematic structure);
+    ``measurements``: ``{"from", "to", "metres"}`` distances between the joint centres of two segments
+    in the rest pose (what a tape measure gives: hip to ankle, shoulder to wrist), which fix the
+    reconstruction's scale; ``rest``: the trial and the stretch after its first clap (s) in which the
+    subject held the rest pose.
+    """
+    rest_joints = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
+    measurements = []
+    for a, b in MEASURED_JOINTS:
+        if a in skeleton.names and b in skeleton.names:
+            d = float(np.linalg.norm(rest_joints[skeleton.index(a)] - rest_joints[skeleton.index(b)]))
+            measurements.append({"from": a, "to": b, "metres": round(d, 4)})
+    hold = _rest_hold(rom_frames, fps)
+    return {
+        "topology": [[n, None if p < 0 else skeleton.names[p], JointType(t).name.lower()]
+                     for n, p, t in zip(skeleton.names, skeleton.parents, skeleton.joint_types)],
+        "measurements": measurements,
+        "rest": {"trial": "rom", "after_first_clap_s": [0.0, round((int(round(_LEAD_S * fps)) + hold) / fps, 4)]},
+    }
 
 
 def _range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float, fps: float,
                      rng: np.random.Generator) -> Motion:
-    """A generated range-of-motion trial: from the first pose of ``reference``, standing in place, each
-    joint swings about all its axes (incommensurate sinusoids under a smooth envelope) while the body
-    slowly turns; hinges flex to the side ``reference`` flexes them."""
+    """A generated range-of-motion trial at the first position of ``reference``: the subject holds the
+    rest pose (every joint at zero, the convention of :mod:`bcmocap.kinematics.rom`;
+    :func:`rom_rest_frames`), then every joint swings about all its axes at once (incommensurate
+    sinusoids under a smooth envelope) while the body slowly turns, then holds the rest pose again;
+    hinges flex to the side ``reference`` flexes them."""
+    from .rom import DEFAULT_AMPLITUDE_DEG, ROM_AMPLITUDE_DEG
+
     n = int(round(seconds * fps))
-    t = np.arange(n) / fps
-    envelope = np.sin(np.pi * np.arange(n) / max(n - 1, 1)) ** 2
-    base = np.asarray(reference.rotations[0])
-    rot = np.broadcast_to(base, (n, *base.shape)).copy()
+    hold = _rest_hold(n, fps)
+    moving = max(n - 2 * hold, 1)
+    t = np.arange(moving) / fps
+    envelope = np.zeros(n)
+    envelope[hold:hold + moving] = np.sin(np.pi * (np.arange(moving) + 0.5) / moving) ** 2
+    tt = np.zeros(n)
+    tt[hold:hold + moving] = t
+    rot = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (n, skeleton.num_segments, 1))
     ref_rot = np.asarray(reference.rotations)
     for j in range(1, skeleton.num_segments):
         name = skeleton.names[j]
-        kind = name.split("_", 1)[1] if "_" in name else name
-        amp = np.deg2rad(_ROM_AMPLITUDE_DEG.get(kind, 20.0))
+        kind = name.split("_", 1)[1] if name.startswith(("left_", "right_")) else name
+        amp = _ROM_SHARE * np.deg2rad(ROM_AMPLITUDE_DEG.get(kind, DEFAULT_AMPLITUDE_DEG))
         freq = rng.uniform(0.6, 1.4, 3)
         phase = rng.uniform(0, 2 * np.pi, 3)
         jt = skeleton.joint_types[j]
         if jt == JointType.BALL:
-            rotvec = amp * envelope[:, None] * np.sin(2 * np.pi * freq * t[:, None] + phase)
+            rotvec = amp * envelope[:, None] * np.sin(2 * np.pi * freq * tt[:, None] + phase)
         elif jt == JointType.HINGE:
             axis = np.asarray(skeleton.hinge_axes[j])
             side = np.sign(np.mean(_hinge_angle(ref_rot[:, j], axis))) or 1.0
-            angle = side * amp * envelope * 0.5 * (1 - np.cos(2 * np.pi * freq[0] * t))
+            angle = side * amp * envelope * 0.5 * (1 - np.cos(2 * np.pi * freq[0] * tt))
             rotvec = angle[:, None] * axis
         else:
             continue
-        rot[:, j] = np.asarray((SO3(base[j]) @ SO3.exp(rotvec)).wxyz)
-    yaw = np.deg2rad(60.0) * envelope * np.sin(2 * np.pi * 0.2 * t)
-    turn = np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], axis=1)
-    rot[:, 0] = np.asarray((SO3(turn) @ SO3(base[0])).wxyz)
+        rot[:, j] = np.asarray(SO3.exp(rotvec).wxyz)
+    yaw = np.deg2rad(60.0) * envelope * np.sin(2 * np.pi * 0.2 * tt)
+    rot[:, 0] = np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], axis=1)
     rot = np.asarray(skeleton.project_rotations(rot))
     position = np.broadcast_to(np.asarray(reference.root_position[0]), (n, 3))
     return Motion(np.array(position), rot)
@@ -655,6 +655,7 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
         "settings": s.to_dict(),
         "cameras": list(rig.names),
         "trials": list(TRIALS),
+        "subject": subject_record(skeleton, plan.trials["rom"].num_frames, s.fps),
         "complete": False,
     }
     folder.mkdir(parents=True, exist_ok=True)
@@ -757,20 +758,17 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
         cam = camera_at(rig.intrinsics, c)
         fitted, err = fit_opencv_fisheye(cam)
         _write_opencv_yaml(folder / "intrinsics" / f"{name}.yml", fitted)
-        _write_json(folder / "intrinsics" / f"{name}.json", {**_camera_to_dict(cam), "opencv_fisheye_fit_max_error_px": err})
+        _write_json(folder / "intrinsics" / f"{name}.json", {**camera_to_dict(cam), "opencv_fisheye_fit_max_error_px": err})
         cameras.append({"name": name, "segment": skeleton.names[rig.segments[c]], "intrinsics": f"intrinsics/{name}.yml",
                         "lens": f"intrinsics/{name}.json", "video": {t: f"trials/{t}/{name}.mp4" for t in TRIALS},
                         "audio": {t: f"trials/{t}/{name}.wav" for t in TRIALS}})
     _write_json(folder / "rig.json", {"cameras": cameras, "segments": list(skeleton.names)})
-    _write_json(folder / "reference" / "camera.json", _camera_to_dict(plan.reference_camera))
+    _write_json(folder / "reference" / "camera.json", camera_to_dict(plan.reference_camera))
     _write_opencv_yaml(folder / "reference" / "camera.yml", plan.reference_camera)
 
     gt = folder / "ground_truth"
-    _write_json(gt / "skeleton.json", _skeleton_to_dict(skeleton))
-    _write_json(gt / "rig.json", {"cameras": [
-        {"name": n, "segment": skeleton.names[rig.segments[c]],
-         "segment_from_camera": np.asarray(rig.segment_from_camera[c]).tolist(),
-         "intrinsics": _camera_to_dict(camera_at(rig.intrinsics, c))} for c, n in enumerate(rig.names)]})
+    _write_json(gt / "skeleton.json", skeleton_to_dict(skeleton))
+    _write_json(gt / "rig.json", rig_to_dict(rig, skeleton))
     _write_json(gt / "scene.json", plan.scene.to_dict())
     points, materials = plan.scene.sample_points(seed=s.seed)
     _write_npz(gt / "world_points.npz", {"points": points, "materials": materials})
@@ -869,20 +867,12 @@ def load_ground_truth(path: str | os.PathLike) -> GroundTruth:
         raise ValueError(f"{folder / 'capture.json'}: format is {manifest.get('format')!r}, expected {CAPTURE_FORMAT!r}")
     settings = StudioSettings.from_dict(manifest.get("settings", {}), str(folder / "capture.json"))
     gt = folder / "ground_truth"
-    skeleton = _skeleton_from_dict(_read_json(gt / "skeleton.json"), str(gt / "skeleton.json"))
-    rig_data = _read_json(gt / "rig.json")
-    where = str(gt / "rig.json")
-    try:
-        cams = rig_data["cameras"]
-        rig = Rig([c["name"] for c in cams], [skeleton.index(c["segment"]) for c in cams],
-                  np.array([c["segment_from_camera"] for c in cams], np.float64),
-                  stack_cameras([_camera_from_dict(c["intrinsics"], where) for c in cams]))
-    except (KeyError, TypeError) as err:
-        raise ValueError(f"{where}: missing or malformed field {err}") from None
+    skeleton = skeleton_from_dict(_read_json(gt / "skeleton.json"), str(gt / "skeleton.json"))
+    rig = rig_from_dict(_read_json(gt / "rig.json"), skeleton, str(gt / "rig.json"))
     scene = TexturedScene.from_dict(_read_json(gt / "scene.json"), str(gt / "scene.json"))
     points = _read_npz(gt / "world_points.npz")
     reference = _read_npz(gt / "reference.npz")
-    ref_camera = _camera_from_dict(_read_json(folder / "reference" / "camera.json"), str(folder / "reference" / "camera.json"))
+    ref_camera = camera_from_dict(_read_json(folder / "reference" / "camera.json"), str(folder / "reference" / "camera.json"))
     trials = {}
     for name in manifest.get("trials", TRIALS):
         d = _read_npz(gt / f"{name}.npz")

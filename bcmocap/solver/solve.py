@@ -169,6 +169,8 @@ def solve(
     options: SolverOptions = SolverOptions(),
     *,
     progress: bool | Callable[[WindowReport], None] = False,
+    skip_windows: int = 0,
+    checkpoint: Callable[[int, WindowReport, Motion], None] | None = None,
 ) -> Solution:
     """Minimise Eq. (1) over a whole sequence with overlapping windows.
 
@@ -178,6 +180,11 @@ def solve(
         initial_motion: ``(T, ...)`` starting motion, e.g. from registered camera poses.
         options: window length, overlap, iteration limits.
         progress: True for a progress bar, or a callable receiving each :class:`WindowReport`.
+        skip_windows: resume: the first ``skip_windows`` windows are taken as solved already (their
+            frames in ``initial_motion`` hold a previous run's solution; the next window starts from
+            them exactly as the uninterrupted run did).
+        checkpoint: called after each window with its index, its report and the whole motion so far
+            (solved frames up to the window's end, ``initial_motion`` after), e.g. to save it.
 
     Returns:
         The solved motion and per-window reports.
@@ -200,8 +207,12 @@ def solve(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=num_frames, desc="solving", unit="frame")
-    done = 0
-    for start in starts:
+    if not 0 <= skip_windows <= len(starts):
+        raise ValueError(f"solve: skip_windows must be in [0, {len(starts)}], got {skip_windows}")
+    done = starts[skip_windows - 1] + window if skip_windows else 0
+    if bar is not None and done:
+        bar.update(done)
+    for index, start in enumerate(starts[skip_windows:], start=skip_windows):
         stop = start + window
         t0 = time.perf_counter()
         terms = tuple(problem.window(start, stop))
@@ -224,6 +235,8 @@ def solve(
             bar.set_postfix(cost=f"{report.final_cost:.4g}")
         elif callable(progress):
             progress(report)
+        if checkpoint is not None:
+            checkpoint(index, report, Motion(root.copy(), rotations.copy()))
         done = stop
     if bar is not None:
         bar.close()

@@ -1,0 +1,190 @@
+"""Settings of ``bcmocap run``: defaults that work on the standard capture, a config file, flags.
+
+A config file is TOML or JSON with any subset of the sections below; unknown sections or keys are
+errors naming them. The settings used are saved with the outputs (``DIR/config.json``), and a resumed
+run must use the same settings for the stages it reuses.
+
+.. code-block:: toml
+
+    [frontend]
+    stride = 2            # use every n-th video frame (the solver runs at fps / stride)
+    rom_stride = 3        # the same for the range-of-motion trial
+    max_features = 8000   # SIFT features per image
+    frames = 0            # at most this many frames per camera and trial (0: all)
+
+    [skeleton]
+    root_origin = ["torso"]   # children whose joint centres' mean is the root's origin
+    rest_seconds = []         # [from, to] s after the ROM trial's first clap; [] = from capture.json
+    up_from = ["left_foot", "right_foot"]   # the world's +Z points from these joint centres ...
+    up_to = "head"                          # ... to this one, in the rest pose
+
+    [solver]
+    window = 60
+    overlap = 10
+    root_smoothness = 1000.0  # λ_O, px² per m² (and per rad²) of frame-to-frame change
+    joint_smoothness = 10.0   # λ_A, px² per rad²
+    homography = 1.0
+    loss = "cauchy"           # none | huber | cauchy
+    loss_scale = 8.0          # px
+    terms = ["reprojection", "homography", "smoothness"]
+
+    [outputs]
+    pictures = true
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tomllib
+from pathlib import Path
+
+TERMS = ("reprojection", "homography", "smoothness")
+LOSSES = ("none", "huber", "cauchy")
+
+
+@dataclasses.dataclass(frozen=True)
+class FrontendConfig:
+    stride: int = 2
+    rom_stride: int = 3
+    max_features: int = 8000
+    frames: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class SkeletonConfig:
+    root_origin: tuple[str, ...] = ("torso",)
+    rest_seconds: tuple[float, ...] = ()
+    up_from: tuple[str, ...] = ("left_foot", "right_foot")
+    up_to: str = "head"
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    window: int = 60
+    overlap: int = 10
+    root_smoothness: float = 1e3
+    joint_smoothness: float = 1e1
+    homography: float = 1.0
+    loss: str = "cauchy"
+    loss_scale: float = 8.0
+    terms: tuple[str, ...] = TERMS
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputsConfig:
+    pictures: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Everything ``bcmocap run`` can be told (see the module docstring for the meaning of each key)."""
+
+    frontend: FrontendConfig = FrontendConfig()
+    skeleton: SkeletonConfig = SkeletonConfig()
+    solver: SolverConfig = SolverConfig()
+    outputs: OutputsConfig = OutputsConfig()
+
+    def __post_init__(self):
+        f, k, s = self.frontend, self.skeleton, self.solver
+        _check(f.stride >= 1, "frontend.stride", "must be ≥ 1", f.stride)
+        _check(f.rom_stride >= 1, "frontend.rom_stride", "must be ≥ 1", f.rom_stride)
+        _check(f.max_features >= 100, "frontend.max_features", "must be ≥ 100", f.max_features)
+        _check(f.frames >= 0, "frontend.frames", "must be ≥ 0", f.frames)
+        _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
+               "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
+        _check(s.window >= 2, "solver.window", "must be ≥ 2", s.window)
+        _check(0 <= s.overlap < s.window, "solver.overlap", "must be in [0, window)", s.overlap)
+        for name in ("root_smoothness", "joint_smoothness", "homography", "loss_scale"):
+            _check(getattr(s, name) >= 0, f"solver.{name}", "must be ≥ 0", getattr(s, name))
+        _check(s.loss in LOSSES, "solver.loss", f"must be one of {LOSSES}", s.loss)
+        bad = [t for t in s.terms if t not in TERMS]
+        _check(not bad, "solver.terms", f"must be a subset of {TERMS}", list(s.terms))
+        _check("reprojection" in s.terms, "solver.terms", "must include 'reprojection'", list(s.terms))
+
+    def to_dict(self) -> dict:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, data: dict, where: str = "config") -> RunConfig:
+        """Defaults overridden by ``data`` (nested sections); unknown sections and keys raise ValueError."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{where}: expected a table of sections, got {type(data).__name__}")
+        sections = {}
+        for field in dataclasses.fields(cls):
+            default = getattr(cls(), field.name)
+            given = data.get(field.name, {})
+            if not isinstance(given, dict):
+                raise ValueError(f"{where}: [{field.name}] must be a table, got {given!r}")
+            sections[field.name] = _override(default, given, f"{where}: {field.name}")
+        unknown = sorted(set(data) - set(sections))
+        if unknown:
+            raise ValueError(f"{where}: unknown section [{unknown[0]}] (sections: {', '.join(sections)})")
+        return cls(**sections)
+
+    def with_overrides(self, overrides: dict[str, object]) -> RunConfig:
+        """A copy with dotted keys replaced, e.g. ``{"solver.window": 30}`` (from command-line flags)."""
+        data = self.to_dict()
+        for key, value in overrides.items():
+            section, _, name = key.partition(".")
+            if section not in data or name not in data[section]:
+                raise ValueError(f"unknown setting {key!r}")
+            data[section][name] = value
+        return RunConfig.from_dict(data)
+
+
+def _check(ok: bool, key: str, message: str, value) -> None:
+    if not ok:
+        raise ValueError(f"config: {key} {message}, got {value!r}")
+
+
+def _override(default, given: dict, where: str):
+    fields = {f.name: f for f in dataclasses.fields(default)}
+    unknown = sorted(set(given) - set(fields))
+    if unknown:
+        raise ValueError(f"{where}.{unknown[0]} is not a setting (settings: {', '.join(fields)})")
+    values = {}
+    for name, value in given.items():
+        current = getattr(default, name)
+        if isinstance(current, tuple):
+            if not isinstance(value, (list, tuple)):
+                raise ValueError(f"{where}.{name} must be a list, got {value!r}")
+            value = tuple(value)
+        elif isinstance(current, bool):
+            if not isinstance(value, bool):
+                raise ValueError(f"{where}.{name} must be true or false, got {value!r}")
+        elif isinstance(current, int):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ValueError(f"{where}.{name} must be an integer, got {value!r}")
+        elif isinstance(current, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"{where}.{name} must be a number, got {value!r}")
+            value = float(value)
+        elif isinstance(current, str) and not isinstance(value, str):
+            raise ValueError(f"{where}.{name} must be a string, got {value!r}")
+        values[name] = value
+    return dataclasses.replace(default, **values)
+
+
+def load_config(path: str | Path | None) -> RunConfig:
+    """Defaults, overridden by a TOML (``.toml``) or JSON file when ``path`` is given.
+
+    Raises:
+        ValueError: unreadable file, bad syntax, unknown keys or values out of range, naming the file.
+    """
+    if path is None:
+        return RunConfig()
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read the config file ({exc.strerror})") from None
+    try:
+        data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'} ({exc})") from None
+    try:
+        return RunConfig.from_dict(data, str(path))
+    except ValueError as exc:
+        msg = str(exc)
+        raise ValueError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None

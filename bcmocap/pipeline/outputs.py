@@ -1,0 +1,224 @@
+"""What ``bcmocap run`` leaves in ``DIR`` for the user (the ``outputs`` stage).
+
+=========================  ==========================================================================
+``motion.bvh``             the estimated skeleton and motion (Y up, metres; any BVH reader)
+``motion.npz``             ``root_position`` (T, 3) m, ``rotations`` (T, J, 4) wxyz local, ``joint_positions``
+                           (T, J, 3) m, ``joint_angles_deg`` (T, J−1, 3) rotation vectors, ``names``, ``fps``
+``joint_angles.csv``       per frame: time (s), per joint the local rotation as a rotation vector (deg)
+``joint_positions.csv``    per frame: time (s), per joint x, y, z (m)
+``scene.ply``              the sparse scene: every 3D point the solver used (m)
+``camera_paths.ply``       each camera's centre per frame after optimisation, joined by edges
+``reference_colmap/``      the reference model in COLMAP's binary format, in the metric world
+``pictures/*.png``         joint angles (Fig. 7a), joint positions (Fig. 7b), camera centres before and
+                           after optimisation (Fig. 6), the root path over the scene from above (Fig. 9),
+                           a few skeleton poses over the scene
+``metrics.json``           with ground truth in the capture: errors after the §5.1 similarity (camera
+                           centres aligned to the true ones), before and after optimisation
+=========================  ==========================================================================
+
+Coordinates are the run's metric world (``DIR/world/similarity.json``): Z up, metres.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ..io.atomic import atomic_path
+
+
+def rotation_vectors_deg(rotations: np.ndarray) -> np.ndarray:
+    """``(..., 4)`` wxyz unit quaternions → ``(..., 3)`` rotation vectors in degrees."""
+    q = np.asarray(rotations, np.float64)
+    q = np.where(q[..., :1] < 0, -q, q)
+    v = q[..., 1:]
+    s = np.linalg.norm(v, axis=-1, keepdims=True)
+    angle = 2 * np.arctan2(s, q[..., :1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        axis = np.where(s > 1e-12, v / np.where(s > 0, s, 1), 0.0)
+    return np.rad2deg(angle * axis)
+
+
+def _write_csv(path: Path, header: list[str], rows: np.ndarray) -> None:
+    with atomic_path(path, suffix=".csv") as tmp:
+        np.savetxt(tmp, rows, delimiter=",", header=",".join(header), comments="", fmt="%.6f")
+
+
+def _camera_centres(skeleton, rig, motion) -> np.ndarray:
+    from ..kinematics.rig import camera_poses
+
+    return np.asarray(camera_poses(skeleton, rig, motion).translation())
+
+
+def write_outputs(ctx) -> dict:
+    """Write every output of a finished solve; returns a summary for the run log."""
+    from ..correspondences import Correspondences
+    from ..io import write_bvh
+    from ..kinematics.fk import joint_positions
+    from .run import _world, load_model, load_motion
+
+    out = ctx.out
+    skeleton, rig = load_model(out)
+    motion = load_motion(out / "solve" / "motion.npz")
+    initial = load_motion(out / "solve" / "initial.npz")
+    corr = Correspondences.load(out / "solve" / "correspondences.npz")
+    fps = corr.fps
+    t = np.arange(motion.num_frames) / fps
+    names = list(skeleton.names)
+
+    write_bvh(out / "motion.bvh", skeleton, motion, 1.0 / fps)
+    positions = np.asarray(joint_positions(skeleton, motion))
+    angles = rotation_vectors_deg(np.asarray(motion.rotations)[:, 1:])
+    with atomic_path(out / "motion.npz", suffix=".npz") as tmp:
+        np.savez(tmp, root_position=np.asarray(motion.root_position), rotations=np.asarray(motion.rotations),
+                 joint_positions=positions, joint_angles_deg=angles, names=np.array(names), fps=fps)
+    _write_csv(out / "joint_angles.csv", ["time_s"] + [f"{n}.{a}_deg" for n in names[1:] for a in "xyz"],
+               np.column_stack([t, angles.reshape(len(t), -1)]))
+    _write_csv(out / "joint_positions.csv", ["time_s"] + [f"{n}.{a}_m" for n in names for a in "xyz"],
+               np.column_stack([t, positions.reshape(len(t), -1)]))
+
+    from ..io.ply import write_camera_paths_ply, write_ply
+
+    used = np.unique(corr.point_ids[corr.weights > 0])
+    scene = corr.points[used[used >= 0]]
+    write_ply(out / "scene.ply", scene)
+    after = _camera_centres(skeleton, rig, motion)
+    write_camera_paths_ply(out / "camera_paths.ply", after)
+    _write_reference(ctx, _world(ctx))
+
+    summary = {"frames": int(motion.num_frames), "scene_points": int(len(scene))}
+    truth = _truth(ctx, corr)
+    metrics = aligned = None
+    if truth is not None:
+        metrics, aligned = evaluate_run(skeleton, rig, {"initial": initial, "solved": motion}, corr, truth)
+        from ..cli import write_json_atomic
+
+        write_json_atomic(out / "metrics.json", metrics)
+        s = metrics["solved"]
+        ctx.log(f"metrics (after the §5.1 similarity, {metrics['frames_evaluated']} frames): joint position "
+                f"{s['joint_position_error_cm']['mean']:.2f} cm, joint angle {s['joint_angle_error_deg']['mean']:.2f}°, "
+                f"camera centre {s['camera_centre_error_cm']['mean']:.2f} cm mean "
+                f"(initial: {metrics['initial']['joint_position_error_cm']['mean']:.2f} cm, "
+                f"{metrics['initial']['joint_angle_error_deg']['mean']:.2f}°)")
+        summary["joint_position_error_cm"] = s["joint_position_error_cm"]["mean"]
+        summary["joint_angle_error_deg"] = s["joint_angle_error_deg"]["mean"]
+    if ctx.config.outputs.pictures:
+        summary["pictures"] = _pictures(out / "pictures", skeleton, motion, positions, t, corr, scene, after, truth, aligned)
+    return summary
+
+
+def _write_reference(ctx, sim) -> None:
+    import pycolmap
+
+    source = ctx.path("frontend", "reference", "model")
+    target = ctx.path("reference_colmap")
+    recon = pycolmap.Reconstruction(str(source))
+    recon.transform(pycolmap.Sim3d(np.column_stack([sim.scale * sim.rotation, sim.translation])))
+    tmp = target.with_name(target.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    recon.write(str(tmp))
+    shutil.rmtree(target, ignore_errors=True)
+    tmp.rename(target)
+
+
+# ---- ground truth ---------------------------------------------------------------------------------
+def _truth(ctx, corr):
+    """The capture trial's ground truth resampled to the run's frames, or None without ground truth."""
+    if not (ctx.capture.path / "ground_truth").is_dir():
+        return None
+    from ..sim.studio import load_ground_truth
+
+    gt = load_ground_truth(ctx.capture.path)
+    trial = gt.trials["capture"]
+    stride = int(round(trial.fps / corr.fps))
+    frames = int(trial.clap_frames[0]) + stride * np.arange(corr.num_frames)
+    valid = (frames >= 0) & (frames < trial.motion.num_frames)
+    idx = np.clip(frames, 0, trial.motion.num_frames - 1)
+    return {"skeleton": gt.skeleton, "rig": gt.rig, "motion": trial.motion[idx],
+            "world_from_camera": trial.world_from_camera[idx], "valid": valid}
+
+
+def evaluate_run(skeleton, rig, motions: dict, corr, truth: dict):
+    """Errors against ground truth after the §5.1 similarity (registered camera centres → true ones).
+
+    Returns:
+        The metrics (JSON-ready; cm and degrees, mean/median/max per motion) and the similarity.
+
+    Args:
+        skeleton, rig: the estimated model; motions: name → estimated :class:`Motion` over the run's frames.
+        corr: the run's (metric) correspondences, whose registered poses are aligned.
+        truth: from :func:`_truth`.
+    """
+    from ..frontend.register import similarity
+    from ..geometry import rotation_angle
+    from ..kinematics.fk import joint_positions
+    from .world import Similarity, transform_model
+
+    valid = truth["valid"]
+    reg = corr.registered & valid[:, None]
+    src = corr.world_from_camera[reg][:, 4:]
+    dst = np.asarray(truth["world_from_camera"])[reg][:, 4:]
+    s, r, tr = similarity(src, dst)
+    sim = Similarity(s, r, tr)
+    residual = np.linalg.norm(sim.points(src) - dst, axis=-1)
+    true_sk, true_rig, true_motion = truth["skeleton"], truth["rig"], truth["motion"][np.flatnonzero(valid)]
+    true_joints = np.asarray(joint_positions(true_sk, true_motion))
+    true_cams = _camera_centres(true_sk, true_rig, true_motion)
+    out = {"frames_evaluated": int(valid.sum()),
+           "alignment": {"scale": s, "camera_centre_residual_cm": _stats(100 * residual),
+                         "method": "Umeyama similarity of registered camera centres onto the true ones (§5.1)"},
+           "units": {"position": "cm", "angle": "degrees"}}
+    for name, motion in motions.items():
+        sk2, rig2, m2 = transform_model(skeleton, rig, motion[np.flatnonzero(valid)], sim)
+        joints = np.asarray(joint_positions(sk2, m2))
+        angles = np.rad2deg(np.asarray(rotation_angle(np.asarray(m2.rotations)[:, 1:], np.asarray(true_motion.rotations)[:, 1:])))
+        cams = _camera_centres(sk2, rig2, m2)
+        out[name] = {"joint_position_error_cm": _stats(100 * np.linalg.norm(joints - true_joints, axis=-1)),
+                     "joint_angle_error_deg": _stats(angles),
+                     "camera_centre_error_cm": _stats(100 * np.linalg.norm(cams - true_cams, axis=-1))}
+    return out, sim
+
+
+def _stats(x: np.ndarray) -> dict:
+    x = np.asarray(x, np.float64).ravel()
+    return {"mean": float(x.mean()), "median": float(np.median(x)), "max": float(x.max())}
+
+
+# ---- pictures ---------------------------------------------------------------------------------------
+def _pictures(folder: Path, skeleton, motion, positions, t, corr, scene, after, truth, aligned) -> list[str]:
+    from ..eval import plots
+
+    folder.mkdir(parents=True, exist_ok=True)
+    names = list(skeleton.names)
+    angles = np.rad2deg(np.linalg.norm(np.deg2rad(rotation_vectors_deg(np.asarray(motion.rotations)[:, 1:])), axis=-1))
+    true_angles = true_positions = true_root = true_cams = None
+    if truth is not None and aligned is not None:
+        back = aligned.inverse()
+        valid = truth["valid"]
+        from ..kinematics.fk import joint_positions
+
+        tm = truth["motion"]
+        true_angles = np.rad2deg(np.linalg.norm(np.deg2rad(rotation_vectors_deg(np.asarray(tm.rotations)[:, 1:])), axis=-1))
+        true_positions = back.points(np.asarray(joint_positions(truth["skeleton"], tm)))
+        true_cams = back.points(np.asarray(truth["world_from_camera"])[..., 4:])
+        for arr in (true_angles, true_positions, true_cams):
+            arr[~valid] = np.nan
+        if truth["skeleton"].names == skeleton.names:
+            true_root = true_positions[:, 0]
+        else:
+            true_positions = None
+    before = np.where(corr.registered[..., None], corr.world_from_camera[..., 4:], np.nan)
+    written = [
+        plots.plot_joint_angles(folder / "joint_angles.png", t, angles, names[1:], true_angles),
+        plots.plot_joint_positions(folder / "joint_positions.png", t, positions, names, true_positions,
+                                    parents=list(skeleton.parents)),
+        plots.plot_camera_centres(folder / "camera_centres.png", before, after, true_cams),
+        plots.plot_top_view(folder / "top_view.png", scene, positions[:, 0], after, true_root),
+        plots.plot_skeleton_poses(folder / "skeleton_poses.png", positions, np.asarray(skeleton.parents),
+                                  np.linspace(0, len(t) - 1, min(5, len(t))).astype(int), scene),
+    ]
+    return [str(Path(p).relative_to(folder.parent)) for p in written]
+

@@ -1,0 +1,383 @@
+"""``bcmocap run``: a capture folder to a motion, in stages that are saved as they finish.
+
+Stages (each writes under ``DIR``; a finished stage is recorded in ``DIR/run.json`` and skipped when
+the command is run again with the same settings for it; changed settings redo that stage and the
+ones after it):
+
+1. ``frontend`` — reference model, sync, SIFT, registration and homographies of the range-of-motion
+   and capture trials (``DIR/frontend/``, the layout of ``bcmocap frontend``; features are cached, a
+   finished trial is not redone);
+2. ``world`` — the similarity from the reference model's frame to a metric, Z-up world
+   (:mod:`.world`; ``DIR/world/similarity.json``);
+3. ``skeleton`` — skeleton and camera mounts from the range-of-motion trial in that world
+   (``DIR/model/skeleton.json``, ``rig.json``, ``rom_summary.txt``);
+4. ``initial`` — the capture's correspondences in that world and the initial motion from its
+   registered camera poses (``DIR/solve/correspondences.npz``, ``initial.npz``);
+5. ``solve`` — Eq. (1) in overlapping windows; after every window the motion so far is saved
+   (``DIR/solve/checkpoint.npz``), so an interrupted solve resumes at the next window;
+6. ``outputs`` — :mod:`.outputs`: BVH, PLY, the reference model in COLMAP's format, NPZ/CSV,
+   pictures, and ``metrics.json`` when the capture has ground truth.
+
+Nothing in the capture folder is written; every output file is written atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..io.atomic import atomic_path
+from .config import RunConfig
+
+STAGES = ("frontend", "world", "skeleton", "initial", "solve", "outputs")
+#: Config sections each stage depends on (a change redoes the stage and every later one).
+_STAGE_SECTIONS = {"frontend": ("frontend",), "world": ("skeleton",), "skeleton": ("skeleton",),
+                   "initial": (), "solve": ("solver",), "outputs": ("outputs",)}
+RUN_FORMAT = "bcmocap-run"
+
+
+def _write_json(path: Path, payload: dict) -> None:
+    with atomic_path(path, suffix=".json") as tmp:
+        tmp.write_text(json.dumps(payload, indent=1) + "\n")
+
+
+def _write_npz(path: Path, **arrays) -> None:
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, **arrays)
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read ({exc})") from None
+
+
+@dataclasses.dataclass
+class RunContext:
+    """What every stage sees: the capture, the settings, the output folder and a log."""
+
+    capture: object  # bcmocap.frontend.Capture
+    config: RunConfig
+    out: Path
+    log: Callable[[str], None]
+
+    def path(self, *parts: str) -> Path:
+        return self.out.joinpath(*parts)
+
+
+class RunLog:
+    """``DIR/run.json``: the capture, and per finished stage its settings fingerprint, time and seconds."""
+
+    def __init__(self, out: Path, capture_path: Path):
+        self.path = out / "run.json"
+        self.data = {"format": RUN_FORMAT, "capture": str(capture_path.resolve()), "stages": {}}
+        if self.path.exists():
+            data = _read_json(self.path)
+            if data.get("format") != RUN_FORMAT:
+                raise ValueError(f"{self.path}: not a bcmocap run log")
+            if data.get("capture") != self.data["capture"]:
+                raise ValueError(
+                    f"{out} holds a run of another capture ({data.get('capture')}); choose another --out")
+            self.data = data
+
+    def finished(self, stage: str, fingerprint: str) -> bool:
+        rec = self.data["stages"].get(stage)
+        return bool(rec) and rec.get("fingerprint") == fingerprint
+
+    def record(self, stage: str, fingerprint: str, seconds: float, **extra) -> None:
+        self.data["stages"][stage] = {"fingerprint": fingerprint, "seconds": round(seconds, 3),
+                                      "finished": datetime.datetime.now().isoformat(timespec="seconds"), **extra}
+        _write_json(self.path, self.data)
+
+    def forget_from(self, stage: str) -> None:
+        for s in STAGES[STAGES.index(stage):]:
+            self.data["stages"].pop(s, None)
+        _write_json(self.path, self.data)
+
+
+def fingerprints(config: RunConfig) -> dict[str, str]:
+    """Per stage, a hash of the settings it and the stages before it depend on."""
+    data, out, acc = config.to_dict(), {}, []
+    for stage in STAGES:
+        acc += [data[s] for s in _STAGE_SECTIONS[stage]]
+        out[stage] = hashlib.sha256(json.dumps(acc, sort_keys=True).encode()).hexdigest()[:16]
+    return out
+
+
+def run_pipeline(capture_dir: str | Path, out: str | Path, config: RunConfig = RunConfig(), *,
+                 log: Callable[[str], None] = print, stop_after: str | None = None) -> dict:
+    """Run (or resume) every stage; return the run log's content.
+
+    Args:
+        capture_dir: the capture folder (read only), or a :class:`~bcmocap.frontend.Capture` read from it.
+        out: the output folder (created; stages found finished there are reused).
+        config: the settings (saved as ``DIR/config.json``).
+        log: receives one line per event (also appended to ``DIR/log.txt``).
+        stop_after: stop after this stage (for inspection, or to split a long run).
+
+    Raises:
+        ValueError: an unreadable capture, a missing subject description, bad settings; naming the
+            file or field.
+    """
+    from ..frontend.capture import Capture, read_capture
+
+    if stop_after is not None and stop_after not in STAGES:
+        raise ValueError(f"stop_after must be one of {STAGES}, got {stop_after!r}")
+    capture = capture_dir if isinstance(capture_dir, Capture) else read_capture(capture_dir)
+    out = Path(out)
+    if out.resolve() == capture.path.resolve() or capture.path.resolve() in out.resolve().parents:
+        raise ValueError(f"--out {out} is inside the capture folder {capture.path}: the capture is never written")
+    out.mkdir(parents=True, exist_ok=True)
+    run_log = RunLog(out, capture.path)
+    log_file = out / "log.txt"
+
+    def say(line: str) -> None:
+        log(line)
+        with open(log_file, "a") as fh:
+            fh.write(f"{datetime.datetime.now().isoformat(timespec='seconds')} {line}\n")
+
+    ctx = RunContext(capture, config, out, say)
+    _write_json(out / "config.json", config.to_dict())
+    prints = fingerprints(config)
+    redo = False
+    for i, stage in enumerate(STAGES, start=1):
+        if not redo and run_log.finished(stage, prints[stage]):
+            say(f"[{i}/{len(STAGES)}] {stage}: done before, reused")
+        else:
+            if not redo and stage in run_log.data["stages"]:
+                say(f"[{i}/{len(STAGES)}] {stage}: settings changed, redoing it and the stages after it")
+            redo = True
+            run_log.forget_from(stage)
+            say(f"[{i}/{len(STAGES)}] {stage} ...")
+            clock = time.perf_counter()
+            extra = _STAGE_FUNCTIONS[stage](ctx) or {}
+            seconds = time.perf_counter() - clock
+            run_log.record(stage, prints[stage], seconds, **extra)
+            say(f"[{i}/{len(STAGES)}] {stage}: {seconds:.1f} s")
+        if stage == stop_after:
+            break
+    return run_log.data
+
+
+# ---- stages -------------------------------------------------------------------------------------
+def _stage_frontend(ctx: RunContext) -> dict:
+    from ..frontend.command import prepare_reference, process_trial
+    from ..frontend.register import reference_index
+
+    f = ctx.config.frontend
+    missing = [t for t in ("rom", "capture") if t not in ctx.capture.trials]
+    if missing:
+        raise ValueError(f"{ctx.capture.path}: no trial {missing[0]!r} (bcmocap run needs 'rom' and 'capture')")
+    folder = ctx.path("frontend")
+    index = None
+    reports = {}
+    for trial, stride, homographies in (("rom", f.rom_stride, False), ("capture", f.stride, True)):
+        done = folder / trial / "registration.json"
+        if done.is_file() and (folder / trial / "correspondences.npz").is_file():
+            report = _read_json(done)
+            if report.get("stride") == stride:
+                ctx.log(f"{trial}: registration found in {done}, reused")
+                reports[trial] = report
+                continue
+        if index is None:
+            index = reference_index(prepare_reference(ctx.capture, folder / "reference", log=ctx.log))
+        reports[trial] = process_trial(ctx.capture, index, trial, folder, stride=stride, frames=f.frames or None,
+                                       max_features=f.max_features, homographies=homographies, log=ctx.log)
+    return {trial: {"registered_fraction": r["registered_fraction"], "frames": r["frames"]}
+            for trial, r in reports.items()}
+
+
+def _subject(ctx: RunContext) -> dict:
+    subject = ctx.capture.manifest.get("subject")
+    where = ctx.capture.path / "capture.json"
+    if not isinstance(subject, dict):
+        raise ValueError(f"{where}: no 'subject' entry (topology, measurements, rest) to estimate the skeleton")
+    for key in ("topology", "measurements"):
+        if key not in subject:
+            raise ValueError(f"{where}: subject.{key} is missing")
+    return subject
+
+
+def _topology(ctx: RunContext):
+    from ..kinematics.rom import Topology
+
+    where = ctx.capture.path / "capture.json"
+    try:
+        return Topology.from_segments([(n, p, t) for n, p, t in _subject(ctx)["topology"]])
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: subject.topology: {exc}") from None
+
+
+def _rom_inputs(ctx: RunContext):
+    """ROM trial camera poses (reference frame), registered mask, rest-frame mask."""
+    from ..correspondences import Correspondences
+
+    corr = Correspondences.load(ctx.path("frontend", "rom", "correspondences.npz"))
+    rest_s = ctx.config.skeleton.rest_seconds
+    if not rest_s:
+        rest = _subject(ctx).get("rest", {})
+        try:
+            rest_s = tuple(float(x) for x in rest["after_first_clap_s"])
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"{ctx.capture.path / 'capture.json'}: subject.rest.after_first_clap_s missing; "
+                             "give skeleton.rest_seconds in a config file") from None
+    frames = np.arange(corr.num_frames) / corr.fps
+    rest = (frames >= rest_s[0]) & (frames < rest_s[1])
+    if rest.sum() < 2:
+        raise ValueError(f"rest pose {list(rest_s)} s after the first clap covers {int(rest.sum())} ROM frames "
+                         f"at {corr.fps:g} fps; need at least 2")
+    return corr.world_from_camera, corr.registered, rest
+
+
+def _estimate_skeleton(ctx: RunContext, poses, registered, rest):
+    from ..kinematics.rom import skeleton_from_range_of_motion
+
+    cams = [(c.name, c.segment) for c in ctx.capture.cameras]
+    return skeleton_from_range_of_motion(
+        _topology(ctx), cams, poses, registered, rest_frames=rest,
+        intrinsics=_stacked_intrinsics(ctx), root_origin=list(ctx.config.skeleton.root_origin))
+
+
+def _stacked_intrinsics(ctx: RunContext):
+    from ..cameras import stack_cameras
+
+    return stack_cameras([c.intrinsics for c in ctx.capture.cameras])
+
+
+def _stage_world(ctx: RunContext) -> dict:
+    from ..kinematics.ik import motion_from_camera_poses
+    from .world import Similarity, scale_from_measurements, upright_frame
+
+    poses, registered, rest = _rom_inputs(ctx)
+    # A provisional scale (a body ~1.7 m across its cameras) only brings the estimator's thresholds, in
+    # metres, to the right order; the measurements then fix the scale.
+    centres = poses[rest][..., 4:]
+    spans = [np.nanmax(np.linalg.norm(c[:, None] - c[None], axis=-1)) for c in centres
+             if np.isfinite(c).all(axis=-1).sum() >= 2]
+    if not spans:
+        raise ValueError("world: no rest frame with two registered cameras in the range-of-motion trial")
+    provisional = Similarity(1.7 / float(np.median(spans)), np.eye(3), np.zeros(3))
+    est = _estimate_skeleton(ctx, provisional.poses(poses), registered, rest)
+    measurements = _subject(ctx)["measurements"]
+    factor = scale_from_measurements(est.skeleton, measurements, f"{ctx.capture.path / 'capture.json'}: subject.measurements")
+    rest_motion = motion_from_camera_poses(est.skeleton, est.rig, provisional.poses(poses)[rest], registered[rest], robust=True)
+    k = ctx.config.skeleton
+    upright = upright_frame(est.skeleton, rest_motion, k.up_from, k.up_to, factor)
+    sim = provisional.then(upright)
+    _write_json(ctx.path("world", "similarity.json"), {
+        **sim.to_dict(), "maps": "reference model frame → metric world (m, Z up, origin on the floor under the rest pose)",
+        "provisional_scale": provisional.scale, "measurement_factor": factor})
+    ctx.log(f"world: {sim.scale:.4g} m per reference-model unit (measurements × {factor:.3f} on the provisional scale)")
+    return {"metres_per_unit": sim.scale}
+
+
+def _world(ctx: RunContext):
+    from .world import Similarity
+
+    return Similarity.from_dict(_read_json(ctx.path("world", "similarity.json")), str(ctx.path("world", "similarity.json")))
+
+
+def _stage_skeleton(ctx: RunContext) -> dict:
+    from ..io.model_json import rig_to_dict, skeleton_to_dict
+
+    poses, registered, rest = _rom_inputs(ctx)
+    est = _estimate_skeleton(ctx, _world(ctx).poses(poses), registered, rest)
+    _write_json(ctx.path("model", "skeleton.json"), skeleton_to_dict(est.skeleton))
+    _write_json(ctx.path("model", "rig.json"), rig_to_dict(est.rig, est.skeleton))
+    with atomic_path(ctx.path("model", "rom_summary.txt"), suffix=".txt") as tmp:
+        tmp.write_text(est.summary() + "\n")
+    ctx.log("skeleton:\n" + est.summary())
+    return {"segments": len(est.skeleton.names), "cameras": len(est.rig.names)}
+
+
+def load_model(out: Path):
+    """The skeleton and rig a run estimated (``DIR/model/``)."""
+    from ..io.model_json import rig_from_dict, skeleton_from_dict
+
+    sk_path, rig_path = out / "model" / "skeleton.json", out / "model" / "rig.json"
+    skeleton = skeleton_from_dict(_read_json(sk_path), str(sk_path))
+    return skeleton, rig_from_dict(_read_json(rig_path), skeleton, str(rig_path))
+
+
+def save_motion(path: Path, motion, **extra) -> None:
+    _write_npz(path, root_position=np.asarray(motion.root_position), rotations=np.asarray(motion.rotations), **extra)
+
+
+def load_motion(path: Path):
+    from ..kinematics.skeleton import Motion
+
+    try:
+        with np.load(path) as data:
+            return Motion(data["root_position"], data["rotations"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: not a saved motion ({exc})") from None
+
+
+def _stage_initial(ctx: RunContext) -> dict:
+    from ..correspondences import Correspondences
+    from ..kinematics.ik import motion_from_camera_poses
+
+    sim = _world(ctx)
+    corr = Correspondences.load(ctx.path("frontend", "capture", "correspondences.npz"))
+    metric = dataclasses.replace(corr, points=sim.points(corr.points), world_from_camera=sim.poses(corr.world_from_camera))
+    metric.save(ctx.path("solve", "correspondences.npz"))
+    skeleton, rig = load_model(ctx.out)
+    initial = motion_from_camera_poses(skeleton, rig, metric.world_from_camera, metric.registered, robust=True)
+    save_motion(ctx.path("solve", "initial.npz"), initial)
+    return {"frames": metric.num_frames, "registered_fraction": float(metric.registered.mean())}
+
+
+def _stage_solve(ctx: RunContext) -> dict:
+    from ..correspondences import Correspondences
+    from ..solver import Problem, SolverOptions, solve
+    from ..solver.objective import ObjectiveWeights, paper_terms
+    from ..solver.solve import window_starts
+
+    s = ctx.config.solver
+    corr = Correspondences.load(ctx.path("solve", "correspondences.npz"))
+    skeleton, rig = load_model(ctx.out)
+    smooth = "smoothness" in s.terms
+    weights = ObjectiveWeights(root_smoothness=s.root_smoothness if smooth else 0.0,
+                               joint_smoothness=s.joint_smoothness if smooth else 0.0,
+                               homography=s.homography, loss=s.loss, loss_scale=s.loss_scale)
+    problem = Problem(skeleton, rig, paper_terms(corr, skeleton, weights,
+                                                 include_homography="homography" in s.terms and None))
+    options = SolverOptions(window=s.window, overlap=s.overlap)
+    initial = load_motion(ctx.path("solve", "initial.npz"))
+    checkpoint_path, reports_path = ctx.path("solve", "checkpoint.npz"), ctx.path("solve", "checkpoint.json")
+    skip, reports = 0, []
+    if checkpoint_path.exists() and reports_path.exists():
+        saved = _read_json(reports_path)
+        if saved.get("fingerprint") == fingerprints(ctx.config)["solve"]:
+            initial = load_motion(checkpoint_path)
+            reports = saved["reports"]
+            skip = len(reports)
+            ctx.log(f"solve: resuming after window {skip} of {len(window_starts(corr.num_frames, min(s.window, corr.num_frames), s.overlap))}")
+
+    def save(index, report, motion):
+        reports.append(dataclasses.asdict(report))
+        save_motion(checkpoint_path, motion)
+        _write_json(reports_path, {"fingerprint": fingerprints(ctx.config)["solve"], "reports": reports})
+
+    solution = solve(problem, initial, options, progress=True, skip_windows=skip, checkpoint=save)
+    save_motion(ctx.path("solve", "motion.npz"), solution.motion)
+    _write_json(ctx.path("solve", "reports.json"), {"windows": reports})
+    return {"windows": len(reports), "converged": all(r["converged"] for r in reports)}
+
+
+def _stage_outputs(ctx: RunContext) -> dict:
+    from .outputs import write_outputs
+
+    return write_outputs(ctx)
+
+
+_STAGE_FUNCTIONS = {"frontend": _stage_frontend, "world": _stage_world, "skeleton": _stage_skeleton,
+                    "initial": _stage_initial, "solve": _stage_solve, "outputs": _stage_outputs}

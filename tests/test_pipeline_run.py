@@ -1,0 +1,161 @@
+"""bcmocap.pipeline.run: the stages after the frontend, on simulated frontend output.
+
+The frontend's files (``DIR/frontend/{rom,capture}/correspondences.npz`` and ``registration.json``) are
+made from the simulator in an arbitrary structure-from-motion frame (a random similarity of the true
+world), so the run must find the metric world, the skeleton, the motion and the outputs by itself; the
+frontend itself is tested on rendered pixels in the test_frontend_* files.
+"""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from bcmocap.correspondences import Correspondences
+from bcmocap.frontend.capture import Capture, CaptureCamera
+from bcmocap.geometry import SO3
+from bcmocap.pipeline import RunConfig, run_pipeline
+from bcmocap.pipeline.outputs import evaluate_run
+from bcmocap.pipeline.run import load_model, load_motion
+from bcmocap.pipeline.world import Similarity
+from bcmocap.sim import standard_capture
+from bcmocap.sim.rom import range_of_motion_trial
+from bcmocap.sim.studio import subject_record
+
+FPS = 20.0
+
+
+@pytest.fixture(scope="module")
+def simulated_run(tmp_path_factory):
+    import pycolmap
+
+    root = tmp_path_factory.mktemp("run")
+    capture = standard_capture("walk", seconds=1.5, fps=FPS, seed=2)
+    skeleton, rig = capture.skeleton, capture.rig
+    rom = range_of_motion_trial(skeleton, rig, fps=FPS, hold_seconds=1.0, seconds_per_joint=2.0,
+                                rotation_sigma_deg=0.3, position_sigma_m=0.003, seed=3)
+    sfm_from_world = Similarity(0.37, np.asarray(SO3.exp(np.array([0.4, -1.1, 2.0])).as_matrix()), np.array([3.0, -1.0, 0.5]))
+    frontend = root / "out" / "frontend"
+    for trial, corr in (("rom", _rom_correspondences(rom)), ("capture", capture.correspondences())):
+        sfm = dataclasses.replace(corr, points=sfm_from_world.points(corr.points),
+                                  world_from_camera=sfm_from_world.poses(corr.world_from_camera))
+        sfm.save(frontend / trial / "correspondences.npz")
+        (frontend / trial / "registration.json").write_text(json.dumps(
+            {"stride": 1, "frames": sfm.num_frames, "registered_fraction": float(sfm.registered.mean()),
+             "cameras": list(rig.names)}))
+    (frontend / "reference" / "model").mkdir(parents=True)
+    pycolmap.Reconstruction().write(str(frontend / "reference" / "model"))
+    subject = subject_record(skeleton, 0, FPS)
+    subject["rest"] = {"trial": "rom", "after_first_clap_s": [0.0, 0.9]}
+    cameras = tuple(CaptureCamera(n, skeleton.names[s], None, None) for n, s in zip(rig.names, rig.segments))
+    from bcmocap.cameras import camera_at
+
+    cameras = tuple(dataclasses.replace(c, intrinsics=camera_at(rig.intrinsics, i)) for i, c in enumerate(cameras))
+    fake = Capture(root / "capture", {"subject": subject}, FPS, None, cameras, tuple(skeleton.names), ("rom", "capture"), (), None)
+    config = RunConfig().with_overrides({"frontend.stride": 1, "frontend.rom_stride": 1, "solver.window": 20,
+                                         "solver.overlap": 5})
+    lines = []
+    run_log = run_pipeline(fake, root / "out", config, log=lines.append)
+    return root / "out", run_log, lines, capture, sfm_from_world, fake, config
+
+
+def _rom_correspondences(rom) -> Correspondences:
+    t, c = rom.registered.shape
+    empty = lambda *shape: np.zeros(shape)
+    return Correspondences(np.zeros((1, 3)), np.full((t, c, 1), -1, np.int32), empty(t, c, 1, 2), empty(t, c, 1),
+                           empty(t, c, 1, 2), empty(t, c, 1, 2), empty(t, c, 1), rom.world_from_camera, rom.registered, FPS)
+
+
+def test_run_finds_the_metric_world_skeleton_and_motion(simulated_run):
+    out, run_log, lines, capture, sfm_from_world, _, _ = simulated_run
+    assert list(run_log["stages"]) == ["frontend", "world", "skeleton", "initial", "solve", "outputs"]
+    sim = Similarity.from_dict(json.loads((out / "world" / "similarity.json").read_text()))
+    assert sim.scale == pytest.approx(1 / sfm_from_world.scale, rel=0.02)
+    skeleton, rig = load_model(out)
+    truth = {"skeleton": capture.skeleton, "rig": capture.rig, "motion": capture.motion,
+             "world_from_camera": np.asarray(__import__("bcmocap.kinematics.rig", fromlist=["camera_poses"])
+                                             .camera_poses(capture.skeleton, capture.rig, capture.motion).wxyz_xyz),
+             "valid": np.ones(capture.num_frames, bool)}
+    corr = Correspondences.load(out / "solve" / "correspondences.npz")
+    metrics, _ = evaluate_run(skeleton, rig, {"initial": load_motion(out / "solve" / "initial.npz"),
+                                               "solved": load_motion(out / "solve" / "motion.npz")}, corr, truth)
+    solved, initial = metrics["solved"], metrics["initial"]
+    assert solved["joint_position_error_cm"]["mean"] < 1.5 < initial["joint_position_error_cm"]["mean"]
+    assert solved["joint_angle_error_deg"]["mean"] < 2.5
+    # Z up: the head is above the feet in every frame
+    joints = np.load(out / "motion.npz")["joint_positions"]
+    names = list(skeleton.names)
+    assert np.all(joints[:, names.index("head"), 2] > joints[:, names.index("left_foot"), 2] + 1.0)
+
+
+def test_run_writes_every_output_a_reader_opens(simulated_run):
+    out, *_ = simulated_run
+    from bcmocap.io import read_bvh, read_ply
+
+    skeleton, _ = load_model(out)
+    motion = load_motion(out / "solve" / "motion.npz")
+    assert read_bvh(out / "motion.bvh").motion.num_frames == motion.num_frames
+    points, _ = read_ply(out / "scene.ply")
+    assert len(points) > 100 and np.isfinite(points).all()
+    assert read_ply(out / "camera_paths.ply")[0].shape == (motion.num_frames * 18, 3)
+    angles = np.loadtxt(out / "joint_angles.csv", delimiter=",", skiprows=1)
+    assert angles.shape == (motion.num_frames, 1 + 3 * (skeleton.num_segments - 1))
+    header = (out / "joint_positions.csv").read_text().splitlines()[0].split(",")
+    assert header[:4] == ["time_s", "pelvis.x_m", "pelvis.y_m", "pelvis.z_m"]
+    for name in ("joint_angles", "joint_positions", "camera_centres", "top_view", "skeleton_poses"):
+        assert (out / "pictures" / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "reference_colmap" / "points3D.bin").exists()
+    assert json.loads((out / "config.json").read_text())["solver"]["window"] == 20
+
+
+def test_rerun_reuses_finished_stages_and_changed_settings_redo_only_what_they_affect(simulated_run):
+    out, _, _, _, _, fake, config = simulated_run
+    before = (out / "solve" / "motion.npz").stat().st_mtime_ns
+    lines = []
+    run_pipeline(fake, out, config, log=lines.append)
+    assert sum("reused" in line for line in lines) == 6
+    assert (out / "solve" / "motion.npz").stat().st_mtime_ns == before
+    lines = []
+    run_pipeline(fake, out, config.with_overrides({"outputs.pictures": False}), log=lines.append)
+    assert sum("reused" in line for line in lines) == 5 and any("outputs: settings changed" in line for line in lines)
+
+
+def test_an_interrupted_solve_resumes_at_the_next_window(simulated_run, tmp_path):
+    import shutil
+
+    out, _, _, _, _, fake, config = simulated_run
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    solved = load_motion(copy / "solve" / "motion.npz")
+    # keep the checkpoint of the first two windows only, as if the run had been stopped there
+    reports = json.loads((copy / "solve" / "checkpoint.json").read_text())
+    first_two = reports["reports"][:2]
+    log = json.loads((copy / "run.json").read_text())
+    for stage in ("solve", "outputs"):
+        log["stages"].pop(stage)
+    (copy / "run.json").write_text(json.dumps(log))
+    (copy / "solve" / "checkpoint.json").write_text(json.dumps({**reports, "reports": first_two}))
+    partial = load_motion(copy / "solve" / "checkpoint.npz")
+    stop = first_two[-1]["stop"]
+    rot = np.array(partial.rotations)
+    root = np.array(partial.root_position)
+    initial = load_motion(copy / "solve" / "initial.npz")
+    rot[stop:], root[stop:] = np.asarray(initial.rotations)[stop:], np.asarray(initial.root_position)[stop:]
+    np.savez(copy / "solve" / "checkpoint.npz", root_position=root, rotations=rot)
+    lines = []
+    run_pipeline(fake, copy, config, log=lines.append)
+    assert any("resuming after window 2" in line for line in lines)
+    resumed = load_motion(copy / "solve" / "motion.npz")
+    np.testing.assert_allclose(np.asarray(resumed.rotations), np.asarray(solved.rotations), atol=1e-9)
+
+
+def test_missing_subject_is_a_clear_error(simulated_run, tmp_path):
+    out, _, _, _, _, fake, config = simulated_run
+    import shutil
+
+    copy = tmp_path / "out"
+    shutil.copytree(out / "frontend", copy / "frontend")
+    bare = dataclasses.replace(fake, manifest={})
+    with pytest.raises(ValueError, match="capture.json: no 'subject' entry"):
+        run_pipeline(bare, copy, config, log=lambda line: None)

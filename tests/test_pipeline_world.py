@@ -1,0 +1,122 @@
+"""bcmocap.pipeline.world and .config: similarities, moving a model between worlds, the run's settings."""
+
+import numpy as np
+import pytest
+from conftest import make_rig, make_skeleton, random_quaternions
+
+from bcmocap.geometry import SO3
+from bcmocap.kinematics import Motion
+from bcmocap.kinematics.fk import joint_positions
+from bcmocap.kinematics.rig import camera_poses
+from bcmocap.pipeline.config import RunConfig, load_config
+from bcmocap.pipeline.run import fingerprints
+from bcmocap.pipeline.world import Similarity, scale_from_measurements, transform_model, upright_frame
+
+
+def _similarity(seed=0) -> Similarity:
+    rng = np.random.default_rng(seed)
+    rot = np.asarray(SO3.exp(rng.normal(size=3)).as_matrix())
+    return Similarity(float(rng.uniform(0.3, 3.0)), rot, rng.normal(size=3))
+
+
+def _motion(skeleton, frames=4, seed=1) -> Motion:
+    rng = np.random.default_rng(seed)
+    rot = np.asarray(skeleton.project_rotations(random_quaternions(rng, (frames, skeleton.num_segments), 0.6)))
+    return Motion(rng.normal(size=(frames, 3)), rot)
+
+
+def test_similarity_maps_poses_points_and_composes():
+    a, b = _similarity(0), _similarity(1)
+    x = np.random.default_rng(2).normal(size=(5, 3))
+    np.testing.assert_allclose(a.then(b).points(x), b.points(a.points(x)), atol=1e-12)
+    np.testing.assert_allclose(a.inverse().points(a.points(x)), x, atol=1e-12)
+    poses = np.concatenate([random_quaternions(np.random.default_rng(3), (5,)), x], axis=1)
+    poses[2] = np.nan
+    moved = a.poses(poses)
+    assert np.isnan(moved[2]).all()
+    np.testing.assert_allclose(moved[[0, 1, 3, 4], 4:], a.points(x[[0, 1, 3, 4]]), atol=1e-12)
+    back = a.inverse().poses(moved)
+    same_rotation = np.abs(np.sum(back[:, :4] * poses[:, :4], axis=1))
+    np.testing.assert_allclose(same_rotation[[0, 1, 3, 4]], 1.0, atol=1e-10)
+    assert Similarity.from_dict(a.to_dict()).to_dict() == a.to_dict()
+    with pytest.raises(ValueError, match="similarity.json"):
+        Similarity.from_dict({"scale": 1.0}, "similarity.json")
+
+
+def test_transform_model_moves_joints_and_cameras_by_the_similarity_and_keeps_joint_angles():
+    skeleton = make_skeleton()
+    rig = make_rig(skeleton)
+    motion = _motion(skeleton)
+    sim = _similarity(4)
+    sk2, rig2, m2 = transform_model(skeleton, rig, motion, sim)
+    np.testing.assert_allclose(np.asarray(joint_positions(sk2, m2)), sim.points(np.asarray(joint_positions(skeleton, motion))), atol=1e-10)
+    cams, cams2 = np.asarray(camera_poses(skeleton, rig, motion).wxyz_xyz), np.asarray(camera_poses(sk2, rig2, m2).wxyz_xyz)
+    np.testing.assert_allclose(cams2[..., 4:], sim.points(cams[..., 4:]), atol=1e-10)
+    expected = sim.poses(cams.reshape(-1, 7)).reshape(cams.shape)
+    np.testing.assert_allclose(np.abs(np.sum(cams2[..., :4] * expected[..., :4], axis=-1)), 1.0, atol=1e-10)
+    angle = lambda q: 2 * np.arccos(np.clip(np.abs(np.asarray(q)[..., 0]), 0, 1))
+    np.testing.assert_allclose(angle(m2.rotations[:, 1:]), angle(motion.rotations[:, 1:]), atol=1e-7)
+    # the rest pose stays the rest pose: segment frames parallel to the new world
+    rest2 = np.asarray(joint_positions(sk2, sk2.rest_motion()))
+    rest = np.asarray(joint_positions(skeleton, skeleton.rest_motion()))
+    np.testing.assert_allclose(rest2, sim.scale * rest @ sim.rotation.T, atol=1e-10)
+
+
+def test_scale_from_measurements_and_its_errors():
+    skeleton = make_skeleton()
+    rest = np.asarray(joint_positions(skeleton, skeleton.rest_motion()))
+    d = float(np.linalg.norm(rest[3] - rest[5]))
+    assert scale_from_measurements(skeleton, [{"from": "thigh", "to": "foot", "metres": 2 * d}]) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="unknown segment 'knee'"):
+        scale_from_measurements(skeleton, [{"from": "knee", "to": "foot", "metres": 0.4}])
+    with pytest.raises(ValueError, match="no measurement"):
+        scale_from_measurements(skeleton, [])
+    with pytest.raises(ValueError, match=r"\[0\]"):
+        scale_from_measurements(skeleton, [{"from": "thigh"}])
+
+
+def test_upright_frame_points_feet_to_head_along_z_and_puts_the_ankles_on_the_floor():
+    skeleton = make_skeleton()
+    tilt = SO3.exp(np.array([0.7, -0.3, 0.2]))
+    rotations = np.tile(np.array([1.0, 0, 0, 0]), (3, 6, 1))
+    rotations[:, 0] = np.asarray(tilt.wxyz)
+    rest = Motion(np.array([[1.0, 2.0, 3.0]] * 3), rotations)
+    sim = upright_frame(skeleton, rest, ["foot"], "head", 2.0)
+    joints = sim.points(np.asarray(joint_positions(skeleton, rest)))
+    up = joints[0, 2] - joints[0, 5]
+    assert np.linalg.norm(up[:2]) < 1e-9 and up[2] > 0
+    assert abs(joints[0, 5, 2]) < 1e-9 and np.linalg.norm(joints[0, 0, :2]) < 1e-9
+    with pytest.raises(ValueError, match="unknown segment 'toe'"):
+        upright_frame(skeleton, rest, ["toe"], "head", 1.0)
+
+
+def test_config_file_flags_and_errors(tmp_path):
+    path = tmp_path / "run.toml"
+    path.write_text('[solver]\nwindow = 30\nloss = "huber"\n[frontend]\nstride = 1\n')
+    config = load_config(path)
+    assert config.solver.window == 30 and config.solver.loss == "huber" and config.frontend.stride == 1
+    assert config.with_overrides({"solver.overlap": 5}).solver.overlap == 5
+    assert RunConfig.from_dict(config.to_dict()) == config
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[solver]\nwindoww = 3\n")
+    with pytest.raises(ValueError, match=r"bad.toml: solver.windoww is not a setting"):
+        load_config(bad)
+    bad.write_text("[solverr]\n")
+    with pytest.raises(ValueError, match=r"unknown section \[solverr\]"):
+        load_config(bad)
+    bad.write_text('[solver]\nloss = "l1"\n')
+    with pytest.raises(ValueError, match="solver.loss"):
+        load_config(bad)
+    with pytest.raises(ValueError, match="cannot read"):
+        load_config(tmp_path / "missing.toml")
+    with pytest.raises(ValueError, match="unknown setting"):
+        config.with_overrides({"solver.nope": 1})
+
+
+def test_fingerprints_change_from_the_first_stage_a_setting_affects():
+    base = fingerprints(RunConfig())
+    solver = fingerprints(RunConfig().with_overrides({"solver.window": 30}))
+    assert [base[s] == solver[s] for s in ("frontend", "world", "skeleton", "initial")] == [True] * 4
+    assert base["solve"] != solver["solve"] and base["outputs"] != solver["outputs"]
+    stride = fingerprints(RunConfig().with_overrides({"frontend.stride": 3}))
+    assert all(base[s] != stride[s] for s in base)
