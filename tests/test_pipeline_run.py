@@ -159,3 +159,17 @@ def test_missing_subject_is_a_clear_error(simulated_run, tmp_path):
     bare = dataclasses.replace(fake, manifest={})
     with pytest.raises(ValueError, match="capture.json: no 'subject' entry"):
         run_pipeline(bare, copy, config, log=lambda line: None)
+
+
+def test_run_command_refuses_bad_input_without_writing(tmp_path, capsys):
+    from bcmocap.cli import main
+
+    assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert "missing" in capsys.readouterr().err
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[solver]\nwindo = 3\n")
+    assert main(["run", str(capture), "--out", str(tmp_path / "o"), "--config", str(bad)]) == 2
+    assert "solver.windo is not a setting" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

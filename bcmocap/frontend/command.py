@@ -5,7 +5,7 @@ Stages, each saved under ``DIR`` and reused when rerun (delete a stage's output 
 1. ``reference/``: the reference model of the reference photos (:func:`~.reference.build_reference`,
    saved by :func:`~.reference.save_reference`);
 2. per trial, audio synchronisation (:func:`~.sync.synchronize`; ``--offsets`` gives them instead), then
-   SIFT of every ``--stride``-th frame of every camera from its first clap on
+   SIFT of every ``--stride``-th frame of every camera from the first clap to the second
    (``features/<trial>/<camera>.npz``);
 3. per trial, registration (:func:`~.relative.register_capture`), homographies for the frames left
    (:func:`~.homography.fill_with_homographies`) and ``<trial>/correspondences.npz``
@@ -88,7 +88,8 @@ def prepare_reference(capture, ref_dir, log=print):
 
 def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
                   max_features: int = 8000, offsets=None, homographies: bool = True, log=print) -> dict:
-    """One trial through sync, features, registration and homographies, written under ``out``.
+    """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
+    are given), through sync, features, registration and homographies, written under ``out``.
 
     Writes ``out/<trial>/correspondences.npz`` and ``out/<trial>/registration.json`` (features are cached
     in ``out/features/<trial>/``) and returns the registration report (the JSON's content).
@@ -103,8 +104,10 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
     starts = np.asarray(sync.offsets, np.int64)
     available = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(capture.camera_names, starts))
+    if np.isfinite(sync.duration_s):  # the take ends at the second clap
+        available = min(available, int(round(sync.duration_s * capture.fps)) + 1)
     frames = available if frames is None else min(available, frames)
-    log(f"{trial}: first clap at video frames {starts.tolist()}; {frames} frames per camera")
+    log(f"{trial}: first clap at video frames {starts.tolist()}; {frames} frames per camera up to the second clap")
     features = extract_trial_features(capture, trial, stride=stride, starts=starts, num_frames=frames,
                                       max_features=max_features, cache_dir=out / "features" / trial,
                                       progress=_progress(f"{trial} features"))
