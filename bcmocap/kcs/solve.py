@@ -26,6 +26,14 @@ jointly over the sequence per bone by dynamic programming: agreement with the nu
 the image plane rather than bouncing off it). Set ``constant_bone_lengths=False`` for the paper's
 relaxation as printed.
 
+**Anatomy (beyond the paper).** Per-bone smoothness cannot tell a bone flipped over a whole stretch of
+frames from the true one. For a human chain (:func:`~bcmocap.kcs.anatomy.human_anatomy`) the signs of
+whole limbs (thigh–shank–foot, upper arm–forearm, the pelvis, the thorax) are then chosen jointly by a
+second-order dynamic programme over the sign combinations (:func:`limb_signs`), with hinge penalties
+(knees bend backwards about the pelvis's lateral axis, feet point forwards, elbows do not hyper-extend)
+and the rigidity of pelvis and thorax; inside Algorithm 1 after every per-bone choice
+(``anatomy_in_loop``) and once at the end. ``KCSOptions(anatomy=False)`` is the paper's method.
+
 Everything is jitted and vmaps over independent sequences or camera paths; shapes are static and
 missing joints are masked (a bone is observed when both its joints are).
 """
@@ -34,16 +42,18 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .anatomy import Anatomy, human_anatomy
 from .cameras import WeakPerspectiveCameras, fit_cameras, initial_cameras, reprojection_rms
 from .chain_space import KinematicChainSpace
 
-__all__ = ["KCSOptions", "KCSResult", "reconstruct", "singular_value_threshold", "solve_bones"]
+__all__ = ["KCSOptions", "KCSResult", "limb_signs", "reconstruct", "singular_value_threshold", "solve_bones"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +74,14 @@ class KCSOptions:
         sign_every: choose depth signs over the whole sequence every this many proximal steps.
         depth_smoothing: σ (frames) of a Gaussian smoothing of the squared depths ``l² − ‖u‖²`` over time
             in the constancy projection (0 = none); see :func:`_project_lengths`.
+        anatomy: after Algorithm 1, choose the depth signs of whole limbs with anatomical hinges
+            (:mod:`bcmocap.kcs.anatomy`, an addition beyond the paper) when the chain is a human one that
+            :func:`~bcmocap.kcs.anatomy.human_anatomy` recognises (or an :class:`Anatomy` is given).
+        hinge_weight: weight of a hinge's penalty (normalised, dimensionless) per frame in that choice.
+        limb_smoothness: weight of the squared second difference of the limb's joints (m²) over time.
+        limb_agreement: weight of the squared distance to Algorithm 1's bones (m²).
+        anatomy_in_loop: also choose the limb signs inside Algorithm 1, at every per-bone sign choice
+            (after it), so that the shape and camera steps continue from anatomically plausible limbs.
     """
 
     max_iterations: int = 30
@@ -78,6 +96,11 @@ class KCSOptions:
     sign_smoothness: float = 30.0
     sign_every: int = 5
     depth_smoothing: float = 3.0
+    anatomy: bool = True
+    hinge_weight: float = 10.0
+    limb_smoothness: float = 30.0
+    limb_agreement: float = 1.0
+    anatomy_in_loop: bool = True
 
     def __post_init__(self):
         for name in ("max_iterations", "shape_steps", "camera_steps", "initial_camera_steps", "sign_every"):
@@ -87,10 +110,10 @@ class KCSOptions:
             raise ValueError(
                 f"KCSOptions: shape_steps ({self.shape_steps}) must be a multiple of sign_every ({self.sign_every})"
             )
-        if not min(self.nuclear_weight, self.tolerance, self.sign_smoothness, self.depth_smoothing) >= 0:
-            raise ValueError(
-                "KCSOptions: nuclear_weight, tolerance, sign_smoothness and depth_smoothing must be non-negative"
-            )
+        nonneg = ("nuclear_weight", "tolerance", "sign_smoothness", "depth_smoothing", "hinge_weight",
+                  "limb_smoothness", "limb_agreement")
+        if not min(getattr(self, n) for n in nonneg) >= 0:
+            raise ValueError(f"KCSOptions: {', '.join(nonneg)} must be non-negative")
         if not 0 < self.length_weight <= 1:
             raise ValueError(f"KCSOptions: length_weight must be in (0, 1], got {self.length_weight}")
         if self.rank is not None and int(self.rank) < 1:
@@ -175,6 +198,117 @@ def _viterbi_signs(candidates: jax.Array, target: jax.Array, smoothness) -> jax.
     return jnp.concatenate([rest, jnp.stack([s_prev, s_last])])
 
 
+def _viterbi_states(unary: jax.Array, points: jax.Array, smoothness) -> jax.Array:
+    """Second-order dynamic programme over ``S`` discrete states per frame.
+
+    Args:
+        unary: ``(F, S)`` cost of each state in each frame.
+        points: ``(F, S, n, 3)`` points that each state places; the pairwise cost is ``smoothness`` ×
+            ``Σ ‖p_{k−1} − 2 p_k + p_{k+1}‖²`` over the ``n`` points.
+
+    Returns:
+        ``(F,)`` the state sequence of least total cost (F ≥ 3).
+    """
+    s = unary.shape[1]
+    cost0 = unary[0][:, None] + unary[1][None, :]  # states (s_{k-1}, s_k)
+
+    def forward(cost, k):
+        acc = points[k - 2][:, None, None] - 2 * points[k - 1][None, :, None] + points[k][None, None, :]
+        total = cost[:, :, None] + smoothness * jnp.sum(acc**2, axis=(-1, -2))  # (a, b, c)
+        back = jnp.argmin(total, axis=0)  # (b, c)
+        return jnp.min(total, axis=0) + unary[k][None, :], back
+
+    cost, backs = jax.lax.scan(forward, cost0, jnp.arange(2, unary.shape[0]))
+    last = jnp.argmin(cost)
+    s_prev, s_last = last // s, last % s
+
+    def backward(carry, back):
+        b, c = carry
+        a = back[b, c]
+        return (a, b), a
+
+    _, rest = jax.lax.scan(backward, (s_prev, s_last), backs, reverse=True)
+    return jnp.concatenate([rest, jnp.stack([s_prev, s_last])])
+
+
+def _unit(v):
+    n = jnp.linalg.norm(v, axis=-1, keepdims=True)
+    return v / jnp.where(n > 0, n, 1.0)
+
+
+def limb_signs(
+    camera_bones: jax.Array,
+    anatomy: Anatomy,
+    hinge_weight=10.0,
+    smoothness=30.0,
+    agreement=1.0,
+    target=None,
+    rest_bones=None,
+):
+    """Depth signs of whole limbs chosen jointly over time with anatomical hinges (beyond the paper).
+
+    For each limb of ``anatomy`` (``n`` bones, ``2ⁿ`` sign combinations per frame) a second-order dynamic
+    programme over the sequence minimises, per frame, ``hinge_weight`` × the hinge penalties
+    (:mod:`bcmocap.kcs.anatomy`: wrong bending direction ``relu(−σ c)`` and, for planar hinges, the axis
+    leaving the lateral axis ``|p̂ × ĉ| − σ c`` with ``c = (p̂ × ĉ)·lateral``), plus ``agreement`` × the
+    squared distance to the given bones, plus ``smoothness`` × the squared second difference of the
+    limb's joints (relative to its first joint) over time. The magnitudes of the depths are kept.
+
+    Args:
+        camera_bones: ``(F, b, 3)`` bones in each frame's camera frame (x, y image axes, z depth).
+        anatomy: limbs, hinges and lateral axes (static).
+        hinge_weight, smoothness, agreement: weights (see above).
+        target: ``(F, b, 3)`` bones to agree with (default ``camera_bones``).
+        rest_bones: ``(b, 3)`` the initial configuration ``B0``: the angles of ``anatomy.rigid`` pairs
+            are held to theirs (``hinge_weight`` × the absolute difference of cosines); ``None`` = unused.
+
+    Returns:
+        ``(F, b, 3)`` the bones with the limbs' depth signs replaced (other bones unchanged).
+    """
+    f = camera_bones.shape[0]
+    if f < 3 or not anatomy.limbs:
+        return camera_bones
+    laterals = []
+    for pairs in anatomy.laterals:
+        v = sum(_unit(camera_bones[:, a] - camera_bones[:, b]) for a, b in pairs)
+        laterals.append(_unit(v))
+    target = camera_bones if target is None else target
+    out = camera_bones
+    for index, limb in enumerate(anatomy.limbs):
+        n = len(limb)
+        bits = np.array(list(itertools.product((0, 1), repeat=n)))  # (S, n), 1 = negative depth
+        bones = camera_bones[:, list(limb)]  # (F, n, 3)
+        z = jnp.abs(bones[..., 2])
+        sign = jnp.asarray(1.0 - 2.0 * bits)  # (S, n)
+        states = jnp.concatenate(
+            [jnp.broadcast_to(bones[:, None, :, :2], (f, len(bits), n, 2)), (sign[None] * z[:, None])[..., None]], -1
+        )  # (F, S, n, 3)
+        unary = agreement * jnp.sum((states - target[:, None, list(limb)]) ** 2, axis=(-1, -2))
+        lengths = jnp.linalg.norm(states, axis=-1)  # (F, S, n)
+        for h in anatomy.hinges:
+            if h.limb != index:
+                continue
+            cross = jnp.cross(states[:, :, h.parent], states[:, :, h.child])
+            den = lengths[:, :, h.parent] * lengths[:, :, h.child]
+            den = jnp.where(den > 0, den, 1.0)
+            c = jnp.einsum("fsi,fi->fs", cross, laterals[h.lateral]) / den
+            penalty = jax.nn.relu(-h.sign * c)
+            if h.planar:
+                penalty = penalty + jnp.linalg.norm(cross, axis=-1) / den - h.sign * c
+            unary = unary + hinge_weight * penalty
+        for limb_index, i, j in anatomy.rigid:
+            if limb_index != index or rest_bones is None:
+                continue
+            a, b = rest_bones[limb[i]], rest_bones[limb[j]]
+            rest_cos = jnp.dot(a, b) / jnp.maximum(jnp.linalg.norm(a) * jnp.linalg.norm(b), 1e-300)
+            den = lengths[:, :, i] * lengths[:, :, j]
+            cos = jnp.sum(states[:, :, i] * states[:, :, j], axis=-1) / jnp.where(den > 0, den, 1.0)
+            unary = unary + hinge_weight * jnp.abs(cos - rest_cos)
+        pick = _viterbi_states(unary, jnp.cumsum(states, axis=2), smoothness)
+        out = out.at[:, list(limb)].set(states[jnp.arange(f), pick])
+    return out
+
+
 def _smooth_in_time(x, sigma: float):
     """Gaussian smoothing (σ in frames) of ``(F, b)`` along frames, renormalised at the ends."""
     if sigma <= 0 or x.shape[0] < 2:
@@ -193,7 +327,9 @@ def _smooth_in_time(x, sigma: float):
     return conv(x) / conv(jnp.ones_like(x))
 
 
-def _project_lengths(bones, rotation, observed, lengths, weight, smoothness, choose_signs: bool, depth_sigma=0.0):
+def _project_lengths(
+    bones, rotation, observed, lengths, weight, smoothness, choose_signs: bool, depth_sigma=0.0, limbs=None
+):
     """Relaxed projection of ``(F, 3, b)`` bones onto constant ``lengths`` (b,).
 
     An observed bone keeps its image-plane part (pinned by the data) and gets its depth from its length;
@@ -215,11 +351,17 @@ def _project_lengths(bones, rotation, observed, lengths, weight, smoothness, cho
         sign = 1.0 - 2.0 * pick
     else:
         sign = jnp.where(cam[:, 2] < 0, -1.0, 1.0)
-    projected = rotation.swapaxes(1, 2) @ jnp.concatenate([u, (sign * depth)[:, None]], axis=1)
+    chosen = jnp.concatenate([u, (sign * depth)[:, None]], axis=1)
+    if choose_signs and limbs is not None and bones.shape[0] >= 3:
+        anatomy, hinge_weight, limb_smoothness, agreement, rest = limbs
+        chosen = limb_signs(
+            chosen.swapaxes(1, 2), anatomy, hinge_weight, limb_smoothness, agreement, cam.swapaxes(1, 2), rest
+        ).swapaxes(1, 2)
+    projected = rotation.swapaxes(1, 2) @ chosen
     return bones + weight * (projected - bones)
 
 
-def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptions()):
+def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptions(), anatomy: Anatomy | None = None):
     """Algorithm 1 on one sequence in the KCS (pure, jittable, vmappable; no input checks).
 
     Args:
@@ -227,6 +369,8 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
         weights: ``(F, b)`` 1 where the bone is observed, 0 where not.
         initial_bones: ``(3, b)`` ``B0 = X0 C`` (metres).
         options: settings (static).
+        anatomy: limbs and hinges (static) for the final choice of limb signs (:func:`limb_signs`),
+            used when ``options.anatomy``; ``None`` = none.
 
     Returns:
         ``(bones (F, 3, b), cameras, lengths (b,), reprojection history, iterations, converged)``.
@@ -244,6 +388,12 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
         basis = vt[: options.rank]
     r = basis.shape[0]
     tau = options.nuclear_weight
+    use_anatomy = options.anatomy and anatomy is not None and options.constant_bone_lengths
+    limbs = (
+        (anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, b0.T)
+        if use_anatomy and options.anatomy_in_loop
+        else None
+    )
     history = jnp.full(2 * options.max_iterations + 1, jnp.nan).at[0].set(reprojection_rms(y, w, b0, cams))
 
     def prox_step(a, cams, choose_signs):
@@ -266,6 +416,7 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
                 options.sign_smoothness,
                 choose_signs,
                 options.depth_smoothing,
+                limbs,
             )
             a = (bones - b0) @ basis.T
         return a
@@ -295,14 +446,20 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
     a0 = jnp.zeros((f, 3, r))
     it, a, cams, history, converged = jax.lax.while_loop(cond, body, (0, a0, cams, history, jnp.array(False)))
     bones = b0 + a @ basis
+    if use_anatomy:
+        cam = (cams.rotation @ bones).swapaxes(1, 2)  # (F, b, 3)
+        cam = limb_signs(
+            cam, anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, rest_bones=b0.T
+        )
+        bones = cams.rotation.swapaxes(1, 2) @ cam.swapaxes(1, 2)
     lengths = jnp.mean(jnp.linalg.norm(bones, axis=1), axis=0)
     return bones, cams, lengths, history, it, converged
 
 
-@functools.partial(jax.jit, static_argnames=("options",))
-def _solve_batch(bones_2d, weights, initial_bones, d_joints, options):
+@functools.partial(jax.jit, static_argnames=("options", "anatomy"))
+def _solve_batch(bones_2d, weights, initial_bones, d_joints, options, anatomy=None):
     def one(y, w, b0):
-        bones, cams, lengths, history, it, converged = solve_bones(y, w, b0, options)
+        bones, cams, lengths, history, it, converged = solve_bones(y, w, b0, options, anatomy)
         joints = (bones @ d_joints).swapaxes(1, 2)  # (F, J, 3)
         joints_camera = joints @ cams.rotation.swapaxes(1, 2)
         return KCSResult(joints, joints_camera, bones.swapaxes(1, 2), cams, lengths, history, it, converged)
@@ -363,6 +520,7 @@ def reconstruct(
     mean_pose,
     mask=None,
     options: KCSOptions = KCSOptions(),
+    anatomy: Anatomy | None = None,
 ) -> KCSResult:
     """3-D motion of a kinematic chain from its 2-D joints in one uncalibrated camera (Algorithm 1).
 
@@ -374,6 +532,8 @@ def reconstruct(
             pose of the chain, e.g. :func:`~bcmocap.kcs.mean_pose` of other sequences; it fixes the scale.
         mask: optional ``(..., F, J)`` booleans, False for missing joints.
         options: solver settings.
+        anatomy: limbs and hinges for the final limb-sign choice (``options.anatomy``); default
+            :func:`~bcmocap.kcs.anatomy.human_anatomy` of ``chain`` (``None`` for non-human chains).
 
     Returns:
         A :class:`KCSResult` with the batch shape of ``joints_2d``.
@@ -397,5 +557,6 @@ def reconstruct(
         jnp.asarray(b0.reshape(-1, 3, b)),
         jnp.asarray(chain.D_least_squares),
         options,
+        (anatomy if anatomy is not None else human_anatomy(chain)) if options.anatomy else None,
     )
     return jax.tree.map(lambda a: a.reshape(*batch, *a.shape[1:]), flat)
