@@ -9,7 +9,6 @@ import argparse
 import csv
 import sys
 import time
-from pathlib import Path
 
 _DESCRIPTION = """\
 Reconstruct the 3-D motion of a kinematic chain (a person, an animal, a robot arm) from its 2-D joints in

@@ -177,25 +177,7 @@ def _viterbi_signs(candidates: jax.Array, target: jax.Array, smoothness) -> jax.
         ``(F,)`` chosen candidate index per frame.
     """
     unary = jnp.sum((candidates - target[:, None]) ** 2, axis=-1)  # (F, 2)
-    cost0 = unary[0][:, None] + unary[1][None, :]  # states (s_{k-1}, s_k)
-
-    def forward(cost, k):
-        acc = candidates[k - 2][:, None, None] - 2 * candidates[k - 1][None, :, None] + candidates[k][None, None, :]
-        total = cost[:, :, None] + smoothness * jnp.sum(acc**2, axis=-1)  # (a, b, c)
-        back = jnp.argmin(total, axis=0)  # (b, c)
-        return jnp.min(total, axis=0) + unary[k][None, :], back
-
-    cost, backs = jax.lax.scan(forward, cost0, jnp.arange(2, candidates.shape[0]))
-    last = jnp.argmin(cost)
-    s_prev, s_last = last // 2, last % 2
-
-    def backward(carry, back):
-        b, c = carry
-        a = back[b, c]
-        return (a, b), a
-
-    _, rest = jax.lax.scan(backward, (s_prev, s_last), backs, reverse=True)
-    return jnp.concatenate([rest, jnp.stack([s_prev, s_last])])
+    return _viterbi_states(unary, candidates[:, :, None], smoothness)
 
 
 def _viterbi_states(unary: jax.Array, points: jax.Array, smoothness) -> jax.Array:

@@ -183,8 +183,9 @@ def evaluate_run(skeleton, rig, motions: dict, corr, truth: dict):
 
 
 def _stats(x: np.ndarray) -> dict:
-    x = np.asarray(x, np.float64).ravel()
-    return {"mean": float(x.mean()), "median": float(np.median(x)), "max": float(x.max())}
+    from ..eval import ErrorStats
+
+    return ErrorStats.of(x).as_dict()
 
 
 # ---- pictures ---------------------------------------------------------------------------------------

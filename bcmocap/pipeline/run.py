@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cli import write_json_atomic as _write_json
 from ..io.atomic import atomic_path
 from .config import RunConfig
 
@@ -41,11 +42,6 @@ STAGES = ("frontend", "world", "skeleton", "initial", "solve", "outputs")
 _STAGE_SECTIONS = {"frontend": ("frontend",), "world": ("skeleton",), "skeleton": ("skeleton",),
                    "initial": (), "solve": ("solver",), "outputs": ("outputs",)}
 RUN_FORMAT = "bcmocap-run"
-
-
-def _write_json(path: Path, payload: dict) -> None:
-    with atomic_path(path, suffix=".json") as tmp:
-        tmp.write_text(json.dumps(payload, indent=1) + "\n")
 
 
 def _write_npz(path: Path, **arrays) -> None:

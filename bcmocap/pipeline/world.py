@@ -51,7 +51,7 @@ class Similarity:
         ok = np.all(np.isfinite(p), axis=-1)
         if ok.any():
             rot = self.rotation @ matrix_from_quat(p[ok][:, :4])
-            out[ok] = np.concatenate([quat_from_matrix_np(rot), self.points(p[ok][:, 4:])], axis=-1)
+            out[ok] = np.concatenate([quat_from_matrix(rot), self.points(p[ok][:, 4:])], axis=-1)
         return out
 
     def then(self, other: Similarity) -> Similarity:
@@ -77,11 +77,6 @@ class Similarity:
         if rot.shape != (3, 3) or t.shape != (3,) or not s > 0:
             raise ValueError(f"{where}: expected rotation (3, 3), translation (3,), scale > 0")
         return cls(s, rot, t)
-
-
-def quat_from_matrix_np(rot: np.ndarray) -> np.ndarray:
-    """``(..., 3, 3)`` rotation matrices → ``(..., 4)`` wxyz quaternions (one JAX call for the batch)."""
-    return np.asarray(quat_from_matrix(np.asarray(rot, np.float64)), np.float64)
 
 
 def rest_joint_positions(skeleton: Skeleton) -> np.ndarray:
@@ -166,11 +161,11 @@ def transform_model(skeleton: Skeleton, rig: Rig | None, motion: Motion, sim: Si
     r = np.asarray(motion.rotations, np.float64)
     mats = matrix_from_quat(r.reshape(-1, 4)).reshape(*r.shape[:-1], 3, 3)
     conj = rot @ mats @ rot.T
-    new_motion = Motion(sim.points(np.asarray(motion.root_position)), quat_from_matrix_np(conj))
+    new_motion = Motion(sim.points(np.asarray(motion.root_position)), quat_from_matrix(conj))
     new_rig = None
     if rig is not None:
         mounts = np.asarray(rig.segment_from_camera, np.float64)
         mq = rot @ matrix_from_quat(mounts[:, :4])
-        new_mounts = np.concatenate([quat_from_matrix_np(mq), s * mounts[:, 4:] @ rot.T], axis=1)
+        new_mounts = np.concatenate([quat_from_matrix(mq), s * mounts[:, 4:] @ rot.T], axis=1)
         new_rig = Rig(rig.names, rig.segments, new_mounts, rig.intrinsics)
     return new_skeleton, new_rig, new_motion
