@@ -144,6 +144,9 @@ def test_triangulate_rays_meets_the_point():
     rays = (point - centres) / np.linalg.norm(point - centres, axis=1, keepdims=True)
     assert np.allclose(triangulate_rays(centres, rays), point)
     assert triangulate_rays(np.stack([centres, centres + 1]), np.stack([rays, rays])).shape == (2, 3)
+    # A camera that stood still: identical rays meet nowhere in particular (NaN, not an exception).
+    same = triangulate_rays(np.stack([centres[:2], centres[[0, 0]]]), np.stack([rays[:2], rays[[0, 0]]]))
+    assert np.allclose(same[0], point) and np.isnan(same[1]).all()
 
 
 def test_relative_registration_reaches_frames_the_reference_does_not_see(studio):

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..cameras import CameraModel, to_pycolmap
 
-__all__ = ["ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "verify_matches"]
+__all__ = ["DescriptorIndex", "ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "verify_matches"]
 
 
 def extract_sift(image: np.ndarray, *, max_features: int = 8000) -> tuple[np.ndarray, np.ndarray]:
@@ -48,41 +48,61 @@ def extract_sift(image: np.ndarray, *, max_features: int = 8000) -> tuple[np.nda
     kps, desc = sift.detectAndCompute(gray, None)
     if desc is None or not kps:
         return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
-    keypoints = np.array([[k.pt[0], k.pt[1], k.size, np.deg2rad(k.angle)] for k in kps], np.float32)
+    keypoints = np.column_stack([cv2.KeyPoint_convert(kps), [k.size for k in kps], np.deg2rad([k.angle for k in kps])])
+    keypoints = keypoints.astype(np.float32)
     return keypoints, np.clip(np.round(desc), 0, 255).astype(np.uint8)
 
 
-def _knn(matcher, a: np.ndarray, b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Indices into ``b`` of the nearest neighbour of each row of ``a`` and a ratio-test mask."""
-    pairs = matcher.knnMatch(a, b, k=2)
-    nearest = np.full(len(a), -1, np.int64)
-    good = np.zeros(len(a), bool)
-    for m in pairs:
-        if len(m) == 2:
-            nearest[m[0].queryIdx] = m[0].trainIdx
-            good[m[0].queryIdx] = m[0].distance < ratio * m[1].distance
-    return nearest, good
+class DescriptorIndex:
+    """FLANN randomised k-d trees over ``(M, 128)`` descriptors, searched with arrays (no per-match Python
+    objects; OpenCV releases the GIL, so threads search in parallel). Each thread gets its own copy of the
+    trees, built on first use.
 
+    Args:
+        descriptors: ``(M, 128)`` uint8 or float32; trees: k-d trees; checks: leaves visited per query
+            (fewer is faster and more approximate).
+    """
+
+    def __init__(self, descriptors: np.ndarray, *, trees: int = 4, checks: int = 64):
+        import threading
+
+        self.descriptors = np.ascontiguousarray(descriptors, np.float32).reshape(-1, 128)
+        self.trees, self.checks = int(trees), int(checks)
+        self._local = threading.local()
+
+    def __len__(self) -> int:
+        return len(self.descriptors)
+
+    def nearest(self, query: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(nearest (N,), good (N,))``: index of each query row's nearest neighbour (−1 when the index holds
+        fewer than two rows) and whether it passes Lowe's ratio test (distance < ``ratio`` × second)."""
+        import cv2
+
+        query = np.ascontiguousarray(query, np.float32).reshape(-1, 128)
+        if len(self.descriptors) < 2 or not len(query):
+            return np.full(len(query), -1, np.int64), np.zeros(len(query), bool)
+        flann = getattr(self._local, "flann", None)
+        if flann is None:
+            flann = self._local.flann = cv2.flann_Index(self.descriptors, {"algorithm": 1, "trees": self.trees})
+        idx, dist2 = flann.knnSearch(query, 2, params={"checks": self.checks})
+        return idx[:, 0].astype(np.int64), dist2[:, 0] < ratio**2 * dist2[:, 1]  # squared L2 distances
 
 
 def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, *, ratio: float = 0.8,
-                      mutual: bool = True) -> np.ndarray:
-    """Approximate nearest-neighbour matches (FLANN k-d trees) passing Lowe's ratio test.
+                      mutual: bool = True, checks: int = 64) -> np.ndarray:
+    """Approximate nearest-neighbour matches (FLANN k-d trees, :class:`DescriptorIndex`) passing Lowe's
+    ratio test.
 
     Returns:
         ``(K, 2)`` uint32 pairs of indices into ``desc_a`` and ``desc_b``; with ``mutual`` only pairs
         that are each other's nearest neighbour (and pass the test both ways).
     """
-    import cv2
-
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros((0, 2), np.uint32)
-    matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
-    a, b = np.asarray(desc_a, np.float32), np.asarray(desc_b, np.float32)
-    ab, good_ab = _knn(matcher, a, b, ratio)
+    ab, good_ab = DescriptorIndex(desc_b, checks=checks).nearest(desc_a, ratio)
     idx = np.flatnonzero(good_ab)
     if mutual:
-        ba, good_ba = _knn(matcher, b, a, ratio)
+        ba, good_ba = DescriptorIndex(desc_a, checks=checks).nearest(desc_b, ratio)
         back = ab[idx]
         idx = idx[(ba[back] == idx) & good_ba[back]]
     return np.stack([idx, ab[idx]], axis=1).astype(np.uint32)

@@ -28,7 +28,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..cameras import CameraModel, to_pycolmap
-from .reference import ReferenceModel, _knn, extract_sift
+from .reference import DescriptorIndex, ReferenceModel, extract_sift
 
 __all__ = ["ReferenceIndex", "FrameRegistration", "RegistrationOptions", "TrialRegistration",
            "match_to_reference", "reference_index", "register_frame", "register_trial", "similarity"]
@@ -40,6 +40,8 @@ class RegistrationOptions:
 
     Attributes:
         ratio: Lowe's ratio test; max_features: SIFT features per frame.
+        checks: FLANN leaves visited per query when matching to the reference (32: 4× faster than a
+            pycolmap-like exhaustive search and 2× faster than 64, with as many registered frames).
         ransac_max_error_px: RANSAC inlier threshold (COLMAP's ``max_error``).
         min_inliers: a pose needs more than this many inliers; max_mean_error_px: and a mean inlier
             reprojection error below this.
@@ -47,6 +49,7 @@ class RegistrationOptions:
 
     ratio: float = 0.8
     max_features: int = 8000
+    checks: int = 32
     ransac_max_error_px: float = 4.0
     min_inliers: int = 50
     max_mean_error_px: float = 1.0
@@ -64,16 +67,13 @@ class ReferenceIndex:
     descriptors: np.ndarray
     point3D_ids: np.ndarray
     xyz: np.ndarray
-    _matcher: object = dataclasses.field(default=None, repr=False)
+    _search: dict = dataclasses.field(default_factory=dict, repr=False)
 
-    def matcher(self):
-        import cv2
-
-        if self._matcher is None:
-            self._matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
-            self._matcher.add([self.descriptors])
-            self._matcher.train()
-        return self._matcher
+    def search(self, checks: int = 32) -> DescriptorIndex:
+        """The FLANN index of the descriptors (built once per ``checks``; safe to share between threads)."""
+        if checks not in self._search:
+            self._search[checks] = DescriptorIndex(self.descriptors, checks=checks)
+        return self._search[checks]
 
 
 @dataclasses.dataclass
@@ -157,10 +157,11 @@ def _failed(num_matches: int, num_inliers: int = 0, error: float = np.inf, pose=
     return FrameRegistration(False, pose, np.zeros((0, 2)), np.zeros(0, np.int64), num_matches, num_inliers, error)
 
 
-def match_to_reference(descriptors: np.ndarray, index: ReferenceIndex, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+def match_to_reference(descriptors: np.ndarray, index: ReferenceIndex, ratio: float,
+                       checks: int = 32) -> tuple[np.ndarray, np.ndarray]:
     """2D–3D candidates: ``(query, rows)`` indices into ``descriptors`` and into ``index``, nearest neighbours
     passing the ratio test, one 2D feature per 3D point (the first in keypoint order)."""
-    nearest, good = _knn(index.matcher(), np.asarray(descriptors, np.float32), index.descriptors, ratio)
+    nearest, good = index.search(checks).nearest(descriptors, ratio)
     query = np.flatnonzero(good)
     _, first = np.unique(index.point3D_ids[nearest[query]], return_index=True)
     return query[first], nearest[query][first]
@@ -176,7 +177,7 @@ def register_frame(image: np.ndarray, camera: CameraModel | object, index: Refer
     keypoints, desc = extract_sift(image, max_features=options.max_features)
     if len(desc) < 2:
         return _failed(0)
-    query, rows = match_to_reference(desc, index, options.ratio)
+    query, rows = match_to_reference(desc, index, options.ratio, options.checks)
     if len(query) < 4:
         return _failed(len(query))
     xy = keypoints[query, :2].astype(np.float64) + 0.5  # OpenCV -> COLMAP pixels

@@ -5,11 +5,13 @@
 
 1. SIFT features of every frame (:func:`extract_trial_features`);
 2. **absolute registration** of each frame to the reference model (:func:`register_features`, as
-   :func:`~bcmocap.frontend.register.register_frame`);
+   :func:`~bcmocap.frontend.register.register_frame`; frames in threads);
 3. rounds, until a round registers nothing new (at most ``max_rounds``):
 
-   a. **new points**: registered frames that may see the same scene (same time, other cameras; same camera,
-      up to ``max_time_gap`` frames apart) are matched (FLANN, ratio test, mutual); a match of two
+   a. **new points**: registered frames that may see the same scene (same time, the ``max_other_cameras``
+      other cameras with the nearest optical axes; same camera, up to ``max_time_gap`` frames apart) are
+      matched (FLANN, ratio test, mutual) — by default only pairs next to an unregistered frame, which
+      relative registration will use (``new_points_everywhere`` matches all of them); a match of two
       features without a 3D point is triangulated (least squares over the two rays) and kept when both
       reprojection errors are below ``max_reprojection_error_px`` and the rays meet at
       ``min_triangulation_angle_deg`` or more; a match of a feature with a point to one without extends
@@ -58,6 +60,11 @@ class RelativeOptions:
         max_view_angle_deg: frames of other cameras are matched only when their optical axes are this
             close (for an unregistered frame: to the axis its camera had at the nearest registered time;
             all cameras when it has none).
+        max_other_cameras: at most this many other cameras at the same time (most similar axes first).
+        new_points_everywhere: triangulate new points between every pair of neighbouring registered
+            frames. By default only pairs where one frame is a neighbour of an unregistered frame are
+            matched: new points serve relative registration, and a trial that registers absolutely
+            everywhere then costs no pair matching at all.
         enough_correspondences: relative registration stops matching a frame to more registered frames
             (most similar views first) once it has this many 2D–3D correspondences.
         workers: threads matching pairs of frames for new points (default: the CPU count).
@@ -67,9 +74,11 @@ class RelativeOptions:
     max_time_gap: int = 3
     min_triangulation_angle_deg: float = 2.0
     max_reprojection_error_px: float = 1.0
-    max_rounds: int = 8
+    max_rounds: int = 10
     min_track_length: int = 2
     max_view_angle_deg: float = 90.0
+    max_other_cameras: int = 4
+    new_points_everywhere: bool = False
     enough_correspondences: int = 400
     workers: int | None = None
 
@@ -79,7 +88,8 @@ class FrameState:
     """One frame of one camera.
 
     Attributes:
-        keypoints: ``(N, 2)`` SIFT keypoint pixels; descriptors: ``(N, 128)`` float32.
+        keypoints: ``(N, 2)`` SIFT keypoint pixels; descriptors: ``(N, 128)`` uint8 (a quarter of float32's
+            memory; matching converts).
         point_ids: ``(N,)`` the 3D point each keypoint observes (−1: none).
         world_from_camera: ``(7,)`` wxyz_xyz, NaN while unregistered.
         how: "" (unregistered), "absolute" or "relative"; round: the round that registered it (0 = absolute).
@@ -181,7 +191,7 @@ def _load_cached_features(path, settings: dict):
     except (OSError, ValueError, KeyError):
         return None
     cut = np.cumsum(counts)[:-1]
-    return list(zip(np.split(kp, cut), (d.astype(np.float32) for d in np.split(desc, cut))))
+    return list(zip(np.split(kp, cut), np.split(desc, cut)))
 
 
 def _save_features(path, settings: dict, feats: list) -> None:
@@ -207,7 +217,7 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
         workers: cameras processed at once (threads; default: the CPU count).
 
     Returns:
-        ``features[t][c] = (keypoints (N, 2), descriptors (N, 128) float32)``.
+        ``features[t][c] = (keypoints (N, 2), descriptors (N, 128) uint8)``.
     """
     from pathlib import Path
 
@@ -240,7 +250,7 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
         for _, gray in capture.frames(trial, name, stride=stride, start=int(start),
                                       stop=int(start) + num_frames, gray=True):
             kp, desc = extract_sift(gray, max_features=max_features)
-            feats.append((kp[:, :2].astype(np.float64), desc.astype(np.float32)))
+            feats.append((kp[:, :2].astype(np.float64), desc))
             tick(1)
         tick(per_video - len(feats))
         if path is not None:
@@ -287,7 +297,7 @@ def register_features(keypoints: np.ndarray, descriptors: np.ndarray, cam, index
     """
     if len(descriptors) < 2:
         return None
-    query, rows = match_to_reference(descriptors, index, options.ratio)
+    query, rows = match_to_reference(descriptors, index, options.ratio, options.checks)
     found = _estimate_pose(keypoints[query], index.xyz[rows], cam, options)
     if found is None:
         return None
@@ -298,12 +308,15 @@ def register_features(keypoints: np.ndarray, descriptors: np.ndarray, cam, index
 
 
 def triangulate_rays(centres: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """The point nearest (least squares) to ``K`` rays: ``centres (..., K, 3)``, unit ``directions (..., K, 3)``."""
+    """The point nearest (least squares) to ``K`` rays: ``centres (..., K, 3)``, unit ``directions (..., K, 3)``;
+    NaN where the rays are parallel (e.g. a camera that did not move between two frames)."""
     eye = np.eye(3)
     proj = eye - directions[..., :, None] * directions[..., None, :]  # (..., K, 3, 3)
     a = proj.sum(-3)
     b = np.einsum("...kij,...kj->...i", proj, centres)
-    return np.linalg.solve(a, b[..., None])[..., 0]
+    ok = np.linalg.det(a) > 1e-12  # two rays at angle θ: det = 2 sin²θ
+    x = np.linalg.solve(np.where(ok[..., None, None], a, eye), b[..., None])[..., 0]
+    return np.where(ok[..., None], x, np.nan)
 
 
 def pixel_rays(cam, pixels: np.ndarray) -> np.ndarray:
@@ -345,10 +358,11 @@ def _axis(pose: np.ndarray) -> np.ndarray:
     return np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
 
 
-def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, states=None, max_angle_deg=180.0):
+def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, states=None, max_angle_deg=180.0,
+                max_others: int | None = None):
     """Frames that may see what frame ``(t, c)`` sees: other cameras at ``t`` (when ``states`` is given,
-    only those whose axis is within ``max_angle_deg`` of this camera's nearest registered axis), then the
-    same camera up to ``gap`` frames away."""
+    only those whose axis is within ``max_angle_deg`` of this camera's nearest registered axis; at most
+    ``max_others``, most similar first), then the same camera up to ``gap`` frames away."""
     axis = None
     if states is not None:
         near = sorted((abs(t2 - t), t2) for t2 in range(num_frames) if states[t2][c].registered)
@@ -365,7 +379,7 @@ def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, sta
             if cos < cos_max:
                 continue
         others.append((-cos, c2))
-    for _, c2 in sorted(others):  # most similar view first
+    for _, c2 in sorted(others)[:max_others]:  # most similar view first
         yield t, c2
     for dt in range(1, gap + 1):
         for t2 in (t - dt, t + dt):
@@ -393,80 +407,106 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
     cams = [to_pycolmap(c) if isinstance(c, CameraModel) else c for c in cameras]
     geo = _Geometry(cams)
     reg = options.registration
-    states = [[FrameState(np.asarray(kp, np.float64).reshape(-1, 2), np.asarray(d, np.float32),
+    states = [[FrameState(np.asarray(kp, np.float64).reshape(-1, 2),
+                          np.clip(np.round(np.asarray(d).reshape(-1, 128)), 0, 255).astype(np.uint8),
                           np.full(len(kp), -1, np.int64), np.full(7, np.nan)) for kp, d in row] for row in features]
     points = {int(i): np.asarray(x, np.float64) for i, x in zip(index.point3D_ids, index.xyz)}
     next_id = max(points, default=-1) + 1
     new_ids: set[int] = set()
     tracks: dict[int, list[tuple[int, int, int]]] = {}  # new point -> [(t, c, keypoint)]
 
-    # 2. absolute registration
-    for k, (t, c) in enumerate((t, c) for t in range(num_t) for c in range(num_c)):
-        s = states[t][c]
-        found = register_features(s.keypoints, s.descriptors, cams[c], index, reg)
-        if found is not None:
-            s.world_from_camera, s.point_ids = found
-            s.how, s.round = "absolute", 0
-        if progress is not None:
-            progress("absolute", k + 1, num_t * num_c)
+    # 2. absolute registration, frames in threads (FLANN searches release the GIL)
+    todo = [(t, c) for t in range(num_t) for c in range(num_c)]
+
+    def absolute(tc):
+        s = states[tc[0]][tc[1]]
+        return register_features(s.keypoints, s.descriptors, cams[tc[1]], index, reg)
+
+    with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
+        for k, ((t, c), found) in enumerate(zip(todo, pool.map(absolute, todo))):
+            s = states[t][c]
+            if found is not None:
+                s.world_from_camera, s.point_ids = found
+                s.how, s.round = "absolute", 0
+            if progress is not None:
+                progress("absolute", k + 1, len(todo))
     rounds = [{"registered": int(sum(s.registered for row in states for s in row)), "new_points": 0}]
 
     matched: set = set()
 
     def match(a, b):
         sa, sb = states[a[0]][a[1]], states[b[0]][b[1]]
-        return match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio).astype(np.int64)
+        return match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio, checks=reg.checks).astype(np.int64)
 
-    def add_points() -> int:
+    def neighbours(t, c):
+        return _neighbours(t, c, num_t, num_c, options.max_time_gap, states, options.max_view_angle_deg,
+                           options.max_other_cameras)
+
+    def add_points(round_no: int) -> int:
         nonlocal next_id
         added = 0
-        pairs = [((t, c), n) for t in range(num_t) for c in range(num_c) if states[t][c].registered
-                 for n in _neighbours(t, c, num_t, num_c, options.max_time_gap, states, options.max_view_angle_deg)
-                 if states[n[0]][n[1]].registered and (t, c) < n and ((t, c), n) not in matched]
-        # FLANN releases the GIL: match all pairs in threads, then use the matches in order.
-        with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
-            all_matches = list(pool.map(lambda ab: match(*ab), pairs))
-        for (a, b), m in zip(pairs, all_matches):
-            matched.add((a, b))
-            if not len(m):
-                continue
-            sa, sb = states[a[0]][a[1]], states[b[0]][b[1]]
-            pa, pb = sa.point_ids[m[:, 0]], sb.point_ids[m[:, 1]]
-            # Track extension: one side has a point, the other none.
-            for src, dst, i_src, i_dst, s_dst, cd in ((pa, pb, m[:, 0], m[:, 1], sb, b[1]),
-                                                       (pb, pa, m[:, 1], m[:, 0], sa, a[1])):
-                sel = (src >= 0) & (dst < 0)
-                if sel.any():
-                    xyz = np.array([points[int(p)] for p in src[sel]])
-                    err = np.linalg.norm(geo.reproject(cd, s_dst.world_from_camera, xyz) - s_dst.keypoints[i_dst[sel]], axis=1)
-                    ok = err < options.max_reprojection_error_px
-                    for p, i in zip(src[sel][ok], i_dst[sel][ok]):
-                        if s_dst.point_ids[i] < 0:
-                            s_dst.point_ids[i] = p
-                            if int(p) in tracks:
-                                tracks[int(p)].append((*(b if s_dst is sb else a), int(i)))
-            # New points: neither side has one.
-            sel = (sa.point_ids[m[:, 0]] < 0) & (sb.point_ids[m[:, 1]] < 0)
-            if not sel.any():
-                continue
-            ia, ib = m[sel, 0], m[sel, 1]
-            ra = geo.rays(a[1], sa.world_from_camera, sa.keypoints[ia])
-            rb = geo.rays(b[1], sb.world_from_camera, sb.keypoints[ib])
-            ca, cb = sa.world_from_camera[4:], sb.world_from_camera[4:]
-            centres = np.stack([np.broadcast_to(ca, ra.shape), np.broadcast_to(cb, rb.shape)], 1)
-            xyz = triangulate_rays(centres, np.stack([ra, rb], 1))
-            angle = np.degrees(np.arccos(np.clip(np.sum(ra * rb, 1), -1, 1)))
-            ea = np.linalg.norm(geo.reproject(a[1], sa.world_from_camera, xyz) - sa.keypoints[ia], axis=1)
-            eb = np.linalg.norm(geo.reproject(b[1], sb.world_from_camera, xyz) - sb.keypoints[ib], axis=1)
-            ok = (angle >= options.min_triangulation_angle_deg) & (ea < options.max_reprojection_error_px) \
-                & (eb < options.max_reprojection_error_px)
-            for x, i, j in zip(xyz[ok], ia[ok], ib[ok]):
-                points[next_id] = x
-                new_ids.add(next_id)
-                tracks[next_id] = [(a[0], a[1], int(i)), (b[0], b[1], int(j))]
-                sa.point_ids[i] = sb.point_ids[j] = next_id
-                next_id += 1
-                added += 1
+        if options.new_points_everywhere:
+            near = {(t, c) for t in range(num_t) for c in range(num_c)}
+        else:  # registered frames that relative registration of some unregistered frame will match
+            near = {n for t in range(num_t) for c in range(num_c) if not states[t][c].registered
+                    for n in neighbours(t, c)}
+        found = set()
+        for a in near:
+            if states[a[0]][a[1]].registered:
+                for n in neighbours(*a):
+                    if states[n[0]][n[1]].registered:
+                        pair = (min(a, n), max(a, n))
+                        if pair not in matched:
+                            found.add(pair)
+        pairs = sorted(found)
+        # FLANN releases the GIL: pairs are matched in threads while their matches are used in order.
+        pool = ThreadPoolExecutor(max_workers=_workers(options.workers))
+        try:
+            for k, ((a, b), m) in enumerate(zip(pairs, pool.map(lambda ab: match(*ab), pairs))):
+                if progress is not None:
+                    progress(f"new points round {round_no}", k + 1, len(pairs))
+                matched.add((a, b))
+                if not len(m):
+                    continue
+                sa, sb = states[a[0]][a[1]], states[b[0]][b[1]]
+                pa, pb = sa.point_ids[m[:, 0]], sb.point_ids[m[:, 1]]
+                # Track extension: one side has a point, the other none.
+                for src, dst, i_src, i_dst, s_dst, cd in ((pa, pb, m[:, 0], m[:, 1], sb, b[1]),
+                                                           (pb, pa, m[:, 1], m[:, 0], sa, a[1])):
+                    sel = (src >= 0) & (dst < 0)
+                    if sel.any():
+                        xyz = np.array([points[int(p)] for p in src[sel]])
+                        err = np.linalg.norm(geo.reproject(cd, s_dst.world_from_camera, xyz) - s_dst.keypoints[i_dst[sel]], axis=1)
+                        ok = err < options.max_reprojection_error_px
+                        for p, i in zip(src[sel][ok], i_dst[sel][ok]):
+                            if s_dst.point_ids[i] < 0:
+                                s_dst.point_ids[i] = p
+                                if int(p) in tracks:
+                                    tracks[int(p)].append((*(b if s_dst is sb else a), int(i)))
+                # New points: neither side has one.
+                sel = (sa.point_ids[m[:, 0]] < 0) & (sb.point_ids[m[:, 1]] < 0)
+                if not sel.any():
+                    continue
+                ia, ib = m[sel, 0], m[sel, 1]
+                ra = geo.rays(a[1], sa.world_from_camera, sa.keypoints[ia])
+                rb = geo.rays(b[1], sb.world_from_camera, sb.keypoints[ib])
+                ca, cb = sa.world_from_camera[4:], sb.world_from_camera[4:]
+                centres = np.stack([np.broadcast_to(ca, ra.shape), np.broadcast_to(cb, rb.shape)], 1)
+                xyz = triangulate_rays(centres, np.stack([ra, rb], 1))
+                angle = np.degrees(np.arccos(np.clip(np.sum(ra * rb, 1), -1, 1)))
+                ea = np.linalg.norm(geo.reproject(a[1], sa.world_from_camera, xyz) - sa.keypoints[ia], axis=1)
+                eb = np.linalg.norm(geo.reproject(b[1], sb.world_from_camera, xyz) - sb.keypoints[ib], axis=1)
+                ok = (angle >= options.min_triangulation_angle_deg) & (ea < options.max_reprojection_error_px) \
+                    & (eb < options.max_reprojection_error_px)
+                for x, i, j in zip(xyz[ok], ia[ok], ib[ok]):
+                    points[next_id] = x
+                    new_ids.add(next_id)
+                    tracks[next_id] = [(a[0], a[1], int(i)), (b[0], b[1], int(j))]
+                    sa.point_ids[i] = sb.point_ids[j] = next_id
+                    next_id += 1
+                    added += 1
+        finally:
+            pool.shutdown(cancel_futures=True)
         return added
 
     def adjust() -> None:
@@ -528,44 +568,58 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
                 if out is not None:
                     s.world_from_camera = _pose_wxyz_xyz(out["cam_from_world"])
 
+    def relative_pose(t: int, c: int):
+        """Match frame ``(t, c)`` to its registered neighbours and estimate its pose (reads states only)."""
+        s = states[t][c]
+        xy, pid, kp_idx = [], [], []
+        for n in neighbours(t, c):
+            sn = states[n[0]][n[1]]
+            if not sn.registered:
+                continue
+            m = match((t, c), n)
+            if not len(m):
+                continue
+            p = sn.point_ids[m[:, 1]]
+            sel = p >= 0
+            if options.min_track_length > 2:
+                sel &= np.array([int(q) not in tracks or len(tracks[int(q)]) >= options.min_track_length for q in p])
+            xy.append(s.keypoints[m[sel, 0]])
+            pid.append(p[sel])
+            kp_idx.append(m[sel, 0])
+            if sum(len(q) for q in pid) >= options.enough_correspondences:
+                break
+        if not xy:
+            return None
+        xy, pid, kp_idx = np.concatenate(xy), np.concatenate(pid), np.concatenate(kp_idx)
+        _, first = np.unique(pid, return_index=True)
+        xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
+        _, first = np.unique(kp_idx, return_index=True)
+        xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
+        found = _estimate_pose(xy, np.array([points[int(p)] for p in pid]).reshape(-1, 3), cams[c], reg)
+        if found is None:
+            return None
+        pose, inl, _ = found
+        return _pose_wxyz_xyz(pose), kp_idx[inl], pid[inl]
+
     def register_relative(round_no: int) -> int:
-        count = 0
+        """Every frame unregistered at the start of the round is tried against the frames registered then
+        (in threads; the results are applied afterwards in frame order, so they do not depend on timing)."""
         todo = [(t, c) for t in range(num_t) for c in range(num_c) if not states[t][c].registered]
-        for k, (t, c) in enumerate(todo):
+        with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
+            found = []
+            for k, result in enumerate(pool.map(lambda tc: relative_pose(*tc), todo)):
+                found.append(result)
+                if progress is not None:
+                    progress(f"relative round {round_no}", k + 1, len(todo))
+        count = 0
+        for (t, c), result in zip(todo, found):
+            if result is None:
+                continue
+            pose, kp_idx, pid = result
             s = states[t][c]
-            xy, pid, kp_idx = [], [], []
-            for n in _neighbours(t, c, num_t, num_c, options.max_time_gap, states, options.max_view_angle_deg):
-                sn = states[n[0]][n[1]]
-                if not sn.registered:
-                    continue
-                m = match((t, c), n)
-                if not len(m):
-                    continue
-                p = sn.point_ids[m[:, 1]]
-                sel = p >= 0
-                if options.min_track_length > 2:
-                    sel &= np.array([int(q) not in tracks or len(tracks[int(q)]) >= options.min_track_length for q in p])
-                xy.append(s.keypoints[m[sel, 0]])
-                pid.append(p[sel])
-                kp_idx.append(m[sel, 0])
-                if sum(len(q) for q in pid) >= options.enough_correspondences:
-                    break
-            if progress is not None:
-                progress(f"relative round {round_no}", k + 1, len(todo))
-            if not xy:
-                continue
-            xy, pid, kp_idx = np.concatenate(xy), np.concatenate(pid), np.concatenate(kp_idx)
-            _, first = np.unique(pid, return_index=True)
-            xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
-            _, first = np.unique(kp_idx, return_index=True)
-            xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
-            found = _estimate_pose(xy, np.array([points[int(p)] for p in pid]), cams[c], reg)
-            if found is None:
-                continue
-            pose, inl, _ = found
-            s.world_from_camera = _pose_wxyz_xyz(pose)
-            s.point_ids[kp_idx[inl]] = pid[inl]
-            for i, p in zip(kp_idx[inl], pid[inl]):
+            s.world_from_camera = pose
+            s.point_ids[kp_idx] = pid
+            for i, p in zip(kp_idx, pid):
                 if int(p) in tracks:
                     tracks[int(p)].append((t, c, int(i)))
             s.how, s.round = "relative", round_no
@@ -573,7 +627,7 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         return count
 
     for round_no in range(1, options.max_rounds + 1):
-        added = add_points()
+        added = add_points(round_no)
         adjust()
         count = register_relative(round_no)
         rounds.append({"registered": count, "new_points": added})

@@ -294,10 +294,11 @@ def _stage_skeleton(ctx: RunContext) -> dict:
     return {"segments": len(est.skeleton.names), "cameras": len(est.rig.names)}
 
 
-def load_model(out: Path):
-    """The skeleton and rig a run estimated (``DIR/model/``)."""
+def load_model(out: Path | str):
+    """The skeleton and rig a run estimated (``DIR/model/``): ``(Skeleton, Rig)``."""
     from ..io.model_json import rig_from_dict, skeleton_from_dict
 
+    out = Path(out)
     sk_path, rig_path = out / "model" / "skeleton.json", out / "model" / "rig.json"
     skeleton = skeleton_from_dict(_read_json(sk_path), str(sk_path))
     return skeleton, rig_from_dict(_read_json(rig_path), skeleton, str(rig_path))
@@ -307,7 +308,8 @@ def save_motion(path: Path, motion, **extra) -> None:
     _write_npz(path, root_position=np.asarray(motion.root_position), rotations=np.asarray(motion.rotations), **extra)
 
 
-def load_motion(path: Path):
+def load_motion(path: Path | str):
+    """A motion saved by a run (``DIR/solve/motion.npz``, ``DIR/initial/motion.npz``, ``DIR/motion.npz``)."""
     from ..kinematics.skeleton import Motion
 
     try:
