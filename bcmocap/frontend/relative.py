@@ -433,10 +433,16 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
     rounds = [{"registered": int(sum(s.registered for row in states for s in row)), "new_points": 0}]
 
     matched: set = set()
+    pair_matches: dict = {}  # (a, b) with a < b -> (K, 2) int32; mutual matching is symmetric, rounds reuse it
 
     def match(a, b):
-        sa, sb = states[a[0]][a[1]], states[b[0]][b[1]]
-        return match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio, checks=reg.checks).astype(np.int64)
+        key = (min(a, b), max(a, b))
+        m = pair_matches.get(key)
+        if m is None:
+            sa, sb = states[key[0][0]][key[0][1]], states[key[1][0]][key[1][1]]
+            m = pair_matches[key] = match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio,
+                                                      checks=reg.checks).astype(np.int32)
+        return (m if key[0] == a else m[:, ::-1]).astype(np.int64)
 
     def neighbours(t, c):
         return _neighbours(t, c, num_t, num_c, options.max_time_gap, states, options.max_view_angle_deg,
