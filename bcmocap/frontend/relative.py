@@ -18,8 +18,8 @@
       that point's track when it reprojects there within the same threshold;
    b. **bundle adjustment with the reference held fixed**, by block coordinate descent on the
       reprojection error: every new point is re-triangulated from all its observations (tracks whose
-      error stays above the threshold lose the offending observations), then every pose registered in
-      this trial is refined (``pycolmap.refine_absolute_pose``) on its reference and new points;
+      error stays above the threshold lose the offending observations), then every pose that observes a
+      new point is refined (``pycolmap.refine_absolute_pose``) on its reference and new points;
    c. **relative registration**: each unregistered frame is matched to the registered frames of the same
       time and of nearby times of its camera; features matched to features with a 3D point give 2D–3D
       correspondences, and the pose is estimated and accepted as in absolute registration (more than
@@ -516,63 +516,63 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         return added
 
     def adjust() -> None:
-        """Block coordinate descent on the reprojection error, reference points and poses fixed."""
-        if tracks:
-            ids = np.array(list(tracks), np.int64)
-            count = np.array([len(tracks[int(p)]) for p in ids])
-            owner = np.repeat(np.arange(len(ids)), count)
-            obs = np.array([o for p in ids for o in tracks[int(p)]], np.int64).reshape(-1, 3)
-            frame_key = obs[:, 0] * num_c + obs[:, 1]
-            rays = np.zeros((len(obs), 3))
-            centres = np.zeros((len(obs), 3))
-            for key in np.unique(frame_key):
-                sel = frame_key == key
-                t, c = divmod(int(key), num_c)
-                pose = states[t][c].world_from_camera
-                rays[sel] = geo.rays(c, pose, states[t][c].keypoints[obs[sel, 2]])
-                centres[sel] = pose[4:]
-            proj = np.eye(3) - rays[:, :, None] * rays[:, None, :]
-            a_sum = np.zeros((len(ids), 3, 3))
-            b_sum = np.zeros((len(ids), 3))
-            np.add.at(a_sum, owner, proj)
-            np.add.at(b_sum, owner, np.einsum("kij,kj->ki", proj, centres))
-            xyz = np.linalg.solve(a_sum, b_sum[..., None])[..., 0]
-            err = np.full(len(obs), np.inf)
-            for key in np.unique(frame_key):
-                sel = frame_key == key
-                t, c = divmod(int(key), num_c)
-                uv = geo.reproject(c, states[t][c].world_from_camera, xyz[owner[sel]])
-                err[sel] = np.linalg.norm(uv - states[t][c].keypoints[obs[sel, 2]], axis=1)
-            keep = err < options.max_reprojection_error_px  # NaN (behind the camera) is dropped too
-            kept = np.bincount(owner[keep], minlength=len(ids))
-            for k, (t, c, i) in enumerate(obs):
-                if not keep[k] or kept[owner[k]] < 2:
-                    states[t][c].point_ids[i] = -1
-            rows = np.split(np.arange(len(obs)), np.cumsum(count)[:-1])  # obs are grouped by owner
-            for k, pid in enumerate(ids.tolist()):
-                if kept[k] < 2:
-                    del tracks[pid], points[pid]
-                    new_ids.discard(pid)
-                else:
-                    r = rows[k][keep[rows[k]]]
-                    tracks[pid] = [tuple(o) for o in obs[r].tolist()]
-                    points[pid] = xyz[k]
+        """Block coordinate descent on the reprojection error, reference points fixed: new points
+        re-triangulated, then the poses of the frames that observe new points refined."""
         import pycolmap
 
-        for t in range(num_t):
-            for c in range(num_c):
-                s = states[t][c]
-                if not s.registered:
-                    continue
-                has = np.flatnonzero(s.point_ids >= 0)
-                if len(has) < 4:
-                    continue
-                xyz = np.array([points[int(p)] for p in s.point_ids[has]])
-                rot, centre = geo.rotation_centre(s.world_from_camera)
-                cfw = pycolmap.Rigid3d(pycolmap.Rotation3d(rot.T), -rot.T @ centre)
-                out = pycolmap.refine_absolute_pose(cfw, s.keypoints[has] + 0.5, xyz, np.ones(len(has), bool), cams[c])
-                if out is not None:
-                    s.world_from_camera = _pose_wxyz_xyz(out["cam_from_world"])
+        if not tracks:
+            return
+        ids = np.array(list(tracks), np.int64)
+        count = np.array([len(tracks[int(p)]) for p in ids])
+        owner = np.repeat(np.arange(len(ids)), count)
+        obs = np.array([o for p in ids for o in tracks[int(p)]], np.int64).reshape(-1, 3)
+        frame_key = obs[:, 0] * num_c + obs[:, 1]
+        order = np.argsort(frame_key, kind="stable")
+        keys, starts = np.unique(frame_key[order], return_index=True)
+        groups = [(divmod(int(k), num_c), g) for k, g in zip(keys, np.split(order, starts[1:]))]
+        rays = np.zeros((len(obs), 3))
+        centres = np.zeros((len(obs), 3))
+        for (t, c), sel in groups:
+            pose = states[t][c].world_from_camera
+            rays[sel] = geo.rays(c, pose, states[t][c].keypoints[obs[sel, 2]])
+            centres[sel] = pose[4:]
+        proj = np.eye(3) - rays[:, :, None] * rays[:, None, :]
+        a_sum = np.zeros((len(ids), 3, 3))
+        b_sum = np.zeros((len(ids), 3))
+        np.add.at(a_sum, owner, proj)
+        np.add.at(b_sum, owner, np.einsum("kij,kj->ki", proj, centres))
+        ok = np.linalg.det(a_sum) > 1e-12  # parallel rays: the point is dropped below
+        xyz = np.linalg.solve(np.where(ok[:, None, None], a_sum, np.eye(3)), b_sum[..., None])[..., 0]
+        xyz[~ok] = np.nan
+        err = np.full(len(obs), np.inf)
+        for (t, c), sel in groups:
+            uv = geo.reproject(c, states[t][c].world_from_camera, xyz[owner[sel]])
+            err[sel] = np.linalg.norm(uv - states[t][c].keypoints[obs[sel, 2]], axis=1)
+        keep = err < options.max_reprojection_error_px  # NaN (behind the camera, no point) is dropped too
+        kept = np.bincount(owner[keep], minlength=len(ids))
+        drop = ~keep | (kept[owner] < 2)
+        for (t, c), sel in groups:
+            states[t][c].point_ids[obs[sel[drop[sel]], 2]] = -1
+        rows = np.split(np.arange(len(obs)), np.cumsum(count)[:-1])  # obs are grouped by owner
+        for k, pid in enumerate(ids.tolist()):
+            if kept[k] < 2:
+                del tracks[pid], points[pid]
+                new_ids.discard(pid)
+            else:
+                tracks[pid] = [tuple(o) for o in obs[rows[k][keep[rows[k]]]].tolist()]
+                points[pid] = xyz[k]
+        for (t, c), _ in groups:  # only these frames' points moved
+            s = states[t][c]
+            has = np.flatnonzero(s.point_ids >= 0)
+            if not s.registered or len(has) < 4:
+                continue
+            xyz_frame = np.array([points[int(p)] for p in s.point_ids[has]])
+            rot, centre = geo.rotation_centre(s.world_from_camera)
+            cfw = pycolmap.Rigid3d(pycolmap.Rotation3d(rot.T), -rot.T @ centre)
+            out = pycolmap.refine_absolute_pose(cfw, s.keypoints[has] + 0.5, xyz_frame, np.ones(len(has), bool),
+                                                cams[c])
+            if out is not None:
+                s.world_from_camera = _pose_wxyz_xyz(out["cam_from_world"])
 
     def relative_pose(t: int, c: int):
         """Match frame ``(t, c)`` to its registered neighbours and estimate its pose (reads states only)."""
