@@ -17,6 +17,7 @@ run must use the same settings for the stages it reuses.
     rest_seconds = []         # [from, to] s after the ROM trial's first clap; [] = from capture.json
     up_from = ["left_foot", "right_foot"]   # the world's +Z points from these joint centres ...
     up_to = "head"                          # ... to this one, in the rest pose
+    max_centre_std_cm = 5.0   # a joint centre less certain than this (standard error) is an error
 
     [solver]
     window = 60
@@ -57,6 +58,7 @@ class SkeletonConfig:
     rest_seconds: tuple[float, ...] = ()
     up_from: tuple[str, ...] = ("left_foot", "right_foot")
     up_to: str = "head"
+    max_centre_std_cm: float = 5.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,6 +95,7 @@ class RunConfig:
         _check(f.frames >= 0, "frontend.frames", "must be ≥ 0", f.frames)
         _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
+        _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)
         _check(s.window >= 2, "solver.window", "must be ≥ 2", s.window)
         _check(0 <= s.overlap < s.window, "solver.overlap", "must be in [0, window)", s.overlap)
         for name in ("root_smoothness", "joint_smoothness", "homography", "loss_scale"):

@@ -234,11 +234,15 @@ def _rom_inputs(ctx: RunContext):
 
 
 def _estimate_skeleton(ctx: RunContext, poses, registered, rest):
-    from ..kinematics.rom import skeleton_from_range_of_motion
+    """Skeleton and mounts from the ROM trial. Pixel-registered poses are noisier than the 2 cm default
+    certainty of :class:`~bcmocap.kinematics.rom.RomOptions` allows for a small joint like the ankle
+    (3.0 cm for the left ankle of a rendered 3 s trial), hence ``skeleton.max_centre_std_cm`` (5 cm)."""
+    from ..kinematics.rom import RomOptions, skeleton_from_range_of_motion
 
     cams = [(c.name, c.segment) for c in ctx.capture.cameras]
+    options = RomOptions(max_centre_std_m=ctx.config.skeleton.max_centre_std_cm / 100)
     return skeleton_from_range_of_motion(
-        _topology(ctx), cams, poses, registered, rest_frames=rest,
+        _topology(ctx), cams, poses, registered, rest_frames=rest, options=options,
         intrinsics=_stacked_intrinsics(ctx), root_origin=list(ctx.config.skeleton.root_origin))
 
 
