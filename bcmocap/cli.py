@@ -140,8 +140,8 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
         description="Render a short capture (a 1 s CMU walk and a range-of-motion trial at 30 frames/s through the "
                     "18-camera rig, bcmocap simulate) into OUT/capture and run `bcmocap run` on its pixels: reference "
                     "model, sync, SIFT, registration, skeleton from the range-of-motion trial, solver, outputs, "
-                    "pictures and metrics.json against the rendered truth in OUT (a few minutes on 2 cores; rerunning "
-                    "resumes). --simulated-measurements instead simulates the measurements directly (1 px noise, "
+                    "pictures and metrics.json against the rendered truth in OUT (several minutes on 2 cores; "
+                    "rerunning resumes). --simulated-measurements instead simulates the measurements directly (1 px noise, "
                     "10 % outliers, 5 % unregistered camera-frames, SfM-like pose noise) with the true skeleton "
                     "and reports the solver's accuracy (about a minute).")
     demo.add_argument("--out", default="bcmocap-demo", help="output folder (default: ./bcmocap-demo)")
