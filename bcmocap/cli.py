@@ -156,7 +156,7 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
     full = demo.add_argument_group("the full chain (default)")
     full.add_argument("--rom-seconds", type=float, default=2.5, help="length of the range-of-motion trial (s)")
     full.add_argument("--fps", type=float, default=30.0, help="frame rate of the rendered videos")
-    full.add_argument("--reference-photos", type=int, default=16, help="reference photos of the room")
+    full.add_argument("--reference-photos", type=int, default=24, help="reference photos of the room")
     full.add_argument("--stride", type=int, default=1, help="use every n-th frame of the capture trial")
     full.add_argument("--rom-stride", type=int, default=2, help="use every n-th frame of the range-of-motion trial")
     full.add_argument("--max-features", type=int, default=4000, help="SIFT features per image")
