@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_demo_writes_metrics_and_bvh(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--simulated-measurements", "--seconds", "0.5", "--out", str(out), "--window", "30"]) == 0
+    assert main(["demo", "--seconds", "0.5", "--out", str(out), "--window", "30"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("joint_position_error_cm", "joint_angle_error_deg"):
         assert set(metrics[key]) == {"mean", "median", "max"}
@@ -31,7 +31,7 @@ def test_demo_writes_metrics_and_bvh(tmp_path, capsys):
 def test_demo_refuses_a_file_as_output(tmp_path):
     target = tmp_path / "file"
     target.write_text("keep me")
-    assert main(["demo", "--simulated-measurements", "--seconds", "0.5", "--out", str(target)]) == 2
+    assert main(["demo", "--seconds", "0.5", "--out", str(target)]) == 2
     assert target.read_text() == "keep me"
 
 
