@@ -50,7 +50,12 @@ def extract_sift(image: np.ndarray, *, max_features: int = 8000) -> tuple[np.nda
         return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
     keypoints = np.column_stack([cv2.KeyPoint_convert(kps), [k.size for k in kps], np.deg2rad([k.angle for k in kps])])
     keypoints = keypoints.astype(np.float32)
-    return keypoints, np.clip(np.round(desc), 0, 255).astype(np.uint8)
+    return keypoints, uint8_descriptors(desc)
+
+
+def uint8_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """``(N, 128)`` SIFT descriptors as uint8 (rounded, clipped to 0–255), the form features are kept in."""
+    return np.clip(np.round(np.asarray(descriptors).reshape(-1, 128)), 0, 255).astype(np.uint8)
 
 
 class DescriptorIndex:
@@ -69,9 +74,6 @@ class DescriptorIndex:
         self.descriptors = np.ascontiguousarray(descriptors, np.float32).reshape(-1, 128)
         self.trees, self.checks = int(trees), int(checks)
         self._local = threading.local()
-
-    def __len__(self) -> int:
-        return len(self.descriptors)
 
     def nearest(self, query: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
         """``(nearest (N,), good (N,))``: index of each query row's nearest neighbour (−1 when the index holds

@@ -40,7 +40,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..cameras import CameraModel, to_pycolmap
-from .reference import extract_sift, match_descriptors
+from .reference import extract_sift, match_descriptors, uint8_descriptors
 from .register import ReferenceIndex, RegistrationOptions, _pose_wxyz_xyz, match_to_reference
 
 __all__ = ["FrameState", "RelativeOptions", "CaptureRegistration", "extract_trial_features", "register_features",
@@ -310,12 +310,15 @@ def register_features(keypoints: np.ndarray, descriptors: np.ndarray, cam, index
 def triangulate_rays(centres: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """The point nearest (least squares) to ``K`` rays: ``centres (..., K, 3)``, unit ``directions (..., K, 3)``;
     NaN where the rays are parallel (e.g. a camera that did not move between two frames)."""
-    eye = np.eye(3)
-    proj = eye - directions[..., :, None] * directions[..., None, :]  # (..., K, 3, 3)
-    a = proj.sum(-3)
-    b = np.einsum("...kij,...kj->...i", proj, centres)
-    ok = np.linalg.det(a) > 1e-12  # two rays at angle θ: det = 2 sin²θ
-    x = np.linalg.solve(np.where(ok[..., None, None], a, eye), b[..., None])[..., 0]
+    proj = np.eye(3) - directions[..., :, None] * directions[..., None, :]  # (..., K, 3, 3)
+    return _nearest_point(proj.sum(-3), np.einsum("...kij,...kj->...i", proj, centres))
+
+
+def _nearest_point(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve the rays' normal equations ``a (..., 3, 3) x = b (..., 3)`` (``a`` the sum of the rays'
+    orthogonal projectors); NaN where the rays are parallel (two rays at angle θ: det a = 2 sin²θ)."""
+    ok = np.linalg.det(a) > 1e-12
+    x = np.linalg.solve(np.where(ok[..., None, None], a, np.eye(3)), b[..., None])[..., 0]
     return np.where(ok[..., None], x, np.nan)
 
 
@@ -408,7 +411,7 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
     geo = _Geometry(cams)
     reg = options.registration
     states = [[FrameState(np.asarray(kp, np.float64).reshape(-1, 2),
-                          np.clip(np.round(np.asarray(d).reshape(-1, 128)), 0, 255).astype(np.uint8),
+                          uint8_descriptors(d),
                           np.full(len(kp), -1, np.int64), np.full(7, np.nan)) for kp, d in row] for row in features]
     points = {int(i): np.asarray(x, np.float64) for i, x in zip(index.point3D_ids, index.xyz)}
     next_id = max(points, default=-1) + 1
@@ -541,9 +544,7 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         b_sum = np.zeros((len(ids), 3))
         np.add.at(a_sum, owner, proj)
         np.add.at(b_sum, owner, np.einsum("kij,kj->ki", proj, centres))
-        ok = np.linalg.det(a_sum) > 1e-12  # parallel rays: the point is dropped below
-        xyz = np.linalg.solve(np.where(ok[:, None, None], a_sum, np.eye(3)), b_sum[..., None])[..., 0]
-        xyz[~ok] = np.nan
+        xyz = _nearest_point(a_sum, b_sum)  # NaN for parallel rays: the point is dropped below
         err = np.full(len(obs), np.inf)
         for (t, c), sel in groups:
             uv = geo.reproject(c, states[t][c].world_from_camera, xyz[owner[sel]])
