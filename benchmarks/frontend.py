@@ -14,6 +14,10 @@
    goals: median ≤ 0.5° and ≤ 2 cm), images per second (feature extraction + registration; cameras and
    frame pairs in threads).
 
+   Features are streamed to a temporary folder and read back memory-mapped, as ``bcmocap frontend`` does;
+   the peak private memory (``RssAnon``) during extraction and registration is reported beside the size of
+   the feature files, to show that a long capture does not have to fit in memory.
+
    Frames left unregistered get orientations from homographies (``fill_with_homographies``); their
    count and errors are reported too.
 
@@ -98,22 +102,61 @@ def _pose_error(align, pose: np.ndarray, true: np.ndarray) -> tuple[float, float
             float(100 * np.linalg.norm(scale * rot @ pose[4:] + shift - true[4:])))
 
 
-def registration_figures(model, capture, truth, stride: int) -> dict:
-    """Registration of the "capture" trial's frames of every camera (see the module docstring)."""
+class MemoryPeak:
+    """Peak resident memory of this process while the block runs, sampled from ``/proc/self/status`` every
+    0.1 s: ``VmRSS`` (all resident pages, including memory-mapped feature files the kernel may drop) and
+    ``RssAnon`` (private memory, what a long capture must not grow without bound). Zero where /proc is missing."""
+
+    def __enter__(self):
+        import threading
+
+        self.rss_mb = self.anon_mb = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def _sample(self) -> None:
+        try:
+            fields = dict(line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines())
+        except OSError:
+            return
+        kb = (lambda key: float(fields.get(key, "0 kB").split()[0]))
+        self.rss_mb = max(self.rss_mb, kb("VmRSS") / 1024)
+        self.anon_mb = max(self.anon_mb, kb("RssAnon") / 1024)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.1):
+            self._sample()
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+
+
+def registration_figures(model, capture, truth, stride: int, features_dir: Path) -> dict:
+    """Registration of the "capture" trial's frames of every camera (see the module docstring); features are
+    cached memory-mapped under ``features_dir`` as ``bcmocap frontend`` does."""
     rec, poses = model.reconstruction, dict(zip(truth.reference_names, truth.reference_poses))
     images = [rec.image(i) for i in rec.reg_image_ids()]
     align = similarity(np.array([im.projection_center() for im in images]),
                        np.array([poses[im.name][4:] for im in images]))
     tt = truth.trials["capture"]
     clock = time.perf_counter()
-    index = reference_index(model)
-    features = extract_trial_features(capture, "capture", stride=stride, starts=np.asarray(tt.video_start_frame),
-                                      num_frames=len(tt.world_from_camera))
-    feature_seconds = time.perf_counter() - clock
-    clock = time.perf_counter()
-    out = register_capture(features, [c.intrinsics for c in capture.cameras], index)
-    fill = fill_with_homographies(out, [c.intrinsics for c in capture.cameras])
-    register_seconds = time.perf_counter() - clock
+    with MemoryPeak() as before:
+        pass
+    with MemoryPeak() as memory:
+        index = reference_index(model)
+        features = extract_trial_features(capture, "capture", stride=stride, starts=np.asarray(tt.video_start_frame),
+                                          num_frames=len(tt.world_from_camera), cache_dir=features_dir)
+        feature_seconds = time.perf_counter() - clock
+        clock = time.perf_counter()
+        out = register_capture(features, [c.intrinsics for c in capture.cameras], index)
+        fill = fill_with_homographies(out, [c.intrinsics for c in capture.cameras])
+        register_seconds = time.perf_counter() - clock
+    feature_bytes = sum(f.stat().st_size for f in features_dir.rglob("*") if f.is_file())
+    keypoints = sum(len(k) for row in features for k, _ in row)
     filled = [_pose_error(align, fill.world_from_camera[t, c], tt.world_from_camera[t * stride, c])
               for t, c in zip(*np.nonzero(fill.filled))]
     errors = {"absolute": ([], []), "relative": ([], [])}
@@ -137,11 +180,16 @@ def registration_figures(model, capture, truth, stride: int) -> dict:
            "filled_by_homographies": len(filled),
            "filled": {"rotation_error_deg": stats([e[0] for e in filled]), "position_error_cm": stats([e[1] for e in filled])},
            "stride": stride, "feature_seconds": feature_seconds, "register_seconds": register_seconds,
-           "images_per_second": images, "index_descriptors": len(index.descriptors)}
+           "images_per_second": images, "index_descriptors": len(index.descriptors),
+           "memory": {"keypoints": keypoints, "feature_files_mb": feature_bytes / 2**20,
+                      "rss_before_mb": before.rss_mb, "anon_before_mb": before.anon_mb,
+                      "peak_rss_mb": memory.rss_mb, "peak_anon_mb": memory.anon_mb}}
     print(f"registration: {row['registered']}/{total} body-camera frames ({100 * row['registered_fraction']:.1f} %): "
           f"{row['registered_absolute']} absolute, {row['registered_relative']} relative in {len(out.rounds) - 1} rounds, "
           f"{row['new_points']} new points; {images:.2f} images/s (features {feature_seconds:.0f} s, "
           f"registration {register_seconds:.0f} s)")
+    print(f"  memory: {keypoints} features ({feature_bytes / 2**20:.0f} MB memory-mapped from disk); peak private "
+          f"memory {memory.anon_mb:.0f} MB (before {before.anon_mb:.0f} MB), peak resident {memory.rss_mb:.0f} MB")
     for how in ("absolute", "relative"):
         if errors[how][0]:
             print(f"  {how}: rotation error median {np.median(errors[how][0]):.3f}° max {np.max(errors[how][0]):.3f}°, "
@@ -223,7 +271,8 @@ def main(argv=None) -> int:
         poses = dict(zip(truth.reference_names, truth.reference_poses))
         rendered = reference_figures("rendered", capture.path / "reference", [p.name for p in capture.reference_photos],
                                      capture.reference_camera, poses,
-                                     lambda model: registration_figures(model, capture, truth, args.register_stride))
+                                     lambda model: registration_figures(model, capture, truth, args.register_stride,
+                                                                        Path(tmp) / "features"))
         registration = rendered.pop("used_model")
         sceaux_dir = Path(tmp) / "sceaux"
         sceaux_dir.mkdir()
@@ -245,6 +294,7 @@ def main(argv=None) -> int:
         "rotation_error_deg": registration["rotation_error_deg"],
         "position_error_cm": registration["position_error_cm"],
         "images_per_second": registration["images_per_second"],
+        "memory": registration["memory"],
         "sync_max_error_frames": max(row["max_error_frames"] for row in sync.values()),
         "sync": sync,
         "real_photos": {**real, "dataset": "SceauxCastle", "width_px": args.sceaux_width},

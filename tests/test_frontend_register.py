@@ -221,7 +221,8 @@ def test_extract_trial_features_reads_every_camera_from_its_start(studio, tmp_pa
     first = extract_trial_features(FakeCapture(), "capture", starts=[1, 2], stride=2, cache_dir=tmp_path)
     reads.clear()
     again = extract_trial_features(FakeCapture(), "capture", starts=[1, 2], stride=2, cache_dir=tmp_path)
-    assert reads == [] and sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "b.npz"]
+    assert reads == [] and sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"]
+    assert isinstance(again[0][0][1].base, np.memmap) or isinstance(again[0][0][1], np.memmap)
     assert all(np.array_equal(x[0], y[0]) and np.array_equal(x[1], y[1])
                for rx, ry in zip(first, again) for x, y in zip(rx, ry))
     extract_trial_features(FakeCapture(), "capture", starts=[1, 2], stride=1, cache_dir=tmp_path)

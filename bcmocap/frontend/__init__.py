@@ -1,13 +1,13 @@
-"""Frontend: from a capture folder to what the solver consumes (issue 5, in progress).
+"""Frontend: from a capture folder to what the solver consumes (issue 5).
 
-The only package that imports ``cv2`` and ``pycolmap``. Done so far: reading a capture folder
-(:mod:`.capture`), audio synchronisation by the claps (:mod:`.sync`), the reference reconstruction
-from the reference photos (:mod:`.reference`), absolute registration of body-camera frames to it
-(:mod:`.register`), and for a whole trial new points, bundle adjustment with the reference fixed and
-rounds of relative registration (:mod:`.relative`), homographies for the frames left
-(:mod:`.homography`), and ``bcmocap frontend`` (:mod:`.command`). Not built yet: parallel extraction and
-matching, scaling the reference model to metres for the solver.
-"""
+The only package that imports ``cv2`` and ``pycolmap``: reading a capture folder (:mod:`.capture`),
+audio synchronisation by the claps (:mod:`.sync`), the reference reconstruction from the reference
+photos (:mod:`.reference`), absolute registration of body-camera frames to it (:mod:`.register`), SIFT
+features of a trial streamed to disk and read back memory-mapped (:mod:`.features`), for a whole trial
+new points, bundle adjustment with the reference fixed and rounds of relative registration
+(:mod:`.relative`; cameras and frame pairs in threads), homographies for the frames left
+(:mod:`.homography`), and ``bcmocap frontend`` (:mod:`.command`). Scaling the reference model to metres
+is the pipeline's world stage (:mod:`bcmocap.pipeline.world`)."""
 
 from .capture import Capture, CaptureCamera, VideoInfo, read_camera_json, read_capture
 from .reference import ReferenceModel, build_reference, extract_sift, match_descriptors, verify_matches

@@ -6,7 +6,7 @@ Stages, each saved under ``DIR`` and reused when rerun (delete a stage's output 
    saved by :func:`~.reference.save_reference`);
 2. per trial, audio synchronisation (:func:`~.sync.synchronize`; ``--offsets`` gives them instead), then
    SIFT of every ``--stride``-th frame of every camera from the first clap to the second
-   (``features/<trial>/<camera>.npz``);
+   (``features/<trial>/<camera>/``, :mod:`~.features`: streamed to disk and read back memory-mapped);
 3. per trial, registration (:func:`~.relative.register_capture`), homographies for the frames left
    (:func:`~.homography.fill_with_homographies`) and ``<trial>/correspondences.npz``
    (:class:`~bcmocap.correspondences.Correspondences`, in the reference model's frame and scale) with
@@ -26,7 +26,7 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
     """Register ``bcmocap frontend`` on the CLI's subparsers."""
     cmd = sub.add_parser(
         "frontend",
-        help="capture folder → reference model, sync, registration, correspondences (issue 5, in progress)",
+        help="capture folder → reference model, sync, registration, correspondences",
         description=__doc__.split("\n\n", 1)[1].rsplit("\n\nHeavy", 1)[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -54,7 +54,11 @@ def extract_sift(image: np.ndarray, *, max_features: int = 8000) -> tuple[np.nda
 
 
 def uint8_descriptors(descriptors: np.ndarray) -> np.ndarray:
-    """``(N, 128)`` SIFT descriptors as uint8 (rounded, clipped to 0–255), the form features are kept in."""
+    """``(N, 128)`` SIFT descriptors as uint8 (rounded, clipped to 0–255), the form features are kept in.
+    Already uint8 descriptors are returned as they are (a view: memory-mapped ones stay on disk)."""
+    descriptors = np.asarray(descriptors)
+    if descriptors.dtype == np.uint8:
+        return descriptors.reshape(-1, 128)
     return np.clip(np.round(np.asarray(descriptors).reshape(-1, 128)), 0, 255).astype(np.uint8)
 
 

@@ -40,6 +40,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..cameras import CameraModel, to_pycolmap
+from .features import read_camera_features, write_camera_features
 from .reference import extract_sift, match_descriptors, uint8_descriptors
 from .register import ReferenceIndex, RegistrationOptions, _pose_wxyz_xyz, match_to_reference
 
@@ -179,31 +180,6 @@ class CaptureRegistration:
                                float(fps))
 
 
-def _load_cached_features(path, settings: dict):
-    """A camera's cached features if ``path`` holds them for exactly these ``settings``, else None."""
-    if not path.is_file():
-        return None
-    try:
-        with np.load(path) as z:
-            if any(int(z[k]) != v for k, v in settings.items()):
-                return None
-            counts, kp, desc = z["counts"], z["keypoints"], z["descriptors"]
-    except (OSError, ValueError, KeyError):
-        return None
-    cut = np.cumsum(counts)[:-1]
-    return list(zip(np.split(kp, cut), np.split(desc, cut)))
-
-
-def _save_features(path, settings: dict, feats: list) -> None:
-    from ..io.atomic import atomic_path
-
-    with atomic_path(path, suffix=".npz") as tmp:
-        np.savez(tmp, counts=np.array([len(k) for k, _ in feats], np.int64),
-                 keypoints=np.concatenate([k for k, _ in feats]).reshape(-1, 2),
-                 descriptors=np.concatenate([d for _, d in feats]).reshape(-1, 128).astype(np.uint8),
-                 **{k: np.int64(v) for k, v in settings.items()})
-
-
 def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None, num_frames: int | None = None,
                            max_features: int = 8000, cache_dir=None, workers: int | None = None,
                            progress: Callable[[int, int], None] | None = None) -> list:
@@ -212,8 +188,10 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
     Args:
         starts: ``(C,)`` first frame of each camera's video (e.g. the synchronisation offsets; default 0).
         num_frames: frames per camera to read from its start (default: as many as the shortest video has).
-        cache_dir: if given, each camera's features are kept in ``cache_dir/<camera>.npz`` and read back
-            instead of recomputed when start, stride, frame count and ``max_features`` are the same.
+        cache_dir: if given, each camera's features are streamed to ``cache_dir/<camera>/``
+            (:mod:`~bcmocap.frontend.features`) and returned memory-mapped, so a long capture never has to fit
+            in memory; they are read back instead of recomputed when start, stride, frame count and
+            ``max_features`` are the same. Without it they are kept in memory.
         workers: cameras processed at once (threads; default: the CPU count).
 
     Returns:
@@ -238,23 +216,29 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
             if progress is not None:
                 progress(counter["done"], total)
 
-    def one_camera(name: str, start: int) -> list:
-        settings = {"start": int(start), "stride": int(stride), "num_frames": int(num_frames),
-                    "max_features": int(max_features)}
-        path = Path(cache_dir) / f"{name}.npz" if cache_dir is not None else None
-        feats = _load_cached_features(path, settings) if path is not None else None
-        if feats is not None:
-            tick(per_video)
-            return feats
-        feats = []
+    def sift_frames(name: str, start: int):
         for _, gray in capture.frames(trial, name, stride=stride, start=int(start),
                                       stop=int(start) + num_frames, gray=True):
             kp, desc = extract_sift(gray, max_features=max_features)
-            feats.append((kp[:, :2].astype(np.float64), desc))
+            yield kp[:, :2].astype(np.float64), desc
             tick(1)
+
+    def one_camera(name: str, start: int) -> list:
+        if cache_dir is None:
+            feats = list(sift_frames(name, start))
+        else:
+            settings = {"start": int(start), "stride": int(stride), "num_frames": int(num_frames),
+                        "max_features": int(max_features)}
+            folder = Path(cache_dir) / name
+            feats = read_camera_features(folder, settings)
+            if feats is not None:
+                tick(per_video)
+                return feats
+            write_camera_features(folder, settings, sift_frames(name, start))
+            feats = read_camera_features(folder, settings)
+            if feats is None:
+                raise OSError(f"{folder}: features written but not readable")
         tick(per_video - len(feats))
-        if path is not None:
-            _save_features(path, settings, feats)
         return feats
 
     # OpenCV releases the GIL while decoding and in SIFT, so threads run the cameras in parallel.
