@@ -1,4 +1,4 @@
-"""Frontend figures (issue 5) for the parts built so far.
+"""Frontend figures (issue 5).
 
 1. Audio synchronisation on a rendered capture: per-camera frame offsets from the claps against the
    studio's ground truth (``video_start_frame + clap_frames[0]``), per trial; the largest error in frames.
@@ -24,6 +24,9 @@
 4. With ``--end-to-end RUN_DIR``: ``bcmocap run`` on the same capture (``benchmarks/end_to_end.py``;
    the capture needs a range-of-motion trial of a few seconds, e.g. ``bcmocap simulate --rom-seconds 2.5``):
    mean joint position and joint angle errors after the §5.1 similarity (goals ≤ 2.0 cm, ≤ 3.0°).
+   That run takes about 40 minutes for the 10 s capture; ``--end-to-end-json FILE`` instead takes the
+   figures of an earlier ``benchmarks/end_to_end.py --json FILE`` run, after checking that it rendered a
+   capture with the same settings, and records where they came from.
 
     python benchmarks/frontend.py --json benchmarks/results/frontend.json [--capture DIR] [--end-to-end RUN_DIR]
 
@@ -35,6 +38,7 @@ first (about a minute on 2 cores; the whole benchmark takes about 4 minutes).
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import tempfile
 import time
@@ -242,6 +246,23 @@ def sceaux_copies(folder: Path, width: int) -> tuple[list[str], object]:
     return names, camera
 
 
+def earlier_end_to_end(path: Path, settings: dict) -> dict:
+    """End-to-end figures from an earlier ``benchmarks/end_to_end.py --json`` file, if it rendered a
+    capture with the same studio ``settings`` as the one measured here."""
+    try:
+        earlier = json.loads(path.read_text())
+        earlier_settings = earlier["capture_settings"]
+        earlier["joint_position_error_cm"]["mean"], earlier["joint_angle_error_deg"]["mean"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"--end-to-end-json {path}: not an end_to_end.py result ({exc!r})") from None
+    differ = sorted(k for k in set(settings) | set(earlier_settings) if settings.get(k) != earlier_settings.get(k))
+    if differ:
+        raise SystemExit(f"--end-to-end-json {path}: its capture was rendered with other settings ({', '.join(differ)})")
+    print(f"end to end (from {path}): joint position {earlier['joint_position_error_cm']['mean']:.3f} cm, "
+          f"joint angle {earlier['joint_angle_error_deg']['mean']:.3f} deg (goals 2.0 / 3.0)")
+    return {**earlier, "source": f"{path} (benchmarks/end_to_end.py, an earlier run on a capture with the same settings)"}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--json", help="write the figures to this file")
@@ -253,9 +274,14 @@ def main(argv=None) -> int:
     parser.add_argument("--end-to-end", type=Path, metavar="RUN_DIR",
                         help="also run bcmocap run on the capture into RUN_DIR (resumed if it holds a run)")
     parser.add_argument("--run-config", type=Path, help="bcmocap run settings for --end-to-end (TOML or JSON)")
+    parser.add_argument("--end-to-end-json", type=Path, metavar="FILE",
+                        help="take the end-to-end figures from an earlier benchmarks/end_to_end.py --json FILE "
+                             "on a capture with the same settings instead of running bcmocap run")
     args = parser.parse_args(argv)
     if args.end_to_end is not None and args.capture is None:
         parser.error("--end-to-end needs --capture (a capture with a range-of-motion trial of a few seconds)")
+    if args.end_to_end is not None and args.end_to_end_json is not None:
+        parser.error("give --end-to-end or --end-to-end-json, not both")
 
     with tempfile.TemporaryDirectory() as tmp:
         capture_dir = args.capture
@@ -288,6 +314,8 @@ def main(argv=None) -> int:
             end_to_end = run_end_to_end(capture_dir, args.end_to_end, load_config(args.run_config))
             print(f"end to end: joint position {end_to_end['joint_position_error_cm']['mean']:.3f} cm, "
                   f"joint angle {end_to_end['joint_angle_error_deg']['mean']:.3f} deg (goals 2.0 / 3.0)")
+        elif args.end_to_end_json is not None:
+            end_to_end = earlier_end_to_end(args.end_to_end_json, settings)
 
     payload = {
         "registered_fraction": registration["registered_fraction"],
@@ -301,7 +329,7 @@ def main(argv=None) -> int:
         "rendered_reference": {**rendered, "capture_settings": settings},
         "registration": registration,
         "end_to_end": end_to_end,
-        "not_built": NOT_BUILT + ([] if end_to_end is not None else ["end_to_end (pass --end-to-end RUN_DIR)"]),
+        "not_built": NOT_BUILT + ([] if end_to_end is not None else ["end_to_end (pass --end-to-end RUN_DIR or --end-to-end-json FILE)"]),
     }
     write_json(args.json, payload)
     return 0
