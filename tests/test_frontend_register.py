@@ -136,6 +136,29 @@ def test_register_trial_with_stride_and_progress(studio):
     assert calls == [(1, 3), (2, 3), (3, 3)]
 
 
+def test_neighbours_offer_registered_cameras_nearest_in_view_first():
+    from bcmocap.frontend.relative import FrameState, _neighbours
+
+    def state(yaw_deg=None):
+        if yaw_deg is None:  # unregistered
+            return FrameState(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64), np.full(7, np.nan))
+        half = np.radians(yaw_deg) / 2  # about the camera's y axis: the optical axis turns in the x-z plane
+        return FrameState(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64),
+                          np.array([np.cos(half), 0, np.sin(half), 0, 0, 0, 0]), how="absolute", round=0)
+
+    # Frame 1 of camera 0 is unregistered; camera 0 looked along yaw 0 at frame 0. At frame 1, cameras
+    # 1 and 2 are unregistered and must not take the slots; 3 (yaw 100) is beyond 90 degrees.
+    yaws = [[0, 60, 40, 100, 10, 30], [None, None, None, 100, 10, 30]]
+    states = [[state(y) for y in row] for row in yaws]
+    got = list(_neighbours(1, 0, 2, 6, 1, states, 90.0, 2))
+    assert got == [(1, 4), (1, 5), (0, 0)]
+    # A camera with no registered frame at all: every registered camera at that time, in camera order.
+    states[0][0] = state(None)
+    assert list(_neighbours(1, 0, 2, 6, 1, states, 90.0, 2)) == [(1, 3), (1, 4), (1, 5), (0, 0)]
+    # Without states (no poses known yet): the first max_others other cameras.
+    assert list(_neighbours(1, 0, 2, 6, 0, None, 90.0, 2)) == [(1, 1), (1, 2)]
+
+
 def test_triangulate_rays_meets_the_point():
     from bcmocap.frontend.relative import triangulate_rays
 

@@ -61,7 +61,8 @@ class RelativeOptions:
         max_view_angle_deg: frames of other cameras are matched only when their optical axes are this
             close (for an unregistered frame: to the axis its camera had at the nearest registered time;
             all cameras when it has none).
-        max_other_cameras: at most this many other cameras at the same time (most similar axes first).
+        max_other_cameras: at most this many other registered cameras at the same time (most similar axes
+            first; every registered one while the frame's camera has no registered frame yet).
         new_points_everywhere: triangulate new points between every pair of neighbouring registered
             frames. By default only pairs where one frame is a neighbour of an unregistered frame are
             matched: new points serve relative registration, and a trial that registers absolutely
@@ -260,6 +261,7 @@ def _estimate_pose(xy: np.ndarray, xyz: np.ndarray, cam, options: RegistrationOp
         return None
     est = pycolmap.AbsolutePoseEstimationOptions()
     est.ransac.max_error = options.ransac_max_error_px
+    est.ransac.random_seed = 0  # the same matches give the same pose (COLMAP's default, -1, seeds at random)
     result = pycolmap.estimate_and_refine_absolute_pose(xy + 0.5, xyz, cam, est)
     if result is None:
         return None
@@ -347,9 +349,15 @@ def _axis(pose: np.ndarray) -> np.ndarray:
 
 def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, states=None, max_angle_deg=180.0,
                 max_others: int | None = None):
-    """Frames that may see what frame ``(t, c)`` sees: other cameras at ``t`` (when ``states`` is given,
-    only those whose axis is within ``max_angle_deg`` of this camera's nearest registered axis; at most
-    ``max_others``, most similar first), then the same camera up to ``gap`` frames away."""
+    """Frames that may see what frame ``(t, c)`` sees: other cameras at ``t``, then the same camera up to
+    ``gap`` frames away.
+
+    With ``states``, only registered other cameras are offered (an unregistered one has neither a pose nor
+    points to lend), those whose axis is within ``max_angle_deg`` of this camera's nearest registered axis,
+    at most ``max_others`` of them, most similar first. While this camera has no registered frame its axis
+    is unknown, so every registered camera at ``t`` is offered: ranking them by index would leave a camera
+    that no reference photo sees (an arm pointing at the floor) to whichever cameras come first.
+    """
     axis = None
     if states is not None:
         near = sorted((abs(t2 - t), t2) for t2 in range(num_frames) if states[t2][c].registered)
@@ -358,15 +366,16 @@ def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, sta
     cos_max = np.cos(np.radians(max_angle_deg))
     others = []
     for c2 in range(num_cameras):
-        if c2 == c:
+        if c2 == c or (states is not None and not states[t][c2].registered):
             continue
         cos = 1.0
-        if axis is not None and states[t][c2].registered:
+        if axis is not None:
             cos = float(axis @ _axis(states[t][c2].world_from_camera))
             if cos < cos_max:
                 continue
         others.append((-cos, c2))
-    for _, c2 in sorted(others)[:max_others]:  # most similar view first
+    limit = max_others if states is None or axis is not None else None
+    for _, c2 in sorted(others)[:limit]:  # most similar view first
         yield t, c2
     for dt in range(1, gap + 1):
         for t2 in (t - dt, t + dt):
