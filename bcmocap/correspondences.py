@@ -109,6 +109,41 @@ class Correspondences:
             self.registered[sl], self.fps,
         )
 
+    @classmethod
+    def concatenate(cls, parts: list[Correspondences]) -> Correspondences:
+        """Consecutive stretches of one trial as one (a trial registered in chunks): frames in order, each
+        part's points appended with its ids offset, measurement and homography slots padded to the widest
+        part. The parts must share cameras and ``fps``."""
+        if not parts:
+            raise ValueError("Correspondences.concatenate: no parts")
+        cams, fps = parts[0].num_cameras, parts[0].fps
+        for k, part in enumerate(parts):
+            if part.num_cameras != cams or part.fps != fps:
+                raise ValueError(f"Correspondences.concatenate: part {k} has {part.num_cameras} cameras at "
+                                 f"{part.fps:g} fps, part 0 {cams} at {fps:g}")
+        n = max(p.point_ids.shape[2] for p in parts)
+        m = max(p.homography_weights.shape[2] for p in parts)
+
+        def pad(a: np.ndarray, width: int, fill) -> np.ndarray:
+            extra = [(0, 0)] * a.ndim
+            extra[2] = (0, width - a.shape[2])
+            return np.pad(a, extra, constant_values=fill)
+
+        offsets = np.cumsum([0] + [len(p.points) for p in parts[:-1]])
+        ids = [np.where(p.point_ids >= 0, p.point_ids + o, -1).astype(np.int32) for p, o in zip(parts, offsets)]
+        return cls(
+            np.concatenate([p.points for p in parts]).reshape(-1, 3),
+            np.concatenate([pad(i, n, -1) for i in ids]),
+            np.concatenate([pad(p.pixels, n, 0.0) for p in parts]),
+            np.concatenate([pad(p.weights, n, 0.0) for p in parts]),
+            np.concatenate([pad(p.homography_pixels, m, 0.0) for p in parts]),
+            np.concatenate([pad(p.homography_pixels_prev, m, 0.0) for p in parts]),
+            np.concatenate([pad(p.homography_weights, m, 0.0) for p in parts]),
+            np.concatenate([p.world_from_camera for p in parts]),
+            np.concatenate([p.registered for p in parts]),
+            fps,
+        )
+
     def save(self, path: str | Path) -> None:
         """Write an ``.npz`` file atomically (a temporary file in the same folder, then renamed)."""
         from .io.atomic import atomic_path

@@ -45,6 +45,29 @@ def test_valid_correspondences_and_sizes():
     np.testing.assert_array_equal(part.points, c.points)
 
 
+def test_concatenate_appends_frames_and_points_and_pads_slots():
+    a = Correspondences(**arrays())
+    wide = arrays(seed=1)
+    wide["points"] = wide["points"][:2]
+    wide["point_ids"] = np.concatenate([wide["point_ids"] % 2, np.full((T, C, 2), -1, np.int32)], axis=2)
+    wide["pixels"] = np.concatenate([wide["pixels"], np.zeros((T, C, 2, 2))], axis=2)
+    wide["weights"] = np.concatenate([wide["weights"], np.zeros((T, C, 2))], axis=2)
+    b = Correspondences(**wide)
+    both = Correspondences.concatenate([a, b])
+    assert (both.num_frames, both.point_ids.shape[2], len(both.points)) == (2 * T, N + 2, P + 2)
+    np.testing.assert_array_equal(both.point_ids[:T, :, :N], a.point_ids)
+    assert (both.point_ids[:T, :, N:] == -1).all() and (both.weights[:T, :, N:] == 0).all()
+    # The second part's ids point at its own points, now after the first part's.
+    has = b.point_ids >= 0
+    np.testing.assert_array_equal(both.points[both.point_ids[T:][has]], b.points[b.point_ids[has]])
+    np.testing.assert_array_equal(both.registered, np.concatenate([a.registered, b.registered]))
+    assert Correspondences.concatenate([a]).point_ids.shape == a.point_ids.shape
+    with pytest.raises(ValueError, match="part 1 has 2 cameras at 30 fps, part 0 2 at 60"):
+        Correspondences.concatenate([a, Correspondences(**dict(arrays(), fps=30.0))])
+    with pytest.raises(ValueError, match="no parts"):
+        Correspondences.concatenate([])
+
+
 def test_save_load_round_trip(tmp_path):
     c = Correspondences(**arrays())
     path = tmp_path / "sub" / "capture.npz"

@@ -172,11 +172,11 @@ def test_triangulate_rays_meets_the_point():
     assert np.allclose(same[0], point) and np.isnan(same[1]).all()
 
 
-def test_relative_registration_reaches_frames_the_reference_does_not_see(studio):
-    """Body frames turned away from the reference photos' views (yaw 1.6 rad) fail absolute registration;
-    new points triangulated between the registered frames register them relatively, accurately."""
+@pytest.fixture(scope="module")
+def turned_rig(studio):
+    """Two frames of three body cameras, the third turned away from the reference photos' views (yaw 1.6
+    rad): ``(features[t][c] = (keypoints, descriptors), true poses (2, 3, 7))``."""
     from bcmocap.frontend.reference import extract_sift
-    from bcmocap.frontend.relative import register_capture
 
     scene = make_textured_scene(np.array([[0.0, 0.0], [1.0, 0.0]]), seed=3, num_pillars=4, num_boxes=4)
     yaws = [0.1, 0.8, 1.6]
@@ -188,6 +188,15 @@ def test_relative_registration_reaches_frames_the_reference_does_not_see(studio)
         images = _render(scene, studio.fisheye, row)
         features.append([(kp[:, :2], desc) for kp, desc in
                          (extract_sift(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)) for im in images)])
+    return features, poses
+
+
+def test_relative_registration_reaches_frames_the_reference_does_not_see(studio, turned_rig):
+    """Body frames turned away from the reference photos' views (yaw 1.6 rad) fail absolute registration;
+    new points triangulated between the registered frames register them relatively, accurately."""
+    from bcmocap.frontend.relative import register_capture
+
+    features, poses = turned_rig
     calls = []
     out = register_capture(features, [studio.fisheye] * 3, studio.index,
                            progress=lambda stage, done, total: calls.append(stage))
@@ -250,3 +259,47 @@ def test_extract_trial_features_reads_every_camera_from_its_start(studio, tmp_pa
                for rx, ry in zip(first, again) for x, y in zip(rx, ry))
     extract_trial_features(FakeCapture(), "capture", starts=[1, 2], stride=1, cache_dir=tmp_path)
     assert [r[3] for r in reads] == [1, 1]
+
+
+def test_a_trial_registered_in_chunks_is_saved_chunk_by_chunk_and_resumed(studio, turned_rig, tmp_path, monkeypatch):
+    """process_trial with chunk_frames: each chunk registered on its own and written as it is done, the
+    trial's correspondences the chunks end to end; a rerun reuses the chunks instead of registering."""
+    import json
+
+    import bcmocap.frontend.relative as relative
+    from bcmocap.correspondences import Correspondences
+    from bcmocap.frontend.command import process_trial
+
+    features, poses = turned_rig
+    names = ("a", "b", "c")
+    capture = types.SimpleNamespace(
+        camera_names=names, fps=60.0, cameras=[types.SimpleNamespace(name=n, intrinsics=studio.fisheye) for n in names],
+        video_info=lambda trial, name: types.SimpleNamespace(num_frames=2))
+    monkeypatch.setattr(relative, "extract_trial_features", lambda *args, **kwargs: features)
+    quiet = dict(offsets=[0, 0, 0], homographies=False, log=lambda line: None)
+    whole = process_trial(capture, studio.index, "capture", tmp_path / "whole", **quiet)
+    chunked = process_trial(capture, studio.index, "capture", tmp_path / "chunked", chunk_frames=1, **quiet)
+    a = Correspondences.load(tmp_path / "whole" / "capture" / "correspondences.npz")
+    b = Correspondences.load(tmp_path / "chunked" / "capture" / "correspondences.npz")
+    assert whole["registered_fraction"] == chunked["registered_fraction"] == 1.0
+    assert b.point_ids.shape[:2] == (2, 3) and b.fps == 60.0 and chunked["chunk_frames"] == 1
+    assert len(chunked["rounds"]) == 2 and chunked["registered_absolute"] == 4 and chunked["registered_relative"] == 2
+    for t in range(2):
+        part = Correspondences.load(tmp_path / "chunked" / "capture" / "chunks" / f"{t:04d}.npz")
+        assert json.loads((tmp_path / "chunked" / "capture" / "chunks" / f"{t:04d}.json").read_text())["frames"] == [t, t + 1]
+        assert np.array_equal(part.registered[0], b.registered[t])
+        for c in range(3):
+            rot_deg, pos_cm = _errors(studio.align, b.world_from_camera[t, c], poses[t, c])
+            assert rot_deg < 0.5 and pos_cm < 2.0, (t, c, rot_deg, pos_cm)
+            has = b.point_ids[t, c] >= 0
+            assert has.sum() == (part.point_ids[0, c] >= 0).sum() > 50
+            # Each chunk's points follow the previous chunks' in the merged trial.
+            assert np.allclose(b.points[b.point_ids[t, c, has]], part.points[part.point_ids[0, c, part.point_ids[0, c] >= 0]])
+        assert a.world_from_camera.shape == b.world_from_camera.shape
+
+    def no_registration(*args, **kwargs):
+        raise AssertionError("a saved chunk was registered again")
+
+    monkeypatch.setattr(relative, "register_capture", no_registration)
+    again = process_trial(capture, studio.index, "capture", tmp_path / "chunked", chunk_frames=1, **quiet)
+    assert again["registered_fraction"] == 1.0 and again["rounds"] == chunked["rounds"]

@@ -7,7 +7,8 @@ Stages, each saved under ``DIR`` and reused when rerun (delete a stage's output 
 2. per trial, audio synchronisation (:func:`~.sync.synchronize`; ``--offsets`` gives them instead), then
    SIFT of every ``--stride``-th frame of every camera from the first clap to the second
    (``features/<trial>/<camera>/``, :mod:`~.features`: streamed to disk and read back memory-mapped);
-3. per trial, registration (:func:`~.relative.register_capture`), homographies for the frames left
+3. per trial, registration (:func:`~.relative.register_capture`; with ``--chunk-frames N`` in chunks of N
+   frames saved to ``<trial>/chunks/`` as they are done), homographies for the frames left
    (:func:`~.homography.fill_with_homographies`) and ``<trial>/correspondences.npz``
    (:class:`~bcmocap.correspondences.Correspondences`, in the reference model's frame and scale) with
    ``<trial>/registration.json``.
@@ -18,6 +19,7 @@ Heavy modules are imported inside :func:`run_frontend`, so ``bcmocap --help`` st
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 
@@ -37,12 +39,17 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--frames", type=int, default=None, help="at most this many frames per camera from the first clap")
     cmd.add_argument("--offsets", help="comma-separated video frame of the first clap per camera (skips audio sync)")
     cmd.add_argument("--max-features", type=int, default=8000, help="SIFT features per image (default 8000)")
+    cmd.add_argument("--chunk-frames", type=int, default=0,
+                     help="register each trial in chunks of this many processed frames, each saved as it is done, "
+                          "so memory does not grow with the trial (default 0: the whole trial at once)")
 
     def run(args: argparse.Namespace) -> int:
         if args.stride < 1:
             cmd.error("--stride must be at least 1")
         if args.frames is not None and args.frames < 1:
             cmd.error("--frames must be at least 1")
+        if args.chunk_frames < 0:
+            cmd.error("--chunk-frames must be 0 (no chunks) or positive")
         return run_frontend(args)
 
     cmd.set_defaults(run=run)
@@ -87,9 +94,16 @@ def prepare_reference(capture, ref_dir, log=print):
 
 
 def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
-                  max_features: int = 8000, offsets=None, homographies: bool = True, log=print) -> dict:
+                  max_features: int = 8000, offsets=None, homographies: bool = True, chunk_frames: int = 0,
+                  log=print) -> dict:
     """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
     are given), through sync, features, registration and homographies, written under ``out``.
+
+    With ``chunk_frames`` > 0 the trial is registered in chunks of that many processed frames, one after
+    the other: a chunk's points, tracks and matches are dropped once its correspondences are written to
+    ``out/<trial>/chunks/NNNN.npz`` (with ``NNNN.json``), so memory no longer grows with the trial's length
+    during registration, and a rerun reuses the chunks already done. Frames in different chunks are not
+    matched with each other (each chunk starts again from the reference model). 0: the whole trial at once.
 
     Writes ``out/<trial>/correspondences.npz`` and ``out/<trial>/registration.json`` (features are cached
     in ``out/features/<trial>/``) and returns the registration report (the JSON's content).
@@ -97,8 +111,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     import numpy as np
 
     from ..cli import write_json_atomic
-    from .homography import fill_with_homographies
-    from .relative import extract_trial_features, register_capture
+    from ..correspondences import Correspondences
+    from .relative import extract_trial_features
     from .sync import given_offsets, synchronize
 
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
@@ -111,34 +125,80 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     features = extract_trial_features(capture, trial, stride=stride, starts=starts, num_frames=frames,
                                       max_features=max_features, cache_dir=out / "features" / trial,
                                       progress=_progress(f"{trial} features"))
-    stages: dict[str, object] = {}
-
-    def progress(stage, done, total):
-        stages.setdefault(stage, _progress(f"{trial} {stage}"))(done, total)
-
     clock = time.perf_counter()
-    cameras = [c.intrinsics for c in capture.cameras]
-    result = register_capture(features, cameras, index, frames=np.arange(len(features)) * stride, progress=progress)
-    fill = fill_with_homographies(result, cameras) if homographies else None
-    corr = result.correspondences(fps=capture.fps / stride, homographies=fill)
+    size = chunk_frames if chunk_frames > 0 else len(features)
+    bounds = [(a, min(a + size, len(features))) for a in range(0, len(features), max(size, 1))]
+    settings = {"first_clap_frames": starts.tolist(), "stride": stride, "max_features": max_features,
+                "homographies": homographies}
+    parts, chunks = [], []
+    for k, (a, b) in enumerate(bounds):
+        label = trial if len(bounds) == 1 else f"{trial} chunk {k + 1}/{len(bounds)}"
+        saved = out / trial / "chunks" / f"{k:04d}"
+        part = summary = None
+        if len(bounds) > 1 and saved.with_suffix(".json").is_file():
+            try:
+                summary = json.loads(saved.with_suffix(".json").read_text())
+                part = Correspondences.load(saved.with_suffix(".npz"))
+            except ValueError:
+                summary = part = None
+            if summary is None or summary.get("settings") != settings or summary.get("frames") != [a, b]:
+                summary = part = None
+            else:
+                log(f"{label}: reused {saved.with_suffix('.npz')}")
+        if part is None:
+            part, summary = _register_frames(features[a:b], a, capture, index, stride, homographies, label)
+            summary = {"frames": [a, b], "settings": settings, **summary}
+            if len(bounds) > 1:
+                part.save(saved.with_suffix(".npz"))
+                write_json_atomic(saved.with_suffix(".json"), summary)
+        parts.append(part)
+        chunks.append(summary)
+    corr = Correspondences.concatenate(parts)
     corr.save(out / trial / "correspondences.npz")
-    reg = result.registered
+    reg = corr.registered
     report = {"trial": trial, "first_clap_frames": starts.tolist(), "stride": stride,
               "frames": int(reg.shape[0]), "cameras": list(capture.camera_names),
-              "registered_fraction": result.registered_fraction,
+              "registered_fraction": float(reg.mean()) if reg.size else 0.0,
               "registered_per_camera": reg.mean(axis=0).tolist(),
-              "registered_absolute": int(sum(s.how == "absolute" for row in result.states for s in row)),
-              "registered_relative": int(sum(s.how == "relative" for row in result.states for s in row)),
-              "rounds": result.rounds, "points": len(result.points), "new_points": len(result.new_point_ids),
-              "filled_by_homographies": int(fill.filled.sum()) if fill is not None else 0,
-              "homography_pairs": len(fill.pixels) if fill is not None else 0,
-              "seconds": time.perf_counter() - clock,
-              "note": "poses and points are in the reference model's frame and scale"}
+              "chunk_frames": chunk_frames}
+    for key in ("registered_absolute", "registered_relative", "points", "new_points", "filled_by_homographies",
+                "homography_pairs"):
+        report[key] = int(sum(c[key] for c in chunks))
+    report["rounds"] = chunks[0]["rounds"] if len(chunks) == 1 else [c["rounds"] for c in chunks]
+    report["seconds"] = time.perf_counter() - clock
+    report["note"] = "poses and points are in the reference model's frame and scale"
     write_json_atomic(out / trial / "registration.json", report)
-    log(f"{trial}: {reg.sum()}/{reg.size} frames registered ({100 * result.registered_fraction:.1f} %: "
+    log(f"{trial}: {reg.sum()}/{reg.size} frames registered ({100 * report['registered_fraction']:.1f} %: "
         f"{report['registered_absolute']} absolute, {report['registered_relative']} relative); "
         f"wrote {out / trial / 'correspondences.npz'}")
     return report
+
+
+def _register_frames(features, first: int, capture, index, stride: int, homographies: bool, label: str):
+    """Registration and homographies of the processed frames ``first … first + len(features) − 1``:
+    ``(Correspondences, summary)``; the registration's points and tracks are released on return."""
+    import numpy as np
+
+    from .homography import fill_with_homographies
+    from .relative import register_capture
+
+    stages: dict[str, object] = {}
+
+    def progress(stage, done, total):
+        stages.setdefault(stage, _progress(f"{label} {stage}"))(done, total)
+
+    cameras = [c.intrinsics for c in capture.cameras]
+    result = register_capture(features, cameras, index, frames=(first + np.arange(len(features))) * stride,
+                              progress=progress)
+    fill = fill_with_homographies(result, cameras) if homographies else None
+    corr = result.correspondences(fps=capture.fps / stride, homographies=fill)
+    states = [s for row in result.states for s in row]
+    summary = {"registered_absolute": sum(s.how == "absolute" for s in states),
+               "registered_relative": sum(s.how == "relative" for s in states),
+               "rounds": result.rounds, "points": len(result.points), "new_points": len(result.new_point_ids),
+               "filled_by_homographies": int(fill.filled.sum()) if fill is not None else 0,
+               "homography_pairs": len(fill.pixels) if fill is not None else 0}
+    return corr, summary
 
 
 def run_frontend(args: argparse.Namespace) -> int:
@@ -168,5 +228,6 @@ def run_frontend(args: argparse.Namespace) -> int:
     index = reference_index(model)
     for trial in trials:
         process_trial(capture, index, trial, out, stride=args.stride, frames=args.frames,
-                      max_features=args.max_features, offsets=offsets, log=lambda m: print(m, flush=True))
+                      max_features=args.max_features, offsets=offsets, chunk_frames=args.chunk_frames,
+                      log=lambda m: print(m, flush=True))
     return 0

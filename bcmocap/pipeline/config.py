@@ -11,6 +11,7 @@ run must use the same settings for the stages it reuses.
     rom_stride = 3        # the same for the range-of-motion trial
     max_features = 8000   # SIFT features per image
     frames = 0            # at most this many frames per camera and trial (0: all)
+    chunk_frames = 0      # register in chunks of this many processed frames, saved as done (0: whole trial)
 
     [skeleton]
     root_origin = ["torso"]   # children whose joint centres' mean is the root's origin
@@ -50,6 +51,7 @@ class FrontendConfig:
     rom_stride: int = 3
     max_features: int = 8000
     frames: int = 0
+    chunk_frames: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,6 +95,7 @@ class RunConfig:
         _check(f.rom_stride >= 1, "frontend.rom_stride", "must be ≥ 1", f.rom_stride)
         _check(f.max_features >= 100, "frontend.max_features", "must be ≥ 100", f.max_features)
         _check(f.frames >= 0, "frontend.frames", "must be ≥ 0", f.frames)
+        _check(f.chunk_frames >= 0, "frontend.chunk_frames", "must be ≥ 0", f.chunk_frames)
         _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)

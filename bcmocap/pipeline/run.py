@@ -186,7 +186,8 @@ def _stage_frontend(ctx: RunContext) -> dict:
         if index is None:
             index = reference_index(prepare_reference(ctx.capture, folder / "reference", log=ctx.log))
         reports[trial] = process_trial(ctx.capture, index, trial, folder, stride=stride, frames=f.frames or None,
-                                       max_features=f.max_features, homographies=homographies, log=ctx.log)
+                                       max_features=f.max_features, homographies=homographies,
+                                       chunk_frames=f.chunk_frames, log=ctx.log)
     return {trial: {"registered_fraction": r["registered_fraction"], "frames": r["frames"]}
             for trial, r in reports.items()}
 
