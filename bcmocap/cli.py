@@ -51,7 +51,7 @@ def _table(rows: list[tuple[str, dict]]) -> str:
 
 def run_demo(args: argparse.Namespace) -> int:
     """The full chain on a small rendered capture: pixels → frontend → skeleton → solver → outputs."""
-    if not args.full_chain:
+    if args.simulated_measurements:
         return run_measurement_demo(args)
     enable_compilation_cache()
     from .pipeline.config import RunConfig
@@ -135,34 +135,35 @@ def run_measurement_demo(args: argparse.Namespace) -> int:
 
 def add_demo_command(sub: argparse._SubParsersAction) -> None:
     demo = sub.add_parser(
-        "demo", help="simulate a short CMU capture, optimise it and report accuracy (--full-chain: from rendered pixels)",
-        description="Simulate a few seconds of a CMU motion through the 18-camera rig (measurements simulated directly: "
-                    "1 px noise, 10 % outliers, 5 % unregistered camera-frames, SfM-like pose noise), optimise it with "
-                    "the true skeleton and report accuracy (about a minute). --full-chain instead renders a short "
-                    "capture (bcmocap simulate) into OUT/capture and runs `bcmocap run` on its pixels: frontend, "
-                    "skeleton from the range-of-motion trial, solver, outputs, pictures and metrics in OUT (over 8 "
-                    "minutes on 2 cores, and at the 30 frames/s defaults the rest pose can miss a camera; rerunning "
-                    "resumes).")
+        "demo", help="render a short capture and run the whole chain on its pixels (--simulated-measurements: "
+                     "the solver alone)",
+        description="Render a short capture (a 1 s CMU walk and a 2.5 s range-of-motion trial at 30 frames/s through "
+                    "the 18-camera rig, as bcmocap simulate does) into OUT/capture and run `bcmocap run` on its "
+                    "pixels: reference model, sync, SIFT, registration, skeleton from the range-of-motion trial, "
+                    "solver, outputs, pictures and metrics.json against the rendered truth in OUT (about 6 minutes "
+                    "on 2 cores; rerunning resumes). --simulated-measurements instead simulates the measurements "
+                    "directly (1 px noise, 10 % outliers, 5 % unregistered camera-frames, SfM-like pose noise), "
+                    "optimises them with the true skeleton and reports the solver's accuracy (about a minute).")
     demo.add_argument("--out", default="bcmocap-demo", help="output folder (default: ./bcmocap-demo)")
     demo.add_argument("--motion", default="walk", choices=["walk", "run", "jump"])
     demo.add_argument("--seconds", type=float, default=None,
-                      help="length of the capture (s; default 2, or 1 with --full-chain)")
+                      help="length of the capture (s; default 1, or 2 with --simulated-measurements)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--window", type=int, default=60, help="frames per solver window")
     demo.add_argument("--overlap", type=int, default=10, help="frames shared by consecutive windows")
-    demo.add_argument("--full-chain", action="store_true",
-                      help="render a capture and run the whole chain on its pixels (slow, see above)")
-    full = demo.add_argument_group("with --full-chain")
+    demo.add_argument("--simulated-measurements", action="store_true",
+                      help="skip pixels: simulate the measurements and run the solver alone")
+    full = demo.add_argument_group("the full chain (default)")
     full.add_argument("--rom-seconds", type=float, default=2.5, help="length of the range-of-motion trial (s)")
     full.add_argument("--fps", type=float, default=30.0, help="frame rate of the rendered videos")
     full.add_argument("--reference-photos", type=int, default=24, help="reference photos of the room")
-    full.add_argument("--stride", type=int, default=1, help="use every n-th frame of the capture trial")
+    full.add_argument("--stride", type=int, default=2, help="use every n-th frame of the capture trial")
     full.add_argument("--rom-stride", type=int, default=2, help="use every n-th frame of the range-of-motion trial")
-    full.add_argument("--max-features", type=int, default=4000, help="SIFT features per image")
+    full.add_argument("--max-features", type=int, default=3000, help="SIFT features per image")
 
     def run(args: argparse.Namespace) -> int:
         if args.seconds is None:
-            args.seconds = 1.0 if args.full_chain else 2.0
+            args.seconds = 2.0 if args.simulated_measurements else 1.0
         if args.seconds <= 0 or args.rom_seconds <= 0 or args.fps <= 0:
             demo.error("--seconds, --rom-seconds and --fps must be positive")
         if args.reference_photos < 4:

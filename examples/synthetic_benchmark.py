@@ -5,8 +5,8 @@ paper's 18-camera rig: ~300 scene-point measurements per camera-frame with 1 px 
 5 % of the camera-frames unregistered, and SfM-like noise on the registered camera poses. The solver
 starts from the motion fitted to those noisy camera poses (``capture.initial_motion``) and minimises
 Eq. (1) in overlapping windows (``bcmocap.solver``); ``bcmocap.eval.evaluate_motion`` gives the
-paper's figures (§5.1) before and after. This is ``bcmocap demo`` / ``benchmarks/accuracy.py`` in a few
-lines of the public API.
+paper's figures (§5.1) before and after. This is ``bcmocap demo --simulated-measurements`` /
+``benchmarks/accuracy.py`` in a few lines of the public API.
 
     python examples/synthetic_benchmark.py [--motion walk|run|jump] [--seconds 1.0] [--window 60] [--seed 0]
 """

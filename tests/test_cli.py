@@ -5,8 +5,6 @@ import runpy
 import sys
 from pathlib import Path
 
-import pytest
-
 from bcmocap.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -14,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_demo_writes_metrics_and_bvh(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--seconds", "0.5", "--out", str(out), "--window", "30"]) == 0
+    assert main(["demo", "--simulated-measurements", "--seconds", "0.5", "--out", str(out), "--window", "30"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("joint_position_error_cm", "joint_angle_error_deg"):
         assert set(metrics[key]) == {"mean", "median", "max"}
@@ -31,7 +29,8 @@ def test_demo_writes_metrics_and_bvh(tmp_path, capsys):
 def test_demo_refuses_a_file_as_output(tmp_path):
     target = tmp_path / "file"
     target.write_text("keep me")
-    assert main(["demo", "--seconds", "0.5", "--out", str(target)]) == 2
+    assert main(["demo", "--simulated-measurements", "--seconds", "0.5", "--out", str(target)]) == 2
+    assert main(["demo", "--out", str(target)]) == 2  # the full chain checks before it renders anything
     assert target.read_text() == "keep me"
 
 

@@ -356,7 +356,8 @@ def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, sta
     points to lend), those whose axis is within ``max_angle_deg`` of this camera's nearest registered axis,
     at most ``max_others`` of them, most similar first. While this camera has no registered frame its axis
     is unknown, so every registered camera at ``t`` is offered: ranking them by index would leave a camera
-    that no reference photo sees (an arm pointing at the floor) to whichever cameras come first.
+    that never registers absolutely (the upper-arm cameras in the demo's range-of-motion trial) to whichever
+    cameras come first.
     """
     axis = None
     if states is not None:
