@@ -246,6 +246,11 @@ def sceaux_copies(folder: Path, width: int) -> tuple[list[str], object]:
     return names, camera
 
 
+def print_end_to_end(figures: dict, source: str = "") -> None:
+    print(f"end to end{source}: joint position {figures['joint_position_error_cm']['mean']:.3f} cm, "
+          f"joint angle {figures['joint_angle_error_deg']['mean']:.3f} deg (goals 2.0 / 3.0)")
+
+
 def earlier_end_to_end(path: Path, settings: dict) -> dict:
     """End-to-end figures from an earlier ``benchmarks/end_to_end.py --json`` file, if it rendered a
     capture with the same studio ``settings`` as the one measured here."""
@@ -258,8 +263,7 @@ def earlier_end_to_end(path: Path, settings: dict) -> dict:
     differ = sorted(k for k in set(settings) | set(earlier_settings) if settings.get(k) != earlier_settings.get(k))
     if differ:
         raise SystemExit(f"--end-to-end-json {path}: its capture was rendered with other settings ({', '.join(differ)})")
-    print(f"end to end (from {path}): joint position {earlier['joint_position_error_cm']['mean']:.3f} cm, "
-          f"joint angle {earlier['joint_angle_error_deg']['mean']:.3f} deg (goals 2.0 / 3.0)")
+    print_end_to_end(earlier, f" (from {path})")
     return {**earlier, "source": f"{path} (benchmarks/end_to_end.py, an earlier run on a capture with the same settings)"}
 
 
@@ -312,8 +316,7 @@ def main(argv=None) -> int:
             from bcmocap.pipeline.config import load_config
 
             end_to_end = run_end_to_end(capture_dir, args.end_to_end, load_config(args.run_config))
-            print(f"end to end: joint position {end_to_end['joint_position_error_cm']['mean']:.3f} cm, "
-                  f"joint angle {end_to_end['joint_angle_error_deg']['mean']:.3f} deg (goals 2.0 / 3.0)")
+            print_end_to_end(end_to_end)
         elif args.end_to_end_json is not None:
             end_to_end = earlier_end_to_end(args.end_to_end_json, settings)
 

@@ -134,18 +134,10 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     for k, (a, b) in enumerate(bounds):
         label = trial if len(bounds) == 1 else f"{trial} chunk {k + 1}/{len(bounds)}"
         saved = out / trial / "chunks" / f"{k:04d}"
-        part = summary = None
-        if len(bounds) > 1 and saved.with_suffix(".json").is_file():
-            try:
-                summary = json.loads(saved.with_suffix(".json").read_text())
-                part = Correspondences.load(saved.with_suffix(".npz"))
-            except ValueError:
-                summary = part = None
-            if summary is None or summary.get("settings") != settings or summary.get("frames") != [a, b]:
-                summary = part = None
-            else:
-                log(f"{label}: reused {saved.with_suffix('.npz')}")
-        if part is None:
+        part, summary = _saved_chunk(saved, settings, [a, b]) if len(bounds) > 1 else (None, None)
+        if part is not None:
+            log(f"{label}: reused {saved.with_suffix('.npz')}")
+        else:
             part, summary = _register_frames(features[a:b], a, capture, index, stride, homographies, label)
             summary = {"frames": [a, b], "settings": settings, **summary}
             if len(bounds) > 1:
@@ -172,6 +164,23 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         f"{report['registered_absolute']} absolute, {report['registered_relative']} relative); "
         f"wrote {out / trial / 'correspondences.npz'}")
     return report
+
+
+def _saved_chunk(saved, settings: dict, frames: list[int]):
+    """``(Correspondences, summary)`` of a chunk written by an earlier run with the same settings and
+    frames (``saved`` without suffix), or ``(None, None)``."""
+    from ..correspondences import Correspondences
+
+    try:
+        summary = json.loads(saved.with_suffix(".json").read_text())
+    except (OSError, ValueError):
+        return None, None
+    if not isinstance(summary, dict) or summary.get("settings") != settings or summary.get("frames") != frames:
+        return None, None
+    try:
+        return Correspondences.load(saved.with_suffix(".npz")), summary
+    except ValueError:
+        return None, None
 
 
 def _register_frames(features, first: int, capture, index, stride: int, homographies: bool, label: str):
