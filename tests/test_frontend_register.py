@@ -267,6 +267,7 @@ def test_a_trial_registered_in_chunks_is_saved_chunk_by_chunk_and_resumed(studio
     import json
 
     import bcmocap.frontend.relative as relative
+    from bcmocap.correspondence_store import CorrespondenceStore
     from bcmocap.correspondences import Correspondences
     from bcmocap.frontend.command import process_trial
 
@@ -279,8 +280,8 @@ def test_a_trial_registered_in_chunks_is_saved_chunk_by_chunk_and_resumed(studio
     quiet = dict(offsets=[0, 0, 0], homographies=False, log=lambda line: None)
     whole = process_trial(capture, studio.index, "capture", tmp_path / "whole", **quiet)
     chunked = process_trial(capture, studio.index, "capture", tmp_path / "chunked", chunk_frames=1, **quiet)
-    a = Correspondences.load(tmp_path / "whole" / "capture" / "correspondences.npz")
-    b = Correspondences.load(tmp_path / "chunked" / "capture" / "correspondences.npz")
+    a = CorrespondenceStore.open(tmp_path / "whole" / "capture" / "correspondences").load()
+    b = CorrespondenceStore.open(tmp_path / "chunked" / "capture" / "correspondences").load()
     assert whole["registered_fraction"] == chunked["registered_fraction"] == 1.0
     assert b.point_ids.shape[:2] == (2, 3) and b.fps == 60.0 and chunked["chunk_frames"] == 1
     assert len(chunked["rounds"]) == 2 and chunked["registered_absolute"] == 4 and chunked["registered_relative"] == 2

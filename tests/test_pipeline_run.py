@@ -1,6 +1,6 @@
 """bcmocap.pipeline.run: the stages after the frontend, on simulated frontend output.
 
-The frontend's files (``DIR/frontend/{rom,capture}/correspondences.npz`` and ``registration.json``) are
+The frontend's files (``DIR/frontend/{rom,capture}/correspondences/`` and ``registration.json``) are
 made from the simulator in an arbitrary structure-from-motion frame (a random similarity of the true
 world), so the run must find the metric world, the skeleton, the motion and the outputs by itself; the
 frontend itself is tested on rendered pixels in the test_frontend_* files.
@@ -12,6 +12,7 @@ import json
 import numpy as np
 import pytest
 
+from bcmocap.correspondence_store import CorrespondenceStore, write_store
 from bcmocap.correspondences import Correspondences
 from bcmocap.frontend.capture import Capture, CaptureCamera
 from bcmocap.geometry import SO3
@@ -40,7 +41,7 @@ def simulated_run(tmp_path_factory):
     for trial, corr in (("rom", _rom_correspondences(rom)), ("capture", capture.correspondences())):
         sfm = dataclasses.replace(corr, points=sfm_from_world.points(corr.points),
                                   world_from_camera=sfm_from_world.poses(corr.world_from_camera))
-        sfm.save(frontend / trial / "correspondences.npz")
+        write_store(frontend / trial / "correspondences", [sfm], block_frames=7)
         (frontend / trial / "registration.json").write_text(json.dumps(
             {"stride": 1, "frames": sfm.num_frames, "registered_fraction": float(sfm.registered.mean()),
              "cameras": list(rig.names)}))
@@ -77,7 +78,7 @@ def test_run_finds_the_metric_world_skeleton_and_motion(simulated_run):
              "world_from_camera": np.asarray(__import__("bcmocap.kinematics.rig", fromlist=["camera_poses"])
                                              .camera_poses(capture.skeleton, capture.rig, capture.motion).wxyz_xyz),
              "valid": np.ones(capture.num_frames, bool)}
-    corr = Correspondences.load(out / "solve" / "correspondences.npz")
+    corr = CorrespondenceStore.open(out / "solve" / "correspondences")
     metrics, _ = evaluate_run(skeleton, rig, {"initial": load_motion(out / "solve" / "initial.npz"),
                                                "solved": load_motion(out / "solve" / "motion.npz")}, corr, truth)
     solved, initial = metrics["solved"], metrics["initial"]

@@ -9,8 +9,9 @@ Stages, each saved under ``DIR`` and reused when rerun (delete a stage's output 
    (``features/<trial>/<camera>/``, :mod:`~.features`: streamed to disk and read back memory-mapped);
 3. per trial, registration (:func:`~.relative.register_capture`; with ``--chunk-frames N`` in chunks of N
    frames saved to ``<trial>/chunks/`` as they are done), homographies for the frames left
-   (:func:`~.homography.fill_with_homographies`) and ``<trial>/correspondences.npz``
-   (:class:`~bcmocap.correspondences.Correspondences`, in the reference model's frame and scale) with
+   (:func:`~.homography.fill_with_homographies`) and ``<trial>/correspondences/`` (the solver's
+   measurements as a :class:`~bcmocap.correspondence_store.CorrespondenceStore`, in blocks of frames, in
+   the reference model's frame and scale) with
    ``<trial>/registration.json``.
 
 Heavy modules are imported inside :func:`run_frontend`, so ``bcmocap --help`` stays fast.
@@ -105,13 +106,14 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     during registration, and a rerun reuses the chunks already done. Frames in different chunks are not
     matched with each other (each chunk starts again from the reference model). 0: the whole trial at once.
 
-    Writes ``out/<trial>/correspondences.npz`` and ``out/<trial>/registration.json`` (features are cached
-    in ``out/features/<trial>/``) and returns the registration report (the JSON's content).
+    Writes ``out/<trial>/correspondences/`` (a :class:`~bcmocap.correspondence_store.CorrespondenceStore`,
+    written one chunk at a time) and ``out/<trial>/registration.json`` (features are cached in
+    ``out/features/<trial>/``) and returns the registration report (the JSON's content).
     """
     import numpy as np
 
     from ..cli import write_json_atomic
-    from ..correspondences import Correspondences
+    from ..correspondence_store import write_store
     from .relative import extract_trial_features
     from .sync import given_offsets, synchronize
 
@@ -130,24 +132,29 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     bounds = [(a, min(a + size, len(features))) for a in range(0, len(features), max(size, 1))]
     settings = {"first_clap_frames": starts.tolist(), "stride": stride, "max_features": max_features,
                 "homographies": homographies}
-    parts, chunks = [], []
-    for k, (a, b) in enumerate(bounds):
-        label = trial if len(bounds) == 1 else f"{trial} chunk {k + 1}/{len(bounds)}"
-        saved = out / trial / "chunks" / f"{k:04d}"
-        part, summary = _saved_chunk(saved, settings, [a, b]) if len(bounds) > 1 else (None, None)
-        if part is not None:
-            log(f"{label}: reused {saved.with_suffix('.npz')}")
-        else:
-            part, summary = _register_frames(features[a:b], a, capture, index, stride, homographies, label)
-            summary = {"frames": [a, b], "settings": settings, **summary}
-            if len(bounds) > 1:
-                part.save(saved.with_suffix(".npz"))
-                write_json_atomic(saved.with_suffix(".json"), summary)
-        parts.append(part)
-        chunks.append(summary)
-    corr = Correspondences.concatenate(parts)
-    corr.save(out / trial / "correspondences.npz")
-    reg = corr.registered
+    chunks = []
+
+    def parts():
+        """Each chunk's correspondences, registered or reused, one at a time (the store writes each
+        before the next is made)."""
+        for k, (a, b) in enumerate(bounds):
+            label = trial if len(bounds) == 1 else f"{trial} chunk {k + 1}/{len(bounds)}"
+            saved = out / trial / "chunks" / f"{k:04d}"
+            part, summary = _saved_chunk(saved, settings, [a, b]) if len(bounds) > 1 else (None, None)
+            if part is not None:
+                log(f"{label}: reused {saved.with_suffix('.npz')}")
+            else:
+                part, summary = _register_frames(features[a:b], a, capture, index, stride, homographies, label)
+                summary = {"frames": [a, b], "settings": settings, **summary}
+                if len(bounds) > 1:
+                    part.save(saved.with_suffix(".npz"))
+                    write_json_atomic(saved.with_suffix(".json"), summary)
+            chunks.append(summary)
+            yield part
+            del part  # before the next chunk is registered
+
+    store = write_store(out / trial / "correspondences", parts())
+    reg = store.registered
     report = {"trial": trial, "first_clap_frames": starts.tolist(), "stride": stride,
               "frames": int(reg.shape[0]), "cameras": list(capture.camera_names),
               "registered_fraction": float(reg.mean()) if reg.size else 0.0,
@@ -162,7 +169,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     write_json_atomic(out / trial / "registration.json", report)
     log(f"{trial}: {reg.sum()}/{reg.size} frames registered ({100 * report['registered_fraction']:.1f} %: "
         f"{report['registered_absolute']} absolute, {report['registered_relative']} relative); "
-        f"wrote {out / trial / 'correspondences.npz'}")
+        f"wrote {store.path}")
     return report
 
 

@@ -54,7 +54,7 @@ def _camera_centres(skeleton, rig, motion) -> np.ndarray:
 
 def write_outputs(ctx) -> dict:
     """Write every output of a finished solve; returns a summary for the run log."""
-    from ..correspondences import Correspondences
+    from ..correspondence_store import CorrespondenceStore
     from ..io import write_bvh
     from ..kinematics.fk import joint_positions
     from .run import _world, load_model, load_motion
@@ -63,7 +63,7 @@ def write_outputs(ctx) -> dict:
     skeleton, rig = load_model(out)
     motion = load_motion(out / "solve" / "motion.npz")
     initial = load_motion(out / "solve" / "initial.npz")
-    corr = Correspondences.load(out / "solve" / "correspondences.npz")
+    corr = CorrespondenceStore.open(out / "solve" / "correspondences")
     fps = corr.fps
     t = np.arange(motion.num_frames) / fps
     names = list(skeleton.names)
@@ -81,8 +81,7 @@ def write_outputs(ctx) -> dict:
 
     from ..io.ply import write_camera_paths_ply, write_ply
 
-    used = np.unique(corr.point_ids[corr.weights > 0])
-    scene = corr.points[used[used >= 0]]
+    scene = np.asarray(corr.points[corr.used_points()])
     write_ply(out / "scene.ply", scene)
     after = _camera_centres(skeleton, rig, motion)
     write_camera_paths_ply(out / "camera_paths.ply", after)
@@ -149,7 +148,8 @@ def evaluate_run(skeleton, rig, motions: dict, corr, truth: dict):
 
     Args:
         skeleton, rig: the estimated model; motions: name → estimated :class:`Motion` over the run's frames.
-        corr: the run's (metric) correspondences, whose registered poses are aligned.
+        corr: the run's (metric) correspondences (a store or ``Correspondences``), whose registered
+            poses are aligned.
         truth: from :func:`_truth`.
     """
     from ..frontend.register import similarity

@@ -12,7 +12,7 @@ ones after it):
 3. ``skeleton`` — skeleton and camera mounts from the range-of-motion trial in that world
    (``DIR/model/skeleton.json``, ``rig.json``, ``rom_summary.txt``);
 4. ``initial`` — the capture's correspondences in that world and the initial motion from its
-   registered camera poses (``DIR/solve/correspondences.npz``, ``initial.npz``);
+   registered camera poses (``DIR/solve/correspondences/``, ``initial.npz``);
 5. ``solve`` — Eq. (1) in overlapping windows; after every window the motion so far is saved
    (``DIR/solve/checkpoint.npz``), so an interrupted solve resumes at the next window;
 6. ``outputs`` — :mod:`.outputs`: BVH, PLY, the reference model in COLMAP's format, NPZ/CSV,
@@ -177,7 +177,7 @@ def _stage_frontend(ctx: RunContext) -> dict:
     reports = {}
     for trial, stride, homographies in (("rom", f.rom_stride, False), ("capture", f.stride, True)):
         done = folder / trial / "registration.json"
-        if done.is_file() and (folder / trial / "correspondences.npz").is_file():
+        if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
             report = _read_json(done)
             if report.get("stride") == stride:
                 ctx.log(f"{trial}: registration found in {done}, reused")
@@ -215,9 +215,9 @@ def _topology(ctx: RunContext):
 
 def _rom_inputs(ctx: RunContext):
     """ROM trial camera poses (reference frame), registered mask, rest-frame mask."""
-    from ..correspondences import Correspondences
+    from ..correspondence_store import CorrespondenceStore
 
-    corr = Correspondences.load(ctx.path("frontend", "rom", "correspondences.npz"))
+    corr = CorrespondenceStore.open(ctx.path("frontend", "rom", "correspondences"))
     rest_s = ctx.config.skeleton.rest_seconds
     if not rest_s:
         rest = _subject(ctx).get("rest", {})
@@ -325,34 +325,40 @@ def load_motion(path: Path | str):
 
 
 def _stage_initial(ctx: RunContext) -> dict:
-    from ..correspondences import Correspondences
+    from ..correspondence_store import CorrespondenceStore
     from ..kinematics.ik import motion_from_camera_poses
 
     sim = _world(ctx)
-    corr = Correspondences.load(ctx.path("frontend", "capture", "correspondences.npz"))
-    metric = dataclasses.replace(corr, points=sim.points(corr.points), world_from_camera=sim.poses(corr.world_from_camera))
-    metric.save(ctx.path("solve", "correspondences.npz"))
+    corr = CorrespondenceStore.open(ctx.path("frontend", "capture", "correspondences"))
+    metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses)
     skeleton, rig = load_model(ctx.out)
     initial = motion_from_camera_poses(skeleton, rig, metric.world_from_camera, metric.registered, robust=True)
     save_motion(ctx.path("solve", "initial.npz"), initial)
     return {"frames": metric.num_frames, "registered_fraction": float(metric.registered.mean())}
 
 
+def objective_weights(s):
+    """The :class:`~bcmocap.solver.objective.ObjectiveWeights` of a run's ``solver`` settings."""
+    from ..solver.objective import ObjectiveWeights
+
+    smooth = "smoothness" in s.terms
+    return ObjectiveWeights(root_smoothness=s.root_smoothness if smooth else 0.0,
+                            joint_smoothness=s.joint_smoothness if smooth else 0.0,
+                            homography=s.homography, loss=s.loss, loss_scale=s.loss_scale)
+
+
 def _stage_solve(ctx: RunContext) -> dict:
-    from ..correspondences import Correspondences
-    from ..solver import Problem, SolverOptions, solve
-    from ..solver.objective import ObjectiveWeights, paper_terms
+    """The sliding-window solve; each window's measurements are read from the metric store on disk
+    (:class:`~bcmocap.solver.objective.StoredProblem`), so memory does not grow with the trial."""
+    from ..correspondence_store import CorrespondenceStore
+    from ..solver import SolverOptions, solve
+    from ..solver.objective import StoredProblem
     from ..solver.solve import window_starts
 
     s = ctx.config.solver
-    corr = Correspondences.load(ctx.path("solve", "correspondences.npz"))
+    corr = CorrespondenceStore.open(ctx.path("solve", "correspondences"))
     skeleton, rig = load_model(ctx.out)
-    smooth = "smoothness" in s.terms
-    weights = ObjectiveWeights(root_smoothness=s.root_smoothness if smooth else 0.0,
-                               joint_smoothness=s.joint_smoothness if smooth else 0.0,
-                               homography=s.homography, loss=s.loss, loss_scale=s.loss_scale)
-    problem = Problem(skeleton, rig, paper_terms(corr, skeleton, weights,
-                                                 include_homography="homography" in s.terms and None))
+    problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None)
     options = SolverOptions(window=s.window, overlap=s.overlap)
     initial = load_motion(ctx.path("solve", "initial.npz"))
     checkpoint_path, reports_path = ctx.path("solve", "checkpoint.npz"), ctx.path("solve", "checkpoint.json")

@@ -142,7 +142,7 @@ def slot_cameras(data: Any) -> Any:
     return data.get("camera") if isinstance(data, dict) else None
 
 
-def camera_slots(data: dict, weights_key: str = "weights", multiple: int = 4) -> dict:
+def camera_slots(data: dict, weights_key: str = "weights", multiple: int = 4, count: int | None = None) -> dict:
     """Per-camera data ``(T, C, ...)`` → camera slots ``(T, K, ...)`` keeping only cameras with weight.
 
     Args:
@@ -150,6 +150,8 @@ def camera_slots(data: dict, weights_key: str = "weights", multiple: int = 4) ->
             which camera-frames carry measurements (any weight > 0).
         multiple: K is the largest number of such cameras in one frame rounded up to this multiple
             (at least ``multiple``, at most C), so windows of one sequence rarely differ in shape.
+        count: K given instead (windows read one at a time agree on it exactly); must be at least
+            the number of cameras with weight in any frame.
 
     Returns:
         The same keys with axis 1 indexing slots, plus ``"camera"`` ``(T, K)`` int32; unused slots
@@ -160,7 +162,13 @@ def camera_slots(data: dict, weights_key: str = "weights", multiple: int = 4) ->
     weights = np.asarray(data[weights_key])
     t, c = weights.shape[:2]
     active = (weights > 0).reshape(t, c, -1).any(axis=-1)
-    k = min(c, max(multiple, -(-int(active.sum(axis=1).max(initial=0)) // multiple) * multiple))
+    needed = int(active.sum(axis=1).max(initial=0))
+    if count is None:
+        k = min(c, max(multiple, -(-needed // multiple) * multiple))
+    elif needed <= count:
+        k = count
+    else:
+        raise ValueError(f"camera_slots: {needed} cameras carry weight in one frame, more than count={count}")
     order = np.argsort(~active, axis=1, kind="stable")[:, :k]  # active cameras first, in camera order
     used = np.take_along_axis(active, order, axis=1)
     cameras = np.where(used, order, 0).astype(np.int32)

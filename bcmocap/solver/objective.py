@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 
+from ..correspondence_store import CorrespondenceStore
 from ..correspondences import Correspondences
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Skeleton
@@ -40,6 +41,7 @@ def paper_terms(
     *,
     first_frame_has_previous: bool = False,
     include_homography: bool | None = None,
+    homography_cameras: int | None = None,
 ) -> list[Term]:
     """The residual terms of Eq. (1) for a capture's correspondences.
 
@@ -51,6 +53,8 @@ def paper_terms(
             first frame's smoothness pair (with the frame before it) is used.
         include_homography: force the homography term in or out; by default it is included when
             some camera-frame has matches. Windows of one sequence should agree (one compilation).
+        homography_cameras: camera slots of the homography term (see :func:`camera_slots`'s
+            ``count``); by default from these frames' matches.
     """
     c = correspondences
     loss = loss_from_name(weights.loss, weights.loss_scale)
@@ -66,7 +70,7 @@ def paper_terms(
         # Matches exist only where a camera did not register: keep those cameras' slots only.
         homography = {"pixels": c.homography_pixels, "pixels_prev": c.homography_pixels_prev, "weights": c.homography_weights}
         terms.append(HomographyTransfer(
-            camera_slots(homography),
+            camera_slots(homography, count=homography_cameras),
             weight=weights.homography, loss=loss, name="homography",
         ))
     mask = np.ones(c.num_frames) if first_frame_has_previous else pair_mask(c.num_frames)
@@ -84,3 +88,42 @@ def paper_problem(
     if correspondences.num_cameras != rig.num_cameras:
         raise ValueError(f"correspondences have {correspondences.num_cameras} cameras, the rig has {rig.num_cameras}")
     return Problem(skeleton, rig, paper_terms(correspondences, skeleton, weights))
+
+
+@dataclasses.dataclass
+class StoredProblem:
+    """Eq. (1) over a trial whose correspondences stay on disk (a
+    :class:`~bcmocap.correspondence_store.CorrespondenceStore`): the solver's
+    :func:`~bcmocap.solver.solve` reads each window's measurements when it reaches that window, so
+    memory does not grow with the trial's length. Every window has the same shapes (one compilation).
+
+    Attributes:
+        store: the trial's correspondences (``C`` cameras, matching the rig).
+        skeleton, rig: the model; weights: λ's and robust loss.
+        include_homography: the homography term in or out; by default in if the trial has any match.
+    """
+
+    store: CorrespondenceStore
+    skeleton: Skeleton
+    rig: Rig
+    weights: ObjectiveWeights = ObjectiveWeights()
+    include_homography: bool | None = None
+
+    def __post_init__(self):
+        if self.store.num_cameras != self.rig.num_cameras:
+            raise ValueError(f"{self.store.path}: {self.store.num_cameras} cameras, the rig has {self.rig.num_cameras}")
+        self.rig.check(self.skeleton)
+        if self.include_homography is None:
+            self.include_homography = self.store.homography_cameras > 0
+        c = self.store.num_cameras
+        self._homography_cameras = min(c, max(4, -(-self.store.homography_cameras // 4) * 4))
+
+    @property
+    def num_frames(self) -> int:
+        return self.store.num_frames
+
+    def window(self, start: int, stop: int) -> tuple[Term, ...]:
+        corr = self.store.frames(start, stop)
+        terms = paper_terms(corr, self.skeleton, self.weights, first_frame_has_previous=start > 0,
+                            include_homography=self.include_homography, homography_cameras=self._homography_cameras)
+        return tuple(t.window(0, stop - start) for t in terms)
