@@ -261,6 +261,15 @@ def test_extract_trial_features_reads_every_camera_from_its_start(studio, tmp_pa
     assert [r[3] for r in reads] == [1, 1]
 
 
+def test_chunks_are_equal_and_no_longer_than_asked():
+    from bcmocap.frontend.command import chunk_bounds
+
+    assert chunk_bounds(315, 400) == chunk_bounds(315, 0) == [(0, 315)]
+    assert chunk_bounds(401, 400) == [(0, 200), (200, 401)]
+    assert chunk_bounds(10, 3) == [(0, 2), (2, 5), (5, 8), (8, 10)]
+    assert chunk_bounds(2, 1) == [(0, 1), (1, 2)]
+
+
 def test_a_trial_registered_in_chunks_is_saved_chunk_by_chunk_and_resumed(studio, turned_rig, tmp_path, monkeypatch):
     """process_trial with chunk_frames: each chunk registered on its own and written as it is done, the
     trial's correspondences the chunks end to end; a rerun reuses the chunks instead of registering."""

@@ -25,6 +25,11 @@ import sys
 import time
 
 
+CHUNK_FRAMES = 400
+"""Default chunk: registration holds about 1 GB per 1000 images of a chunk (measured: 1080 images of the
+rendered walk), so 400 frames of 18 cameras stay within a few GB; shorter trials are one chunk."""
+
+
 def add_frontend_command(sub: argparse._SubParsersAction) -> None:
     """Register ``bcmocap frontend`` on the CLI's subparsers."""
     cmd = sub.add_parser(
@@ -40,9 +45,10 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--frames", type=int, default=None, help="at most this many frames per camera from the first clap")
     cmd.add_argument("--offsets", help="comma-separated video frame of the first clap per camera (skips audio sync)")
     cmd.add_argument("--max-features", type=int, default=8000, help="SIFT features per image (default 8000)")
-    cmd.add_argument("--chunk-frames", type=int, default=0,
-                     help="register each trial in chunks of this many processed frames, each saved as it is done, "
-                          "so memory does not grow with the trial (default 0: the whole trial at once)")
+    cmd.add_argument("--chunk-frames", type=int, default=CHUNK_FRAMES,
+                     help="register each trial in equal chunks of at most this many processed frames, each saved as "
+                          f"it is done, so memory does not grow with the trial (default {CHUNK_FRAMES}; 0: the whole "
+                          "trial at once)")
 
     def run(args: argparse.Namespace) -> int:
         if args.stride < 1:
@@ -100,8 +106,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
     are given), through sync, features, registration and homographies, written under ``out``.
 
-    With ``chunk_frames`` > 0 the trial is registered in chunks of that many processed frames, one after
-    the other: a chunk's points, tracks and matches are dropped once its correspondences are written to
+    With ``chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
+    frames (:func:`chunk_bounds`), one after the other: a chunk's points, tracks and matches are dropped once its correspondences are written to
     ``out/<trial>/chunks/NNNN.npz`` (with ``NNNN.json``), so memory no longer grows with the trial's length
     during registration, and a rerun reuses the chunks already done. Frames in different chunks are not
     matched with each other (each chunk starts again from the reference model). 0: the whole trial at once.
@@ -128,8 +134,9 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
                                       max_features=max_features, cache_dir=out / "features" / trial,
                                       progress=_progress(f"{trial} features"))
     clock = time.perf_counter()
-    size = chunk_frames if chunk_frames > 0 else len(features)
-    bounds = [(a, min(a + size, len(features))) for a in range(0, len(features), max(size, 1))]
+    if not len(features):
+        raise ValueError(f"trial {trial!r}: no frames to register after the first clap (stride {stride})")
+    bounds = chunk_bounds(len(features), chunk_frames)
     settings = {"first_clap_frames": starts.tolist(), "stride": stride, "max_features": max_features,
                 "homographies": homographies}
     chunks = []
@@ -171,6 +178,14 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         f"{report['registered_absolute']} absolute, {report['registered_relative']} relative); "
         f"wrote {store.path}")
     return report
+
+
+def chunk_bounds(num_frames: int, chunk_frames: int) -> list[tuple[int, int]]:
+    """``[(start, stop), …]``: the fewest chunks of at most ``chunk_frames`` frames, of equal length within
+    one frame (no short tail chunk); ``chunk_frames`` 0 gives one chunk."""
+    count = -(-num_frames // chunk_frames) if chunk_frames > 0 else 1
+    edges = [round(k * num_frames / count) for k in range(count + 1)]
+    return list(zip(edges[:-1], edges[1:]))
 
 
 def _saved_chunk(saved, settings: dict, frames: list[int]):

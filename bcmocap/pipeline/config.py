@@ -11,7 +11,7 @@ run must use the same settings for the stages it reuses.
     rom_stride = 3        # the same for the range-of-motion trial
     max_features = 8000   # SIFT features per image
     frames = 0            # at most this many frames per camera and trial (0: all)
-    chunk_frames = 0      # register in chunks of this many processed frames, saved as done (0: whole trial)
+    chunk_frames = 400    # register in chunks of at most this many processed frames, saved as done (0: whole trial)
 
     [skeleton]
     root_origin = ["torso"]   # children whose joint centres' mean is the root's origin
@@ -51,7 +51,7 @@ class FrontendConfig:
     rom_stride: int = 3
     max_features: int = 8000
     frames: int = 0
-    chunk_frames: int = 0
+    chunk_frames: int = 400
 
 
 @dataclasses.dataclass(frozen=True)
