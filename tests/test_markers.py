@@ -30,6 +30,7 @@ from bcmocap.sim.markers import MarkerNoise, linkage_markers, linkage_motion, li
 from conftest import central_difference
 
 SAMPLE = Path(__file__).parent / "data" / "c3d" / "BTKData_c3d.org_sample01_Eb015pr.c3d"
+FULL_BODY = Path(__file__).parent / "data" / "c3d" / "BTKData_PiG_PiG_Motion-FlatFoot-Full.c3d"
 LENGTHS = (0.30, 0.341, 0.30)
 
 
@@ -113,6 +114,21 @@ def test_segmentation_of_the_linkage(linkage):
     assert segment_markers(traj, None).num_groups == 3  # eigengap
 
 
+def test_an_eigengap_that_merges_segments_is_raised_until_groups_are_rigid(linkage, monkeypatch):
+    import bcmocap.markers.segmentation as segmentation
+
+    sim, traj = linkage
+    real = segmentation.eigengap
+    monkeypatch.setattr(segmentation, "eigengap", lambda *args, **kwargs: (2, real(*args, **kwargs)[1]))
+    merged = segment_markers(traj, None)
+    assert merged.num_groups == 2 and segmentation.least_rigid(merged.distance_std, merged.groups) > 0.02
+    seg = segment_markers(traj, None, rigid_tolerance_m=0.01)
+    assert seg.num_groups == 3 and seg.chosen_by == "eigengap 2, raised for rigid groups (tolerance 10 mm)"
+    truth = np.array([m.segment for m in sim.markers])
+    assert all(len(set(truth[seg.groups == g])) == 1 for g in range(3))
+    assert segmentation.least_rigid(seg.distance_std, seg.groups) < 0.01
+
+
 def test_segmentation_of_a_real_c3d_file():
     """A c3d.org lower-body gait trial: pelvis, thighs, shanks and feet come out by the eigengap."""
     clean, _ = preprocess(MarkerTrajectories.from_c3d(read_c3d(SAMPLE)))
@@ -121,6 +137,26 @@ def test_segmentation_of_a_real_c3d_file():
     prefix = np.array([label[:2].upper() for label in clean.labels])
     pure = sum(np.unique(prefix[seg.groups == g], return_counts=True)[1].max() for g in range(7))
     assert pure >= 24  # of 26: skin motion puts one foot and one pelvis marker with the next segment
+
+
+def test_a_real_full_body_file_gives_a_human_topology():
+    """Plug-in Gait, 3 s of barely moving: the eigengap's 5 groups mix a thigh into the trunk, so the count is
+    raised until groups are rigid (7); the paper's Q then hangs the right thigh on the left one (two
+    2-marker groups fit a joint easily), the corrected cost on the trunk with both arms and the left thigh."""
+    clean, _ = preprocess(MarkerTrajectories.from_c3d(read_c3d(FULL_BODY)))
+    seg = segment_markers(clean, None, rigid_tolerance_m=0.015)
+    assert seg.num_groups == 7 and seg.chosen_by.startswith("eigengap 5, raised")
+    group_of = {label: int(seg.groups[i]) for i, label in enumerate(clean.labels)}
+    trunk, thighs = group_of["C7"], (group_of["LTHI"], group_of["RTHI"])
+    assert all(group_of[x] == trunk for x in ("LASI", "RPSI", "STRN", "LFHD"))
+    limbs = [group_of[x] for x in ("LELB", "RELB", "LTHI", "RTHI")]
+    assert len(set(limbs)) == 4 and trunk not in limbs
+    q, _ = joint_cost_matrix(clean, seg.groups, max_frames=100)
+    edges = {tuple(sorted(e)) for e in minimum_spanning_tree(q)}
+    assert {tuple(sorted((trunk, g))) for g in limbs} <= edges, edges
+    assert tuple(sorted((group_of["LTIB"], thighs[0]))) in edges and tuple(sorted((group_of["RTIB"], thighs[1]))) in edges
+    raw, _ = joint_cost_matrix(clean, seg.groups, max_frames=100, dof_corrected=False)
+    assert tuple(sorted(thighs)) in {tuple(sorted(e)) for e in minimum_spanning_tree(raw)}
 
 
 def test_fewer_markers_than_groups_is_an_error(linkage):
@@ -166,6 +202,11 @@ def test_joint_costs_give_the_chain_topology(linkage):
     q, _ = joint_cost_matrix(traj, groups, max_frames=120)
     assert q[0, 2] > 3 * max(q[0, 1], q[1, 2])  # rods 1 and 3 are not connected
     assert sorted(tuple(sorted(e)) for e in minimum_spanning_tree(q)) == [(0, 1), (1, 2)]
+    raw, sols = joint_cost_matrix(traj, groups, max_frames=120, dof_corrected=False)
+    for sol in sols:  # each pair's cost times K / (K − 3) for its K markers
+        a, b = sol.groups
+        k = int((groups == a).sum() + (groups == b).sum())
+        assert raw[a, b] == sol.cost and q[a, b] == pytest.approx(sol.cost * k / (k - 3))
     with pytest.raises(ValueError, match=r"no finite joint cost reaches \['c'\]"):
         minimum_spanning_tree(np.array([[np.inf, 1, np.inf], [1, np.inf, np.inf], [np.inf] * 3]), ["a", "b", "c"])
 

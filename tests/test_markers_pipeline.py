@@ -75,6 +75,18 @@ def test_a_joint_not_exercised_is_reported():
         fit_marker_skeleton(traj, MarkerOptions(num_groups=3))
 
 
+def test_too_few_segments_are_reported_as_not_rigid():
+    """Three rods forced into two groups: one group spans a joint, and the report says which markers show it;
+    with the right count no segment is flagged."""
+    sim = linkage_capture(seed=9, seconds=4.0, noise=MarkerNoise.clean())
+    traj = MarkerTrajectories.from_array(sim.positions, sim.fps, sim.labels)
+    with pytest.warns(UserWarning, match=r"segment '.*' is not rigid: R\d\S* and R\d\S* vary in distance by \d+ mm .* try more"):
+        two = fit_marker_skeleton(traj, MarkerOptions(num_groups=2))
+    assert any("is not rigid" in n for n in two.notes) and "is not rigid" in two.report()
+    three = fit_marker_skeleton(traj, MarkerOptions(num_groups=3))
+    assert not any("is not rigid" in n for n in three.notes)
+
+
 def test_bad_input_is_named(tmp_path, capsys):
     sim = linkage_capture(seed=8, noise=MarkerNoise.clean())
     p = sim.positions.copy()

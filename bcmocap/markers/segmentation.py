@@ -21,7 +21,7 @@ import numpy as np
 from .preprocess import MarkerTrajectories
 from .spectral import eigengap, spectral_clustering
 
-__all__ = ["Segmentation", "distance_std", "jittered_samples", "segment_markers", "within_group_cost"]
+__all__ = ["Segmentation", "distance_std", "jittered_samples", "least_rigid", "segment_markers", "within_group_cost"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,6 +106,17 @@ def within_group_cost(a: np.ndarray, groups: np.ndarray) -> float:
     return float(total)
 
 
+def least_rigid(a: np.ndarray, groups: np.ndarray) -> float:
+    """The largest within-group entry of ``A`` (m): how much the least rigid pair of one group varies."""
+    worst = 0.0
+    for g in np.unique(groups):
+        idx = np.flatnonzero(groups == g)
+        block = a[np.ix_(idx, idx)]
+        if np.isfinite(block).any():
+            worst = max(worst, float(np.nanmax(block)))
+    return worst
+
+
 def _affinity(a: np.ndarray, scale: float) -> np.ndarray:
     w = np.exp(-0.5 * (np.nan_to_num(a, nan=np.inf) / scale) ** 2)
     np.fill_diagonal(w, 0.0)
@@ -132,6 +143,7 @@ def segment_markers(
     min_samples: int = 120,
     scale_m: float | None = None,
     max_groups: int = 20,
+    rigid_tolerance_m: float | None = None,
     seed: int = 0,
 ) -> Segmentation:
     """Group markers into rigid segments (§3.1).
@@ -142,6 +154,10 @@ def segment_markers(
         num_samplings: jittered frame samplings clustered; the best clustering is kept.
         interval_s, jitter_s, min_samples: the sampling (see :func:`jittered_samples`).
         scale_m: σ of the affinity ``exp(−A²/2σ²)`` (m); None picks it from the data.
+        rigid_tolerance_m: with the eigengap, raise the count one at a time (up to ``max_groups``)
+            while a group has two markers whose distance varies more than this (std): such a group
+            spans a joint. The eigengap alone merges whole limbs on short real trials (a CMU file:
+            10 groups, one of them a whole arm whose markers vary by 53 mm; 15 rigid ones).
         seed: random seed of the samplings and k-means.
 
     Raises:
@@ -173,17 +189,28 @@ def segment_markers(
     eig_n, eigenvalues = eigengap(_affinity(reference, scale), min(max_groups, m - 1) if m > 2 else 1, min_groups=2 if m > 2 else 1)
     chosen_by = "given" if num_groups is not None else "eigengap"
     n = num_groups if num_groups is not None else eig_n
-    candidates, costs = [], []
-    for a in stds:
-        filled = np.where(np.isfinite(a), a, reference)
-        labels = spectral_clustering(_affinity(filled, scale), n, rng)
-        candidates.append(labels)
-        costs.append(within_group_cost(reference, labels))
-    best = int(np.argmin(costs))
+
+    def best_clustering(n: int) -> tuple[np.ndarray, list[float]]:
+        candidates, costs = [], []
+        for a in stds:
+            filled = np.where(np.isfinite(a), a, reference)
+            labels = spectral_clustering(_affinity(filled, scale), n, rng)
+            candidates.append(labels)
+            costs.append(within_group_cost(reference, labels))
+        return candidates[int(np.argmin(costs))], costs
+
+    labels, costs = best_clustering(n)
+    if num_groups is None and rigid_tolerance_m is not None:
+        limit = min(max_groups, m - 1)
+        while n < limit and least_rigid(reference, labels) > rigid_tolerance_m:
+            n += 1
+            labels, costs = best_clustering(n)
+        if n > eig_n:
+            chosen_by = f"eigengap {eig_n}, raised for rigid groups (tolerance {rigid_tolerance_m * 1000:.0f} mm)"
     return Segmentation(
-        groups=candidates[best],
+        groups=labels,
         num_groups=n,
-        cost=costs[best],
+        cost=min(costs),
         distance_std=reference,
         scale_m=scale,
         eigenvalues=eigenvalues,
