@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -153,13 +153,25 @@ class CorrespondenceStore:
     def _width(self, name: str) -> int:
         return self.slots if name in _MEASUREMENTS[:3] else self.homography_slots
 
-    def used_points(self) -> np.ndarray:
-        """Ids of the points some frame measures (with weight > 0), sorted; read block by block."""
+    def used_mask(self) -> np.ndarray:
+        """``(P,)`` bool: the points some frame measures (with weight > 0); read block by block."""
         used = np.zeros(self.num_points, bool)
         for k in range(len(self.blocks)):
             data = self.block(k)
             used[data["point_ids"][(data["weights"] > 0) & (data["point_ids"] >= 0)]] = True
-        return np.flatnonzero(used)
+        return used
+
+    def used_points(self) -> np.ndarray:
+        """Ids of the points some frame measures, sorted."""
+        return np.flatnonzero(self.used_mask())
+
+    def iter_points(self, mask: np.ndarray | None = None, piece: int = 1 << 20) -> Iterator[np.ndarray]:
+        """The points (``(n, 3)`` arrays, in id order) read from the file ``piece`` at a time, only those
+        where ``mask`` ``(P,)`` is True if given; memory is that of one piece."""
+        with open(self.path / "points.f64", "rb") as f:
+            for a in range(0, self.num_points, piece):
+                points = np.frombuffer(f.read(24 * min(piece, self.num_points - a)), "<f8").reshape(-1, 3)
+                yield points if mask is None else points[mask[a:a + len(points)]]
 
     def num_observations(self) -> int:
         """Measurements with weight > 0 over the trial."""
@@ -172,9 +184,9 @@ class CorrespondenceStore:
         with _Folder(Path(path)) as tmp:
             for b in self.blocks:
                 shutil.copyfile(self.path / b.file, tmp / b.file)
-            with open(self.path / "points.f64", "rb") as src, open(tmp / "points.f64", "wb") as dst:
-                while piece := src.read(24 << 20):  # 1 M points at a time
-                    dst.write(np.ascontiguousarray(points(np.frombuffer(piece, "<f8").reshape(-1, 3)), "<f8").tobytes())
+            with open(tmp / "points.f64", "wb") as dst:
+                for piece in self.iter_points():
+                    dst.write(np.ascontiguousarray(points(piece), "<f8").tobytes())
             np.savez(tmp / "poses.npz", world_from_camera=poses(self.world_from_camera), registered=self.registered)
             shutil.copyfile(self.path / "index.json", tmp / "index.json")
         return CorrespondenceStore.open(path)

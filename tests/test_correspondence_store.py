@@ -64,6 +64,10 @@ def test_store_returns_the_frames_it_was_given(tmp_path, corr):
     reopened = CorrespondenceStore.open(tmp_path / "store")
     _assert_same(reopened.frames(5, 12), corr.frames(5, 12))
     assert reopened.num_observations() == int((corr.weights > 0).sum())
+    mask = reopened.used_mask()
+    pieces = list(reopened.iter_points(mask, piece=7))
+    assert len(pieces) == -(-reopened.num_points // 7)
+    np.testing.assert_array_equal(np.concatenate(pieces), np.asarray(reopened.points)[mask])
     np.testing.assert_array_equal(np.unique(reopened.points[reopened.used_points()], axis=0),
                                   np.unique(corr.points[np.unique(corr.point_ids[corr.weights > 0])], axis=0))
     with pytest.raises(ValueError, match=r"frames \[15, 21\) outside \[0, 20\)"):

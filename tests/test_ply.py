@@ -10,6 +10,7 @@ from bcmocap.io.ply import (
     read_ply_elements,
     write_camera_paths_ply,
     write_ply,
+    write_ply_pieces,
 )
 
 
@@ -96,6 +97,24 @@ def test_write_errors(tmp_path):
     with pytest.raises(ValueError, match="0..255"):
         write_ply(tmp_path / "x.ply", pts, np.full((4, 3), -1))
     assert not (tmp_path / "x.ply").exists()
+
+
+def test_points_written_in_pieces_equal_write_ply(tmp_path):
+    rng = np.random.default_rng(5)
+    points = rng.normal(size=(1000, 3))
+    write_ply_pieces(tmp_path / "pieces.ply", 1000, (points[a:a + 300] for a in range(0, 1000, 300)))
+    write_ply(tmp_path / "whole.ply", points)
+    assert (tmp_path / "pieces.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()
+    with pytest.raises(ValueError, match="the pieces hold 999 points, the header says 1000"):
+        write_ply_pieces(tmp_path / "pieces.ply", 1000, [points[:999]])
+    with pytest.raises(ValueError, match="the pieces hold more than 10 points, the header says 10"):
+        write_ply_pieces(tmp_path / "short.ply", 10, [points[:11]])
+    assert not (tmp_path / "short.ply").exists()
+    bad = points[:5].copy()
+    bad[2, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN or inf in 1 of 5 rows"):
+        write_ply_pieces(tmp_path / "bad.ply", 5, [bad])
+    np.testing.assert_array_equal(read_ply(tmp_path / "pieces.ply")[0], points)
 
 
 def test_read_errors_name_the_file(tmp_path):

@@ -17,14 +17,14 @@ meshes' ``face`` elements, are only accepted after the ``vertex`` element, where
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from .atomic import atomic_path
 
-__all__ = ["read_ply", "read_ply_elements", "write_camera_paths_ply", "write_ply"]
+__all__ = ["read_ply", "read_ply_elements", "write_camera_paths_ply", "write_ply", "write_ply_pieces"]
 
 # PLY scalar type names (both the 1.0 spellings and the sized aliases) → little-endian numpy dtypes.
 _PLY_TYPES = {
@@ -159,6 +159,38 @@ def write_ply(
         c = _check_colors(colors, len(p), "write_ply")
         vertex += [("red", "uchar", c[:, 0]), ("green", "uchar", c[:, 1]), ("blue", "uchar", c[:, 2])]
     return _write(path, vertex, None, binary, ["bcmocap point cloud (Z up, metres)"])
+
+
+def write_ply_pieces(path: str | os.PathLike, num_points: int, pieces: Iterable) -> Path:
+    """Write a point cloud that arrives in pieces as binary PLY (``double`` x y z), atomically, holding one
+    piece at a time (a long capture's scene need not fit in memory).
+
+    Args:
+        path: the output ``.ply`` file.
+        num_points: how many points the pieces hold in all (the header comes first).
+        pieces: ``(n, 3)`` arrays of finite positions (m).
+
+    Raises:
+        ValueError: a piece of the wrong shape or with NaN/inf, or pieces that do not add up to
+            ``num_points`` (the file is then not written).
+    """
+    path = Path(path)
+    head = ("\n".join(["ply", "format binary_little_endian 1.0", "comment bcmocap point cloud (Z up, metres)",
+                       f"element vertex {int(num_points)}", "property double x", "property double y",
+                       "property double z", "end_header"]) + "\n").encode("ascii")
+    written = 0
+    with atomic_path(path, suffix=".ply") as tmp, open(tmp, "wb") as f:
+        f.write(head)
+        for piece in pieces:
+            p = _check_points(piece, "write_ply_pieces")
+            written += len(p)
+            if written > num_points:
+                break
+            f.write(np.ascontiguousarray(p, "<f8").tobytes())
+        if written != num_points:
+            held = f"more than {num_points}" if written > num_points else str(written)
+            raise ValueError(f"write_ply_pieces: {path}: the pieces hold {held} points, the header says {num_points}")
+    return path
 
 
 def write_camera_paths_ply(

@@ -79,15 +79,16 @@ def write_outputs(ctx) -> dict:
     _write_csv(out / "joint_positions.csv", ["time_s"] + [f"{n}.{a}_m" for n in names for a in "xyz"],
                np.column_stack([t, positions.reshape(len(t), -1)]))
 
-    from ..io.ply import write_camera_paths_ply, write_ply
+    from ..io.ply import write_camera_paths_ply, write_ply_pieces
 
-    scene = np.asarray(corr.points[corr.used_points()])
-    write_ply(out / "scene.ply", scene)
+    used = corr.used_mask()
+    write_ply_pieces(out / "scene.ply", int(used.sum()), corr.iter_points(used))
+    scene = _scene_sample(corr, used)
     after = _camera_centres(skeleton, rig, motion)
     write_camera_paths_ply(out / "camera_paths.ply", after)
     _write_reference(ctx, _world(ctx))
 
-    summary = {"frames": int(motion.num_frames), "scene_points": int(len(scene))}
+    summary = {"frames": int(motion.num_frames), "scene_points": int(used.sum())}
     truth = _truth(ctx, corr)
     metrics = aligned = None
     if truth is not None:
@@ -106,6 +107,12 @@ def write_outputs(ctx) -> dict:
     if ctx.config.outputs.pictures:
         summary["pictures"] = _pictures(out / "pictures", skeleton, motion, positions, t, corr, scene, after, truth, aligned)
     return summary
+
+
+def _scene_sample(corr, used: np.ndarray, limit: int = 200_000) -> np.ndarray:
+    """At most about ``limit`` of the used scene points (every k-th, in id order) for the pictures."""
+    step = max(1, -(-int(used.sum()) // limit))
+    return np.concatenate([p[::step] for p in corr.iter_points(used)] or [np.zeros((0, 3))]).reshape(-1, 3)
 
 
 def _write_reference(ctx, sim) -> None:
