@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .correspondences import Correspondences
+from .correspondences import Correspondences, pad_slots
 
 FORMAT = "bcmocap.correspondence_store/1"
 _MEASUREMENTS = ("point_ids", "pixels", "weights", "homography_pixels", "homography_pixels_prev", "homography_weights")
@@ -130,7 +130,7 @@ class CorrespondenceStore:
             if b.stop <= start or b.start >= stop:
                 continue
             data, lo, hi = self.block(k), max(start, b.start) - b.start, min(stop, b.stop) - b.start
-            pieces.append({name: _pad(a[lo:hi], self._width(name), -1 if name == "point_ids" else 0)
+            pieces.append({name: pad_slots(a[lo:hi], self._width(name), -1 if name == "point_ids" else 0)
                            for name, a in data.items()})
         data = {name: np.concatenate([p[name] for p in pieces]) for name in _MEASUREMENTS}
         ids = data["point_ids"]
@@ -145,7 +145,7 @@ class CorrespondenceStore:
     def load(self) -> Correspondences:
         """The whole trial in memory (small trials, tests); ids index :attr:`points` unchanged."""
         blocks = [self.block(k) for k in range(len(self.blocks))]
-        data = {name: np.concatenate([_pad(b[name], self._width(name), -1 if name == "point_ids" else 0) for b in blocks])
+        data = {name: np.concatenate([pad_slots(b[name], self._width(name), -1 if name == "point_ids" else 0) for b in blocks])
                 for name in _MEASUREMENTS}
         return Correspondences(np.array(self.points).reshape(-1, 3), **data, world_from_camera=self.world_from_camera,
                                registered=self.registered, fps=self.fps)
@@ -250,12 +250,6 @@ def _trimmed(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     n = int((data["point_ids"] >= 0).sum(axis=(0, 1)).nonzero()[0].max(initial=-1)) + 1
     m = int((data["homography_weights"] > 0).sum(axis=(0, 1)).nonzero()[0].max(initial=-1)) + 1
     return {name: a[:, :, : (n if name in _MEASUREMENTS[:3] else m)] for name, a in data.items()}
-
-
-def _pad(a: np.ndarray, width: int, fill) -> np.ndarray:
-    extra = [(0, 0)] * a.ndim
-    extra[2] = (0, width - a.shape[2])
-    return np.pad(a, extra, constant_values=fill)
 
 
 class _Folder:

@@ -123,11 +123,7 @@ class Correspondences:
                                  f"{part.fps:g} fps, part 0 {cams} at {fps:g}")
         n = max(p.point_ids.shape[2] for p in parts)
         m = max(p.homography_weights.shape[2] for p in parts)
-
-        def pad(a: np.ndarray, width: int, fill) -> np.ndarray:
-            extra = [(0, 0)] * a.ndim
-            extra[2] = (0, width - a.shape[2])
-            return np.pad(a, extra, constant_values=fill)
+        pad = pad_slots
 
         offsets = np.cumsum([0] + [len(p.points) for p in parts[:-1]])
         ids = [np.where(p.point_ids >= 0, p.point_ids + o, -1).astype(np.int32) for p, o in zip(parts, offsets)]
@@ -172,3 +168,10 @@ class Correspondences:
             setattr(out, k, v)
         out.validate(str(path))
         return out
+
+
+def pad_slots(a: np.ndarray, width: int, fill) -> np.ndarray:
+    """``(T, C, n, …)`` measurement or homography slots padded along axis 2 to ``width`` with ``fill``."""
+    extra = [(0, 0)] * a.ndim
+    extra[2] = (0, width - a.shape[2])
+    return np.pad(a, extra, constant_values=fill)

@@ -107,9 +107,10 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     are given), through sync, features, registration and homographies, written under ``out``.
 
     With ``chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
-    frames (:func:`chunk_bounds`), one after the other: a chunk's points, tracks and matches are dropped once its correspondences are written to
-    ``out/<trial>/chunks/NNNN.npz`` (with ``NNNN.json``), so memory no longer grows with the trial's length
-    during registration, and a rerun reuses the chunks already done. Frames in different chunks are not
+    frames (:func:`chunk_bounds`), one after the other: a chunk's points, tracks and matches are dropped
+    once its correspondences are written to ``out/<trial>/chunks/NNNN.npz`` (with ``NNNN.json``), so
+    memory no longer grows with the trial's length during registration, and a rerun reuses the chunks
+    already done. Frames in different chunks are not
     matched with each other (each chunk starts again from the reference model). 0: the whole trial at once.
 
     Writes ``out/<trial>/correspondences/`` (a :class:`~bcmocap.correspondence_store.CorrespondenceStore`,

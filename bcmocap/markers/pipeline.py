@@ -26,7 +26,7 @@ from .ik import IkResult, initial_motion, solve_ik
 from .joints import JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
 from .preprocess import MarkerTrajectories, PreprocessReport, preprocess
 from .rigid import RigidSkeleton, build_skeleton
-from .segmentation import Segmentation, segment_markers
+from .segmentation import Segmentation, least_rigid_pair, segment_markers
 
 __all__ = ["MarkerOptions", "MarkerSkeleton", "fit_marker_skeleton"]
 
@@ -274,14 +274,11 @@ def _non_rigid_segments(seg, labels, names, tolerance_m: float) -> list[str]:
     ``tolerance_m`` (std), naming the pair and suggesting more segments."""
     out = []
     for g in range(seg.num_groups):
-        idx = seg.members(g)
-        a = seg.distance_std[np.ix_(idx, idx)]
-        if len(idx) < 2 or not np.isfinite(a).any() or np.nanmax(a) <= tolerance_m:
-            continue
-        i, j = np.unravel_index(np.nanargmax(a), a.shape)
-        out.append(f"segment '{names[g]}' is not rigid: {labels[idx[i]]} and {labels[idx[j]]} vary in distance by "
-                   f"{np.nanmax(a) * 1000:.0f} mm (std; tolerance {tolerance_m * 1000:.0f} mm), so it likely spans a "
-                   f"joint: {seg.num_groups} segments ({seg.chosen_by}) may be too few; try more (--groups)")
+        std, i, j = least_rigid_pair(seg.distance_std, seg.members(g))
+        if std > tolerance_m:
+            out.append(f"segment '{names[g]}' is not rigid: {labels[i]} and {labels[j]} vary in distance by "
+                       f"{std * 1000:.0f} mm (std; tolerance {tolerance_m * 1000:.0f} mm), so it likely spans a "
+                       f"joint: {seg.num_groups} segments ({seg.chosen_by}) may be too few; try more (--groups)")
     return out
 
 

@@ -106,15 +106,19 @@ def within_group_cost(a: np.ndarray, groups: np.ndarray) -> float:
     return float(total)
 
 
+def least_rigid_pair(a: np.ndarray, members: np.ndarray) -> tuple[float, int, int]:
+    """``(std, i, j)``: the pair of ``members`` (marker indices) whose distance varies most, by ``A`` (m);
+    ``(0, i, i)`` for a single marker or pairs never seen together."""
+    block = a[np.ix_(members, members)]
+    if not np.isfinite(block).any():
+        return 0.0, int(members[0]), int(members[0])
+    i, j = np.unravel_index(np.nanargmax(block), block.shape)
+    return float(block[i, j]), int(members[i]), int(members[j])
+
+
 def least_rigid(a: np.ndarray, groups: np.ndarray) -> float:
     """The largest within-group entry of ``A`` (m): how much the least rigid pair of one group varies."""
-    worst = 0.0
-    for g in np.unique(groups):
-        idx = np.flatnonzero(groups == g)
-        block = a[np.ix_(idx, idx)]
-        if np.isfinite(block).any():
-            worst = max(worst, float(np.nanmax(block)))
-    return worst
+    return max(least_rigid_pair(a, np.flatnonzero(groups == g))[0] for g in np.unique(groups))
 
 
 def _affinity(a: np.ndarray, scale: float) -> np.ndarray:

@@ -52,6 +52,9 @@ def _camera_centres(skeleton, rig, motion) -> np.ndarray:
     return np.asarray(camera_poses(skeleton, rig, motion).translation())
 
 
+_PICTURE_POINTS = 200_000  # about this many scene points are kept for the pictures
+
+
 def write_outputs(ctx) -> dict:
     """Write every output of a finished solve; returns a summary for the run log."""
     from ..correspondence_store import CorrespondenceStore
@@ -82,8 +85,16 @@ def write_outputs(ctx) -> dict:
     from ..io.ply import write_camera_paths_ply, write_ply_pieces
 
     used = corr.used_mask()
-    write_ply_pieces(out / "scene.ply", int(used.sum()), corr.iter_points(used))
-    scene = _scene_sample(corr, used)
+    step = max(1, -(-int(used.sum()) // _PICTURE_POINTS))
+    sample = []
+
+    def pieces():  # one pass over the points: written whole, every step-th kept for the pictures
+        for piece in corr.iter_points(used):
+            sample.append(piece[::step])
+            yield piece
+
+    write_ply_pieces(out / "scene.ply", int(used.sum()), pieces())
+    scene = np.concatenate(sample or [np.zeros((0, 3))]).reshape(-1, 3)
     after = _camera_centres(skeleton, rig, motion)
     write_camera_paths_ply(out / "camera_paths.ply", after)
     _write_reference(ctx, _world(ctx))
@@ -107,12 +118,6 @@ def write_outputs(ctx) -> dict:
     if ctx.config.outputs.pictures:
         summary["pictures"] = _pictures(out / "pictures", skeleton, motion, positions, t, corr, scene, after, truth, aligned)
     return summary
-
-
-def _scene_sample(corr, used: np.ndarray, limit: int = 200_000) -> np.ndarray:
-    """At most about ``limit`` of the used scene points (every k-th, in id order) for the pictures."""
-    step = max(1, -(-int(used.sum()) // limit))
-    return np.concatenate([p[::step] for p in corr.iter_points(used)] or [np.zeros((0, 3))]).reshape(-1, 3)
 
 
 def _write_reference(ctx, sim) -> None:

@@ -1,6 +1,6 @@
 """Residual terms of Eq. (1) and the API for adding new ones."""
 
-from .base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, PairTerm, Term, camera_slots, slot_cameras
+from .base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, PairTerm, Term, camera_slot_count, camera_slots, slot_cameras
 from .homography import HomographyTransfer
 from .losses import CauchyLoss, HuberLoss, RobustLoss, TrivialLoss, loss_from_name
 from .reprojection import Reprojection
@@ -21,6 +21,7 @@ __all__ = [
     "RootSmoothness",
     "Term",
     "TrivialLoss",
+    "camera_slot_count",
     "camera_slots",
     "loss_from_name",
     "pair_mask",

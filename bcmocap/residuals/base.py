@@ -142,6 +142,12 @@ def slot_cameras(data: Any) -> Any:
     return data.get("camera") if isinstance(data, dict) else None
 
 
+def camera_slot_count(needed: int, num_cameras: int, multiple: int = 4) -> int:
+    """Camera slots K for frames with at most ``needed`` cameras carrying weight: rounded up to
+    ``multiple`` (at least ``multiple``, at most ``num_cameras``)."""
+    return min(num_cameras, max(multiple, -(-needed // multiple) * multiple))
+
+
 def camera_slots(data: dict, weights_key: str = "weights", multiple: int = 4, count: int | None = None) -> dict:
     """Per-camera data ``(T, C, ...)`` → camera slots ``(T, K, ...)`` keeping only cameras with weight.
 
@@ -164,7 +170,7 @@ def camera_slots(data: dict, weights_key: str = "weights", multiple: int = 4, co
     active = (weights > 0).reshape(t, c, -1).any(axis=-1)
     needed = int(active.sum(axis=1).max(initial=0))
     if count is None:
-        k = min(c, max(multiple, -(-needed // multiple) * multiple))
+        k = camera_slot_count(needed, c, multiple)
     elif needed <= count:
         k = count
     else:

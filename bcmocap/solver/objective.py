@@ -10,7 +10,7 @@ from ..correspondence_store import CorrespondenceStore
 from ..correspondences import Correspondences
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Skeleton
-from ..residuals import HomographyTransfer, camera_slots, JointSmoothness, Reprojection, RootSmoothness, Term, loss_from_name, pair_mask
+from ..residuals import HomographyTransfer, camera_slot_count, camera_slots, JointSmoothness, Reprojection, RootSmoothness, Term, loss_from_name, pair_mask
 from .solve import Problem
 
 
@@ -115,8 +115,7 @@ class StoredProblem:
         self.rig.check(self.skeleton)
         if self.include_homography is None:
             self.include_homography = self.store.homography_cameras > 0
-        c = self.store.num_cameras
-        self._homography_cameras = min(c, max(4, -(-self.store.homography_cameras // 4) * 4))
+        self._homography_cameras = camera_slot_count(self.store.homography_cameras, self.store.num_cameras)
 
     @property
     def num_frames(self) -> int:
