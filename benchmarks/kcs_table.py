@@ -16,6 +16,11 @@ frame's camera frame after matching centroids (weak perspective has no absolute 
 figure is the mean over subject 35's walking trials 35_01…35_16; "jump" is the mean over 02_04 (jump,
 balance) and 01_01 frames 0–719 (playground, forward jumps) — CMU 13_11 (the paper's jump) is not in
 our data. ``seconds_per_300_frames``: steady-state time of one 300-frame sequence (compile excluded).
+``error_profile`` (walk35, jump) says where the error lies: each bone's fraction of frames with the wrong
+depth sign (where its true depth extent exceeds 5 cm), the 3D error with every bone's depth sign set to the
+true one (image-plane part and depth magnitude as estimated), the 3D error after a similarity alignment
+(the body scale, which weak perspective cannot observe, taken from the truth), the paths over 35 mm and
+the per-joint error.
 
     python benchmarks/kcs_table.py [--json FILE] [--cmu-dir DIR] [--paths N] [--sequences 35_01 02_04 ...]
 
@@ -99,6 +104,46 @@ def project(joints: np.ndarray, rotation: np.ndarray, scale: np.ndarray, noise_p
     return uv + rng.normal(scale=noise_px, size=uv.shape) if noise_px > 0 else uv
 
 
+def _per_joint_aligned(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """``(J,)`` mean distance per joint after each pose's rigid alignment (as in the 3DPE), over ``(..., J, 3)``."""
+    e = estimate - estimate.mean(axis=-2, keepdims=True)
+    t = truth - truth.mean(axis=-2, keepdims=True)
+    u, _, vt = np.linalg.svd(np.swapaxes(t, -1, -2) @ e)
+    d = np.sign(np.linalg.det(u @ vt))
+    u[..., :, 2] *= d[..., None]
+    aligned = e @ np.swapaxes(u @ vt, -1, -2)
+    return np.linalg.norm(aligned - t, axis=-1).reshape(-1, e.shape[-2]).mean(axis=0)
+
+
+def sign_profile(chain, estimate_camera: np.ndarray, truth_camera: np.ndarray, min_depth_m: float = 0.05) -> dict:
+    """Where the error comes from: bones whose depth sign is wrong, and the 3DPE with the true signs.
+
+    Args:
+        estimate_camera, truth_camera: ``(P, F, J, 3)`` reconstruction and truth in each frame's camera frame.
+        min_depth_m: a bone counts for the wrong-sign fraction where its true depth extent exceeds this.
+
+    Returns:
+        ``wrong_sign_fraction`` per bone (``start→end`` joint names), and ``error_3d_true_signs_mm``: the 3DPE
+        when every bone keeps its estimated image-plane part and depth magnitude but takes the true depth
+        sign (the part of the error that the monocular sign ambiguity carries, against the rest).
+    """
+    c = np.asarray(chain.C)
+    est_bones = np.einsum("jb,pfjd->pfbd", c, estimate_camera)
+    true_bones = np.einsum("jb,pfjd->pfbd", c, truth_camera)
+    wrong = np.sign(est_bones[..., 2]) != np.sign(true_bones[..., 2])
+    deep = np.abs(true_bones[..., 2]) > min_depth_m
+    fraction = (wrong & deep).sum(axis=(0, 1)) / np.maximum(deep.sum(axis=(0, 1)), 1)
+    fixed = est_bones.copy()
+    fixed[..., 2] = np.abs(est_bones[..., 2]) * np.where(true_bones[..., 2] < 0, -1.0, 1.0)
+    joints = np.einsum("pfbd,bj->pfjd", fixed, np.asarray(chain.D_least_squares))
+    err = np.asarray(aligned_joint_errors(joints, truth_camera))
+    bones = [f"{chain.names[a]}→{chain.names[b]}" for a, b in chain.links]
+    return {
+        "wrong_sign_fraction": {n: round(float(v), 4) for n, v in zip(bones, fraction)},
+        "error_3d_true_signs_mm": float(err.mean() * 1000),
+    }
+
+
 def run_sequence(chain, name, trials, num_paths, noise_px, seed, options) -> dict:
     truth = trials[name]
     rng = np.random.default_rng([seed, int(name.replace("_", "")), int(round(noise_px * 10))])
@@ -113,17 +158,47 @@ def run_sequence(chain, name, trials, num_paths, noise_px, seed, options) -> dic
     similarity = np.asarray(aligned_joint_errors(joints, truth_b, scale=True))
     truth_cam = np.einsum("pfij,fkj->pfki", rotation, truth - truth.mean(axis=1, keepdims=True))
     mpjpe = np.asarray(joint_errors(np.asarray(result.joints_camera), truth_cam))
+    profile = sign_profile(chain, np.asarray(result.joints_camera), truth_cam)
     return {
         "error_3d_mm": float(err3d.mean() * 1000),
         "mpjpe_mm": float(mpjpe.mean() * 1000),
         "per_path_3d_mm": (err3d.mean(axis=1) * 1000).round(2).tolist(),
         "error_3d_similarity_aligned_mm": float(similarity.mean() * 1000),
+        "error_3d_true_signs_mm": profile["error_3d_true_signs_mm"],
+        "per_joint_3d_mm": dict(zip(chain.names, (_per_joint_aligned(joints, truth_b) * 1000).round(2).tolist())),
+        "wrong_sign_fraction": profile["wrong_sign_fraction"],
         "iterations_mean": float(np.asarray(result.iterations).mean()),
         "converged": int(np.asarray(result.converged).sum()),
         "final_reprojection_px": float(np.mean([h[np.isfinite(h)][-1] for h in np.asarray(result.reprojection_px)])),
         "frames": int(len(truth)),
         "seconds": seconds,
     }
+
+
+def error_profile(details: dict) -> dict:
+    """Per group (walk35, jump): the 3D error against the same with the true depth signs and with a scale
+    fitted, the paths over 35 mm, the per-joint error and each bone's wrong-sign fraction (means over the
+    group's sequences)."""
+    out = {}
+    for group, names in (("walk35", WALK35), ("jump", JUMPS)):
+        rows = [details[n] for n in names if n in details]
+        if not rows:
+            continue
+        paths = np.concatenate([r["per_path_3d_mm"] for r in rows])
+
+        def mean_of(key):
+            return {k: round(float(np.mean([r[key][k] for r in rows])), 4) for k in rows[0][key]}
+
+        out[group] = {
+            "error_3d_mm": float(np.mean([r["error_3d_mm"] for r in rows])),
+            "error_3d_true_signs_mm": float(np.mean([r["error_3d_true_signs_mm"] for r in rows])),
+            "error_3d_similarity_aligned_mm": float(np.mean([r["error_3d_similarity_aligned_mm"] for r in rows])),
+            "paths": int(paths.size),
+            "paths_over_35mm": int((paths > 35).sum()),
+            "per_joint_3d_mm": mean_of("per_joint_3d_mm"),
+            "wrong_sign_fraction": mean_of("wrong_sign_fraction"),
+        }
+    return out
 
 
 def time_300(chain, trials, options, seed) -> dict:
@@ -180,6 +255,13 @@ def main(argv=None) -> int:
     }
     print(f"walk35 mean 3D error: {payload['walk35_mean_3d_error_mm']} mm (goal ≤ {WALK35_GOAL_MM}); "
           f"jump ({', '.join(n for n in JUMPS if n in sequences)}): {payload['jump_mean_3d_error_mm']} mm (goal ≤ {JUMP_GOAL_MM})")
+    payload["error_profile"] = error_profile(details)
+    for group, row in payload["error_profile"].items():
+        worst = sorted(row["wrong_sign_fraction"].items(), key=lambda kv: -kv[1])[:4]
+        print(f"{group} error profile: 3D error {row['error_3d_mm']:.2f} mm, with the true depth signs "
+              f"{row['error_3d_true_signs_mm']:.2f} mm, after similarity alignment {row['error_3d_similarity_aligned_mm']:.2f} mm; "
+              f"paths over 35 mm: {row['paths_over_35mm']} of {row['paths']}; wrong depth sign most often: "
+              + ", ".join(f"{k} {100 * v:.0f} %" for k, v in worst))
 
     noise = {}
     if not args.sequences:

@@ -45,7 +45,7 @@ def test_cli_reconstructs_a_csv_capture(tmp_path, capture, capsys):
     data = read_input(folder)
     assert np.isnan(data.joints_2d[3, NAMES.index("lknee")]).all() and np.isfinite(data.joints_2d[4]).all()
     out = tmp_path / "out"
-    assert main(["kcs", str(folder), "--out", str(out), "--fps", "30"]) == 0
+    assert main(["kcs", str(folder), "--out", str(out), "--fps", "30", "--hinge-weight", "5"]) == 0
     printed = capsys.readouterr().out
     assert "wrote" in printed and "0.3 % joint observations missing" in printed
     rows = list(csv.DictReader(open(out / "joints_3d.csv")))
@@ -56,6 +56,7 @@ def test_cli_reconstructs_a_csv_capture(tmp_path, capture, capsys):
     assert err < 0.6 * start
     report = json.loads((out / "report.json").read_text())
     assert report["frames"] == FRAMES and len(report["reprojection_px"]) == 2 * report["iterations"] + 1
+    assert report["options"]["hinge_weight"] == 5.0
     bvh = read_bvh(out / "motion.bvh", up_axis="y")
     assert bvh.motion.num_frames == FRAMES and bvh.frame_time_s == pytest.approx(1 / 30)
     assert "lknee" in bvh.skeleton.names

@@ -37,6 +37,13 @@ def add_kcs_command(sub: argparse._SubParsersAction) -> None:
     kcs.add_argument("--max-iterations", type=int, default=None, help="outer iterations of Algorithm 1 (default 30)")
     kcs.add_argument("--nuclear-weight", type=float, default=None, help="nuclear-norm weight τ in metres (default 0.03)")
     kcs.add_argument(
+        "--hinge-weight",
+        type=float,
+        default=None,
+        help="weight of the anatomical hinges in the limb sign choice (default 100, best on exact 2-D joints; "
+        "10 is better with 1 px or more of noise, see the README)",
+    )
+    kcs.add_argument(
         "--no-bone-lengths",
         action="store_true",
         help="solve Eq. 21 as printed, without the constant-bone-length projection",
@@ -49,6 +56,8 @@ def add_kcs_command(sub: argparse._SubParsersAction) -> None:
             kcs.error("--max-iterations must be at least 1")
         if args.nuclear_weight is not None and args.nuclear_weight < 0:
             kcs.error("--nuclear-weight must be non-negative")
+        if args.hinge_weight is not None and args.hinge_weight < 0:
+            kcs.error("--hinge-weight must be non-negative")
         return run_kcs(args)
 
     kcs.set_defaults(run=run)
@@ -79,6 +88,8 @@ def run_kcs(args: argparse.Namespace) -> int:
         overrides["max_iterations"] = args.max_iterations
     if args.nuclear_weight is not None:
         overrides["nuclear_weight"] = args.nuclear_weight
+    if args.hinge_weight is not None:
+        overrides["hinge_weight"] = args.hinge_weight
     if args.no_bone_lengths:
         overrides["constant_bone_lengths"] = False
     options = KCSOptions(**overrides)
