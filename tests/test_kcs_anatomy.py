@@ -119,6 +119,6 @@ def test_anatomy_improves_the_solver_on_a_cmu_walk(cmu):
 
 
 def test_options_check_the_new_weights():
-    for name in ("hinge_weight", "limb_smoothness", "limb_agreement"):
+    for name in ("hinge_weight", "rigid_weight", "limb_smoothness", "limb_agreement"):
         with pytest.raises(ValueError, match="non-negative"):
             KCSOptions(**{name: -1.0})

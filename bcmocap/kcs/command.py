@@ -40,8 +40,7 @@ def add_kcs_command(sub: argparse._SubParsersAction) -> None:
         "--hinge-weight",
         type=float,
         default=None,
-        help="weight of the anatomical hinges in the limb sign choice (default 100, best on exact 2-D joints; "
-        "10 is better with 1 px or more of noise, see the README)",
+        help="weight of the anatomical hinges (knees, ankles, elbows) in the choice of limb depth signs (default 100)",
     )
     kcs.add_argument(
         "--no-bone-lengths",

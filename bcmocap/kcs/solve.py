@@ -78,8 +78,11 @@ class KCSOptions:
             (:mod:`bcmocap.kcs.anatomy`, an addition beyond the paper) when the chain is a human one that
             :func:`~bcmocap.kcs.anatomy.human_anatomy` recognises (or an :class:`Anatomy` is given).
         hinge_weight: weight of a hinge's penalty (normalised, dimensionless) per frame in that choice.
-            100 is best on exact 2-D joints (CMU subject 35 walking: 19.4 mm against 20.2 mm with 10);
-            with noisy joints the hinges are less reliable and 10 is better (1 px: 28.3 mm against 33.3).
+            100: chosen on CMU subject 35 walking (six walks: 20.3 mm with 100, 21.7 with 10).
+        rigid_weight: weight of the rigid pelvis and thorax (absolute difference of cosines) in that
+            choice. Kept apart from the hinges: on noisy joints these angles are noisy, and 100 costs
+            there (1 px of noise on three walks: 30.7 mm with 100, 27.7 with 10), while on exact joints
+            the two settings are equal.
         limb_smoothness: weight of the squared second difference of the limb's joints (m²) over time.
         limb_agreement: weight of the squared distance to Algorithm 1's bones (m²).
         anatomy_in_loop: also choose the limb signs inside Algorithm 1, at every per-bone sign choice
@@ -100,6 +103,7 @@ class KCSOptions:
     depth_smoothing: float = 3.0
     anatomy: bool = True
     hinge_weight: float = 100.0
+    rigid_weight: float = 10.0
     limb_smoothness: float = 30.0
     limb_agreement: float = 1.0
     anatomy_in_loop: bool = True
@@ -112,7 +116,7 @@ class KCSOptions:
             raise ValueError(
                 f"KCSOptions: shape_steps ({self.shape_steps}) must be a multiple of sign_every ({self.sign_every})"
             )
-        nonneg = ("nuclear_weight", "tolerance", "sign_smoothness", "depth_smoothing", "hinge_weight",
+        nonneg = ("nuclear_weight", "tolerance", "sign_smoothness", "depth_smoothing", "hinge_weight", "rigid_weight",
                   "limb_smoothness", "limb_agreement")
         if not min(getattr(self, n) for n in nonneg) >= 0:
             raise ValueError(f"KCSOptions: {', '.join(nonneg)} must be non-negative")
@@ -223,11 +227,12 @@ def _unit(v):
 def limb_signs(
     camera_bones: jax.Array,
     anatomy: Anatomy,
-    hinge_weight=10.0,
+    hinge_weight=100.0,
     smoothness=30.0,
     agreement=1.0,
     target=None,
     rest_bones=None,
+    rigid_weight=10.0,
 ):
     """Depth signs of whole limbs chosen jointly over time with anatomical hinges (beyond the paper).
 
@@ -244,7 +249,8 @@ def limb_signs(
         hinge_weight, smoothness, agreement: weights (see above).
         target: ``(F, b, 3)`` bones to agree with (default ``camera_bones``).
         rest_bones: ``(b, 3)`` the initial configuration ``B0``: the angles of ``anatomy.rigid`` pairs
-            are held to theirs (``hinge_weight`` × the absolute difference of cosines); ``None`` = unused.
+            are held to theirs (``rigid_weight`` × the absolute difference of cosines); ``None`` = unused.
+        rigid_weight: weight of those rigid angles.
 
     Returns:
         ``(F, b, 3)`` the bones with the limbs' depth signs replaced (other bones unchanged).
@@ -287,7 +293,7 @@ def limb_signs(
             rest_cos = jnp.dot(a, b) / jnp.maximum(jnp.linalg.norm(a) * jnp.linalg.norm(b), 1e-300)
             den = lengths[:, :, i] * lengths[:, :, j]
             cos = jnp.sum(states[:, :, i] * states[:, :, j], axis=-1) / jnp.where(den > 0, den, 1.0)
-            unary = unary + hinge_weight * jnp.abs(cos - rest_cos)
+            unary = unary + rigid_weight * jnp.abs(cos - rest_cos)
         pick = _viterbi_states(unary, jnp.cumsum(states, axis=2), smoothness)
         out = out.at[:, list(limb)].set(states[jnp.arange(f), pick])
     return out
@@ -337,9 +343,10 @@ def _project_lengths(
         sign = jnp.where(cam[:, 2] < 0, -1.0, 1.0)
     chosen = jnp.concatenate([u, (sign * depth)[:, None]], axis=1)
     if choose_signs and limbs is not None and bones.shape[0] >= 3:
-        anatomy, hinge_weight, limb_smoothness, agreement, rest = limbs
+        anatomy, hinge_weight, limb_smoothness, agreement, rest, rigid_weight = limbs
         chosen = limb_signs(
-            chosen.swapaxes(1, 2), anatomy, hinge_weight, limb_smoothness, agreement, cam.swapaxes(1, 2), rest
+            chosen.swapaxes(1, 2), anatomy, hinge_weight, limb_smoothness, agreement, cam.swapaxes(1, 2), rest,
+            rigid_weight,
         ).swapaxes(1, 2)
     projected = rotation.swapaxes(1, 2) @ chosen
     return bones + weight * (projected - bones)
@@ -374,7 +381,7 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
     tau = options.nuclear_weight
     use_anatomy = options.anatomy and anatomy is not None and options.constant_bone_lengths
     limbs = (
-        (anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, b0.T)
+        (anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, b0.T, options.rigid_weight)
         if use_anatomy and options.anatomy_in_loop
         else None
     )
@@ -433,7 +440,8 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
     if use_anatomy:
         cam = (cams.rotation @ bones).swapaxes(1, 2)  # (F, b, 3)
         cam = limb_signs(
-            cam, anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, rest_bones=b0.T
+            cam, anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, rest_bones=b0.T,
+            rigid_weight=options.rigid_weight,
         )
         bones = cams.rotation.swapaxes(1, 2) @ cam.swapaxes(1, 2)
     lengths = jnp.mean(jnp.linalg.norm(bones, axis=1), axis=0)
