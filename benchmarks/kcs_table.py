@@ -46,6 +46,7 @@ from bcmocap.kcs import (  # noqa: E402
     CMU_JOINTS,
     KCSOptions,
     KinematicChainSpace,
+    aligned_joint_distances,
     aligned_joint_errors,
     joint_errors,
     mean_pose,
@@ -104,17 +105,6 @@ def project(joints: np.ndarray, rotation: np.ndarray, scale: np.ndarray, noise_p
     return uv + rng.normal(scale=noise_px, size=uv.shape) if noise_px > 0 else uv
 
 
-def _per_joint_aligned(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """``(J,)`` mean distance per joint after each pose's rigid alignment (as in the 3DPE), over ``(..., J, 3)``."""
-    e = estimate - estimate.mean(axis=-2, keepdims=True)
-    t = truth - truth.mean(axis=-2, keepdims=True)
-    u, _, vt = np.linalg.svd(np.swapaxes(t, -1, -2) @ e)
-    d = np.sign(np.linalg.det(u @ vt))
-    u[..., :, 2] *= d[..., None]
-    aligned = e @ np.swapaxes(u @ vt, -1, -2)
-    return np.linalg.norm(aligned - t, axis=-1).reshape(-1, e.shape[-2]).mean(axis=0)
-
-
 def sign_profile(chain, estimate_camera: np.ndarray, truth_camera: np.ndarray, min_depth_m: float = 0.05) -> dict:
     """Where the error comes from: bones whose depth sign is wrong, and the 3DPE with the true signs.
 
@@ -154,7 +144,8 @@ def run_sequence(chain, name, trials, num_paths, noise_px, seed, options) -> dic
     joints = np.asarray(result.joints)
     seconds = time.perf_counter() - start
     truth_b = np.broadcast_to(truth, joints.shape)
-    err3d = np.asarray(aligned_joint_errors(joints, truth_b))  # (P, F)
+    distances = np.asarray(aligned_joint_distances(joints, truth_b))  # (P, F, J)
+    err3d = distances.mean(axis=-1)  # (P, F)
     similarity = np.asarray(aligned_joint_errors(joints, truth_b, scale=True))
     truth_cam = np.einsum("pfij,fkj->pfki", rotation, truth - truth.mean(axis=1, keepdims=True))
     mpjpe = np.asarray(joint_errors(np.asarray(result.joints_camera), truth_cam))
@@ -165,7 +156,7 @@ def run_sequence(chain, name, trials, num_paths, noise_px, seed, options) -> dic
         "per_path_3d_mm": (err3d.mean(axis=1) * 1000).round(2).tolist(),
         "error_3d_similarity_aligned_mm": float(similarity.mean() * 1000),
         "error_3d_true_signs_mm": profile["error_3d_true_signs_mm"],
-        "per_joint_3d_mm": dict(zip(chain.names, (_per_joint_aligned(joints, truth_b) * 1000).round(2).tolist())),
+        "per_joint_3d_mm": dict(zip(chain.names, (distances.mean(axis=(0, 1)) * 1000).round(2).tolist())),
         "wrong_sign_fraction": profile["wrong_sign_fraction"],
         "iterations_mean": float(np.asarray(result.iterations).mean()),
         "converged": int(np.asarray(result.converged).sum()),

@@ -12,14 +12,14 @@ its 2-D joints seen by one uncalibrated camera with little or no motion:
   time with anatomical hinges (knees, ankles, elbows) and the rigid pelvis and thorax;
 * :func:`motion_from_joints` — a :class:`~bcmocap.kinematics.Skeleton` and
   :class:`~bcmocap.kinematics.Motion` (for :func:`~bcmocap.io.write_bvh`) from reconstructed joints;
-* :func:`aligned_joint_errors` (3DPE) and :func:`joint_errors` (MPJPE).
+* :func:`aligned_joint_errors` (3DPE; per joint :func:`aligned_joint_distances`) and :func:`joint_errors` (MPJPE).
 """
 
 from .anatomy import Anatomy, Hinge, human_anatomy
 from .cameras import WeakPerspectiveCameras, fit_cameras, initial_cameras, reprojection_rms
 from .chain_space import CMU_JOINTS, KinematicChainSpace, mean_pose
 from .export import motion_from_joints
-from .metrics import aligned_joint_errors, joint_errors
+from .metrics import aligned_joint_distances, aligned_joint_errors, joint_errors
 from .solve import KCSOptions, KCSResult, limb_signs, reconstruct, singular_value_threshold, solve_bones
 
 __all__ = [
@@ -30,6 +30,7 @@ __all__ = [
     "KCSResult",
     "KinematicChainSpace",
     "WeakPerspectiveCameras",
+    "aligned_joint_distances",
     "aligned_joint_errors",
     "fit_cameras",
     "human_anatomy",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["aligned_joint_errors", "joint_errors"]
+__all__ = ["aligned_joint_distances", "aligned_joint_errors", "joint_errors"]
 
 
 def _check(estimate, truth):
@@ -27,8 +27,8 @@ def joint_errors(estimate, truth) -> jax.Array:
     return jnp.linalg.norm(e - t, axis=-1).mean(axis=-1)
 
 
-def aligned_joint_errors(estimate, truth, scale: bool = False) -> jax.Array:
-    """``(...)`` 3DPE: mean joint distance after the best rigid alignment of each pose to the truth.
+def aligned_joint_distances(estimate, truth, scale: bool = False) -> jax.Array:
+    """``(..., J)`` distance of each joint after the best rigid alignment of each pose to the truth.
 
     Args:
         estimate: ``(..., J, 3)`` poses.
@@ -49,4 +49,10 @@ def aligned_joint_errors(estimate, truth, scale: bool = False) -> jax.Array:
     if scale:
         k = s.sum(-1) / jnp.maximum(jnp.sum(e * e, axis=(-1, -2)), 1e-300)
         aligned = aligned * k[..., None, None]
-    return jnp.linalg.norm(aligned - t, axis=-1).mean(axis=-1)
+    return jnp.linalg.norm(aligned - t, axis=-1)
+
+
+def aligned_joint_errors(estimate, truth, scale: bool = False) -> jax.Array:
+    """``(...)`` 3DPE: mean joint distance after the best rigid alignment of each pose to the truth
+    (the mean over joints of :func:`aligned_joint_distances`; same arguments)."""
+    return aligned_joint_distances(estimate, truth, scale).mean(axis=-1)

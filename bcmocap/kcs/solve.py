@@ -227,12 +227,12 @@ def _unit(v):
 def limb_signs(
     camera_bones: jax.Array,
     anatomy: Anatomy,
-    hinge_weight=100.0,
-    smoothness=30.0,
-    agreement=1.0,
+    hinge_weight=KCSOptions.hinge_weight,
+    smoothness=KCSOptions.limb_smoothness,
+    agreement=KCSOptions.limb_agreement,
     target=None,
     rest_bones=None,
-    rigid_weight=10.0,
+    rigid_weight=KCSOptions.rigid_weight,
 ):
     """Depth signs of whole limbs chosen jointly over time with anatomical hinges (beyond the paper).
 
@@ -299,6 +299,14 @@ def limb_signs(
     return out
 
 
+def _anatomical_signs(camera_bones, anatomy: Anatomy, rest_bones, options: KCSOptions, target=None):
+    """:func:`limb_signs` with the weights of ``options``."""
+    return limb_signs(
+        camera_bones, anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, target,
+        rest_bones, options.rigid_weight,
+    )
+
+
 def _smooth_in_time(x, sigma: float):
     """Gaussian smoothing (σ in frames) of ``(F, b)`` along frames, renormalised at the ends."""
     if sigma <= 0 or x.shape[0] < 2:
@@ -326,6 +334,8 @@ def _project_lengths(
     an unobserved one (``observed`` (F, b) false) is scaled to its length (the nearest point). The squared
     depth ``l² − ‖u‖²`` is smoothed over ``depth_sigma`` frames first: its square root amplifies image
     noise wherever a bone lies near the image plane (1 px at 200 px/m gives ~7 cm on a 40 cm bone).
+    ``limbs`` = ``(anatomy, rest bones B0ᵀ, options)`` also chooses the limbs' signs (:func:`limb_signs`)
+    after the per-bone choice; None = not.
     """
     cam = rotation @ bones  # (F, 3, b)
     norm = jnp.linalg.norm(cam, axis=1)
@@ -343,11 +353,8 @@ def _project_lengths(
         sign = jnp.where(cam[:, 2] < 0, -1.0, 1.0)
     chosen = jnp.concatenate([u, (sign * depth)[:, None]], axis=1)
     if choose_signs and limbs is not None and bones.shape[0] >= 3:
-        anatomy, hinge_weight, limb_smoothness, agreement, rest, rigid_weight = limbs
-        chosen = limb_signs(
-            chosen.swapaxes(1, 2), anatomy, hinge_weight, limb_smoothness, agreement, cam.swapaxes(1, 2), rest,
-            rigid_weight,
-        ).swapaxes(1, 2)
+        anatomy, rest, options = limbs
+        chosen = _anatomical_signs(chosen.swapaxes(1, 2), anatomy, rest, options, cam.swapaxes(1, 2)).swapaxes(1, 2)
     projected = rotation.swapaxes(1, 2) @ chosen
     return bones + weight * (projected - bones)
 
@@ -381,7 +388,7 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
     tau = options.nuclear_weight
     use_anatomy = options.anatomy and anatomy is not None and options.constant_bone_lengths
     limbs = (
-        (anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, b0.T, options.rigid_weight)
+        (anatomy, b0.T, options)
         if use_anatomy and options.anatomy_in_loop
         else None
     )
@@ -439,10 +446,7 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
     bones = b0 + a @ basis
     if use_anatomy:
         cam = (cams.rotation @ bones).swapaxes(1, 2)  # (F, b, 3)
-        cam = limb_signs(
-            cam, anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, rest_bones=b0.T,
-            rigid_weight=options.rigid_weight,
-        )
+        cam = _anatomical_signs(cam, anatomy, b0.T, options)
         bones = cams.rotation.swapaxes(1, 2) @ cam.swapaxes(1, 2)
     lengths = jnp.mean(jnp.linalg.norm(bones, axis=1), axis=0)
     return bones, cams, lengths, history, it, converged
