@@ -286,7 +286,7 @@ def test_a_trial_registered_in_chunks_is_saved_chunk_by_chunk_and_resumed(studio
         camera_names=names, fps=60.0, cameras=[types.SimpleNamespace(name=n, intrinsics=studio.fisheye) for n in names],
         video_info=lambda trial, name: types.SimpleNamespace(num_frames=2))
     monkeypatch.setattr(relative, "extract_trial_features", lambda *args, **kwargs: features)
-    quiet = dict(offsets=[0, 0, 0], homographies=False, log=lambda line: None)
+    quiet = dict(offsets=[0, 0, 0], homographies=False, registration="global", log=lambda line: None)
     whole = process_trial(capture, studio.index, "capture", tmp_path / "whole", **quiet)
     chunked = process_trial(capture, studio.index, "capture", tmp_path / "chunked", chunk_frames=1, **quiet)
     a = CorrespondenceStore.open(tmp_path / "whole" / "capture" / "correspondences").load()

@@ -25,6 +25,9 @@ import sys
 import time
 
 
+MAX_MEASUREMENTS = 400
+"""Default cap on measurements per camera-frame (issue 18: the paper used about 300 inliers per image)."""
+
 CHUNK_FRAMES = 400
 """Default chunk: registration holds about 1 GB per 1000 images of a chunk (measured: 1080 images of the
 rendered walk), so 400 frames of 18 cameras stay within a few GB; shorter trials are one chunk."""
@@ -45,6 +48,12 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--frames", type=int, default=None, help="at most this many frames per camera from the first clap")
     cmd.add_argument("--offsets", help="comma-separated video frame of the first clap per camera (skips audio sync)")
     cmd.add_argument("--max-features", type=int, default=8000, help="SIFT features per image (default 8000)")
+    cmd.add_argument("--registration", choices=("tracking", "global"), default="tracking",
+                     help="tracking: KLT tracking per camera with SIFT and global matching at keyframes (default); "
+                          "global: SIFT of every frame matched against the whole reference (slower)")
+    cmd.add_argument("--max-measurements", type=int, default=MAX_MEASUREMENTS,
+                     help=f"at most this many measurements per camera-frame, spread over the image (default "
+                          f"{MAX_MEASUREMENTS}; 0: keep all)")
     cmd.add_argument("--chunk-frames", type=int, default=CHUNK_FRAMES,
                      help="register each trial in equal chunks of at most this many processed frames, each saved as "
                           f"it is done, so memory does not grow with the trial (default {CHUNK_FRAMES}; 0: the whole "
@@ -57,6 +66,8 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
             cmd.error("--frames must be at least 1")
         if args.chunk_frames < 0:
             cmd.error("--chunk-frames must be 0 (no chunks) or positive")
+        if args.max_measurements < 0:
+            cmd.error("--max-measurements must be 0 (keep all) or positive")
         return run_frontend(args)
 
     cmd.set_defaults(run=run)
@@ -102,9 +113,17 @@ def prepare_reference(capture, ref_dir, log=print):
 
 def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
                   max_features: int = 8000, offsets=None, homographies: bool = True, chunk_frames: int = 0,
+                  registration: str = "tracking", max_measurements: int | None = MAX_MEASUREMENTS,
                   log=print) -> dict:
     """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
     are given), through sync, features, registration and homographies, written under ``out``.
+
+    ``registration`` "tracking" (default) tracks each camera's video (:mod:`~.tracking`: KLT and PnP, SIFT
+    and global matching only at keyframes; cached in ``out/tracks/<trial>/``) and hands the frames it leaves
+    to the rounds of relative registration, with SIFT extracted only for them and their neighbours;
+    "global" extracts SIFT of every frame and matches each against the reference (the earlier frontend,
+    kept for comparison). ``max_measurements`` caps the measurements per camera-frame
+    (:mod:`~.selection`; None keeps all).
 
     With ``chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
     frames (:func:`chunk_bounds`), one after the other: a chunk's points, tracks and matches are dropped
@@ -121,8 +140,10 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
 
     from ..cli import write_json_atomic
     from ..correspondence_store import write_store
-    from .relative import extract_trial_features
+    from .register import RegistrationOptions
+    from .relative import RelativeOptions, extract_trial_features
     from .sync import given_offsets, synchronize
+    from .tracking import TrackingOptions, frames_for_rounds, sift_at, track_trial, tracking_states
 
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
     starts = np.asarray(sync.offsets, np.int64)
@@ -131,15 +152,38 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         available = min(available, int(round(sync.duration_s * capture.fps)) + 1)
     frames = available if frames is None else min(available, frames)
     log(f"{trial}: first clap at video frames {starts.tolist()}; {frames} frames per camera up to the second clap")
-    features = extract_trial_features(capture, trial, stride=stride, starts=starts, num_frames=frames,
-                                      max_features=max_features, cache_dir=out / "features" / trial,
-                                      progress=_progress(f"{trial} features"))
+    if registration not in ("tracking", "global"):
+        raise ValueError(f"registration must be 'tracking' or 'global', got {registration!r}")
     clock = time.perf_counter()
-    if not len(features):
+    if registration == "global":
+        features = extract_trial_features(capture, trial, stride=stride, starts=starts, num_frames=frames,
+                                          max_features=max_features, cache_dir=out / "features" / trial,
+                                          progress=_progress(f"{trial} features"))
+        count = len(features)
+        tracks = None
+    else:
+        options = TrackingOptions(registration=RegistrationOptions(max_features=max_features))
+        tracks, keyframe_features = track_trial(capture, trial, index, starts=starts, num_frames=frames, stride=stride,
+                                                options=options, cache_dir=out / "tracks" / trial,
+                                                progress=_progress(f"{trial} tracking"))
+        count = min(len(t.how) for t in tracks)
+        tracked = np.stack([t.registered[:count] for t in tracks], 1)
+        log(f"{trial}: tracking registered {100 * tracked.mean():.1f} % of {tracked.size} camera-frames "
+            f"({sum(int(t.keyframe[:count].sum()) for t in tracks)} keyframes)")
+    if not count:
         raise ValueError(f"trial {trial!r}: no frames to register after the first clap (stride {stride})")
-    bounds = chunk_bounds(len(features), chunk_frames)
+    bounds = chunk_bounds(count, chunk_frames)
     settings = {"first_clap_frames": starts.tolist(), "stride": stride, "max_features": max_features,
-                "homographies": homographies}
+                "homographies": homographies, "registration": registration, "max_measurements": max_measurements}
+
+    def chunk_inputs(a: int, b: int):
+        """``(features, initial, points)`` of the processed frames ``a … b − 1`` for register_capture."""
+        if tracks is None:
+            return features[a:b], None, None
+        need = frames_for_rounds(tracks, a, b, RelativeOptions().max_time_gap)
+        need &= ~np.stack([t.keyframe[a:b] for t in tracks], 1)  # keyframes have their SIFT already
+        extra = sift_at(capture, trial, need, starts=starts, stride=stride, first=a, max_features=max_features)
+        return tracking_states(tracks, keyframe_features, extra, a, b)
     chunks = []
 
     def parts():
@@ -152,7 +196,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
             if part is not None:
                 log(f"{label}: reused {saved.with_suffix('.npz')}")
             else:
-                part, summary = _register_frames(features[a:b], a, capture, index, stride, homographies, label)
+                part, summary = _register_frames(*chunk_inputs(a, b), a, capture, index, stride, homographies, label,
+                                                 max_measurements)
                 summary = {"frames": [a, b], "settings": settings, **summary}
                 if len(bounds) > 1:
                     part.save(saved.with_suffix(".npz"))
@@ -168,7 +213,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
               "registered_fraction": float(reg.mean()) if reg.size else 0.0,
               "registered_per_camera": reg.mean(axis=0).tolist(),
               "chunk_frames": chunk_frames}
-    for key in ("registered_absolute", "registered_relative", "points", "new_points", "filled_by_homographies",
+    report["registration"] = registration
+    for key in ("registered_absolute", "registered_tracked", "registered_relative", "points", "new_points", "filled_by_homographies",
                 "homography_pairs"):
         report[key] = int(sum(c[key] for c in chunks))
     report["rounds"] = chunks[0]["rounds"] if len(chunks) == 1 else [c["rounds"] for c in chunks]
@@ -176,7 +222,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     report["note"] = "poses and points are in the reference model's frame and scale"
     write_json_atomic(out / trial / "registration.json", report)
     log(f"{trial}: {reg.sum()}/{reg.size} frames registered ({100 * report['registered_fraction']:.1f} %: "
-        f"{report['registered_absolute']} absolute, {report['registered_relative']} relative); "
+        f"{report['registered_absolute']} absolute, {report['registered_tracked']} tracked, "
+        f"{report['registered_relative']} relative); "
         f"wrote {store.path}")
     return report
 
@@ -206,9 +253,11 @@ def _saved_chunk(saved, settings: dict, frames: list[int]):
         return None, None
 
 
-def _register_frames(features, first: int, capture, index, stride: int, homographies: bool, label: str):
-    """Registration and homographies of the processed frames ``first … first + len(features) − 1``:
-    ``(Correspondences, summary)``; the registration's points and tracks are released on return."""
+def _register_frames(features, initial, initial_points, first: int, capture, index, stride: int, homographies: bool, label: str,
+                     max_measurements: int | None):
+    """Registration (from ``initial`` when given, :func:`~.relative.register_capture`) and homographies of the
+    processed frames ``first … first + len(features) − 1``: ``(Correspondences, summary)``; the registration's
+    points and tracks are released on return."""
     import numpy as np
 
     from .homography import fill_with_homographies
@@ -221,11 +270,12 @@ def _register_frames(features, first: int, capture, index, stride: int, homograp
 
     cameras = [c.intrinsics for c in capture.cameras]
     result = register_capture(features, cameras, index, frames=(first + np.arange(len(features))) * stride,
-                              progress=progress)
+                              initial=initial, initial_points=initial_points, progress=progress)
     fill = fill_with_homographies(result, cameras) if homographies else None
-    corr = result.correspondences(fps=capture.fps / stride, homographies=fill)
+    corr = result.correspondences(fps=capture.fps / stride, homographies=fill, max_per_frame=max_measurements)
     states = [s for row in result.states for s in row]
     summary = {"registered_absolute": sum(s.how == "absolute" for s in states),
+               "registered_tracked": sum(s.how == "tracked" for s in states),
                "registered_relative": sum(s.how == "relative" for s in states),
                "rounds": result.rounds, "points": len(result.points), "new_points": len(result.new_point_ids),
                "filled_by_homographies": int(fill.filled.sum()) if fill is not None else 0,
@@ -261,5 +311,6 @@ def run_frontend(args: argparse.Namespace) -> int:
     for trial in trials:
         process_trial(capture, index, trial, out, stride=args.stride, frames=args.frames,
                       max_features=args.max_features, offsets=offsets, chunk_frames=args.chunk_frames,
+                      registration=args.registration, max_measurements=args.max_measurements or None,
                       log=lambda m: print(m, flush=True))
     return 0

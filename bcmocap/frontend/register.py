@@ -68,12 +68,21 @@ class ReferenceIndex:
     point3D_ids: np.ndarray
     xyz: np.ndarray
     _search: dict = dataclasses.field(default_factory=dict, repr=False)
+    _by_id: tuple | None = dataclasses.field(default=None, repr=False)
 
     def search(self, checks: int = 32) -> DescriptorIndex:
         """The FLANN index of the descriptors (built once per ``checks``; safe to share between threads)."""
         if checks not in self._search:
             self._search[checks] = DescriptorIndex(self.descriptors, checks=checks)
         return self._search[checks]
+
+    def xyz_of(self, point_ids: np.ndarray) -> np.ndarray:
+        """``(K, 3)`` positions of the 3D points with these ids (all must be in the index)."""
+        if self._by_id is None:
+            order = np.argsort(self.point3D_ids, kind="stable")
+            self._by_id = (self.point3D_ids[order], self.xyz[order])
+        ids, xyz = self._by_id
+        return xyz[np.searchsorted(ids, np.asarray(point_ids, np.int64))]
 
 
 @dataclasses.dataclass

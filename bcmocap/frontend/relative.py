@@ -90,11 +90,13 @@ class FrameState:
     """One frame of one camera.
 
     Attributes:
-        keypoints: ``(N, 2)`` SIFT keypoint pixels; descriptors: ``(N, 128)`` uint8 (a quarter of float32's
-            memory; matching converts).
+        keypoints: ``(N, 2)`` SIFT keypoint pixels (then, after tracking, tracked measurements without a
+            descriptor); descriptors: ``(M ≤ N, 128)`` uint8 of the first ``M`` keypoints (a quarter of
+            float32's memory; matching converts).
         point_ids: ``(N,)`` the 3D point each keypoint observes (−1: none).
         world_from_camera: ``(7,)`` wxyz_xyz, NaN while unregistered.
-        how: "" (unregistered), "absolute" or "relative"; round: the round that registered it (0 = absolute).
+        how: "" (unregistered), "absolute", "tracked" or "relative"; round: the round that registered it
+            (0 = absolute or tracked).
     """
 
     keypoints: np.ndarray
@@ -119,6 +121,7 @@ class CaptureRegistration:
         points: ``{point id: (3,) position}`` of the reference's and the new points.
         new_point_ids: ids of the points triangulated here.
         rounds: per round ``{"registered": frames registered, "new_points": points added}``.
+        cameras: ``(C,)`` the ``pycolmap.Camera`` of each camera (for measurement selection).
     """
 
     frames: np.ndarray
@@ -126,6 +129,7 @@ class CaptureRegistration:
     points: dict
     new_point_ids: set
     rounds: list
+    cameras: list | None = None
 
     @property
     def registered(self) -> np.ndarray:
@@ -142,13 +146,40 @@ class CaptureRegistration:
         reg = self.registered
         return float(reg.mean()) if reg.size else 0.0
 
-    def correspondences(self, fps: float, *, pixel_sigma: float = 1.0, homographies=None):
+    def _selected(self, per: list, ids: np.ndarray, xyz: np.ndarray, limit: int) -> list:
+        """``per[t][c]`` cut to at most ``limit`` keypoints each (:mod:`~.selection`)."""
+        from .selection import measurement_score, select_measurements
+
+        if self.cameras is None:
+            raise ValueError("correspondences: max_per_frame needs the registration's cameras")
+        observed = np.concatenate([s.point_ids[k] for row, krow in zip(self.states, per) for s, k in zip(row, krow)]
+                                  + [np.zeros(0, np.int64)])
+        seen, count = np.unique(observed, return_counts=True)
+        geo = _Geometry(self.cameras)
+        out = []
+        for row, krow in zip(self.states, per):
+            out_row = []
+            for c, (s, k) in enumerate(zip(row, krow)):
+                if len(k) > limit:
+                    pid = s.point_ids[k]
+                    uv = geo.reproject(c, s.world_from_camera, xyz[np.searchsorted(ids, pid)])
+                    error = np.linalg.norm(uv - s.keypoints[k], axis=1)
+                    score = measurement_score(count[np.searchsorted(seen, pid)], error)
+                    cam = self.cameras[c]
+                    k = k[select_measurements(s.keypoints[k], score, limit, cam.width, cam.height)]
+                out_row.append(k)
+            out.append(out_row)
+        return out
+
+    def correspondences(self, fps: float, *, pixel_sigma: float = 1.0, homographies=None,
+                        max_per_frame: int | None = None):
         """What the solver consumes: a :class:`~bcmocap.correspondences.Correspondences` with every point
         (reference and new, renumbered ``0 … P−1``), per registered frame and camera the pixels of its
-        keypoints that observe one (weight ``1 / pixel_sigma²``), the poses and the registered mask, and
-        the homography pairs of unregistered frames from ``homographies`` (a
-        :class:`~bcmocap.frontend.homography.HomographyFill`; none without it). Points and poses are in the
-        reference model's frame."""
+        keypoints that observe one (weight ``1 / pixel_sigma²``; with ``max_per_frame``, at most that many,
+        chosen by :func:`~.selection.select_measurements`: spread over the image, long tracks and low
+        reprojection error first), the poses and the registered mask, and the homography pairs of
+        unregistered frames from ``homographies`` (a :class:`~bcmocap.frontend.homography.HomographyFill`;
+        none without it). Points and poses are in the reference model's frame."""
         from ..correspondences import Correspondences
 
         ids = np.array(sorted(self.points), np.int64)
@@ -156,6 +187,8 @@ class CaptureRegistration:
         t_count, c_count = self.registered.shape
         per = [[np.flatnonzero(s.point_ids >= 0) if s.registered else np.zeros(0, np.int64) for s in row]
                for row in self.states]
+        if max_per_frame is not None:
+            per = self._selected(per, ids, xyz, max_per_frame)
         n = max((len(k) for row in per for k in row), default=0)
         point_ids = np.full((t_count, c_count, n), -1, np.int32)
         pixels = np.zeros((t_count, c_count, n, 2))
@@ -207,15 +240,7 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
     if num_frames is None:
         num_frames = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(names, starts))
     per_video = max(0, -(-num_frames // stride))
-    total = len(names) * per_video
-    lock = threading.Lock()
-    counter = {"done": 0}
-
-    def tick(n: int) -> None:
-        with lock:
-            counter["done"] += n
-            if progress is not None:
-                progress(counter["done"], total)
+    tick = ProgressCounter(len(names) * per_video, progress)
 
     def sift_frames(name: str, start: int):
         for _, gray in capture.frames(trial, name, stride=stride, start=int(start),
@@ -247,6 +272,20 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
         per_camera = list(pool.map(one_camera, names, starts.tolist()))
     count = min(len(f) for f in per_camera)
     return [[per_camera[c][t] for c in range(len(names))] for t in range(count)]
+
+
+class ProgressCounter:
+    """Counts work done by several threads and reports ``progress(done, total)`` after each step."""
+
+    def __init__(self, total: int, progress: Callable[[int, int], None] | None):
+        self.total, self.progress, self.done = total, progress, 0
+        self.lock = threading.Lock()
+
+    def __call__(self, n: int) -> None:
+        with self.lock:
+            self.done += n
+            if self.progress is not None:
+                self.progress(self.done, self.total)
 
 
 def _workers(workers: int | None) -> int:
@@ -385,7 +424,7 @@ def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, sta
 
 
 def register_capture(features: list, cameras, index: ReferenceIndex, options: RelativeOptions = RelativeOptions(),
-                     *, frames: np.ndarray | None = None,
+                     *, frames: np.ndarray | None = None, initial: list | None = None, initial_points: dict | None = None,
                      progress: Callable[[str, int, int], None] | None = None) -> CaptureRegistration:
     """Register every frame of a trial (module docstring): absolute, then rounds of new points and relative
     registration.
@@ -395,6 +434,10 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         cameras: ``(C,)`` intrinsics (:class:`~bcmocap.cameras.CameraModel` or ``pycolmap.Camera``).
         index: the reference model's :func:`~bcmocap.frontend.register.reference_index`.
         frames: ``(T,)`` frame numbers to report (default ``0 … T−1``).
+        initial: ``initial[t][c] = (world_from_camera (7,), point_ids (N,), how)``, the registration of
+            each frame so far (e.g. :func:`~.tracking.tracking_states`; ``how`` "" where unregistered):
+            absolute registration is then skipped and the rounds start from it.
+        initial_points: ``{id: (3,) position}`` of points ``initial`` observes besides the reference's.
         progress: called as ``progress(stage, done, total)``.
     """
     num_t = len(features)
@@ -407,13 +450,25 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
     states = [[FrameState(np.asarray(kp, np.float64).reshape(-1, 2),
                           uint8_descriptors(d),
                           np.full(len(kp), -1, np.int64), np.full(7, np.nan)) for kp, d in row] for row in features]
+    if initial is not None:
+        if len(initial) != num_t or any(len(row) != num_c for row in initial):
+            raise ValueError(f"register_capture: initial must hold {num_t} frames of {num_c} cameras")
+        for row, init_row in zip(states, initial):
+            for s, (pose, point_ids, how) in zip(row, init_row):
+                if len(point_ids) != len(s.keypoints):
+                    raise ValueError(f"register_capture: initial point ids ({len(point_ids)}) and keypoints "
+                                     f"({len(s.keypoints)}) differ")
+                if how:
+                    s.world_from_camera, s.point_ids, s.how, s.round = np.asarray(pose, np.float64), \
+                        np.asarray(point_ids, np.int64).copy(), how, 0
     points = {int(i): np.asarray(x, np.float64) for i, x in zip(index.point3D_ids, index.xyz)}
+    points.update({int(i): np.asarray(x, np.float64) for i, x in (initial_points or {}).items()})
     next_id = max(points, default=-1) + 1
     new_ids: set[int] = set()
     tracks: dict[int, list[tuple[int, int, int]]] = {}  # new point -> [(t, c, keypoint)]
 
-    # 2. absolute registration, frames in threads (FLANN searches release the GIL)
-    todo = [(t, c) for t in range(num_t) for c in range(num_c)]
+    # 2. absolute registration, frames in threads (FLANN searches release the GIL); given frames skip it
+    todo = [(t, c) for t in range(num_t) for c in range(num_c)] if initial is None else []
 
     def absolute(tc):
         s = states[tc[0]][tc[1]]
@@ -635,4 +690,4 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         if count == 0:
             break
     frames = np.arange(num_t) if frames is None else np.asarray(frames)
-    return CaptureRegistration(frames, states, points, new_ids, rounds)
+    return CaptureRegistration(frames, states, points, new_ids, rounds, cams)

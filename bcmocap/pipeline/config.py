@@ -12,6 +12,8 @@ run must use the same settings for the stages it reuses.
     max_features = 8000   # SIFT features per image
     frames = 0            # at most this many frames per camera and trial (0: all)
     chunk_frames = 400    # register in chunks of at most this many processed frames, saved as done (0: whole trial)
+    registration = "tracking"   # tracking (KLT + PnP, SIFT at keyframes) | global (SIFT + reference matching everywhere)
+    max_measurements = 400      # measurements per camera-frame kept for the solver (0: all)
 
     [skeleton]
     root_origin = ["torso"]   # children whose joint centres' mean is the root's origin
@@ -52,6 +54,8 @@ class FrontendConfig:
     max_features: int = 8000
     frames: int = 0
     chunk_frames: int = 400
+    registration: str = "tracking"
+    max_measurements: int = 400
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,6 +100,9 @@ class RunConfig:
         _check(f.max_features >= 100, "frontend.max_features", "must be ≥ 100", f.max_features)
         _check(f.frames >= 0, "frontend.frames", "must be ≥ 0", f.frames)
         _check(f.chunk_frames >= 0, "frontend.chunk_frames", "must be ≥ 0", f.chunk_frames)
+        _check(f.registration in ("tracking", "global"), "frontend.registration", "must be 'tracking' or 'global'",
+               f.registration)
+        _check(f.max_measurements >= 0, "frontend.max_measurements", "must be ≥ 0", f.max_measurements)
         _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)

@@ -187,7 +187,8 @@ def _stage_frontend(ctx: RunContext) -> dict:
             index = reference_index(prepare_reference(ctx.capture, folder / "reference", log=ctx.log))
         reports[trial] = process_trial(ctx.capture, index, trial, folder, stride=stride, frames=f.frames or None,
                                        max_features=f.max_features, homographies=homographies,
-                                       chunk_frames=f.chunk_frames, log=ctx.log)
+                                       chunk_frames=f.chunk_frames, registration=f.registration,
+                                       max_measurements=f.max_measurements or None, log=ctx.log)
     return {trial: {"registered_fraction": r["registered_fraction"], "frames": r["frames"]}
             for trial, r in reports.items()}
 

@@ -1,0 +1,103 @@
+"""Tests for tracking registration (bcmocap.frontend.tracking) and measurement selection
+(bcmocap.frontend.selection): a fisheye camera moving smoothly through the rendered room of
+test_frontend_register is registered by KLT tracking between keyframes, accurately, and maps new points."""
+
+import numpy as np
+import pytest
+
+from bcmocap.cameras import to_pycolmap
+from bcmocap.frontend.selection import measurement_score, select_measurements
+from bcmocap.frontend.tracking import CameraTrack, TrackingOptions, frames_for_rounds, predict_pose, track_camera
+from bcmocap.geometry import matrix_from_quat, quat_from_matrix
+from bcmocap.sim import make_textured_scene
+
+from test_frontend_register import _errors, _look, _render, studio  # noqa: F401  (module fixture)
+
+
+def test_predict_pose_continues_a_constant_motion():
+    step = np.eye(4)
+    step[:3, :3] = np.asarray(matrix_from_quat(np.array([np.cos(0.05), 0.0, 0.0, np.sin(0.05)])))
+    step[:3, 3] = [0.02, -0.01, 0.005]
+    first = np.eye(4)
+    first[:3, :3] = np.asarray(matrix_from_quat(np.array([0.9, 0.1, -0.3, 0.3]) / np.linalg.norm([0.9, 0.1, -0.3, 0.3])))
+    first[:3, 3] = [1.0, 2.0, 1.5]
+    poses = [first, first @ step, first @ step @ step]
+    as7 = [np.concatenate([quat_from_matrix(m[:3, :3]), m[:3, 3]]) for m in poses]
+    assert np.allclose(predict_pose(as7[0], as7[1]), poses[2], atol=1e-9)
+
+
+def test_selection_spreads_over_the_image_and_keeps_the_best():
+    rng = np.random.default_rng(0)
+    # 200 measurements crowded into the top-left bucket, 10 spread elsewhere
+    crowd = rng.uniform([0, 0], [70, 50], size=(200, 2))
+    spread = np.column_stack([np.linspace(100, 620, 10), np.linspace(80, 350, 10)])
+    pixels = np.concatenate([crowd, spread])
+    score = np.concatenate([np.linspace(1, 2, 200), np.zeros(10)])
+    keep = select_measurements(pixels, score, 20, 640, 360)
+    assert len(keep) == 20 and np.all(np.diff(keep) > 0)
+    assert set(range(200, 210)) <= set(keep.tolist())  # every lonely bucket's measurement first
+    crowd_kept = keep[keep < 200]
+    assert set(crowd_kept.tolist()) == set(range(190, 200))  # the crowd's best
+    assert np.array_equal(select_measurements(pixels[:5], score[:5], 20, 640, 360), np.arange(5))
+    with pytest.raises(ValueError, match="3 pixels but 2 scores"):
+        select_measurements(pixels[:3], score[:2], 1, 640, 360)
+    # longer tracks score higher, a pixel of error costs a doubling of track length, NaN is worst
+    s = measurement_score(np.array([2, 4, 4, 4]), np.array([0.0, 0.0, 1.0, np.nan]))
+    assert s[1] > s[0] == pytest.approx(s[2]) and s[3] == -np.inf
+
+
+@pytest.fixture(scope="module")
+def walk(studio):  # noqa: F811
+    """A fisheye camera walking 3 cm and turning 1.5° per frame for 24 frames: ``(gray frames, true poses)``."""
+    import cv2
+
+    scene = make_textured_scene(np.array([[0.0, 0.0], [1.0, 0.0]]), seed=3, num_pillars=4, num_boxes=4)
+    poses = np.array([_look(np.array([0.2 + 0.03 * k, 0.1 - 0.01 * k, 1.5]), 0.1 + np.radians(1.5) * k, -0.1)
+                      for k in range(24)])
+    frames = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in _render(scene, studio.fisheye, poses)]
+    return frames, poses
+
+
+def test_tracking_registers_a_moving_camera_between_keyframes(studio, walk):  # noqa: F811
+    frames, poses = walk
+    options = TrackingOptions(keyframe_interval=10)
+    track = track_camera(frames, to_pycolmap(studio.fisheye), studio.index, options)
+    assert track.registered.all(), track.how
+    assert track.how[0] == "keyframe" and (track.how == "tracked").sum() >= 18
+    assert track.keyframe.sum() <= 6 and track.keyframe[0] and track.keyframe[10]
+    for estimate, truth in zip(track.poses, poses):
+        rot_deg, pos_cm = _errors(studio.align, estimate, truth)
+        assert rot_deg < 0.5 and pos_cm < 2.0, (rot_deg, pos_cm)
+    # Points mapped while tracking: triangulated from the walk's baseline, measured in several frames,
+    # and they reproject where the frames measured them.
+    assert len(track.new_points) > 20
+    new_obs = 0
+    for estimate, px, ids in zip(track.poses, track.pixels, track.point_ids):
+        new = ids >= track.id_base
+        new_obs += new.sum()
+        if new.any():
+            xyz = track.new_points[ids[new] - track.id_base]
+            local = (xyz - estimate[4:]) @ np.asarray(matrix_from_quat(estimate[:4]))
+            uv = np.asarray(studio.fisheye.project(local)[0])
+            assert np.median(np.linalg.norm(uv - px[new], axis=1)) < 1.0
+        assert len(np.unique(ids)) == len(ids)
+    assert new_obs > 2 * len(track.new_points)
+
+
+def test_a_lost_frame_becomes_a_keyframe_and_the_track_saves_and_loads(studio, walk, tmp_path):  # noqa: F811
+    frames, _ = walk
+    blank = np.zeros_like(frames[0])
+    track = track_camera([frames[0], frames[1], blank, frames[3], frames[4]], to_pycolmap(studio.fisheye),
+                         studio.index)
+    assert track.how.tolist() == ["keyframe", "tracked", "", "keyframe", "tracked"]
+    assert track.keyframe.tolist() == [True, False, True, True, False]
+    assert np.isnan(track.poses[2]).all() and len(track.point_ids[2]) == 0
+    track.save(tmp_path / "t.npz")
+    back = CameraTrack.load(tmp_path / "t.npz")
+    assert back.how.tolist() == track.how.tolist() and np.array_equal(back.poses, track.poses, equal_nan=True)
+    assert all(np.array_equal(a, b) for a, b in zip(back.point_ids, track.point_ids))
+    # The rounds get SIFT of the lost frame, its camera's frames around it and every camera at its time.
+    other = CameraTrack(np.zeros((5, 7)), np.array(["tracked"] * 5), np.zeros(5, bool), [np.zeros((0, 2))] * 5,
+                        [np.zeros(0, np.int64)] * 5, [np.zeros(0, np.int64)] * 5, np.zeros((0, 3)), 1 << 41)
+    need = frames_for_rounds([track, other], 0, 5, gap=1)
+    assert need.tolist() == [[False, False], [True, False], [True, True], [True, False], [False, False]]
