@@ -97,7 +97,40 @@ def test_a_lost_frame_becomes_a_keyframe_and_the_track_saves_and_loads(studio, w
     assert back.how.tolist() == track.how.tolist() and np.array_equal(back.poses, track.poses, equal_nan=True)
     assert all(np.array_equal(a, b) for a, b in zip(back.point_ids, track.point_ids))
     # The rounds get SIFT of the lost frame, its camera's frames around it and every camera at its time.
-    other = CameraTrack(np.zeros((5, 7)), np.array(["tracked"] * 5), np.zeros(5, bool), [np.zeros((0, 2))] * 5,
-                        [np.zeros(0, np.int64)] * 5, [np.zeros(0, np.int64)] * 5, np.zeros((0, 3)), 1 << 41)
-    need = frames_for_rounds([track, other], 0, 5, gap=1)
+    need = frames_for_rounds(np.column_stack([track.registered, np.ones(5, bool)]), gap=1)
     assert need.tolist() == [[False, False], [True, False], [True, True], [True, False], [False, False]]
+    # partners limit the other cameras at the same time
+    registered = np.ones((3, 3), bool)
+    registered[1, 0] = False
+    need = frames_for_rounds(registered, gap=0, partners=[[2], [0, 2], [0, 1]])
+    assert need.tolist() == [[False] * 3, [True, False, True], [False] * 3]
+
+
+def test_retrack_fills_a_gap_from_the_frames_around_it(studio, walk):  # noqa: F811
+    """Frames 6–9 are lost (blank) when the camera is tracked; re-tracking the real images from the
+    registered frames on both sides of the gap registers them."""
+    import types
+
+    from bcmocap.frontend.tracking import relocalise, retrack
+
+    frames, poses = walk
+    seen = [f if not 6 <= k <= 9 else np.zeros_like(f) for k, f in enumerate(frames[:16])]
+    cam = to_pycolmap(studio.fisheye)
+    track = track_camera(seen, cam, studio.index)
+    assert not track.registered[6:10].any() and track.registered[:6].all() and track.registered[10:].all()
+
+    class FakeCapture:  # the Capture methods retrack uses; the true images
+        camera_names = ("cam",)
+        cameras = (types.SimpleNamespace(intrinsics=studio.fisheye),)
+
+        def frames(self, trial, name, *, stride, start, stop, gray):
+            for k in range(start, min(stop, 16)):
+                yield k, frames[k]
+
+    assert relocalise([track], [[(np.zeros((0, 2)), np.zeros((0, 128), np.uint8))] * 16], [cam], studio.index,
+                      0, 16)[0] == {}  # blank keyframes have nothing to match
+    count = retrack(FakeCapture(), "capture", [track], {}, [], studio.index, starts=[0], stride=1, first=0, stop=16)
+    assert count == 4 and track.registered.all() and (track.how[6:10] == "tracked").all()
+    for estimate, truth in zip(track.poses[6:10], poses[6:10]):
+        rot_deg, pos_cm = _errors(studio.align, estimate, truth)
+        assert rot_deg < 0.5 and pos_cm < 2.0, (rot_deg, pos_cm)

@@ -143,7 +143,9 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     from .register import RegistrationOptions
     from .relative import RelativeOptions, extract_trial_features
     from .sync import given_offsets, synchronize
-    from .tracking import TrackingOptions, frames_for_rounds, sift_at, track_trial, tracking_states
+    from ..cameras import to_pycolmap
+    from .tracking import (TrackingOptions, frames_for_rounds, relocalise, retrack, sift_at, track_trial,
+                           tracking_states)
 
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
     starts = np.asarray(sync.offsets, np.int64)
@@ -167,6 +169,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
                                                 options=options, cache_dir=out / "tracks" / trial,
                                                 progress=_progress(f"{trial} tracking"))
         count = min(len(t.how) for t in tracks)
+        cams = [to_pycolmap(c.intrinsics) for c in capture.cameras]
         tracked = np.stack([t.registered[:count] for t in tracks], 1)
         log(f"{trial}: tracking registered {100 * tracked.mean():.1f} % of {tracked.size} camera-frames "
             f"({sum(int(t.keyframe[:count].sum()) for t in tracks)} keyframes)")
@@ -180,10 +183,24 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         """``(features, initial, points)`` of the processed frames ``a … b − 1`` for register_capture."""
         if tracks is None:
             return features[a:b], None, None
-        need = frames_for_rounds(tracks, a, b, RelativeOptions().max_time_gap)
+        found, affinity = relocalise(tracks, keyframe_features, cams, index, a, b, options.registration)
+        retracked = retrack(capture, trial, tracks, found, keyframe_features, index, starts=starts, stride=stride,
+                            first=a, stop=b, options=options)
+        log(f"{trial}: frames {a}-{b - 1}: {len(found)} relocalised against the tracked map, {retracked} tracked "
+            f"from them")
+        registered = np.stack([t.registered[a:b] for t in tracks], 1)
+        for t, c in found:
+            registered[t - a, c] = True
+        rounds = RelativeOptions()
+        # other cameras at the same time: those whose maps the camera's frames matched most, when it matched any
+        np.fill_diagonal(affinity, 0)
+        partners = [np.argsort(-row)[:rounds.max_other_cameras] if row.sum() else np.arange(len(row))
+                    for row in affinity]
+        partners = [p[affinity[c, p] > 0] if affinity[c].sum() else p for c, p in enumerate(partners)]
+        need = frames_for_rounds(registered, rounds.max_time_gap, partners)
         need &= ~np.stack([t.keyframe[a:b] for t in tracks], 1)  # keyframes have their SIFT already
         extra = sift_at(capture, trial, need, starts=starts, stride=stride, first=a, max_features=max_features)
-        return tracking_states(tracks, keyframe_features, extra, a, b)
+        return tracking_states(tracks, keyframe_features, extra, a, b, found)
     chunks = []
 
     def parts():
@@ -214,8 +231,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
               "registered_per_camera": reg.mean(axis=0).tolist(),
               "chunk_frames": chunk_frames}
     report["registration"] = registration
-    for key in ("registered_absolute", "registered_tracked", "registered_relative", "points", "new_points", "filled_by_homographies",
-                "homography_pairs"):
+    for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
+                "points", "new_points", "filled_by_homographies", "homography_pairs"):
         report[key] = int(sum(c[key] for c in chunks))
     report["rounds"] = chunks[0]["rounds"] if len(chunks) == 1 else [c["rounds"] for c in chunks]
     report["seconds"] = time.perf_counter() - clock
@@ -223,6 +240,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     write_json_atomic(out / trial / "registration.json", report)
     log(f"{trial}: {reg.sum()}/{reg.size} frames registered ({100 * report['registered_fraction']:.1f} %: "
         f"{report['registered_absolute']} absolute, {report['registered_tracked']} tracked, "
+        f"{report['registered_relocalised']} relocalised, "
         f"{report['registered_relative']} relative); "
         f"wrote {store.path}")
     return report
@@ -261,7 +279,7 @@ def _register_frames(features, initial, initial_points, first: int, capture, ind
     import numpy as np
 
     from .homography import fill_with_homographies
-    from .relative import register_capture
+    from .relative import RelativeOptions, register_capture
 
     stages: dict[str, object] = {}
 
@@ -269,13 +287,16 @@ def _register_frames(features, initial, initial_points, first: int, capture, ind
         stages.setdefault(stage, _progress(f"{label} {stage}"))(done, total)
 
     cameras = [c.intrinsics for c in capture.cameras]
-    result = register_capture(features, cameras, index, frames=(first + np.arange(len(features))) * stride,
+    # After tracking, many frames may be left: only the pairs their new points come from are matched.
+    options = RelativeOptions(second_order_pairs=initial is None)
+    result = register_capture(features, cameras, index, options, frames=(first + np.arange(len(features))) * stride,
                               initial=initial, initial_points=initial_points, progress=progress)
     fill = fill_with_homographies(result, cameras) if homographies else None
     corr = result.correspondences(fps=capture.fps / stride, homographies=fill, max_per_frame=max_measurements)
     states = [s for row in result.states for s in row]
     summary = {"registered_absolute": sum(s.how == "absolute" for s in states),
                "registered_tracked": sum(s.how == "tracked" for s in states),
+               "registered_relocalised": sum(s.how == "relocalised" for s in states),
                "registered_relative": sum(s.how == "relative" for s in states),
                "rounds": result.rounds, "points": len(result.points), "new_points": len(result.new_point_ids),
                "filled_by_homographies": int(fill.filled.sum()) if fill is not None else 0,

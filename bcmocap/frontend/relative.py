@@ -67,6 +67,10 @@ class RelativeOptions:
             frames. By default only pairs where one frame is a neighbour of an unregistered frame are
             matched: new points serve relative registration, and a trial that registers absolutely
             everywhere then costs no pair matching at all.
+        second_order_pairs: a registered neighbour of an unregistered frame is matched with all its own
+            registered neighbours (True), or only with the other neighbours of unregistered frames (False:
+            the pairs whose new points an unregistered frame can see; far fewer pairs when many frames
+            are left, as after tracking).
         enough_correspondences: relative registration stops matching a frame to more registered frames
             (most similar views first) once it has this many 2D–3D correspondences.
         workers: threads matching pairs of frames for new points (default: the CPU count).
@@ -81,6 +85,7 @@ class RelativeOptions:
     max_view_angle_deg: float = 90.0
     max_other_cameras: int = 4
     new_points_everywhere: bool = False
+    second_order_pairs: bool = True
     enough_correspondences: int = 400
     workers: int | None = None
 
@@ -95,8 +100,8 @@ class FrameState:
             float32's memory; matching converts).
         point_ids: ``(N,)`` the 3D point each keypoint observes (−1: none).
         world_from_camera: ``(7,)`` wxyz_xyz, NaN while unregistered.
-        how: "" (unregistered), "absolute", "tracked" or "relative"; round: the round that registered it
-            (0 = absolute or tracked).
+        how: "" (unregistered), "absolute", "tracked", "relocalised" (:mod:`~.tracking`) or "relative";
+            round: the round that registered it (0 = before the rounds).
     """
 
     keypoints: np.ndarray
@@ -512,7 +517,7 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         for a in near:
             if states[a[0]][a[1]].registered:
                 for n in neighbours(*a):
-                    if states[n[0]][n[1]].registered:
+                    if states[n[0]][n[1]].registered and (options.second_order_pairs or n in near):
                         pair = (min(a, n), max(a, n))
                         if pair not in matched:
                             found.add(pair)

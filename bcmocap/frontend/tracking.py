@@ -48,6 +48,10 @@ class TrackingOptions:
             ``max(min_tracked_inliers, keyframe_inlier_ratio × the last keyframe's)`` becomes a keyframe
             (re-acquisition by global matching).
         keyframe_interval: at most this many processed frames between keyframes.
+        lost_keyframe_interval: while a camera is lost (two keyframes in a row failed), only every
+            this-many-th frame is a keyframe: a camera the reference does not see
+            would otherwise cost SIFT and global matching at every frame; :func:`relocalise`,
+            :func:`retrack` and the rounds of relative registration work on the frames in between.
         window_px, levels: KLT search window (px) and pyramid levels (level 3 follows ~80 px of motion).
         max_flow_error_px: forward–backward KLT check.
         local_frames, guided_radius_px, max_descriptor_distance: guided matching at a keyframe: points
@@ -66,6 +70,7 @@ class TrackingOptions:
     min_tracked_inliers: int = 80
     keyframe_inlier_ratio: float = 0.6
     keyframe_interval: int = 15
+    lost_keyframe_interval: int = 4
     window_px: int = 21
     levels: int = 3
     max_flow_error_px: float = 0.5
@@ -95,6 +100,9 @@ class CameraTrack:
         keypoint_index: per frame ``(K,)`` the keypoint of each measurement in the frame's SIFT features
             (keyframes registered by global matching), else −1.
         new_points: ``(P, 3)`` points triangulated while tracking, ids ``id_base … id_base + P − 1``.
+        map_ids, map_descriptors: ``(L,)`` every 3D point the camera measured at a keypoint (reference and
+            new) with ``(L, 128)`` uint8 the descriptor of its last such keypoint: the camera's view of the
+            map, which :func:`relocalise` matches frames against.
     """
 
     poses: np.ndarray
@@ -105,6 +113,8 @@ class CameraTrack:
     keypoint_index: list
     new_points: np.ndarray
     id_base: int
+    map_ids: np.ndarray
+    map_descriptors: np.ndarray
 
     @property
     def points(self) -> dict:
@@ -122,7 +132,8 @@ class CameraTrack:
                  pixels=np.concatenate(self.pixels).reshape(-1, 2) if len(counts) else np.zeros((0, 2)),
                  point_ids=np.concatenate(self.point_ids) if len(counts) else np.zeros(0, np.int64),
                  keypoint_index=np.concatenate(self.keypoint_index) if len(counts) else np.zeros(0, np.int64),
-                 new_points=self.new_points, id_base=self.id_base)
+                 new_points=self.new_points, id_base=self.id_base, map_ids=self.map_ids,
+                 map_descriptors=self.map_descriptors)
 
     @classmethod
     def load(cls, path) -> "CameraTrack":
@@ -130,7 +141,8 @@ class CameraTrack:
             cut = np.cumsum(data["counts"])[:-1]
             return cls(data["poses"], data["how"].astype(str), data["keyframe"].astype(bool),
                        list(np.split(data["pixels"], cut)), list(np.split(data["point_ids"], cut)),
-                       list(np.split(data["keypoint_index"], cut)), data["new_points"], int(data["id_base"]))
+                       list(np.split(data["keypoint_index"], cut)), data["new_points"], int(data["id_base"]),
+                       data["map_ids"], data["map_descriptors"])
 
 
 def _matrix(pose: np.ndarray) -> np.ndarray:
@@ -200,6 +212,8 @@ class _Tracker:
         self.prev_gray = None
         self.since_key = 0
         self.key_count = 0  # inliers at the last registered keyframe
+        self.track_only = False  # no keyframes (re-tracking from a seed, :func:`retrack`)
+        self.lost = 0  # frames since the last registered one
         self.local: dict[int, np.ndarray] = {}  # point id -> (128,) uint8 descriptor of its last keyframe
         self.last_seen: dict[int, int] = {}  # point id -> last frame measuring it
         self._clear_candidates()
@@ -221,7 +235,7 @@ class _Tracker:
         """``(K, 3)`` positions of reference and new points by id."""
         ids = np.asarray(ids, np.int64)
         out = np.zeros((len(ids), 3))
-        new = ids >= self.id_base
+        new = (ids >= self.id_base) & (ids - self.id_base < len(self.new_xyz))
         if (~new).any():
             out[~new] = self.index.xyz_of(ids[~new])
         if new.any():
@@ -259,6 +273,8 @@ class _Tracker:
 
     def _needs_keyframe(self, tracked) -> bool:
         o = self.options
+        if tracked is None and self.lost >= 2:  # lost: global matching every lost_keyframe_interval-th frame
+            return self.lost % o.lost_keyframe_interval == 0
         return (tracked is None or self.since_key + 1 >= o.keyframe_interval
                 or len(tracked[2]) < max(o.min_tracked_inliers, o.keyframe_inlier_ratio * self.key_count))
 
@@ -392,7 +408,7 @@ class _Tracker:
             pose, px, ids = tracked
             kind = "tracked"
         keypoints, desc = np.zeros((0, 2)), np.zeros((0, 128), np.uint8)
-        is_key = self._needs_keyframe(tracked)
+        is_key = self._needs_keyframe(tracked) and not self.track_only
         used = None
         if is_key:
             keypoints, desc = extract_sift(gray, max_features=reg.max_features)
@@ -430,6 +446,7 @@ class _Tracker:
                     self.local[i] = desc[row]
         else:
             self.since_key += 1
+        self.lost = 0 if kind else self.lost + 1
         self.poses.append(pose)
         self.how.append(kind)
         self.keyframe.append(is_key)
@@ -446,10 +463,22 @@ class _Tracker:
         self.prev_gray = gray
         return keypoints, desc
 
+    def seed(self, gray: np.ndarray, pose: np.ndarray, pixels: np.ndarray, point_ids: np.ndarray) -> None:
+        """Start from a frame registered elsewhere (its image, pose and measurements), as if just tracked."""
+        self.poses.append(np.asarray(pose, np.float64))
+        self.how.append("seed")
+        self.keyframe.append(False)
+        self.pixels.append(np.asarray(pixels, np.float64).reshape(-1, 2))
+        self.point_ids.append(np.asarray(point_ids, np.int64))
+        self.keypoint_index.append(np.full(len(point_ids), -1, np.int64))
+        self.prev_gray = gray
+        self.prev_shape = gray.shape[:2]
+
     def result(self) -> CameraTrack:
         return CameraTrack(np.array(self.poses, np.float64).reshape(-1, 7), np.array(self.how, dtype="U8"),
                            np.array(self.keyframe, bool), self.pixels, self.point_ids, self.keypoint_index,
-                           self.new_xyz, self.id_base)
+                           self.new_xyz, self.id_base, np.array(list(self.local), np.int64),
+                           np.array(list(self.local.values()), np.uint8).reshape(-1, 128))
 
 
 def track_camera(frames: Iterable[np.ndarray], cam, index: ReferenceIndex,
@@ -540,15 +569,15 @@ def track_trial(capture, trial: str, index: ReferenceIndex, *, starts, num_frame
     return [d[0] for d in done], [d[1] for d in done]
 
 
-def frames_for_rounds(tracks: list, first: int, stop: int, gap: int) -> np.ndarray:
-    """``(T, C)`` bool over the processed frames ``first … stop − 1``: frames whose SIFT the rounds of
-    relative registration and the homographies need — every frame tracking left unregistered, the same
-    camera's frames up to ``gap`` away, and every camera's frame at the same time."""
-    registered = np.stack([t.registered[first:stop] for t in tracks], 1)
-    need = ~registered
-    rows = need.any(1)
+def frames_for_rounds(registered: np.ndarray, gap: int, partners: list | None = None) -> np.ndarray:
+    """``(T, C)`` bool: frames whose SIFT the rounds of relative registration and the homographies need —
+    every frame left unregistered (``registered (T, C)`` False), the same camera's frames up to ``gap``
+    away, and at the same time the frames of its ``partners[c]`` (camera indices; default every camera)."""
+    need = ~np.asarray(registered, bool)
     out = need.copy()
-    out[rows] = True
+    for c in range(need.shape[1]):
+        others = slice(None) if partners is None else np.asarray(partners[c], np.int64)
+        out[np.ix_(need[:, c], np.arange(need.shape[1])[others])] = True
     for dt in range(1, gap + 1):
         out[dt:] |= need[:-dt]
         out[:-dt] |= need[dt:]
@@ -556,19 +585,21 @@ def frames_for_rounds(tracks: list, first: int, stop: int, gap: int) -> np.ndarr
 
 
 def tracking_states(tracks: list, keyframe_features: list, extra_features: dict, first: int, stop: int,
-                    match_px: float = 1.0) -> tuple[list, list]:
+                    relocalised: dict | None = None, match_px: float = 1.0) -> tuple[list, list, dict]:
     """Features and initial registration of the processed frames ``first … stop − 1`` for
     :func:`~.relative.register_capture`.
 
     A frame's keypoints are its SIFT keypoints (a keyframe's, or ``extra_features[(t, c)]``, extracted
     for the rounds) followed by its tracked measurements that no SIFT keypoint lies within ``match_px``
     of; only the SIFT keypoints have descriptors. Tracked measurements give their point ids to the
-    keypoints they fall on (a registered keyframe's inliers by index).
+    keypoints they fall on (a registered keyframe's inliers by index). Frames in ``relocalised``
+    (:func:`relocalise`) take its pose and point ids.
 
     Returns:
         ``(features, initial, points)``: ``features[t][c] = (keypoints (N, 2), descriptors (M ≤ N, 128))``,
         ``initial[t][c] = (world_from_camera (7,), point_ids (N,), how)`` with ``how`` ``"absolute"``
-        (a keyframe registered by global matching), ``"tracked"`` or ``""``, and ``{id: (3,) position}`` of
+        (a keyframe registered by global matching), ``"tracked"``, ``"relocalised"`` or ``""``, and
+        ``{id: (3,) position}`` of
         the points the trackers triangulated.
     """
     from scipy.spatial import cKDTree
@@ -597,8 +628,13 @@ def tracking_states(tracks: list, keyframe_features: list, extra_features: dict,
             keypoints = np.concatenate([kp, px[rest]])
             point_ids = np.concatenate([point_ids, ids[rest]])
             how = {"keyframe": "absolute", "tracked": "tracked"}.get(str(track.how[t]), "")
+            pose = track.poses[t]
+            if (t, c) in (relocalised or {}):
+                pose, found_ids = relocalised[(t, c)]
+                point_ids = np.concatenate([found_ids, np.full(len(keypoints) - len(found_ids), -1)])
+                how = "relocalised"
             row_f.append((keypoints, desc))
-            row_i.append((track.poses[t], point_ids, how))
+            row_i.append((pose, point_ids, how))
         features.append(row_f)
         initial.append(row_i)
     points = {k: x for track in tracks for k, x in track.points.items()}
@@ -637,3 +673,148 @@ def sift_at(capture, trial: str, wanted: np.ndarray, *, starts, stride: int, fir
         for part in pool.map(one_camera, range(len(names))):
             found.update(part)
     return found
+
+
+def map_index(tracks: list, index: ReferenceIndex) -> tuple[ReferenceIndex, np.ndarray]:
+    """The reference index extended by every camera's view of the map (:attr:`CameraTrack.map_ids`): the
+    reference points' descriptors as the body cameras saw them and the points tracking triangulated.
+    Returns it with ``(M,)`` the camera each row comes from (−1: the reference photos)."""
+    descriptors, ids, xyz = [index.descriptors], [index.point3D_ids], [index.xyz]
+    owners = [np.full(len(index.point3D_ids), -1)]
+    for c, track in enumerate(tracks):
+        if not len(track.map_ids):
+            continue
+        new = track.map_ids >= track.id_base
+        pos = np.zeros((len(track.map_ids), 3))
+        pos[~new] = index.xyz_of(track.map_ids[~new])
+        pos[new] = track.new_points[track.map_ids[new] - track.id_base]
+        descriptors.append(np.asarray(track.map_descriptors, np.float32))
+        ids.append(track.map_ids)
+        xyz.append(pos)
+        owners.append(np.full(len(track.map_ids), c))
+    extended = ReferenceIndex(np.ascontiguousarray(np.concatenate(descriptors)), np.concatenate(ids),
+                              np.concatenate(xyz))
+    return extended, np.concatenate(owners)
+
+
+def relocalise(tracks: list, keyframe_features: list, cams: list, index: ReferenceIndex, first: int, stop: int,
+               registration: RegistrationOptions = RegistrationOptions(), workers: int | None = None) -> dict:
+    """Register the frames ``first … stop − 1`` tracking left (each a keyframe that global matching could not
+    register) against :func:`map_index`: the map the other cameras built while tracking covers what the
+    reference photos do not.
+
+    Returns:
+        ``({(t, c): (world_from_camera (7,), point_ids per keypoint (N,))}, affinity (C, C))``: per camera,
+        how many of its frames' matches fell on each other camera's map (which cameras see what it sees).
+    """
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .register import match_to_reference
+    from .relative import _estimate_pose, _pose_wxyz_xyz
+
+    num_c = len(tracks)
+    affinity = np.zeros((num_c, num_c), np.int64)
+    todo = [(t, c) for t in range(first, stop) for c, track in enumerate(tracks)
+            if not track.registered[t] and track.keyframe[t]]
+    if not todo:
+        return {}, affinity
+    extended, owners = map_index(tracks, index)
+
+    def one(tc):
+        t, c = tc
+        kp, desc = keyframe_features[c][t]
+        if len(desc) < 2:
+            return None, np.zeros(num_c, np.int64)
+        query, rows = match_to_reference(desc, extended, registration.ratio, registration.checks)
+        votes = np.bincount(owners[rows][owners[rows] >= 0], minlength=num_c)
+        found = _estimate_pose(np.asarray(kp, np.float64)[query], extended.xyz[rows], cams[c], registration)
+        if found is None:
+            return None, votes
+        cfw, inl, _ = found
+        ids = np.full(len(kp), -1, np.int64)
+        ids[query[inl]] = extended.point3D_ids[rows[inl]]
+        return (_pose_wxyz_xyz(cfw), ids), votes
+
+    count = workers if workers is not None else (os.cpu_count() or 1)
+    registered = {}
+    with ThreadPoolExecutor(max_workers=max(1, count)) as pool:
+        for (t, c), (found, votes) in zip(todo, pool.map(one, todo)):
+            affinity[c] += votes
+            if found is not None:
+                registered[(t, c)] = found
+    return registered, affinity
+
+
+def retrack(capture, trial: str, tracks: list, relocalised: dict, keyframe_features: list, index: ReferenceIndex,
+            *, starts, stride: int, first: int, stop: int, options: TrackingOptions = TrackingOptions(),
+            workers: int | None = None) -> int:
+    """Track into the runs of frames ``first … stop − 1`` that tracking left, from the registered frames
+    around them (tracked, or registered by :func:`relocalise`): forward from the frame before a run and
+    backward from the frame after it, without keyframes, until tracking fails. ``tracks`` are updated in place (the
+    frames become ``"tracked"``). Returns how many frames were registered."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ..cameras import to_pycolmap
+
+    lookup, _ = map_index(tracks, index)
+    names = capture.camera_names
+    starts = np.asarray(starts, np.int64)
+    track_only = dataclasses.replace(options, min_tracked_inliers=0, keyframe_interval=1 << 30)
+
+    def registered(c: int, t: int) -> bool:
+        return bool(tracks[c].registered[t]) or (t, c) in relocalised
+
+    def measurements(c: int, t: int):
+        if (t, c) in relocalised:
+            pose, ids = relocalised[(t, c)]
+            kp = np.asarray(keyframe_features[c][t][0], np.float64)
+            has = ids >= 0
+            return pose, kp[has], ids[has]
+        return tracks[c].poses[t], tracks[c].pixels[t], tracks[c].point_ids[t]
+
+    def one_camera(c: int) -> int:
+        unreg = [t for t in range(first, stop) if not registered(c, t)]
+        if not unreg:
+            return 0
+        runs = np.split(np.array(unreg), np.flatnonzero(np.diff(unreg) > 1) + 1)
+        runs = [(int(r[0]), int(r[-1]) + 1) for r in runs]
+        runs = [(a, b) for a, b in runs if (a > first and registered(c, a - 1)) or (b < stop and registered(c, b))]
+        if not runs:
+            return 0
+        wanted = set()
+        for a, b in runs:
+            wanted.update(range(max(first, a - 1), min(stop, b + 1)))
+        lo, hi = min(wanted), max(wanted)
+        images = {}
+        for k, (_, gray) in enumerate(capture.frames(trial, names[c], stride=stride, start=int(starts[c]) + lo * stride,
+                                                     stop=int(starts[c]) + hi * stride + 1, gray=True)):
+            if lo + k in wanted:
+                images[lo + k] = gray
+        cam = to_pycolmap(capture.cameras[c].intrinsics)
+        count = 0
+        for r, (a, b) in enumerate(runs):
+            for seed_t, order in ((a - 1, range(a, b)), (b, range(b - 1, a - 1, -1))):
+                if not (first <= seed_t < stop) or not registered(c, seed_t) or seed_t not in images:
+                    continue
+                tracker = _Tracker(cam, lookup, track_only, id_base=((c + 1) << 40) + ((r + 1) << 28))
+                tracker.track_only = True
+                tracker.seed(images[seed_t], *measurements(c, seed_t))
+                for t in order:
+                    if registered(c, t) or t not in images:
+                        break
+                    tracker.step(images[t])
+                    if not tracker.how[-1]:
+                        break
+                    track = tracks[c]
+                    track.poses[t] = tracker.poses[-1]
+                    track.how[t] = "tracked"
+                    track.pixels[t], track.point_ids[t] = tracker.pixels[-1], tracker.point_ids[-1]
+                    track.keypoint_index[t] = np.full(len(tracker.point_ids[-1]), -1, np.int64)
+                    count += 1
+        return count
+
+    count = workers if workers is not None else (os.cpu_count() or 1)
+    with ThreadPoolExecutor(max_workers=max(1, count)) as pool:
+        return sum(pool.map(one_camera, range(len(names))))
