@@ -134,3 +134,57 @@ def test_retrack_fills_a_gap_from_the_frames_around_it(studio, walk):  # noqa: F
     for estimate, truth in zip(track.poses[6:10], poses[6:10]):
         rot_deg, pos_cm = _errors(studio.align, estimate, truth)
         assert rot_deg < 0.5 and pos_cm < 2.0, (rot_deg, pos_cm)
+
+
+def test_process_trial_with_tracking_registers_every_frame_and_caps_the_measurements(studio, walk, tmp_path):  # noqa: F811
+    """The tracking frontend end to end on two cameras: one loses frames 6–9 (blank while tracked); they are
+    registered from the frames around them, the measurements are capped, and a rerun reuses the tracks."""
+    import types
+
+    from bcmocap.correspondence_store import CorrespondenceStore
+    from bcmocap.frontend.command import process_trial
+
+    frames, poses = walk
+    blanked = {6, 7, 8, 9}
+    names = ("a", "b")
+
+    def frames_of(trial, name, *, stride, start, stop, gray):
+        for k in range(start, min(stop, 16), stride):
+            image = frames[k]
+            if name == "b" and k in blanked and not reading["again"]:
+                image = np.zeros_like(image)
+            yield k, image
+
+    reading = {"again": False}
+    capture = types.SimpleNamespace(
+        camera_names=names, fps=30.0, cameras=[types.SimpleNamespace(name=n, intrinsics=studio.fisheye) for n in names],
+        video_info=lambda trial, name: types.SimpleNamespace(num_frames=16), frames=frames_of)
+
+    def frames_after_tracking(*args, **kwargs):  # the second reading of b's video sees the true images
+        reading["again"] = True
+        return frames_of(*args, **kwargs)
+
+    import bcmocap.frontend.tracking as tracking
+
+    original = tracking.track_trial
+
+    def track_then_switch(*args, **kwargs):
+        out = original(*args, **kwargs)
+        capture.frames = frames_after_tracking
+        return out
+
+    tracking.track_trial = track_then_switch
+    try:
+        report = process_trial(capture, studio.index, "capture", tmp_path, offsets=[0, 0], homographies=True,
+                               registration="tracking", max_measurements=60, log=lambda line: None)
+    finally:
+        tracking.track_trial = original
+    assert report["registered_fraction"] == 1.0 and report["registration"] == "tracking"
+    assert report["registered_tracked"] >= 24 and report["registered_absolute"] >= 2
+    store = CorrespondenceStore.open(tmp_path / "capture" / "correspondences").load()
+    assert store.registered.all() and store.point_ids.shape[2] == 60
+    assert ((store.point_ids >= 0).sum(axis=2) == 60).all()
+    for t in range(16):
+        rot_deg, pos_cm = _errors(studio.align, store.world_from_camera[t, 1], poses[t])
+        assert rot_deg < 0.5 and pos_cm < 2.0, (t, rot_deg, pos_cm)
+    assert sorted(p.name for p in (tmp_path / "tracks" / "capture").iterdir()) == ["a", "b"]

@@ -2,7 +2,9 @@
 
 The only package that imports ``cv2`` and ``pycolmap``: reading a capture folder (:mod:`.capture`),
 audio synchronisation by the claps (:mod:`.sync`), the reference reconstruction from the reference
-photos (:mod:`.reference`), absolute registration of body-camera frames to it (:mod:`.register`), SIFT
+photos (:mod:`.reference`), absolute registration of body-camera frames to it (:mod:`.register`), tracking
+registration of each camera's video with keyframes, relocalisation and re-tracking (:mod:`.tracking`, the
+default), at most N measurements per camera-frame (:mod:`.selection`), SIFT
 features of a trial streamed to disk and read back memory-mapped (:mod:`.features`), for a whole trial
 new points, bundle adjustment with the reference fixed and rounds of relative registration
 (:mod:`.relative`; cameras and frame pairs in threads), homographies for the frames left
@@ -23,9 +25,19 @@ from .register import (
 )
 from .homography import HomographyFill, HomographyOptions, fill_with_homographies, rotation_between_frames
 from .relative import CaptureRegistration, FrameState, RelativeOptions, extract_trial_features, register_capture
+from .selection import measurement_score, select_measurements
 from .sync import SyncResult, clap_candidates, given_offsets, synchronize, synchronize_tracks
+from .tracking import CameraTrack, TrackingOptions, relocalise, retrack, track_camera, track_trial
 
 __all__ = [
+    "CameraTrack",
+    "TrackingOptions",
+    "measurement_score",
+    "relocalise",
+    "retrack",
+    "select_measurements",
+    "track_camera",
+    "track_trial",
     "Capture",
     "CaptureCamera",
     "CaptureRegistration",

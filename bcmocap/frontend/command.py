@@ -26,7 +26,7 @@ import time
 
 
 MAX_MEASUREMENTS = 400
-"""Default cap on measurements per camera-frame (issue 18: the paper used about 300 inliers per image)."""
+"""Measurements per camera-frame for the tracking frontend's solver (issue 18: the paper used about 300 inliers per image)."""
 
 CHUNK_FRAMES = 400
 """Default chunk: registration holds about 1 GB per 1000 images of a chunk (measured: 1080 images of the
@@ -48,12 +48,13 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--frames", type=int, default=None, help="at most this many frames per camera from the first clap")
     cmd.add_argument("--offsets", help="comma-separated video frame of the first clap per camera (skips audio sync)")
     cmd.add_argument("--max-features", type=int, default=8000, help="SIFT features per image (default 8000)")
-    cmd.add_argument("--registration", choices=("tracking", "global"), default="tracking",
-                     help="tracking: KLT tracking per camera with SIFT and global matching at keyframes (default); "
-                          "global: SIFT of every frame matched against the whole reference (slower)")
-    cmd.add_argument("--max-measurements", type=int, default=MAX_MEASUREMENTS,
-                     help=f"at most this many measurements per camera-frame, spread over the image (default "
-                          f"{MAX_MEASUREMENTS}; 0: keep all)")
+    cmd.add_argument("--registration", choices=("tracking", "global"), default="global",
+                     help="global (default): SIFT of every frame matched against the whole reference; tracking: KLT "
+                          "tracking per camera with SIFT and global matching at keyframes (faster, not yet as "
+                          "accurate)")
+    cmd.add_argument("--max-measurements", type=int, default=0,
+                     help=f"at most this many measurements per camera-frame, spread over the image (0, the "
+                          f"default: keep all; {MAX_MEASUREMENTS} with tracking in benchmarks/configs/tracking.toml)")
     cmd.add_argument("--chunk-frames", type=int, default=CHUNK_FRAMES,
                      help="register each trial in equal chunks of at most this many processed frames, each saved as "
                           f"it is done, so memory does not grow with the trial (default {CHUNK_FRAMES}; 0: the whole "
@@ -113,17 +114,17 @@ def prepare_reference(capture, ref_dir, log=print):
 
 def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
                   max_features: int = 8000, offsets=None, homographies: bool = True, chunk_frames: int = 0,
-                  registration: str = "tracking", max_measurements: int | None = MAX_MEASUREMENTS,
+                  registration: str = "global", max_measurements: int | None = None,
                   log=print) -> dict:
     """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
     are given), through sync, features, registration and homographies, written under ``out``.
 
-    ``registration`` "tracking" (default) tracks each camera's video (:mod:`~.tracking`: KLT and PnP, SIFT
+    ``registration`` "tracking" tracks each camera's video (:mod:`~.tracking`: KLT and PnP, SIFT
     and global matching only at keyframes; cached in ``out/tracks/<trial>/``) and hands the frames it leaves
     to the rounds of relative registration, with SIFT extracted only for them and their neighbours;
-    "global" extracts SIFT of every frame and matches each against the reference (the earlier frontend,
-    kept for comparison). ``max_measurements`` caps the measurements per camera-frame
-    (:mod:`~.selection`; None keeps all).
+    "global" (default) extracts SIFT of every frame and matches each against the reference (tracking is
+    about twice as fast on the 10 s walk but not yet as accurate). ``max_measurements`` caps the
+    measurements per camera-frame (:mod:`~.selection`; None keeps all).
 
     With ``chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
     frames (:func:`chunk_bounds`), one after the other: a chunk's points, tracks and matches are dropped
@@ -141,11 +142,9 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     from ..cli import write_json_atomic
     from ..correspondence_store import write_store
     from .register import RegistrationOptions
-    from .relative import RelativeOptions, extract_trial_features
+    from .relative import extract_trial_features
     from .sync import given_offsets, synchronize
-    from ..cameras import to_pycolmap
-    from .tracking import (TrackingOptions, frames_for_rounds, relocalise, retrack, sift_at, track_trial,
-                           tracking_states)
+    from .tracking import TrackingOptions, states_for_rounds, track_trial
 
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
     starts = np.asarray(sync.offsets, np.int64)
@@ -169,7 +168,6 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
                                                 options=options, cache_dir=out / "tracks" / trial,
                                                 progress=_progress(f"{trial} tracking"))
         count = min(len(t.how) for t in tracks)
-        cams = [to_pycolmap(c.intrinsics) for c in capture.cameras]
         tracked = np.stack([t.registered[:count] for t in tracks], 1)
         log(f"{trial}: tracking registered {100 * tracked.mean():.1f} % of {tracked.size} camera-frames "
             f"({sum(int(t.keyframe[:count].sum()) for t in tracks)} keyframes)")
@@ -183,24 +181,9 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         """``(features, initial, points)`` of the processed frames ``a … b − 1`` for register_capture."""
         if tracks is None:
             return features[a:b], None, None
-        found, affinity = relocalise(tracks, keyframe_features, cams, index, a, b, options.registration)
-        retracked = retrack(capture, trial, tracks, found, keyframe_features, index, starts=starts, stride=stride,
-                            first=a, stop=b, options=options)
-        log(f"{trial}: frames {a}-{b - 1}: {len(found)} relocalised against the tracked map, {retracked} tracked "
-            f"from them")
-        registered = np.stack([t.registered[a:b] for t in tracks], 1)
-        for t, c in found:
-            registered[t - a, c] = True
-        rounds = RelativeOptions()
-        # other cameras at the same time: those whose maps the camera's frames matched most, when it matched any
-        np.fill_diagonal(affinity, 0)
-        partners = [np.argsort(-row)[:rounds.max_other_cameras] if row.sum() else np.arange(len(row))
-                    for row in affinity]
-        partners = [p[affinity[c, p] > 0] if affinity[c].sum() else p for c, p in enumerate(partners)]
-        need = frames_for_rounds(registered, rounds.max_time_gap, partners)
-        need &= ~np.stack([t.keyframe[a:b] for t in tracks], 1)  # keyframes have their SIFT already
-        extra = sift_at(capture, trial, need, starts=starts, stride=stride, first=a, max_features=max_features)
-        return tracking_states(tracks, keyframe_features, extra, a, b, found)
+        return states_for_rounds(capture, trial, tracks, keyframe_features, index, starts=starts, stride=stride,
+                                 first=a, stop=b, options=options, log=log)
+
     chunks = []
 
     def parts():
@@ -231,6 +214,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
               "registered_per_camera": reg.mean(axis=0).tolist(),
               "chunk_frames": chunk_frames}
     report["registration"] = registration
+    report["max_measurements"] = max_measurements
     for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
                 "points", "new_points", "filled_by_homographies", "homography_pairs"):
         report[key] = int(sum(c[key] for c in chunks))

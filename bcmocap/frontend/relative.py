@@ -184,7 +184,7 @@ class CaptureRegistration:
         chosen by :func:`~.selection.select_measurements`: spread over the image, long tracks and low
         reprojection error first), the poses and the registered mask, and the homography pairs of
         unregistered frames from ``homographies`` (a :class:`~bcmocap.frontend.homography.HomographyFill`;
-        none without it). Points and poses are in the reference model's frame."""
+        none without it; at most ``max_per_frame`` of them, spread over the image). Points and poses are in the reference model's frame."""
         from ..correspondences import Correspondences
 
         ids = np.array(sorted(self.points), np.int64)
@@ -207,14 +207,20 @@ class CaptureRegistration:
         poses = self.world_from_camera.copy()
         poses[~self.registered] = np.array([1.0, 0, 0, 0, 0, 0, 0])
         pairs = {} if homographies is None else homographies.pixels
-        m = max((len(v) for v in pairs.values()), default=0)
+        keep = {key: np.arange(len(px)) for key, px in pairs.items()}
+        if max_per_frame is not None:  # homography pairs spread over the image too (all score alike)
+            from .selection import select_measurements
+
+            keep = {(t, c): select_measurements(px, np.zeros(len(px)), max_per_frame, self.cameras[c].width,
+                                                self.cameras[c].height) for (t, c), px in pairs.items()}
+        m = max((len(v) for v in keep.values()), default=0)
         h_pixels = np.zeros((t_count, c_count, m, 2))
         h_prev = np.zeros((t_count, c_count, m, 2))
         h_weights = np.zeros((t_count, c_count, m))
-        for (t, c), px in pairs.items():
-            h_pixels[t, c, : len(px)] = px
-            h_prev[t, c, : len(px)] = homographies.pixels_prev[(t, c)]
-            h_weights[t, c, : len(px)] = 1.0 / pixel_sigma**2
+        for (t, c), k in keep.items():
+            h_pixels[t, c, : len(k)] = pairs[(t, c)][k]
+            h_prev[t, c, : len(k)] = homographies.pixels_prev[(t, c)][k]
+            h_weights[t, c, : len(k)] = 1.0 / pixel_sigma**2
         return Correspondences(xyz, point_ids, pixels, weights, h_pixels, h_prev, h_weights, poses, self.registered,
                                float(fps))
 

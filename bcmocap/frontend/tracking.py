@@ -11,14 +11,23 @@ camera see almost the same scene, so :func:`track_camera` registers most frames 
    forward–backward (a point that does not flow back to where it started within
    ``max_flow_error_px`` is dropped); the 3D points carry over;
 3. **PnP-RANSAC and refinement** with the camera's own fisheye model
-   (``pycolmap.estimate_and_refine_absolute_pose``), accepted with the thresholds of absolute
-   registration (more than ``min_inliers`` inliers, mean inlier error below ``max_mean_error_px``).
+   (``pycolmap.estimate_and_refine_absolute_pose``, inlier threshold ``tracking_max_error_px``), accepted
+   with the thresholds of absolute registration (more than ``min_inliers`` inliers, mean inlier error
+   below ``max_mean_error_px``).
 
-A **keyframe** gets SIFT and global matching against the reference (today's absolute registration): the
-first frame, a frame where tracking failed, a frame whose tracked inliers fell below
-``min_tracked_inliers`` (the new inliers are merged with the tracked ones), and every
-``keyframe_interval``-th frame (so the tracked set is refreshed before it thins out). The keyframes' SIFT
-features are what :func:`~.relative.register_capture` later works with for the frames tracking leaves.
+A **keyframe** gets SIFT and global matching against the reference (today's absolute registration) plus
+guided matching of the camera's local map: the first frame, a frame where tracking failed, a frame whose
+tracked inliers fell below ``max(min_tracked_inliers, keyframe_inlier_ratio × the last keyframe's)`` (the
+tracked points its pose agrees with are kept), every ``keyframe_interval``-th frame, and every
+``lost_keyframe_interval``-th frame while the camera is lost. A registered keyframe's keypoints without a
+3D point are followed by KLT as candidates and **triangulated into new points** once their rays span
+``min_triangulation_angle_deg``, so tracking goes on where the reference photos do not reach.
+
+:func:`track_trial` tracks every camera of a trial (threads; keyframe SIFT and tracks cached on disk).
+For the frames it leaves, chunk by chunk: :func:`relocalise` matches them against the reference plus every
+camera's view of the map (:func:`map_index`), :func:`retrack` tracks into each gap from the registered
+frames around it, and :func:`tracking_states` hands the rest, with SIFT of them and their neighbours
+(:func:`frames_for_rounds`, :func:`sift_at`), to the rounds of :func:`~.relative.register_capture`.
 
 Poses are ``world_from_camera`` ``wxyz_xyz`` in the reference model's frame; pixels in OpenCV's convention.
 """
@@ -26,7 +35,7 @@ Poses are ``world_from_camera`` ``wxyz_xyz`` in the reference model's frame; pix
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -34,7 +43,8 @@ from ..geometry import matrix_from_quat
 from .reference import extract_sift
 from .register import ReferenceIndex, RegistrationOptions
 
-__all__ = ["TrackingOptions", "CameraTrack", "track_camera", "predict_pose"]
+__all__ = ["CameraTrack", "TrackingOptions", "frames_for_rounds", "map_index", "predict_pose", "relocalise", "retrack",
+           "sift_at", "states_for_rounds", "track_camera", "track_trial", "tracking_states"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -818,3 +828,36 @@ def retrack(capture, trial: str, tracks: list, relocalised: dict, keyframe_featu
     count = workers if workers is not None else (os.cpu_count() or 1)
     with ThreadPoolExecutor(max_workers=max(1, count)) as pool:
         return sum(pool.map(one_camera, range(len(names))))
+
+
+def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list, index: ReferenceIndex, *,
+                      starts, stride: int, first: int, stop: int, options: TrackingOptions = TrackingOptions(),
+                      log: Callable[[str], None] = print) -> tuple[list, list, dict]:
+    """What :func:`~.relative.register_capture` needs for the processed frames ``first … stop − 1`` after
+    tracking: the frames tracking left go through :func:`relocalise` and :func:`retrack` (``tracks`` are
+    updated), then SIFT is extracted for those still left and their neighbours (the camera's frames up to
+    ``max_time_gap`` away; at the same time, the other cameras whose maps its frames matched most), and
+    :func:`tracking_states` assembles features, initial registration and points."""
+    from ..cameras import to_pycolmap
+    from .relative import RelativeOptions
+
+    cams = [to_pycolmap(c.intrinsics) for c in capture.cameras]
+    found, affinity = relocalise(tracks, keyframe_features, cams, index, first, stop, options.registration)
+    retracked = retrack(capture, trial, tracks, found, keyframe_features, index, starts=starts, stride=stride,
+                        first=first, stop=stop, options=options)
+    log(f"{trial}: frames {first}-{stop - 1}: {len(found)} relocalised against the tracked map, {retracked} "
+        f"tracked from them")
+    registered = np.stack([t.registered[first:stop] for t in tracks], 1)
+    for t, c in found:
+        registered[t - first, c] = True
+    rounds = RelativeOptions()
+    np.fill_diagonal(affinity, 0)
+    partners = []
+    for row in affinity:
+        best = np.argsort(-row, kind="stable")[:rounds.max_other_cameras]
+        partners.append(best[row[best] > 0] if row.sum() else np.arange(len(row)))
+    need = frames_for_rounds(registered, rounds.max_time_gap, partners)
+    need &= ~np.stack([t.keyframe[first:stop] for t in tracks], 1)  # keyframes have their SIFT already
+    extra = sift_at(capture, trial, need, starts=starts, stride=stride, first=first,
+                    max_features=options.registration.max_features)
+    return tracking_states(tracks, keyframe_features, extra, first, stop, found)

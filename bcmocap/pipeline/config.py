@@ -12,8 +12,8 @@ run must use the same settings for the stages it reuses.
     max_features = 8000   # SIFT features per image
     frames = 0            # at most this many frames per camera and trial (0: all)
     chunk_frames = 400    # register in chunks of at most this many processed frames, saved as done (0: whole trial)
-    registration = "tracking"   # tracking (KLT + PnP, SIFT at keyframes) | global (SIFT + reference matching everywhere)
-    max_measurements = 400      # measurements per camera-frame kept for the solver (0: all)
+    registration = "global"   # global (SIFT + reference matching of every frame) | tracking (KLT + PnP, SIFT at keyframes)
+    max_measurements = 0      # measurements per camera-frame kept for the solver (0: all; e.g. 400 with tracking)
 
     [skeleton]
     root_origin = ["torso"]   # children whose joint centres' mean is the root's origin
@@ -54,8 +54,8 @@ class FrontendConfig:
     max_features: int = 8000
     frames: int = 0
     chunk_frames: int = 400
-    registration: str = "tracking"
-    max_measurements: int = 400
+    registration: str = "global"
+    max_measurements: int = 0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -179,7 +179,9 @@ def _stage_frontend(ctx: RunContext) -> dict:
         done = folder / trial / "registration.json"
         if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
             report = _read_json(done)
-            if report.get("stride") == stride:
+            same = (report.get("stride"), report.get("registration", "global"), report.get("max_measurements")) \
+                == (stride, f.registration, f.max_measurements or None)
+            if same:
                 ctx.log(f"{trial}: registration found in {done}, reused")
                 reports[trial] = report
                 continue
