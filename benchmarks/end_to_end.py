@@ -127,7 +127,7 @@ def main(argv=None) -> int:
           f"(initial {i['joint_angle_error_deg']['mean']:.3f}); goal ≤ 3.0")
     print(f"frontend images/s: {result['images_per_second']:.2f} (goal ≥ 20); solve frames/s: "
           f"{result['solve_frames_per_second']:.1f} (goal ≥ 60); whole run {result['total_seconds']:.0f} s (goal ≤ 360)")
-    print(f"registered: " + ", ".join(f"{t} {100 * f:.2f} %" for t, f in result["registered_fraction"].items()))
+    print("registered: " + ", ".join(f"{t} {100 * f:.2f} %" for t, f in result["registered_fraction"].items()))
     if args.baseline_json is not None:
         result["baseline_global_registration"] = baseline(args.baseline_json, settings)
         b = result["baseline_global_registration"]
