@@ -57,7 +57,7 @@ from bcmocap.frontend.homography import fill_with_homographies  # noqa: E402
 from bcmocap.frontend.relative import extract_trial_features, register_capture  # noqa: E402
 from bcmocap.sim.studio import StudioSettings, load_ground_truth, write_capture  # noqa: E402
 
-SCEAUX = Path("/work/shared/data/images/SceauxCastle/images")
+SCEAUX = Path(__file__).resolve().parents[2] / "shared" / "data" / "images" / "SceauxCastle" / "images"
 NOT_BUILT: list[str] = []
 
 

@@ -771,7 +771,6 @@ def retrack(capture, trial: str, tracks: list, relocalised: dict, keyframe_featu
     lookup, _ = map_index(tracks, index)
     names = capture.camera_names
     starts = np.asarray(starts, np.int64)
-    track_only = dataclasses.replace(options, min_tracked_inliers=0, keyframe_interval=1 << 30)
 
     def registered(c: int, t: int) -> bool:
         return bool(tracks[c].registered[t]) or (t, c) in relocalised
@@ -808,7 +807,7 @@ def retrack(capture, trial: str, tracks: list, relocalised: dict, keyframe_featu
             for seed_t, order in ((a - 1, range(a, b)), (b, range(b - 1, a - 1, -1))):
                 if not (first <= seed_t < stop) or not registered(c, seed_t) or seed_t not in images:
                     continue
-                tracker = _Tracker(cam, lookup, track_only, id_base=((c + 1) << 40) + ((r + 1) << 28))
+                tracker = _Tracker(cam, lookup, options, id_base=((c + 1) << 40) + ((r + 1) << 28))
                 tracker.track_only = True
                 tracker.seed(images[seed_t], *measurements(c, seed_t))
                 for t in order:
