@@ -641,38 +641,47 @@ def read_opencv_fisheye_calibration(
     if not os.path.isfile(path):
         raise ValueError(f"{path}: calibration file does not exist")
     try:
+        # A truncated file makes the constructor fail inside OpenCV's parser (cv2.error, or a SystemError from
+        # the binding), and a structurally broken one can fail later, at the first node read.
         fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
-        raise ValueError(f"{path}: cannot parse as an OpenCV FileStorage file: {e}") from None
+    except (cv2.error, SystemError) as e:
+        raise ValueError(f"{path}: cannot parse as an OpenCV FileStorage file ({' '.join(str(e).split())})") from None
     if not fs.isOpened():
         raise ValueError(f"{path}: cannot open as an OpenCV FileStorage file")
     try:
-        found = _read_node(fs, _K_NAMES)
-        if found is None:
-            raise ValueError(f"{path}: missing field 'camera_matrix' (3x3 camera matrix K)")
-        k_name, node = found
-        K = node.mat()
-        if K is None or np.shape(K) != (3, 3):
-            raise ValueError(f"{path}: field '{k_name}' must be a 3x3 matrix; got shape {np.shape(K)}")
-        found = _read_node(fs, _D_NAMES)
-        if found is None:
-            raise ValueError(f"{path}: missing field 'dist_coeff' (4 fisheye coefficients k1..k4)")
-        d_name, node = found
-        D = node.mat()
-        if D is None or np.size(D) != 4:
-            raise ValueError(
-                f"{path}: field '{d_name}' must hold 4 coefficients; got shape {np.shape(D)}"
-            )
-        w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
-        if not w_node.empty() and not h_node.empty():
-            width, height = int(w_node.real()), int(h_node.real())
-        elif image_size is not None:
-            width, height = (int(s) for s in image_size)
-        else:
-            missing = "image_width" if w_node.empty() else "image_height"
-            raise ValueError(f"{path}: missing field '{missing}'; pass image_size=(width, height)")
+        return _fisheye_from_storage(path, fs, image_size)
+    except (cv2.error, SystemError) as e:
+        raise ValueError(f"{path}: malformed OpenCV FileStorage file ({' '.join(str(e).split())})") from None
     finally:
         fs.release()
+
+
+def _fisheye_from_storage(path: str, fs: Any, image_size: tuple[int, int] | None) -> OpenCVFisheyeCamera:
+    """The camera in an open ``cv2.FileStorage`` (see :func:`read_opencv_fisheye_calibration`)."""
+    found = _read_node(fs, _K_NAMES)
+    if found is None:
+        raise ValueError(f"{path}: missing field 'camera_matrix' (3x3 camera matrix K)")
+    k_name, node = found
+    K = node.mat()
+    if K is None or np.shape(K) != (3, 3):
+        raise ValueError(f"{path}: field '{k_name}' must be a 3x3 matrix; got shape {np.shape(K)}")
+    found = _read_node(fs, _D_NAMES)
+    if found is None:
+        raise ValueError(f"{path}: missing field 'dist_coeff' (4 fisheye coefficients k1..k4)")
+    d_name, node = found
+    D = node.mat()
+    if D is None or np.size(D) != 4:
+        raise ValueError(
+            f"{path}: field '{d_name}' must hold 4 coefficients; got shape {np.shape(D)}"
+        )
+    w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
+    if not w_node.empty() and not h_node.empty():
+        width, height = int(w_node.real()), int(h_node.real())
+    elif image_size is not None:
+        width, height = (int(s) for s in image_size)
+    else:
+        missing = "image_width" if w_node.empty() else "image_height"
+        raise ValueError(f"{path}: missing field '{missing}'; pass image_size=(width, height)")
     K = np.asarray(K, dtype=np.float64)
     if abs(K[0, 1]) > 1e-12 * abs(K[0, 0]) or not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
         raise ValueError(

@@ -191,7 +191,29 @@ def main(argv: list[str] | None = None) -> int:
     for add in COMMANDS:
         add(sub)
     args = parser.parse_args(argv)
-    return int(args.run(args))
+    try:
+        return int(args.run(args))
+    except KeyboardInterrupt:
+        print(f"bcmocap {args.command}: interrupted (rerun the same command to resume)", file=sys.stderr)
+        return 130
+    except (ValueError, OSError, MemoryError) as exc:
+        # Expected failures of any stage (bad input files, a full disk, an impossible allocation) end in one
+        # line naming what failed; BCMOCAP_TRACEBACK=1 shows where.
+        if os.environ.get("BCMOCAP_TRACEBACK"):
+            raise
+        print(f"bcmocap {args.command}: {one_line_error(exc)}", file=sys.stderr)
+        return 2
+
+
+def one_line_error(exc: BaseException) -> str:
+    """``exc`` as one line: its message (or its type when it has none), newlines folded."""
+    if isinstance(exc, MemoryError):
+        return f"out of memory ({exc})" if str(exc) else "out of memory"
+    if isinstance(exc, OSError) and exc.strerror and exc.filename is not None:
+        text = f"{exc.filename}: {exc.strerror}"
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
 
 
 if __name__ == "__main__":

@@ -544,3 +544,15 @@ def test_method_shape_errors_and_traced_construction():
     assert bool(valid) and np.all(np.isfinite(uv))
     with pytest.raises(ValueError, match=r"FOVCamera\.focal"):
         make_and_project(jnp.array([200.0, 200.0, 1.0]), 1.5)
+
+
+def test_truncated_calibration_files_are_refused_naming_the_file(tmp_path):
+    """Every prefix of a valid file (OpenCV's parser fails in several ways) is a ValueError naming it."""
+    path = tmp_path / "calib.yml"
+    write_opencv_fisheye_calibration(path, kb_camera())
+    text = path.read_text()
+    cut = tmp_path / "cut.yml"
+    for n in range(0, len(text) - 1, 5):
+        cut.write_text(text[:n])
+        with pytest.raises(ValueError, match=r"cut\.yml: "):
+            read_opencv_fisheye_calibration(cut)

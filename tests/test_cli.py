@@ -39,3 +39,23 @@ def test_custom_residual_example_runs(monkeypatch, capsys):
     runpy.run_path(str(ROOT / "examples" / "custom_residual.py"), run_name="__main__")
     out = capsys.readouterr().out
     assert "hinge angle range" in out and "mean joint position error" in out
+
+
+def test_expected_failures_of_any_stage_end_in_one_line(tmp_path, monkeypatch, capsys):
+    """ValueError, OSError and MemoryError from inside a command, and Ctrl-C, print one line, no traceback."""
+    import bcmocap.pipeline.run as run_module
+
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    for raised, code, line in [
+        (OSError(28, "No space left on device", str(tmp_path / "out" / "x.npz")), 2, "x.npz: No space left on device"),
+        (MemoryError(), 2, "out of memory"),
+        (KeyboardInterrupt(), 130, "interrupted (rerun the same command to resume)"),
+    ]:
+        def fail(*args, raised=raised, **kwargs):
+            raise raised
+
+        monkeypatch.setattr(run_module, "run_pipeline", fail)
+        assert main(["run", str(capture), "--out", str(tmp_path / "out")]) == code
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("bcmocap run: ") and line in err, err

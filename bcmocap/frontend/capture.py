@@ -21,10 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from ..cameras import CameraModel, from_pycolmap, read_opencv_fisheye_calibration
+from ..io.names import checked_name, checked_relative_path
 
 __all__ = ["Capture", "CaptureCamera", "VideoInfo", "read_capture", "read_camera_json"]
 
 CAPTURE_FORMAT = "bcmocap-capture"
+MAX_FPS = 10_000.0  # Hz; a faster video is a corrupt header, not a camera
+MAX_AUDIO_RATE = 1_000_000  # samples/s
 
 
 def _load_json(path: Path) -> dict:
@@ -212,13 +215,25 @@ def read_capture(path: str | os.PathLike, *, check_files: bool = True) -> Captur
     if manifest.get("complete") is False:
         raise ValueError(f"{manifest_path}: the capture is marked incomplete (still being written?)")
     settings = manifest.get("settings", {})
+    if not isinstance(settings, dict):
+        raise ValueError(f"{manifest_path}: field 'settings' must be an object, got {type(settings).__name__}")
     fps = manifest.get("fps", settings.get("fps"))
-    if not isinstance(fps, (int, float)) or not fps > 0:
-        raise ValueError(f"{manifest_path}: missing or invalid frame rate (field 'fps' or 'settings.fps'), got {fps!r}")
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 < fps <= MAX_FPS:
+        raise ValueError(f"{manifest_path}: missing or invalid frame rate (field 'fps' or 'settings.fps'), got {fps!r}; "
+                         f"expected a number in (0, {MAX_FPS}] Hz")
     audio_rate = manifest.get("audio_rate", settings.get("audio_rate"))
+    if audio_rate is not None:
+        if (isinstance(audio_rate, bool) or not isinstance(audio_rate, (int, float))
+                or not 0 < audio_rate <= MAX_AUDIO_RATE or audio_rate != int(audio_rate)):
+            raise ValueError(f"{manifest_path}: field 'audio_rate' must be a whole number of samples/s in "
+                             f"(0, {MAX_AUDIO_RATE}], got {audio_rate!r}")
+        audio_rate = int(audio_rate)
     trials = manifest.get("trials")
-    if not isinstance(trials, list) or not all(isinstance(t, str) for t in trials) or not trials:
+    if not isinstance(trials, list) or not trials:
         raise ValueError(f"{manifest_path}: field 'trials' must be a non-empty list of names, got {trials!r}")
+    trials = [checked_name(t, f"trials[{i}]", manifest_path) for i, t in enumerate(trials)]
+    if len(set(trials)) != len(trials):
+        raise ValueError(f"{manifest_path}: field 'trials' names a trial twice: {trials}")
 
     rig_path = folder / "rig.json"
     rig = _load_json(rig_path)
@@ -229,18 +244,26 @@ def read_capture(path: str | os.PathLike, *, check_files: bool = True) -> Captur
     for i, entry in enumerate(entries):
         if not isinstance(entry, dict) or "name" not in entry or "segment" not in entry:
             raise ValueError(f"{rig_path}: cameras[{i}] needs fields 'name' and 'segment'")
-        name = str(entry["name"])
-        lens = folder / entry.get("lens", f"intrinsics/{name}.json")
-        calib = folder / entry.get("intrinsics", f"intrinsics/{name}.yml")
+        name = checked_name(entry["name"], f"cameras[{i}].name", rig_path)
+        segment = entry["segment"]
+        if not isinstance(segment, str) or not segment:
+            raise ValueError(f"{rig_path}: cameras[{i}].segment must be a segment name, got {segment!r}")
+        lens = folder / checked_relative_path(entry.get("lens", f"intrinsics/{name}.json"), f"cameras[{i}].lens", rig_path)
+        calib = folder / checked_relative_path(entry.get("intrinsics", f"intrinsics/{name}.yml"),
+                                               f"cameras[{i}].intrinsics", rig_path)
         if lens.is_file():
-            cameras.append(CaptureCamera(name, str(entry["segment"]), read_camera_json(lens), lens))
+            cameras.append(CaptureCamera(name, segment, read_camera_json(lens), lens))
         elif calib.is_file():
-            cameras.append(CaptureCamera(name, str(entry["segment"]), read_opencv_fisheye_calibration(calib), calib))
+            cameras.append(CaptureCamera(name, segment, read_opencv_fisheye_calibration(calib), calib))
         else:
             raise ValueError(f"{calib}: intrinsics of camera {name!r} missing (nor {lens.name} beside it)")
     names = [c.name for c in cameras]
-    if "cameras" in manifest and list(manifest["cameras"]) != names:
-        raise ValueError(f"{rig_path}: cameras {names} differ from those in {manifest_path}: {manifest['cameras']}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"{rig_path}: field 'cameras' names a camera twice: {names}")
+    if "cameras" in manifest:
+        listed = manifest["cameras"]
+        if not isinstance(listed, list) or listed != names:
+            raise ValueError(f"{rig_path}: cameras {names} differ from those in {manifest_path}: {listed!r}")
 
     if check_files:
         for trial in trials:
@@ -257,5 +280,8 @@ def read_capture(path: str | os.PathLike, *, check_files: bool = True) -> Captur
         ref_camera = read_camera_json(ref / "camera.json")
     else:
         ref_camera = None
-    return Capture(folder, manifest, float(fps), None if audio_rate is None else int(audio_rate), tuple(cameras),
-                   tuple(str(s) for s in rig.get("segments", ())), tuple(trials), photos, ref_camera)
+    segments = rig.get("segments", [])
+    if not isinstance(segments, list) or not all(isinstance(s, str) for s in segments):
+        raise ValueError(f"{rig_path}: field 'segments' must be a list of names, got {segments!r}")
+    return Capture(folder, manifest, float(fps), audio_rate, tuple(cameras), tuple(segments), tuple(trials), photos,
+                   ref_camera)

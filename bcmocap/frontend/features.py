@@ -30,6 +30,8 @@ import numpy as np
 from .reference import uint8_descriptors
 
 FORMAT = 1
+# What a features folder may hold when it is replaced (the tracking cache adds its track.npz beside them).
+_FILES = ("features.json", "keypoints.f64", "descriptors.u8", "track.npz", ".track.npz")
 __all__ = ["write_camera_features", "read_camera_features"]
 
 
@@ -53,12 +55,24 @@ def write_camera_features(folder: str | os.PathLike, settings: dict,
                 desc_file.write(desc.tobytes())
                 counts.append(len(kp))
         (tmp / "features.json").write_text(json.dumps({"format": FORMAT, "settings": settings, "counts": counts}))
-        if folder.exists():
-            shutil.rmtree(folder)
+        if folder.is_symlink() or folder.exists():
+            _remove_features_folder(folder)
         os.replace(tmp, folder)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
+
+
+def _remove_features_folder(folder: Path) -> None:
+    """Remove an earlier features folder, refusing (``ValueError``) anything else found at that path: a
+    symlink, a file, or a folder holding files this module does not write."""
+    if folder.is_symlink() or not folder.is_dir():
+        raise ValueError(f"{folder}: exists and is not a features folder; refusing to replace it")
+    foreign = sorted(p.name for p in folder.iterdir() if p.name not in _FILES)
+    if foreign:
+        raise ValueError(f"{folder}: holds files that are not features ({', '.join(foreign[:3])}); "
+                         "refusing to replace it")
+    shutil.rmtree(folder)
 
 
 def read_camera_features(folder: str | os.PathLike, settings: dict | None = None) -> list | None:

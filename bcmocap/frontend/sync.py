@@ -157,11 +157,17 @@ def synchronize(capture: Capture, trial: str, **options) -> SyncResult:
         if not path.is_file():
             raise ValueError(f"{path}: soundtrack missing")
         samples, r = read_wav(path)
+        if not len(samples):
+            raise ValueError(f"{path}: the soundtrack holds no samples")
         if rate is not None and r != rate:
             raise ValueError(f"{path}: sample rate {r} Hz differs from the other cameras' {rate} Hz")
         tracks.append(samples)
         rate = r
-    return synchronize_tracks(tracks, rate, capture.fps, cameras=capture.camera_names, **options)
+    try:
+        return synchronize_tracks(tracks, rate, capture.fps, cameras=capture.camera_names, **options)
+    except ValueError as err:
+        raise ValueError(f"{capture.path / 'trials' / trial}: the soundtracks cannot be synchronised ({err}); "
+                         "give the offsets instead (bcmocap frontend --offsets)") from None
 
 
 def given_offsets(capture: Capture, offsets: Mapping[str, int] | Sequence[int]) -> SyncResult:
