@@ -8,6 +8,7 @@ frontend itself is tested on rendered pixels in the test_frontend_* files.
 
 import dataclasses
 import json
+import os
 
 import numpy as np
 import pytest
@@ -158,8 +159,40 @@ def test_missing_subject_is_a_clear_error(simulated_run, tmp_path):
     copy = tmp_path / "out"
     shutil.copytree(out / "frontend", copy / "frontend")
     bare = dataclasses.replace(fake, manifest={})
+    lines = []
     with pytest.raises(ValueError, match="capture.json: no 'subject' entry"):
-        run_pipeline(bare, copy, config, log=lambda line: None)
+        run_pipeline(bare, copy, config, log=lines.append)
+    assert lines == []  # found before the first stage starts, not after the frontend
+    no_rest = dataclasses.replace(fake, manifest={"subject": {**fake.manifest["subject"], "rest": {}}})
+    with pytest.raises(ValueError, match=r"subject\.rest\.after_first_clap_s missing"):
+        run_pipeline(no_rest, tmp_path / "other", config, log=lines.append)
+    assert lines == []
+
+
+def test_a_second_run_on_the_same_output_is_refused(simulated_run, tmp_path):
+    from bcmocap.pipeline.run import _locked
+
+    _, _, _, _, _, fake, config = simulated_run
+    out = tmp_path / "out"
+    out.mkdir()
+    with _locked(out):  # another run holds the folder (flock: a second open file description conflicts)
+        with pytest.raises(ValueError, match=rf"another bcmocap run \(pid {os.getpid()}\) is writing"):
+            run_pipeline(fake, out, config, log=lambda line: None)
+    assert sorted(p.name for p in out.iterdir()) == ["run.lock"]
+
+
+def test_the_run_log_never_follows_a_symlink(tmp_path):
+    from bcmocap.pipeline.run import _append_line
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    (tmp_path / "log.txt").symlink_to(victim)
+    with pytest.raises(ValueError, match=r"log\.txt: is a symlink"):
+        _append_line(tmp_path / "log.txt", "a line")
+    assert victim.read_text() == "keep"
+    _append_line(tmp_path / "plain.txt", "one")
+    _append_line(tmp_path / "plain.txt", "two")
+    assert (tmp_path / "plain.txt").read_text() == "one\ntwo\n"
 
 
 def test_run_command_refuses_bad_input_without_writing(tmp_path, capsys):

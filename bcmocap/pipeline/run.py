@@ -23,10 +23,13 @@ Nothing in the capture folder is written; every output file is written atomicall
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
+import fcntl
 import hashlib
 import json
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -132,15 +135,55 @@ def run_pipeline(capture_dir: str | Path, out: str | Path, config: RunConfig = R
     if out.resolve() == capture.path.resolve() or capture.path.resolve() in out.resolve().parents:
         raise ValueError(f"--out {out} is inside the capture folder {capture.path}: the capture is never written")
     out.mkdir(parents=True, exist_ok=True)
+    with _locked(out):
+        return _run_stages(capture, out, config, log, stop_after)
+
+
+@contextlib.contextmanager
+def _locked(out: Path):
+    """Hold ``DIR/run.lock`` (an advisory ``flock``, released by the kernel even on kill -9) for the run, or
+    raise ``ValueError`` when another process holds it."""
+    path = out / "run.lock"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            raise ValueError(f"{out}: another bcmocap run (pid {holder}) is writing to this folder; wait for it "
+                             "or choose another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _append_line(path: Path, line: str) -> None:
+    """Append one line to ``path``, refusing to follow a symlink placed there."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    except OSError as err:
+        if path.is_symlink():
+            raise ValueError(f"{path}: is a symlink; the run log is only written to a plain file") from None
+        raise
+    with os.fdopen(fd, "a") as fh:
+        fh.write(line + "\n")
+
+
+def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None], stop_after: str | None) -> dict:
+    """:func:`run_pipeline` once the output folder is locked."""
     run_log = RunLog(out, capture.path)
     log_file = out / "log.txt"
 
     def say(line: str) -> None:
         log(line)
-        with open(log_file, "a") as fh:
-            fh.write(f"{datetime.datetime.now().isoformat(timespec='seconds')} {line}\n")
+        _append_line(log_file, f"{datetime.datetime.now().isoformat(timespec='seconds')} {line}")
 
     ctx = RunContext(capture, config, out, say)
+    if not run_log.finished("skeleton", fingerprints(config)["skeleton"]):
+        _topology(ctx)  # a capture without its subject description fails now, not after the frontend
+        _rest_seconds(ctx)
     _write_json(out / "config.json", config.to_dict())
     prints = fingerprints(config)
     redo = False
@@ -216,19 +259,25 @@ def _topology(ctx: RunContext):
         raise ValueError(f"{where}: subject.topology: {exc}") from None
 
 
+def _rest_seconds(ctx: RunContext) -> tuple[float, float]:
+    """The rest pose's ``[from, to)`` (s after the ROM trial's first clap): the config's, else the capture's."""
+    if ctx.config.skeleton.rest_seconds:
+        return tuple(ctx.config.skeleton.rest_seconds)
+    rest = _subject(ctx).get("rest", {})
+    try:
+        start, stop = (float(x) for x in rest["after_first_clap_s"])
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{ctx.capture.path / 'capture.json'}: subject.rest.after_first_clap_s missing or not "
+                         "[from, to]; give skeleton.rest_seconds in a config file") from None
+    return start, stop
+
+
 def _rom_inputs(ctx: RunContext):
     """ROM trial camera poses (reference frame), registered mask, rest-frame mask."""
     from ..correspondence_store import CorrespondenceStore
 
     corr = CorrespondenceStore.open(ctx.path("frontend", "rom", "correspondences"))
-    rest_s = ctx.config.skeleton.rest_seconds
-    if not rest_s:
-        rest = _subject(ctx).get("rest", {})
-        try:
-            rest_s = tuple(float(x) for x in rest["after_first_clap_s"])
-        except (KeyError, TypeError, ValueError):
-            raise ValueError(f"{ctx.capture.path / 'capture.json'}: subject.rest.after_first_clap_s missing; "
-                             "give skeleton.rest_seconds in a config file") from None
+    rest_s = _rest_seconds(ctx)
     frames = np.arange(corr.num_frames) / corr.fps
     rest = (frames >= rest_s[0]) & (frames < rest_s[1])
     if rest.sum() < 2:
