@@ -150,6 +150,14 @@ def se3_matrix(wxyz_xyz) -> np.ndarray:
     return out
 
 
+def one_line_error(capsys, command: str, *culprits: str) -> str:
+    """The command's stderr, checked to be one line ``bcmocap COMMAND: ...`` that names every culprit."""
+    err = capsys.readouterr().err
+    assert err.startswith(f"bcmocap {command}: ") and err.count("\n") == 1, err
+    assert all(c in err for c in culprits), err
+    return err
+
+
 @pytest.fixture(scope="session")
 def skeleton() -> Skeleton:
     return make_skeleton()

@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import one_line_error
 from test_kcs import FRAMES, NAMES, PARENTS, camera_rotations, images, quadruped
 
 from bcmocap.cli import main
@@ -97,6 +98,51 @@ def test_cli_reads_npz_with_mask_and_reports_bad_input(tmp_path, capture, capsys
     assert "topology.csv:1: expected the header 'joint,parent,x,y,z'" in capsys.readouterr().err
     assert main(["kcs", str(tmp_path / "nothing.npz"), "--out", str(tmp_path / "x")]) == 2
     assert "no such file or folder" in capsys.readouterr().err
+
+
+def write_npz(path, rest, uv, **arrays):
+    np.savez(path, joints_2d=uv, names=np.array(NAMES), parents=np.array(PARENTS), rest=rest, **arrays)
+    return path
+
+
+@pytest.mark.parametrize("fps, culprit", [(np.nan, "got nan"), (-25.0, "got -25.0"), (0.0, "got 0.0"),
+                                          (np.inf, "got inf"), (np.array([25.0, 30.0]), "shape (2,)")])
+def test_cli_refuses_a_bad_fps_in_the_npz_before_writing_anything(tmp_path, capture, capsys, fps, culprit):
+    _, rest, uv = capture
+    npz = write_npz(tmp_path / "in.npz", rest, uv, fps=fps)
+    assert main(["kcs", str(npz), "--out", str(tmp_path / "out")]) == 2
+    one_line_error(capsys, "kcs", f"{npz}: 'fps'", culprit)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("flag, value", [("--hinge-weight", "nan"), ("--nuclear-weight", "inf"), ("--fps", "inf"),
+                                         ("--fps", "nan")])
+def test_cli_refuses_non_finite_options(tmp_path, capture, capsys, flag, value):
+    _, rest, uv = capture
+    npz = write_npz(tmp_path / "in.npz", rest, uv)
+    assert main(["kcs", str(npz), "--out", str(tmp_path / "out"), flag, value]) == 2
+    one_line_error(capsys, "kcs", flag, f"got {value}")
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_refuses_a_joint_with_one_nan_coordinate(tmp_path, capture, capsys):
+    _, rest, uv = capture
+    half = uv.copy()
+    half[4, 3, 0] = np.nan
+    npz = write_npz(tmp_path / "in.npz", rest, half)
+    assert main(["kcs", str(npz), "--out", str(tmp_path / "out")]) == 2
+    one_line_error(capsys, "kcs", f"{npz}: joints_2d[4, 3] (frame 4, joint '{NAMES[3]}') has one NaN coordinate")
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_refuses_a_huge_csv_frame_number_before_allocating(tmp_path, capture, capsys):
+    _, rest, uv = capture
+    folder = write_csv_folder(tmp_path / "in", rest, uv[:2])
+    with open(folder / "joints_2d.csv", "a") as f:
+        f.write("999999999999,head,3,4\n")  # 60 GB of frames if it were believed
+    assert main(["kcs", str(folder), "--out", str(tmp_path / "out")]) == 2
+    one_line_error(capsys, "kcs", "joints_2d.csv:38: expected a frame number from 0 to 99999, found '999999999999'")
+    assert not (tmp_path / "out").exists()
 
 
 def test_extra_rigid_link_keeps_a_held_object_rigid():

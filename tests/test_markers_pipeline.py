@@ -9,6 +9,7 @@ from bcmocap.cli import main
 from bcmocap.io import read_bvh
 from bcmocap.markers import MarkerOptions, MarkerTrajectories, fit_marker_skeleton
 from bcmocap.sim.markers import MarkerNoise, linkage_markers, linkage_motion, linkage_skeleton, simulate_markers
+from conftest import one_line_error
 from test_io_c3d import write_c3d
 
 LENGTHS = (0.30, 0.341, 0.30)
@@ -100,3 +101,14 @@ def test_bad_input_is_named(tmp_path, capsys):
     np.save(tmp_path / "a.npy", sim.positions)
     assert main(["markers", str(tmp_path / "a.npy"), "--out", str(tmp_path / "o")]) == 2
     assert "needs --fps" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("frames, culprit", [("abc", "--frames must be FIRST:LAST"), ("7", "--frames must be FIRST:LAST"),
+                                             ("5:5", "leaves 0 of the 30 frames"), ("5:6", "leaves 1 of the 30 frames"),
+                                             ("20:10", "leaves 0 of the 30 frames")])
+def test_a_bad_frame_range_is_named(tmp_path, capsys, frames, culprit):
+    np.save(tmp_path / "a.npy", np.random.default_rng(0).normal(size=(30, 4, 3)))
+    out = tmp_path / "out"
+    assert main(["markers", str(tmp_path / "a.npy"), "--fps", "60", "--frames", frames, "--out", str(out)]) == 2
+    one_line_error(capsys, "markers", culprit)
+    assert not out.exists()

@@ -2,8 +2,9 @@
 
 import numpy as np
 import pytest
-from conftest import make_rig, make_skeleton, random_quaternions
+from conftest import make_rig, make_skeleton, one_line_error, random_quaternions
 
+from bcmocap.cli import main
 from bcmocap.geometry import SO3
 from bcmocap.kinematics import Motion
 from bcmocap.kinematics.fk import joint_positions
@@ -111,6 +112,32 @@ def test_config_file_flags_and_errors(tmp_path):
         load_config(tmp_path / "missing.toml")
     with pytest.raises(ValueError, match="unknown setting"):
         config.with_overrides({"solver.nope": 1})
+
+
+@pytest.mark.parametrize("name, text, culprit", [
+    ("run.toml", "[solver]\nloss_scale = inf\n", "solver.loss_scale must be finite, got inf"),
+    ("run.toml", "[solver]\nroot_smoothness = inf\n", "solver.root_smoothness must be finite"),
+    ("run.json", '{"solver": {"joint_smoothness": NaN}}', "solver.joint_smoothness must be finite"),
+    ("run.toml", "[solver]\nwindow = 1000000000\n", "solver.window must be in [2, 100000]"),
+    ("run.toml", "[frontend]\nmax_features = 10000000000\n", "frontend.max_features must be in [100, 1000000]"),
+    ("run.toml", '[skeleton]\nrest_seconds = ["a"]\n', "skeleton.rest_seconds must be a list of numbers"),
+    ("run.toml", "[skeleton]\nrest_seconds = [0.0, nan]\n", "skeleton.rest_seconds must be finite"),
+    ("run.json", '{"skeleton": {"root_origin": [1]}}', "skeleton.root_origin must be a list of strings"),
+])
+def test_run_refuses_non_finite_huge_or_mistyped_settings(tmp_path, capsys, name, text, culprit):
+    path = tmp_path / name
+    path.write_text(text)
+    out = tmp_path / "out"
+    assert main(["run", str(tmp_path), "--out", str(out), "--config", str(path)]) == 2
+    one_line_error(capsys, "run", f"{path}: {culprit}")
+    assert not out.exists()
+
+
+def test_run_refuses_a_non_finite_flag(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["run", str(tmp_path), "--out", str(out), "--root-smoothness", "inf"]) == 2
+    one_line_error(capsys, "run", "solver.root_smoothness must be finite")
+    assert not out.exists()
 
 
 def test_fingerprints_change_from_the_first_stage_a_setting_affects():

@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import one_line_error
 
 from bcmocap.cameras import FOVCamera, camera_at, read_opencv_fisheye_calibration
 from bcmocap.cli import main
@@ -142,3 +143,15 @@ def test_refuses_folders_it_must_not_write(capture, tmp_path):
         StudioSettings(lens="pinhole")
     with pytest.raises(ValueError, match="missing"):
         load_ground_truth(foreign)
+
+
+@pytest.mark.parametrize("flag, value", [("--seconds", "inf"), ("--fps", "inf"), ("--seconds", "nan"),
+                                         ("--rom-seconds", "1e9"), ("--fps", "1e6")])
+def test_refuses_non_finite_or_huge_lengths_and_rates(tmp_path, capsys, flag, value):
+    folder = tmp_path / "capture"
+    assert main(["simulate", str(folder), *ARGS, flag, value]) == 2
+    one_line_error(capsys, "simulate", f"{flag} must be in (0, ")
+    assert not folder.exists()
+    field = flag[2:].replace("-", "_")
+    with pytest.raises(ValueError, match=f"StudioSettings.{field} must be in"):
+        StudioSettings(**{field: float(value)})

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import sys
 import time
 
@@ -49,17 +50,25 @@ def add_kcs_command(sub: argparse._SubParsersAction) -> None:
     )
 
     def run(args: argparse.Namespace) -> int:
-        if args.fps is not None and not args.fps > 0:
-            kcs.error("--fps must be positive")
-        if args.max_iterations is not None and args.max_iterations < 1:
-            kcs.error("--max-iterations must be at least 1")
-        if args.nuclear_weight is not None and args.nuclear_weight < 0:
-            kcs.error("--nuclear-weight must be non-negative")
-        if args.hinge_weight is not None and args.hinge_weight < 0:
-            kcs.error("--hinge-weight must be non-negative")
+        problem = _flag_problem(args)
+        if problem:
+            print(f"bcmocap kcs: {problem}", file=sys.stderr)
+            return 2
         return run_kcs(args)
 
     kcs.set_defaults(run=run)
+
+
+def _flag_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the flags, or None."""
+    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
+        return f"--fps must be a positive finite frame rate, got {args.fps}"
+    if args.max_iterations is not None and args.max_iterations < 1:
+        return f"--max-iterations must be at least 1, got {args.max_iterations}"
+    for flag, value in (("--nuclear-weight", args.nuclear_weight), ("--hinge-weight", args.hinge_weight)):
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            return f"{flag} must be a finite number ≥ 0, got {value}"
+    return None
 
 
 def run_kcs(args: argparse.Namespace) -> int:
@@ -107,6 +116,11 @@ def run_kcs(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - start
     history = np.asarray(result.reprojection_px)
     history = history[np.isfinite(history)]
+    # BVH joint names may not contain whitespace or braces.
+    safe = ["".join("_" if c.isspace() or c in "{}" else c for c in n) for n in chain.names]
+    bvh_chain = KinematicChainSpace(safe, chain.parents) if len(set(safe)) == len(safe) else chain
+    skeleton, motion = motion_from_joints(bvh_chain, joints_3d, rest_joints=data.rest)
+    fps = args.fps or data.fps or 30.0
 
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "joints_3d.csv", "w", newline="", encoding="utf-8") as f:
@@ -127,11 +141,6 @@ def run_kcs(args: argparse.Namespace) -> int:
         names=np.array(chain.names),
         parents=np.array(chain.parents),
     )
-    # BVH joint names may not contain whitespace or braces.
-    safe = ["".join("_" if c.isspace() or c in "{}" else c for c in n) for n in chain.names]
-    bvh_chain = KinematicChainSpace(safe, chain.parents) if len(set(safe)) == len(safe) else chain
-    skeleton, motion = motion_from_joints(bvh_chain, joints_3d, rest_joints=data.rest)
-    fps = args.fps or data.fps or 30.0
     write_bvh(out / "motion.bvh", skeleton, motion, 1.0 / fps)
     report = {
         "frames": frames,

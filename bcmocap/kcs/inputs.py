@@ -2,20 +2,20 @@
 
 **NPZ** (one file, ``*.npz``):
 
-* ``joints_2d`` — ``(F, J, 2)`` float image positions (pixels); NaN marks a missing joint;
+* ``joints_2d`` — ``(F, J, 2)`` float image positions (pixels); NaN in both coordinates marks a missing joint;
 * ``names`` — ``(J,)`` joint names;
 * ``parents`` — ``(J,)`` parent per joint: an index (``-1`` for the root) or a name (``""`` for the root);
 * ``rest`` — ``(J, 3)`` an initial configuration ``X0`` of the chain in metres (a mean or typical pose,
   Z up; it fixes the scale of the result and the rest pose of the BVH);
 * optional ``mask`` — ``(F, J)`` bool, False for missing joints; ``links`` — ``(L, 2)`` extra rigid links
-  (indices or names); ``fps`` — frame rate (scalar).
+  (indices or names); ``fps`` — frame rate (a positive scalar).
 
 **CSV** (a folder):
 
 * ``topology.csv`` — header ``joint,parent,x,y,z``; one row per joint; ``parent`` empty for the root;
   ``x,y,z`` the joint in the initial configuration (metres);
 * ``joints_2d.csv`` — header ``frame,joint,x,y``; one row per observed joint and frame (frames numbered
-  from 0); a missing row, or empty ``x``/``y``, marks the joint missing in that frame;
+  from 0, below ``MAX_CSV_FRAMES``); a missing row, or empty ``x``/``y``, marks the joint missing in that frame;
 * optional ``links.csv`` — header ``joint_a,joint_b``; one extra rigid link per row.
 """
 
@@ -30,7 +30,11 @@ import numpy as np
 
 from .chain_space import KinematicChainSpace
 
-__all__ = ["KCSInput", "read_input"]
+__all__ = ["MAX_CSV_FRAMES", "KCSInput", "read_input"]
+
+#: frames a joints_2d.csv may number (a 55-minute video at 30 frames/s): one row with a bigger frame
+#: number would make the whole (frames, joints, 2) array.
+MAX_CSV_FRAMES = 100_000
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -71,7 +75,23 @@ def _check_arrays(where: str, chain: KinematicChainSpace, joints_2d: np.ndarray,
     if rest.shape != (j, 3):
         raise ValueError(f"{where}: rest must have shape ({j}, 3), got {rest.shape}")
     if not np.all(np.isfinite(rest)):
-        raise ValueError(f"{where}: rest holds NaN or inf")
+        k = int(np.argwhere(~np.isfinite(rest))[0, 0])
+        raise ValueError(f"{where}: rest[{k}] (joint '{chain.names[k]}') holds NaN or inf")
+    nan = np.isnan(joints_2d)
+    for bad, what in ((np.isinf(joints_2d).any(-1), "is inf; mark missing joints with NaN"),
+                      (nan.any(-1) & ~nan.all(-1), "has one NaN coordinate; a missing joint is NaN in both")):
+        if bad.any():
+            f, k = (int(i) for i in np.argwhere(bad)[0])
+            raise ValueError(f"{where}: joints_2d[{f}, {k}] (frame {f}, joint '{chain.names[k]}') {what}")
+
+
+def _fps(where: str, raw: np.ndarray) -> float:
+    if raw.ndim != 0 or raw.dtype.kind not in "iuf":
+        raise ValueError(f"{where}: 'fps' must be one number, got {raw.dtype} of shape {raw.shape}")
+    fps = float(raw)
+    if not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"{where}: 'fps' must be a positive finite frame rate, got {fps}")
+    return fps
 
 
 def _read_npz(path: Path) -> KCSInput:
@@ -104,15 +124,13 @@ def _read_npz(path: Path) -> KCSInput:
             raise ValueError(f"{where}: {exc}") from None
         joints_2d = np.array(data["joints_2d"], dtype=np.float64)
         rest = np.array(data["rest"], dtype=np.float64)
-        _check_arrays(where, chain, joints_2d, rest)
         if "mask" in data:
             mask = np.asarray(data["mask"]).astype(bool)
             if mask.shape != joints_2d.shape[:2]:
                 raise ValueError(f"{where}: 'mask' must have shape {joints_2d.shape[:2]} (F, J), got {mask.shape}")
             joints_2d[~mask] = np.nan
-        fps = float(data["fps"]) if "fps" in data else None
-    if np.isinf(joints_2d).any():
-        raise ValueError(f"{where}: joints_2d holds inf; mark missing joints with NaN")
+        _check_arrays(where, chain, joints_2d, rest)
+        fps = _fps(where, data["fps"]) if "fps" in data else None
     return KCSInput(chain, joints_2d, rest, fps)
 
 
@@ -174,8 +192,8 @@ def _read_csv_folder(folder: Path) -> KCSInput:
             frame = int(row["frame"])
         except ValueError:
             frame = -1
-        if frame < 0:
-            raise ValueError(f"{obs}:{n}: expected a frame number (integer ≥ 0), found '{row['frame']}'")
+        if not 0 <= frame < MAX_CSV_FRAMES:
+            raise ValueError(f"{obs}:{n}: expected a frame number from 0 to {MAX_CSV_FRAMES - 1}, found '{row['frame']}'")
         if row["joint"] not in index:
             raise ValueError(f"{obs}:{n}: unknown joint '{row['joint']}'; topology.csv has {names}")
         key = (frame, index[row["joint"]])

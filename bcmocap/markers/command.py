@@ -7,7 +7,36 @@ import sys
 from pathlib import Path
 
 
+def _frame_range(text: str | None) -> slice:
+    """``--frames FIRST:LAST`` as a slice (either end may be left out); ValueError naming the flag."""
+    if text is None:
+        return slice(None)
+    first, colon, last = text.partition(":")
+    try:
+        bounds = [int(end) if end.strip() else None for end in (first, last)]
+    except ValueError:
+        bounds = None
+    if not colon or bounds is None:
+        raise ValueError(f"--frames must be FIRST:LAST with whole frame numbers, got {text!r}")
+    return slice(*bounds)
+
+
 def _load(args: argparse.Namespace):
+    """The trajectories of the frames ``args`` select and a line describing the file; ValueError naming it."""
+    from .preprocess import MarkerTrajectories
+
+    frames = _frame_range(args.frames)
+    trajectories, note = _read(args)
+    total = len(trajectories.positions)
+    kept = len(range(total)[frames])
+    if kept < 2:
+        raise ValueError(f"--frames {args.frames} leaves {kept} of the {total} frames of {args.file}; at least 2 are needed")
+    if kept < total:
+        trajectories = MarkerTrajectories(trajectories.positions[frames], trajectories.labels, trajectories.fps)
+    return trajectories, note
+
+
+def _read(args: argparse.Namespace):
     from .preprocess import MarkerTrajectories
 
     path = Path(args.file)
@@ -32,7 +61,6 @@ def run_markers(args: argparse.Namespace) -> int:
 
     enable_compilation_cache()
     from .pipeline import MarkerOptions, fit_marker_skeleton
-    from .preprocess import MarkerTrajectories
 
     out = output_folder("markers", args.out)
     if out is None:
@@ -42,10 +70,6 @@ def run_markers(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         print(f"bcmocap markers: {exc}", file=sys.stderr)
         return 2
-    if args.frames:
-        first, _, last = args.frames.partition(":")
-        sel = slice(int(first) if first else None, int(last) if last else None)
-        trajectories = MarkerTrajectories(trajectories.positions[sel], trajectories.labels, trajectories.fps)
     print(note, flush=True)
     options = MarkerOptions(num_groups=args.groups, merge=args.merge, num_markers=args.num_markers, seed=args.seed)
     try:

@@ -1,15 +1,16 @@
 """Settings of ``bcmocap run``: defaults that work on the standard capture, a config file, flags.
 
-A config file is TOML or JSON with any subset of the sections below; unknown sections or keys are
-errors naming them. The settings used are saved with the outputs (``DIR/config.json``), and a resumed
-run must use the same settings for the stages it reuses.
+A config file is TOML or JSON with any subset of the sections below; unknown sections or keys,
+values of the wrong type (also inside lists), numbers that are not finite and values out of range
+(see the comments below) are errors naming them. The settings used are saved with the outputs
+(``DIR/config.json``), and a resumed run must use the same settings for the stages it reuses.
 
 .. code-block:: toml
 
     [frontend]
-    stride = 2            # use every n-th video frame (the solver runs at fps / stride)
+    stride = 2            # use every n-th video frame (the solver runs at fps / stride); 1 to 1000
     rom_stride = 3        # the same for the range-of-motion trial
-    max_features = 8000   # SIFT features per image
+    max_features = 8000   # SIFT features per image, 100 to 1000000
     frames = 0            # at most this many frames per camera and trial (0: all)
     chunk_frames = 400    # register in chunks of at most this many processed frames, saved as done (0: whole trial)
     registration = "global"   # global (SIFT + reference matching of every frame) | tracking (KLT + PnP, SIFT at keyframes)
@@ -23,8 +24,8 @@ run must use the same settings for the stages it reuses.
     max_centre_std_cm = 5.0   # a joint centre less certain than this (standard error) is an error
 
     [solver]
-    window = 60
-    overlap = 10
+    window = 60               # frames per window, 2 to 100000
+    overlap = 10              # frames shared by consecutive windows, 0 to window - 1
     root_smoothness = 1000.0  # λ_O, px² per m² (and per rad²) of frame-to-frame change
     joint_smoothness = 10.0   # λ_A, px² per rad²
     homography = 1.0
@@ -40,11 +41,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import tomllib
 from pathlib import Path
 
 TERMS = ("reprojection", "homography", "smoothness")
 LOSSES = ("none", "huber", "cauchy")
+MAX_STRIDE = 1000
+MAX_FEATURES = 1_000_000
+MAX_WINDOW = 100_000  # frames; a solver window is allocated whole
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,10 +99,18 @@ class RunConfig:
     outputs: OutputsConfig = OutputsConfig()
 
     def __post_init__(self):
+        for section in dataclasses.fields(self):
+            part = getattr(self, section.name)
+            for field in dataclasses.fields(part):
+                value = getattr(part, field.name)
+                items = value if isinstance(value, tuple) else (value,)
+                finite = all(math.isfinite(v) for v in items if isinstance(v, float))
+                _check(finite, f"{section.name}.{field.name}", "must be finite", value)
         f, k, s = self.frontend, self.skeleton, self.solver
-        _check(f.stride >= 1, "frontend.stride", "must be ≥ 1", f.stride)
-        _check(f.rom_stride >= 1, "frontend.rom_stride", "must be ≥ 1", f.rom_stride)
-        _check(f.max_features >= 100, "frontend.max_features", "must be ≥ 100", f.max_features)
+        _check(1 <= f.stride <= MAX_STRIDE, "frontend.stride", f"must be in [1, {MAX_STRIDE}]", f.stride)
+        _check(1 <= f.rom_stride <= MAX_STRIDE, "frontend.rom_stride", f"must be in [1, {MAX_STRIDE}]", f.rom_stride)
+        _check(100 <= f.max_features <= MAX_FEATURES, "frontend.max_features", f"must be in [100, {MAX_FEATURES}]",
+               f.max_features)
         _check(f.frames >= 0, "frontend.frames", "must be ≥ 0", f.frames)
         _check(f.chunk_frames >= 0, "frontend.chunk_frames", "must be ≥ 0", f.chunk_frames)
         _check(f.registration in ("tracking", "global"), "frontend.registration", "must be 'tracking' or 'global'",
@@ -106,7 +119,7 @@ class RunConfig:
         _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)
-        _check(s.window >= 2, "solver.window", "must be ≥ 2", s.window)
+        _check(2 <= s.window <= MAX_WINDOW, "solver.window", f"must be in [2, {MAX_WINDOW}]", s.window)
         _check(0 <= s.overlap < s.window, "solver.overlap", "must be in [0, window)", s.overlap)
         for name in ("root_smoothness", "joint_smoothness", "homography", "loss_scale"):
             _check(getattr(s, name) >= 0, f"solver.{name}", "must be ≥ 0", getattr(s, name))
@@ -160,9 +173,11 @@ def _override(default, given: dict, where: str):
     for name, value in given.items():
         current = getattr(default, name)
         if isinstance(current, tuple):
-            if not isinstance(value, (list, tuple)):
-                raise ValueError(f"{where}.{name} must be a list, got {value!r}")
-            value = tuple(value)
+            numbers = fields[name].type == "tuple[float, ...]"
+            kind = (int, float) if numbers else str
+            if not isinstance(value, (list, tuple)) or any(isinstance(v, bool) or not isinstance(v, kind) for v in value):
+                raise ValueError(f"{where}.{name} must be a list of {'numbers' if numbers else 'strings'}, got {value!r}")
+            value = tuple(float(v) if numbers else v for v in value)
         elif isinstance(current, bool):
             if not isinstance(value, bool):
                 raise ValueError(f"{where}.{name} must be true or false, got {value!r}")
@@ -200,4 +215,4 @@ def load_config(path: str | Path | None) -> RunConfig:
         return RunConfig.from_dict(data, str(path))
     except ValueError as exc:
         msg = str(exc)
-        raise ValueError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+        raise ValueError(msg if msg.startswith(str(path)) else f"{path}: {msg.removeprefix('config: ')}") from None

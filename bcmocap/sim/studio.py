@@ -108,6 +108,8 @@ _BATCH = 4  # frames rendered per call (one compilation per camera size)
 _LEAD_S = 0.25  # clap before the first / after the last trial frame
 _ROLL_S = 0.1  # recording before the first clap / after the last one, plus the random offsets
 _MAX_OFFSET_S = 0.5  # spread of camera start (and stop) times
+MAX_SECONDS = 600.0  # longest trial (s): the soundtracks and ground truth are made whole in memory
+MAX_FPS = 240.0  # highest frame rate (Hz)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,10 +118,11 @@ class StudioSettings:
 
     Attributes:
         motion: bundled CMU trial for the capture ("walk", "run", "jump").
-        seconds: length of the capture trial (s); longer than the CMU trial plays it back and forth.
-        rom_seconds: length of the range-of-motion trial (s).
+        seconds: length of the capture trial (s, at most ``MAX_SECONDS``); longer than the CMU trial plays it
+            back and forth.
+        rom_seconds: length of the range-of-motion trial (s, at most ``MAX_SECONDS``).
         seed: random seed (scene, camera offsets, audio, markers, sensor noise).
-        fps: frame rate of videos and ground truth (Hz).
+        fps: frame rate of videos and ground truth (Hz, at most ``MAX_FPS``).
         width, height: body-camera image size (px).
         lens: "fov" (the paper's FOV model, 170°) or "opencv_fisheye" (its Kannala-Brandt fit, so the
             .yml calibration is exact).
@@ -152,9 +155,9 @@ class StudioSettings:
             raise ValueError(f"StudioSettings.motion must be one of {sorted(CMU_TRIALS)}, got {self.motion!r}")
         if self.lens not in ("fov", "opencv_fisheye"):
             raise ValueError(f"StudioSettings.lens must be 'fov' or 'opencv_fisheye', got {self.lens!r}")
-        for name in ("seconds", "rom_seconds", "fps"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"StudioSettings.{name} must be positive, got {getattr(self, name)}")
+        for name, most in (("seconds", MAX_SECONDS), ("rom_seconds", MAX_SECONDS), ("fps", MAX_FPS)):
+            if not 0 < getattr(self, name) <= most:  # also refuses NaN
+                raise ValueError(f"StudioSettings.{name} must be in (0, {most:g}], got {getattr(self, name)}")
         for name in ("width", "height", "reference_width", "reference_height", "audio_rate"):
             if int(getattr(self, name)) < 8:
                 raise ValueError(f"StudioSettings.{name} must be at least 8, got {getattr(self, name)}")

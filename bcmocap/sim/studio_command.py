@@ -19,10 +19,11 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
     )
     cmd.add_argument("capture_dir", metavar="CAPTURE_DIR", help="new or empty folder, or an unfinished capture to resume")
     cmd.add_argument("--motion", default="walk", choices=["walk", "run", "jump"], help="bundled CMU trial (default walk)")
-    cmd.add_argument("--seconds", type=float, default=2.0, help="length of the capture trial (s, default 2)")
-    cmd.add_argument("--rom-seconds", type=float, default=2.0, help="length of the range-of-motion trial (s, default 2)")
+    cmd.add_argument("--seconds", type=float, default=2.0, help="length of the capture trial (s, default 2, at most 600)")
+    cmd.add_argument("--rom-seconds", type=float, default=2.0,
+                     help="length of the range-of-motion trial (s, default 2, at most 600)")
     cmd.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    cmd.add_argument("--fps", type=float, default=60.0, help="frame rate (default 60)")
+    cmd.add_argument("--fps", type=float, default=60.0, help="frame rate (default 60, at most 240)")
     cmd.add_argument("--width", type=int, default=640, help="body-camera image width (px, default 640)")
     cmd.add_argument("--height", type=int, default=360, help="body-camera image height (px, default 360)")
     cmd.add_argument("--lens", default="fov", choices=["fov", "opencv_fisheye"],
@@ -35,12 +36,17 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
 
     def run(args: argparse.Namespace) -> int:
         from ..cli import enable_compilation_cache
-        from .studio import StudioSettings, write_capture
+        from .studio import MAX_FPS, MAX_SECONDS, StudioSettings, write_capture
 
         try:
             ref_w, ref_h = (int(x) for x in args.reference_size.lower().split("x"))
         except ValueError:
             cmd.error(f"--reference-size must look like 1024x768, got {args.reference_size!r}")
+        for flag, value, most in (("--seconds", args.seconds, MAX_SECONDS),
+                                  ("--rom-seconds", args.rom_seconds, MAX_SECONDS), ("--fps", args.fps, MAX_FPS)):
+            if not 0 < value <= most:  # also refuses NaN
+                print(f"bcmocap simulate: {flag} must be in (0, {most:g}], got {value}", file=sys.stderr)
+                return 2
         try:
             settings = StudioSettings(
                 motion=args.motion, seconds=args.seconds, rom_seconds=args.rom_seconds, seed=args.seed, fps=args.fps,
