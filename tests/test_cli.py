@@ -5,11 +5,14 @@ import runpy
 import sys
 from pathlib import Path
 
+import pytest
+
 from bcmocap.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_demo_writes_metrics_and_bvh(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--simulated-measurements", "--seconds", "0.5", "--out", str(out), "--window", "30"]) == 0
@@ -34,6 +37,7 @@ def test_demo_refuses_a_file_as_output(tmp_path):
     assert target.read_text() == "keep me"
 
 
+@pytest.mark.slow
 def test_custom_residual_example_runs(monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["custom_residual.py", "--seconds", "0.5"])
     runpy.run_path(str(ROOT / "examples" / "custom_residual.py"), run_name="__main__")

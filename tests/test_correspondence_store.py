@@ -74,6 +74,7 @@ def test_store_returns_the_frames_it_was_given(tmp_path, corr):
         store.frames(15, 21)
 
 
+@pytest.mark.slow
 def test_stored_problem_solves_as_the_problem_in_memory(tmp_path, capture, corr):
     store = write_store(tmp_path / "store", [corr], block_frames=7)
     weights = ObjectiveWeights()

@@ -6,6 +6,9 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # the examples end to end
+
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 

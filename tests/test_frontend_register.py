@@ -13,6 +13,9 @@ from bcmocap.cameras import PinholeCamera
 from bcmocap.frontend.reference import build_reference
 from bcmocap.frontend.register import RegistrationOptions, reference_index, register_frame, register_trial, similarity
 
+pytestmark = pytest.mark.slow  # rendered frames through SIFT and registration
+
+
 TEST_OPTIONS = RegistrationOptions()
 from bcmocap.geometry import matrix_from_quat, quat_from_matrix
 from bcmocap.sim import Renderer, fov_camera_for, make_textured_scene

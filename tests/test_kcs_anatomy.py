@@ -20,6 +20,9 @@ from bcmocap.kcs.solve import _viterbi_states, limb_signs
 from bcmocap.kinematics import Skeleton, joint_positions
 
 
+pytestmark = pytest.mark.slow  # the KCS solver on CMU walks
+
+
 @pytest.fixture(scope="module")
 def cmu():
     """``(chain, joints (F, J, 3))`` of the bundled CMU 35_01 walk, every other frame (60 Hz)."""

@@ -34,6 +34,7 @@ def middle_length(result):
     return float(np.linalg.norm(pts[0] - pts[1]))
 
 
+@pytest.mark.slow
 def test_cli_on_a_c3d_file_with_broken_labels(tmp_path, capsys):
     sim = linkage_capture()
     assert len(sim.labels) > 9  # gaps gave new labels: the pipeline must merge them back
@@ -76,6 +77,7 @@ def test_a_joint_not_exercised_is_reported():
         fit_marker_skeleton(traj, MarkerOptions(num_groups=3))
 
 
+@pytest.mark.slow
 def test_too_few_segments_are_reported_as_not_rigid():
     """Three rods forced into two groups: one group spans a joint, and the report says which markers show it;
     with the right count no segment is flagged."""

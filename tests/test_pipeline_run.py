@@ -25,6 +25,9 @@ from bcmocap.sim import standard_capture
 from bcmocap.sim.rom import range_of_motion_trial
 from bcmocap.sim.studio import subject_record
 
+pytestmark = pytest.mark.slow  # the full run on a simulated capture
+
+
 FPS = 20.0
 
 

@@ -81,6 +81,7 @@ def camera_errors(skeleton, rig, motion, truth):
     return centre, angle
 
 
+@pytest.mark.slow
 def test_frame_system_matches_finite_differences(setup):
     """Per-frame normal equations in (motion, θ) from autodiff through the 3×4 camera matrices equal
     those of central-difference Jacobians of the reprojection residuals (IRLS-weighted for the Cauchy
@@ -189,6 +190,7 @@ def test_eliminated_motion_reproduces_camera_poses(setup):
     assert result.report.final_reprojection_cost < 1.01 * truth_cost < result.report.initial_reprojection_cost / 10
 
 
+@pytest.mark.slow
 def test_solve_with_refinement_rounds(setup):
     """The alternation: round 0 is the plain solve; a refinement round lowers the reprojection cost
     and brings the cameras closer to the truth."""

@@ -104,6 +104,7 @@ def _ray_segment_distance(rays, a, b):
     return np.linalg.norm(closest - pts[None], axis=-1).min(axis=1)
 
 
+@pytest.mark.slow
 def test_a_capsule_in_front_of_the_camera_masks_its_pixels():
     camera = CAMERAS["fov"]
     renderer = Renderer(ROOM, camera, NO_NOISE)

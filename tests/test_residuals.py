@@ -226,6 +226,7 @@ def irls_reference(problem, y):
     return jac.T @ (np.concatenate([np.asarray(w) for w in row_weights])[:, None] * jac)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("has_previous", [False, True])
 def test_normal_equations_match_dense_jacobian(problems, skeleton, has_previous):
     """The structured system equals the dense one: the exact gradient Jᵀr of the cost, and the IRLS
@@ -497,6 +498,7 @@ def test_camera_slots_keep_the_cameras_with_weight_in_order():
         camera_slots(slots)
 
 
+@pytest.mark.slow
 def test_camera_slots_give_the_same_cost_and_normal_equations(skeleton, rig, scene, problems):
     """A homography term in camera slots is the same term: same residuals, same structured system."""
     sparse = {k: np.array(v) for k, v in scene["homography"].items()}

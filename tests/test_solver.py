@@ -69,6 +69,7 @@ def make_problem(setup, loss=None, root=10.0, joints=1.0):
     return Problem(skeleton, rig, terms)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("loss", [None, CauchyLoss(3.0)], ids=["least-squares", "cauchy"])
 def test_whole_sequence_matches_scipy(setup, loss):
     """One window over all frames reaches scipy's minimum of the same residuals to 1e-6 relative cost."""
@@ -94,6 +95,7 @@ def test_whole_sequence_matches_scipy(setup, loss):
     assert cost_ours == pytest.approx(0.5 * np.sum(np.asarray(fn(y_ours)) ** 2), rel=1e-9)
 
 
+@pytest.mark.slow
 def test_windows_agree_with_whole_sequence(setup):
     """Overlapping windows (the first frame of each held by the previous one) leave no visible seam."""
     skeleton, rig, truth, _, _, init = setup

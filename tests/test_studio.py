@@ -22,6 +22,9 @@ from bcmocap.kinematics import forward_kinematics
 from bcmocap.sim.audio import clap_onsets, read_wav
 from bcmocap.sim.studio import StudioSettings, load_ground_truth, write_capture
 
+pytestmark = pytest.mark.slow  # rendering capture folders
+
+
 ARGS = ["--seconds", "0.1", "--rom-seconds", "0.1", "--width", "64", "--height", "36", "--reference-photos", "2",
         "--reference-size", "64x48", "--seed", "3", "--no-progress"]
 SETTINGS = StudioSettings(seconds=0.1, rom_seconds=0.1, width=64, height=36, reference_photos=2, reference_width=64,
