@@ -58,6 +58,7 @@ def walk(studio):  # noqa: F811
     return frames, poses
 
 
+@pytest.mark.slow
 def test_tracking_registers_a_moving_camera_between_keyframes(studio, walk):  # noqa: F811
     frames, poses = walk
     options = TrackingOptions(keyframe_interval=10)
@@ -84,6 +85,7 @@ def test_tracking_registers_a_moving_camera_between_keyframes(studio, walk):  # 
     assert new_obs > 2 * len(track.new_points)
 
 
+@pytest.mark.slow
 def test_a_lost_frame_becomes_a_keyframe_and_the_track_saves_and_loads(studio, walk, tmp_path):  # noqa: F811
     frames, _ = walk
     blank = np.zeros_like(frames[0])
@@ -106,6 +108,7 @@ def test_a_lost_frame_becomes_a_keyframe_and_the_track_saves_and_loads(studio, w
     assert need.tolist() == [[False] * 3, [True, False, True], [False] * 3]
 
 
+@pytest.mark.slow
 def test_retrack_fills_a_gap_from_the_frames_around_it(studio, walk):  # noqa: F811
     """Frames 6–9 are lost (blank) when the camera is tracked; re-tracking the real images from the
     registered frames on both sides of the gap registers them."""
@@ -136,6 +139,7 @@ def test_retrack_fills_a_gap_from_the_frames_around_it(studio, walk):  # noqa: F
         assert rot_deg < 0.5 and pos_cm < 2.0, (rot_deg, pos_cm)
 
 
+@pytest.mark.slow
 def test_process_trial_with_tracking_registers_every_frame_and_caps_the_measurements(studio, walk, tmp_path):  # noqa: F811
     """The tracking frontend end to end on two cameras: one loses frames 6–9 (blank while tracked); they are
     registered from the frames around them, the measurements are capped, and a rerun reuses the tracks."""
@@ -188,3 +192,83 @@ def test_process_trial_with_tracking_registers_every_frame_and_caps_the_measurem
         rot_deg, pos_cm = _errors(studio.align, store.world_from_camera[t, 1], poses[t])
         assert rot_deg < 0.5 and pos_cm < 2.0, (t, rot_deg, pos_cm)
     assert sorted(p.name for p in (tmp_path / "tracks" / "capture").iterdir()) == ["a", "b"]
+
+
+def test_round_seeds_thin_each_run_of_unregistered_frames():
+    from bcmocap.frontend.tracking import round_seeds
+
+    registered = np.ones((12, 3), bool)
+    registered[1:9, 0] = False  # a run of 8 frames: 1, 4, 7 and its last, 8
+    registered[5, 1] = False  # a run of one frame is its own seed
+    registered[:, 2] = False  # a camera never registered: every third frame and the last
+    seeds = round_seeds(registered, 3)
+    assert np.flatnonzero(seeds[:, 0]).tolist() == [1, 4, 7, 8]
+    assert np.flatnonzero(seeds[:, 1]).tolist() == [5]
+    assert np.flatnonzero(seeds[:, 2]).tolist() == [0, 3, 6, 9, 11]
+    assert not (seeds & registered).any()
+    assert np.array_equal(round_seeds(registered, 1), ~registered)
+
+
+@pytest.mark.slow
+def test_track_after_rounds_fills_the_frames_the_rounds_left(studio, walk):  # noqa: F811
+    """Frames 6–9 left unregistered (no features) between registered frames are tracked from them on the
+    registration's points, and their states become "tracked" with the tracked measurements."""
+    import types
+
+    from bcmocap.frontend.relative import CaptureRegistration, FrameState
+    from bcmocap.frontend.tracking import track_after_rounds
+
+    frames, poses = walk
+    track = track_camera(frames[:16], to_pycolmap(studio.fisheye), studio.index)
+    assert track.registered.all()
+    first = 2  # the registration covers processed frames 2 … 15
+    states = []
+    for t in range(first, 16):
+        if 6 <= t <= 9:
+            states.append([FrameState(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64),
+                                      np.full(7, np.nan))])
+        else:
+            states.append([FrameState(track.pixels[t], np.zeros((0, 128), np.uint8), track.point_ids[t].copy(),
+                                      track.poses[t], "relative", 1)])
+    points = {int(i): x for i, x in zip(studio.index.point3D_ids, studio.index.xyz)} | track.points
+    result = CaptureRegistration(np.arange(first, 16), states, points, set(), [], None)
+    capture = types.SimpleNamespace(
+        camera_names=("cam",), cameras=(types.SimpleNamespace(intrinsics=studio.fisheye),),
+        frames=lambda trial, name, *, stride, start, stop, gray: ((k, frames[k]) for k in range(start, min(stop, 16))))
+    assert track_after_rounds(capture, "capture", result, starts=[0], stride=1, first=first) == 4
+    assert result.registered.all()
+    for t in range(6, 10):
+        s = states[t - first][0]
+        assert s.how == "tracked" and len(s.keypoints) == len(s.point_ids) >= 30 and (s.point_ids >= 0).all()
+        rot_deg, pos_cm = _errors(studio.align, s.world_from_camera, poses[t])
+        assert rot_deg < 0.5 and pos_cm < 2.0, (t, rot_deg, pos_cm)
+
+
+def test_sift_for_homographies_extracts_the_frames_left_and_their_neighbours_without_descriptors():
+    import types
+
+    from bcmocap.frontend.relative import CaptureRegistration, FrameState
+    from bcmocap.frontend.tracking import sift_for_homographies
+
+    rng = np.random.default_rng(0)
+    images = [np.clip(rng.normal(128, 60, (120, 160)), 0, 255).astype(np.uint8) for _ in range(6)]
+
+    def state(t):
+        if t == 3:  # left by the rounds and not tracked: unregistered, no features
+            return FrameState(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64), np.full(7, np.nan))
+        desc = np.ones((1, 128), np.uint8) if t == 4 else np.zeros((0, 128), np.uint8)  # frame 4 has SIFT already
+        return FrameState(np.array([[5.0, 6.0]]), desc, np.array([7]), np.array([1.0, 0, 0, 0, 0, 0, 0]), "tracked")
+
+    first = 1
+    states = [[state(t)] for t in range(first, 6)]
+    result = CaptureRegistration(np.arange(first, 6), states, {}, set(), [], None)
+    capture = types.SimpleNamespace(camera_names=("cam",), frames=lambda trial, name, *, stride, start, stop, gray: (
+        (k, images[k]) for k in range(start, min(stop, 6))))
+    leave = np.zeros((5, 1), bool)
+    leave[3 - first] = True
+    assert sift_for_homographies(capture, "capture", result, leave, starts=[0], stride=1, first=first) == 2  # 2 and 3
+    left, before, after = states[3 - first][0], states[2 - first][0], states[4 - first][0]
+    assert len(left.descriptors) == len(left.keypoints) > 20 and (left.point_ids == -1).all() and not left.registered
+    # a registered neighbour keeps its measurement after its new SIFT keypoints
+    assert len(before.descriptors) > 20 and before.point_ids[-1] == 7 and (before.keypoints[-1] == [5.0, 6.0]).all()
+    assert len(after.descriptors) == 1 and len(states[0][0].descriptors) == 0  # not a neighbour of frame 3

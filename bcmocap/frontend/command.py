@@ -144,7 +144,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     from .register import RegistrationOptions
     from .relative import extract_trial_features
     from .sync import given_offsets, synchronize
-    from .tracking import TrackingOptions, states_for_rounds, track_trial
+    from .tracking import (TrackingOptions, sift_for_homographies, states_for_rounds, track_after_rounds,
+                           track_trial)
 
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
     starts = np.asarray(sync.offsets, np.int64)
@@ -178,11 +179,22 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
                 "homographies": homographies, "registration": registration, "max_measurements": max_measurements}
 
     def chunk_inputs(a: int, b: int):
-        """``(features, initial, points)`` of the processed frames ``a … b − 1`` for register_capture."""
+        """``(features, initial, points, leave, after_rounds)`` of the processed frames ``a … b − 1`` for
+        :func:`_register_frames`."""
         if tracks is None:
-            return features[a:b], None, None
-        return states_for_rounds(capture, trial, tracks, keyframe_features, index, starts=starts, stride=stride,
-                                 first=a, stop=b, options=options, log=log)
+            return features[a:b], None, None, None, None
+        *inputs, leave = states_for_rounds(capture, trial, tracks, keyframe_features, index, starts=starts,
+                                           stride=stride, first=a, stop=b, options=options, log=log)
+
+        def after_rounds(result) -> int:
+            filled = track_after_rounds(capture, trial, result, starts=starts, stride=stride, first=a, options=options)
+            extracted = sift_for_homographies(capture, trial, result, leave, starts=starts, stride=stride, first=a,
+                                              max_features=max_features) if homographies else 0
+            log(f"{trial}: frames {a}-{b - 1}: {filled} of the {int(leave.sum())} frames the rounds left "
+                f"tracked from the frames they registered; SIFT of {extracted} frames for the homographies")
+            return filled
+
+        return (*inputs, leave, after_rounds)
 
     chunks = []
 
@@ -216,8 +228,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     report["registration"] = registration
     report["max_measurements"] = max_measurements
     for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
-                "points", "new_points", "filled_by_homographies", "homography_pairs"):
-        report[key] = int(sum(c[key] for c in chunks))
+                "tracked_after_rounds", "points", "new_points", "filled_by_homographies", "homography_pairs"):
+        report[key] = int(sum(c.get(key, 0) for c in chunks))
     report["rounds"] = chunks[0]["rounds"] if len(chunks) == 1 else [c["rounds"] for c in chunks]
     report["seconds"] = time.perf_counter() - clock
     report["note"] = "poses and points are in the reference model's frame and scale"
@@ -255,11 +267,12 @@ def _saved_chunk(saved, settings: dict, frames: list[int]):
         return None, None
 
 
-def _register_frames(features, initial, initial_points, first: int, capture, index, stride: int, homographies: bool, label: str,
-                     max_measurements: int | None):
+def _register_frames(features, initial, initial_points, leave, after_rounds, first: int, capture, index, stride: int,
+                     homographies: bool, label: str, max_measurements: int | None):
     """Registration (from ``initial`` when given, :func:`~.relative.register_capture`) and homographies of the
     processed frames ``first … first + len(features) − 1``: ``(Correspondences, summary)``; the registration's
-    points and tracks are released on return."""
+    points and tracks are released on return. The rounds skip the frames in ``leave`` ((T, C) bool or None);
+    ``after_rounds(result) → count``, when given, registers frames after them (before the homographies)."""
     import numpy as np
 
     from .homography import fill_with_homographies
@@ -274,7 +287,8 @@ def _register_frames(features, initial, initial_points, first: int, capture, ind
     # After tracking, many frames may be left: only the pairs their new points come from are matched.
     options = RelativeOptions(second_order_pairs=initial is None)
     result = register_capture(features, cameras, index, options, frames=(first + np.arange(len(features))) * stride,
-                              initial=initial, initial_points=initial_points, progress=progress)
+                              initial=initial, initial_points=initial_points, leave=leave, progress=progress)
+    tracked_after = after_rounds(result) if after_rounds is not None else 0
     fill = fill_with_homographies(result, cameras) if homographies else None
     corr = result.correspondences(fps=capture.fps / stride, homographies=fill, max_per_frame=max_measurements)
     states = [s for row in result.states for s in row]
@@ -282,6 +296,7 @@ def _register_frames(features, initial, initial_points, first: int, capture, ind
                "registered_tracked": sum(s.how == "tracked" for s in states),
                "registered_relocalised": sum(s.how == "relocalised" for s in states),
                "registered_relative": sum(s.how == "relative" for s in states),
+               "tracked_after_rounds": tracked_after,
                "rounds": result.rounds, "points": len(result.points), "new_points": len(result.new_point_ids),
                "filled_by_homographies": int(fill.filled.sum()) if fill is not None else 0,
                "homography_pairs": len(fill.pixels) if fill is not None else 0}

@@ -436,6 +436,7 @@ def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, sta
 
 def register_capture(features: list, cameras, index: ReferenceIndex, options: RelativeOptions = RelativeOptions(),
                      *, frames: np.ndarray | None = None, initial: list | None = None, initial_points: dict | None = None,
+                     leave: np.ndarray | None = None,
                      progress: Callable[[str, int, int], None] | None = None) -> CaptureRegistration:
     """Register every frame of a trial (module docstring): absolute, then rounds of new points and relative
     registration.
@@ -449,6 +450,8 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
             each frame so far (e.g. :func:`~.tracking.tracking_states`; ``how`` "" where unregistered):
             absolute registration is then skipped and the rounds start from it.
         initial_points: ``{id: (3,) position}`` of points ``initial`` observes besides the reference's.
+        leave: ``(T, C)`` bool, unregistered frames the rounds neither register nor match around (filled
+            afterwards by other means, e.g. :func:`~.tracking.track_after_rounds`).
         progress: called as ``progress(stage, done, total)``.
     """
     num_t = len(features)
@@ -477,6 +480,9 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
     next_id = max(points, default=-1) + 1
     new_ids: set[int] = set()
     tracks: dict[int, list[tuple[int, int, int]]] = {}  # new point -> [(t, c, keypoint)]
+    leave = np.zeros((num_t, num_c), bool) if leave is None else np.asarray(leave, bool)
+    if leave.shape != (num_t, num_c):
+        raise ValueError(f"register_capture: leave has shape {leave.shape}, expected {(num_t, num_c)}")
 
     # 2. absolute registration, frames in threads (FLANN searches release the GIL); given frames skip it
     todo = [(t, c) for t in range(num_t) for c in range(num_c)] if initial is None else []
@@ -517,7 +523,7 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         if options.new_points_everywhere:
             near = {(t, c) for t in range(num_t) for c in range(num_c)}
         else:  # registered frames that relative registration of some unregistered frame will match
-            near = {n for t in range(num_t) for c in range(num_c) if not states[t][c].registered
+            near = {n for t in range(num_t) for c in range(num_c) if not states[t][c].registered and not leave[t, c]
                     for n in neighbours(t, c)}
         found = set()
         for a in near:
@@ -671,7 +677,7 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
     def register_relative(round_no: int) -> int:
         """Every frame unregistered at the start of the round is tried against the frames registered then
         (in threads; the results are applied afterwards in frame order, so they do not depend on timing)."""
-        todo = [(t, c) for t in range(num_t) for c in range(num_c) if not states[t][c].registered]
+        todo = [(t, c) for t in range(num_t) for c in range(num_c) if not states[t][c].registered and not leave[t, c]]
         with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
             found = []
             for k, result in enumerate(pool.map(lambda tc: relative_pose(*tc), todo)):

@@ -756,32 +756,31 @@ def relocalise(tracks: list, keyframe_features: list, cams: list, index: Referen
     return registered, affinity
 
 
-def retrack(capture, trial: str, tracks: list, relocalised: dict, keyframe_features: list, index: ReferenceIndex,
-            *, starts, stride: int, first: int, stop: int, options: TrackingOptions = TrackingOptions(),
-            workers: int | None = None) -> int:
-    """Track into the runs of frames ``first … stop − 1`` that tracking left, from the registered frames
-    around them (tracked, or registered by :func:`relocalise`): forward from the frame before a run and
-    backward from the frame after it, without keyframes, until tracking fails. ``tracks`` are updated in place (the
-    frames become ``"tracked"``). Returns how many frames were registered."""
+def _track_into_gaps(capture, trial: str, lookup: ReferenceIndex, registered: Callable[[int, int], bool],
+                     measurements: Callable[[int, int], tuple], store: Callable[[int, int, "_Tracker"], None], *,
+                     starts, stride: int, first: int, stop: int, options: TrackingOptions,
+                     workers: int | None = None) -> int:
+    """Track each camera into its runs of unregistered frames among ``first … stop − 1``: forward from the
+    registered frame before a run and backward from the one after it, without keyframes, until tracking
+    fails.
+
+    Args:
+        lookup: positions of every point a seed frame may observe (``xyz_of``).
+        registered: ``registered(c, t)``, whether frame ``t`` of camera ``c`` is registered (seeds and stops).
+        measurements: ``measurements(c, t) → (world_from_camera (7,), pixels (K, 2), point ids (K,))`` of a
+            registered frame, to start from.
+        store: ``store(c, t, tracker)`` records a frame the tracker registered (its pose and measurements
+            are the tracker's last); it must make ``registered(c, t)`` true.
+
+    Returns how many frames were registered.
+    """
     import os
     from concurrent.futures import ThreadPoolExecutor
 
     from ..cameras import to_pycolmap
 
-    lookup, _ = map_index(tracks, index)
     names = capture.camera_names
     starts = np.asarray(starts, np.int64)
-
-    def registered(c: int, t: int) -> bool:
-        return bool(tracks[c].registered[t]) or (t, c) in relocalised
-
-    def measurements(c: int, t: int):
-        if (t, c) in relocalised:
-            pose, ids = relocalised[(t, c)]
-            kp = np.asarray(keyframe_features[c][t][0], np.float64)
-            has = ids >= 0
-            return pose, kp[has], ids[has]
-        return tracks[c].poses[t], tracks[c].pixels[t], tracks[c].point_ids[t]
 
     def one_camera(c: int) -> int:
         unreg = [t for t in range(first, stop) if not registered(c, t)]
@@ -816,11 +815,7 @@ def retrack(capture, trial: str, tracks: list, relocalised: dict, keyframe_featu
                     tracker.step(images[t])
                     if not tracker.how[-1]:
                         break
-                    track = tracks[c]
-                    track.poses[t] = tracker.poses[-1]
-                    track.how[t] = "tracked"
-                    track.pixels[t], track.point_ids[t] = tracker.pixels[-1], tracker.point_ids[-1]
-                    track.keypoint_index[t] = np.full(len(tracker.point_ids[-1]), -1, np.int64)
+                    store(c, t, tracker)
                     count += 1
         return count
 
@@ -829,14 +824,120 @@ def retrack(capture, trial: str, tracks: list, relocalised: dict, keyframe_featu
         return sum(pool.map(one_camera, range(len(names))))
 
 
+def retrack(capture, trial: str, tracks: list, relocalised: dict, keyframe_features: list, index: ReferenceIndex,
+            *, starts, stride: int, first: int, stop: int, options: TrackingOptions = TrackingOptions(),
+            workers: int | None = None) -> int:
+    """Track into the runs of frames ``first … stop − 1`` that tracking left, from the registered frames
+    around them (tracked, or registered by :func:`relocalise`; :func:`_track_into_gaps`). ``tracks`` are
+    updated in place (the frames become ``"tracked"``). Returns how many frames were registered."""
+    lookup, _ = map_index(tracks, index)
+
+    def registered(c: int, t: int) -> bool:
+        return bool(tracks[c].registered[t]) or (t, c) in relocalised
+
+    def measurements(c: int, t: int):
+        if (t, c) in relocalised:
+            pose, ids = relocalised[(t, c)]
+            kp = np.asarray(keyframe_features[c][t][0], np.float64)
+            has = ids >= 0
+            return pose, kp[has], ids[has]
+        return tracks[c].poses[t], tracks[c].pixels[t], tracks[c].point_ids[t]
+
+    def store(c: int, t: int, tracker: _Tracker) -> None:
+        track = tracks[c]
+        track.poses[t] = tracker.poses[-1]
+        track.how[t] = "tracked"
+        track.pixels[t], track.point_ids[t] = tracker.pixels[-1], tracker.point_ids[-1]
+        track.keypoint_index[t] = np.full(len(tracker.point_ids[-1]), -1, np.int64)
+
+    return _track_into_gaps(capture, trial, lookup, registered, measurements, store, starts=starts, stride=stride,
+                            first=first, stop=stop, options=options, workers=workers)
+
+
+def track_after_rounds(capture, trial: str, result, *, starts, stride: int, first: int,
+                       options: TrackingOptions = TrackingOptions(), workers: int | None = None) -> int:
+    """Fill what the rounds of relative registration left (``result``, a
+    :class:`~.relative.CaptureRegistration` of the processed frames ``first … first + T − 1``) by tracking
+    from its registered frames (:func:`_track_into_gaps`), on the reference's and the rounds' points.
+
+    The rounds then need SIFT for only some of the frames tracking left (``states_for_rounds`` with
+    ``round_stride``): the rest are tracked from them here. Frames registered here become ``"tracked"``
+    states whose keypoints are the tracked measurements (no descriptors). Returns how many."""
+    states = result.states
+    ids = np.array(sorted(result.points), np.int64)
+    xyz = np.array([result.points[int(i)] for i in ids], np.float64).reshape(-1, 3)
+    lookup = ReferenceIndex(np.zeros((0, 128), np.float32), ids, xyz)
+
+    def registered(c: int, t: int) -> bool:
+        return states[t - first][c].registered
+
+    def measurements(c: int, t: int):
+        s = states[t - first][c]
+        has = s.point_ids >= 0
+        return s.world_from_camera, s.keypoints[has], s.point_ids[has]
+
+    def store(c: int, t: int, tracker: _Tracker) -> None:
+        s = states[t - first][c]
+        s.keypoints, s.point_ids = tracker.pixels[-1], tracker.point_ids[-1].copy()
+        s.descriptors = np.zeros((0, 128), np.uint8)
+        s.world_from_camera, s.how, s.round = tracker.poses[-1], "tracked", -1
+
+    return _track_into_gaps(capture, trial, lookup, registered, measurements, store, starts=starts, stride=stride,
+                            first=first, stop=first + len(states), options=options, workers=workers)
+
+
+def sift_for_homographies(capture, trial: str, result, leave: np.ndarray, *, starts, stride: int, first: int,
+                          max_features: int = 8000) -> int:
+    """SIFT for the frames in ``leave`` that are still unregistered in ``result`` (a
+    :class:`~.relative.CaptureRegistration` of the processed frames ``first …``) and for their neighbours in
+    time that have no descriptors, so that :func:`~.homography.fill_with_homographies` can match each such
+    frame with the one before it. A registered frame keeps its measurements after its new SIFT keypoints.
+    Returns how many frames were extracted."""
+    states = result.states
+    left = np.asarray(leave, bool) & ~result.registered
+    want = left.copy()
+    want[1:] |= left[:-1]
+    want[:-1] |= left[1:]
+    want &= np.array([[not len(st.descriptors) for st in row] for row in states], bool).reshape(want.shape)
+    found = sift_at(capture, trial, want, starts=starts, stride=stride, first=first, max_features=max_features)
+    for (t, c), (kp, desc) in found.items():
+        st = states[t - first][c]
+        if st.registered:
+            st.keypoints = np.concatenate([kp, st.keypoints])
+            st.point_ids = np.concatenate([np.full(len(kp), -1, np.int64), st.point_ids])
+        else:
+            st.keypoints, st.point_ids = kp, np.full(len(kp), -1, np.int64)
+        st.descriptors = desc
+    return len(found)
+
+
+def round_seeds(registered: np.ndarray, stride: int) -> np.ndarray:
+    """``(T, C)`` bool: the unregistered frames the rounds of relative registration work on — in each run of
+    a camera's unregistered frames, every ``stride``-th from its first, and its last; the others are
+    tracked from them afterwards (:func:`track_after_rounds`). ``stride`` 1: every unregistered frame."""
+    registered = np.asarray(registered, bool)
+    seeds = np.zeros_like(registered)
+    for c in range(registered.shape[1]):
+        unreg = np.flatnonzero(~registered[:, c])
+        for run in np.split(unreg, np.flatnonzero(np.diff(unreg) > 1) + 1) if len(unreg) else []:
+            seeds[run[::stride], c] = True
+            seeds[run[-1], c] = True
+    return seeds
+
+
 def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list, index: ReferenceIndex, *,
                       starts, stride: int, first: int, stop: int, options: TrackingOptions = TrackingOptions(),
-                      log: Callable[[str], None] = print) -> tuple[list, list, dict]:
+                      round_stride: int = 3, log: Callable[[str], None] = print) -> tuple[list, list, dict, np.ndarray]:
     """What :func:`~.relative.register_capture` needs for the processed frames ``first … stop − 1`` after
     tracking: the frames tracking left go through :func:`relocalise` and :func:`retrack` (``tracks`` are
-    updated), then SIFT is extracted for those still left and their neighbours (the camera's frames up to
+    updated); of those still left, the rounds work on :func:`round_seeds` (every ``round_stride``-th of
+    each run; at most the rounds' ``max_time_gap``, so that seeds of one camera are matched with each other),
+    so SIFT is extracted for them and their neighbours only (the camera's frames up to
     ``max_time_gap`` away; at the same time, the other cameras whose maps its frames matched most), and
-    :func:`tracking_states` assembles features, initial registration and points."""
+    :func:`tracking_states` assembles features, initial registration and points.
+
+    Returns ``(features, initial, points, leave)``, ``leave (T, C)`` the unregistered frames the rounds
+    skip (``register_capture(..., leave=leave)``; :func:`track_after_rounds` fills them)."""
     from ..cameras import to_pycolmap
     from .relative import RelativeOptions
 
@@ -844,19 +945,21 @@ def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list
     found, affinity = relocalise(tracks, keyframe_features, cams, index, first, stop, options.registration)
     retracked = retrack(capture, trial, tracks, found, keyframe_features, index, starts=starts, stride=stride,
                         first=first, stop=stop, options=options)
-    log(f"{trial}: frames {first}-{stop - 1}: {len(found)} relocalised against the tracked map, {retracked} "
-        f"tracked from them")
     registered = np.stack([t.registered[first:stop] for t in tracks], 1)
     for t, c in found:
         registered[t - first, c] = True
+    seeds = round_seeds(registered, round_stride)
+    log(f"{trial}: frames {first}-{stop - 1}: {len(found)} relocalised against the tracked map, {retracked} "
+        f"tracked from them; {int((~registered).sum())} left, {int(seeds.sum())} of them for the rounds")
     rounds = RelativeOptions()
     np.fill_diagonal(affinity, 0)
     partners = []
     for row in affinity:
         best = np.argsort(-row, kind="stable")[:rounds.max_other_cameras]
         partners.append(best[row[best] > 0] if row.sum() else np.arange(len(row)))
-    need = frames_for_rounds(registered, rounds.max_time_gap, partners)
+    leave = ~registered & ~seeds
+    need = frames_for_rounds(~seeds, rounds.max_time_gap, partners) & ~leave  # the frames left need no SIFT
     need &= ~np.stack([t.keyframe[first:stop] for t in tracks], 1)  # keyframes have their SIFT already
     extra = sift_at(capture, trial, need, starts=starts, stride=stride, first=first,
                     max_features=options.registration.max_features)
-    return tracking_states(tracks, keyframe_features, extra, first, stop, found)
+    return (*tracking_states(tracks, keyframe_features, extra, first, stop, found), leave)
