@@ -321,7 +321,7 @@ def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
               "database": os.path.relpath(model.database_path, folder),
               "pair_inliers": [[a, b, n] for (a, b), n in model.pair_inliers.items()],
               "seconds": model.seconds, "mapping_attempts": model.mapping_attempts}
-    from ..io.atomic import atomic_path
+    from ..atomic import atomic_path
 
     path = folder / "reference.json"
     with atomic_path(path) as tmp:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import atomic_path
+from ..atomic import atomic_path
 
 __all__ = ["CLAP_SECONDS", "clap_onsets", "read_wav", "soundtrack", "write_wav"]
 

@@ -77,7 +77,7 @@ import numpy as np
 
 from ..cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
 from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
-from ..io.atomic import atomic_path
+from ..atomic import atomic_path
 from ..io.model_json import camera_from_dict, camera_to_dict, rig_from_dict, rig_to_dict, skeleton_from_dict, skeleton_to_dict
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
