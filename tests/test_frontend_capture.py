@@ -10,7 +10,7 @@ import pytest
 
 from bcmocap.cameras import FOVCamera, OpenCVFisheyeCamera, PinholeCamera, write_opencv_fisheye_calibration
 from bcmocap.frontend import read_camera_json, read_capture
-from bcmocap.sim.audio import write_wav
+from bcmocap.io.wav import write_wav
 
 CAMERAS = ("head", "left_foot")
 FRAMES = 9

@@ -18,8 +18,9 @@ from bcmocap.cameras import FOVCamera, camera_at, read_opencv_fisheye_calibratio
 from bcmocap.cli import main
 from bcmocap.geometry import SE3
 from bcmocap.io import read_bvh
+from bcmocap.io.wav import read_wav
 from bcmocap.kinematics import forward_kinematics
-from bcmocap.sim.audio import clap_onsets, read_wav
+from bcmocap.sim.audio import clap_onsets
 from bcmocap.sim.studio import StudioSettings, load_ground_truth, write_capture
 
 pytestmark = pytest.mark.slow  # rendering capture folders

@@ -75,14 +75,15 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from ..atomic import atomic_path
 from ..cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
 from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
-from ..atomic import atomic_path
 from ..io.model_json import camera_from_dict, camera_to_dict, rig_from_dict, rig_to_dict, skeleton_from_dict, skeleton_to_dict
+from ..io.wav import write_wav
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import JointType, Motion, Skeleton
-from .audio import soundtrack, write_wav
+from .audio import soundtrack
 from .motions import CMU_TRIALS, load_body_motion
 from .observe import body_capsules
 from .render import Renderer, RenderOptions, capsule_colors
