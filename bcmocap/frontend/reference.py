@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import CameraModel, to_pycolmap
+from ..cameras import CameraModel
+from ..io.colmap import to_pycolmap
 
 __all__ = ["DescriptorIndex", "ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "verify_matches"]
 

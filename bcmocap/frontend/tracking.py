@@ -530,7 +530,7 @@ def track_trial(capture, trial: str, index: ReferenceIndex, *, starts, num_frame
     from concurrent.futures import ThreadPoolExecutor
     from pathlib import Path
 
-    from ..cameras import to_pycolmap
+    from ..io.colmap import to_pycolmap
     from .features import read_camera_features, write_camera_features
     from .relative import ProgressCounter
 
@@ -766,7 +766,7 @@ def retrack(capture, trial: str, tracks: list, relocalised: dict, keyframe_featu
     import os
     from concurrent.futures import ThreadPoolExecutor
 
-    from ..cameras import to_pycolmap
+    from ..io.colmap import to_pycolmap
 
     lookup, _ = map_index(tracks, index)
     names = capture.camera_names
@@ -837,7 +837,7 @@ def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list
     updated), then SIFT is extracted for those still left and their neighbours (the camera's frames up to
     ``max_time_gap`` away; at the same time, the other cameras whose maps its frames matched most), and
     :func:`tracking_states` assembles features, initial registration and points."""
-    from ..cameras import to_pycolmap
+    from ..io.colmap import to_pycolmap
     from .relative import RelativeOptions
 
     cams = [to_pycolmap(c.intrinsics) for c in capture.cameras]

@@ -15,7 +15,7 @@ Folder layout (``CAPTURE_DIR``)::
     rig.json                      which camera is strapped to which body segment (mounts are unknown
                                   in a real shoot: they are in ground_truth/rig.json)
     intrinsics/<camera>.yml       cv2.fisheye calibration (image_width, image_height, camera_matrix,
-                                  dist_coeff), as bcmocap.cameras.read_opencv_fisheye_calibration reads;
+                                  dist_coeff), as bcmocap.io.opencv_calibration.read_opencv_fisheye_calibration reads;
                                   for the default FOV lens it is the Kannala-Brandt fit of that lens
     intrinsics/<camera>.json      the exact lens: {"model": "FOV" | "OPENCV_FISHEYE", "width", "height",
                                   "params": [fx, fy, cx, cy, omega | k1..k4]} (OpenCV pixel convention:
@@ -271,7 +271,7 @@ def _write_opencv_yaml(path: Path, camera: CameraModel) -> None:
     """cv2.FileStorage calibration: fisheye via bcmocap.cameras' writer, pinhole with 5 zero coefficients."""
     import cv2
 
-    from ..cameras import write_opencv_fisheye_calibration
+    from ..io.opencv_calibration import write_opencv_fisheye_calibration
 
     with atomic_path(path, suffix=path.suffix) as tmp:  # OpenCV picks the format from the suffix
         if isinstance(camera, OpenCVFisheyeCamera):
