@@ -9,7 +9,11 @@ import time
 
 from .atomic import write_json_atomic
 from .compilation_cache import enable_compilation_cache
+from .frontend.command import add_frontend_command
 from .io.output_folder import output_folder
+from .kcs.command import add_kcs_command
+from .markers.command import add_markers_command
+from .pipeline.command import add_run_command
 from .sim.studio_command import add_simulate_command
 
 
@@ -148,11 +152,11 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
 # Modules are imported lazily inside their ``run`` so that ``bcmocap --help`` stays fast.
 COMMANDS = [
     add_demo_command,
-    __import__("bcmocap.markers.command", fromlist=["add_markers_command"]).add_markers_command,
+    add_markers_command,
     add_simulate_command,
-    __import__("bcmocap.kcs.command", fromlist=["add_kcs_command"]).add_kcs_command,
-    __import__("bcmocap.frontend.command", fromlist=["add_frontend_command"]).add_frontend_command,
-    __import__("bcmocap.pipeline.command", fromlist=["add_run_command"]).add_run_command,
+    add_kcs_command,
+    add_frontend_command,
+    add_run_command,
 ]
 
 
