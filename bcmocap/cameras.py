@@ -9,15 +9,16 @@ shape.
 Conventions:
     * Camera frame as OpenCV: x right, y down, z forward (optical axis). Points in any length unit.
     * Pixels as OpenCV: the centre of the top-left pixel is (0, 0), u to the right, v down.
-      COLMAP puts that centre at (0.5, 0.5); :func:`to_pycolmap` / :func:`from_pycolmap` convert.
+      COLMAP puts that centre at (0.5, 0.5); :func:`bcmocap.io.colmap.to_pycolmap` / ``from_pycolmap`` convert.
     * Angles in radians; ``theta`` is the angle between a ray and the optical axis.
 
 The fisheye models are formulated with ``theta = atan2(r, z)`` instead of normalised ``x / z``, so
 they stay correct beyond 90 degrees off-axis. Projection never returns NaN: points outside a model's
 valid domain get the principal point, ``valid=False`` and finite (zero) gradients.
 
-Nothing here imports ``cv2`` or ``pycolmap`` at import time; the conversion and file helpers import
-them lazily.
+Nothing here imports ``cv2`` or ``pycolmap`` (the core never does): the conversions to and from
+``pycolmap.Camera`` are in :mod:`bcmocap.io.colmap`, OpenCV calibration files in
+:mod:`bcmocap.io.opencv_calibration`.
 """
 
 from __future__ import annotations
@@ -25,18 +26,14 @@ from __future__ import annotations
 import abc
 import math
 import numbers
-import os
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-
-if TYPE_CHECKING:  # pragma: no cover
-    import pycolmap
 
 __all__ = [
     "FISHEYE_ANGLE_LIMIT",
@@ -46,10 +43,7 @@ __all__ = [
     "PinholeCamera",
     "stack_cameras",
     "camera_at",
-    "to_pycolmap",
-    "from_pycolmap",
-    "read_opencv_fisheye_calibration",
-    "write_opencv_fisheye_calibration",
+    "single_camera_intrinsics",
 ]
 
 # Largest angle off the optical axis accepted by the fisheye models. They are defined up to (not
@@ -545,185 +539,8 @@ def camera_at(batched: _C, i: int | Array) -> _C:
     return jax.tree.map(lambda x: x[i], batched)
 
 
-# ---------------------------------------------------------------------------------------------
-# pycolmap conversion (COLMAP pixel centres are at +0.5)
-
-
-def _single_params(camera: CameraModel, fn: str) -> dict[str, np.ndarray]:
+def single_camera_intrinsics(camera: CameraModel, caller: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(focal, principal_point)`` of a single camera as float64 arrays; ValueError naming ``caller`` for a batch."""
     if camera.batch_shape != ():
-        raise ValueError(f"{fn}: expected a single camera, got batch shape {camera.batch_shape}")
-    return {n: np.asarray(getattr(camera, n), dtype=np.float64) for n in ("focal", "principal_point")}
-
-
-def to_pycolmap(camera: CameraModel) -> "pycolmap.Camera":
-    """Convert a single camera to a ``pycolmap.Camera`` (FOV, OPENCV_FISHEYE or PINHOLE).
-
-    The principal point is shifted by +0.5 px into COLMAP's pixel convention.
-    """
-    import pycolmap
-
-    p = _single_params(camera, "to_pycolmap")
-    fx, fy = p["focal"]
-    cx, cy = p["principal_point"] + 0.5
-    if isinstance(camera, FOVCamera):
-        model, params = "FOV", [fx, fy, cx, cy, float(camera.omega)]
-    elif isinstance(camera, OpenCVFisheyeCamera):
-        model, params = "OPENCV_FISHEYE", [fx, fy, cx, cy, *np.asarray(camera.distortion).tolist()]
-    elif isinstance(camera, PinholeCamera):
-        model, params = "PINHOLE", [fx, fy, cx, cy]
-    else:
-        raise ValueError(f"to_pycolmap: unsupported camera class {type(camera).__name__}")
-    return pycolmap.Camera(
-        model=model, width=camera.width, height=camera.height, params=[float(x) for x in params]
-    )
-
-
-def from_pycolmap(cam: "pycolmap.Camera") -> CameraModel:
-    """Convert a ``pycolmap.Camera`` (FOV, OPENCV_FISHEYE, PINHOLE, SIMPLE_PINHOLE) to a model.
-
-    The principal point is shifted by -0.5 px into OpenCV's pixel convention.
-
-    Raises:
-        ValueError: For any other COLMAP camera model (the message names it).
-    """
-    name = cam.model.name
-    prm = np.asarray(cam.params, dtype=np.float64)
-    size = {"width": int(cam.width), "height": int(cam.height)}
-    if name == "SIMPLE_PINHOLE":
-        return PinholeCamera(**size, focal=[prm[0], prm[0]], principal_point=prm[1:3] - 0.5)
-    if name == "PINHOLE":
-        return PinholeCamera(**size, focal=prm[0:2], principal_point=prm[2:4] - 0.5)
-    if name == "FOV":
-        return FOVCamera(**size, focal=prm[0:2], principal_point=prm[2:4] - 0.5, omega=prm[4])
-    if name == "OPENCV_FISHEYE":
-        return OpenCVFisheyeCamera(
-            **size, focal=prm[0:2], principal_point=prm[2:4] - 0.5, distortion=prm[4:8]
-        )
-    raise ValueError(
-        f"from_pycolmap: unsupported COLMAP camera model {name!r} "
-        "(supported: FOV, OPENCV_FISHEYE, PINHOLE, SIMPLE_PINHOLE)"
-    )
-
-
-# ---------------------------------------------------------------------------------------------
-# OpenCV cv2.fisheye calibration files (cv2.FileStorage YAML/XML/JSON)
-
-_K_NAMES = ("camera_matrix", "K")
-_D_NAMES = ("dist_coeff", "distortion_coefficients", "D")
-
-
-def _read_node(fs: Any, names: Sequence[str]) -> tuple[str, Any] | None:
-    for name in names:
-        node = fs.getNode(name)
-        if not node.empty():
-            return name, node
-    return None
-
-
-def read_opencv_fisheye_calibration(
-    path: str | os.PathLike, image_size: tuple[int, int] | None = None
-) -> OpenCVFisheyeCamera:
-    """Read a ``cv2.fisheye`` calibration written with ``cv2.FileStorage``.
-
-    Reads ``camera_matrix`` (3x3 K; also ``K``), ``dist_coeff`` (4 coefficients; also
-    ``distortion_coefficients`` or ``D``) and, if present, ``image_width``/``image_height``.
-
-    Args:
-        path: The .yml/.yaml/.xml/.json file.
-        image_size: ``(width, height)`` in pixels, used when the file does not store the size.
-
-    Raises:
-        ValueError: Naming the file and the missing or malformed field.
-    """
-    import cv2
-
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ValueError(f"{path}: calibration file does not exist")
-    try:
-        # A truncated file makes the constructor fail inside OpenCV's parser (cv2.error, or a SystemError from
-        # the binding), and a structurally broken one can fail later, at the first node read.
-        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    except (cv2.error, SystemError) as e:
-        raise ValueError(f"{path}: cannot parse as an OpenCV FileStorage file ({' '.join(str(e).split())})") from None
-    if not fs.isOpened():
-        raise ValueError(f"{path}: cannot open as an OpenCV FileStorage file")
-    try:
-        return _fisheye_from_storage(path, fs, image_size)
-    except (cv2.error, SystemError) as e:
-        raise ValueError(f"{path}: malformed OpenCV FileStorage file ({' '.join(str(e).split())})") from None
-    finally:
-        fs.release()
-
-
-def _fisheye_from_storage(path: str, fs: Any, image_size: tuple[int, int] | None) -> OpenCVFisheyeCamera:
-    """The camera in an open ``cv2.FileStorage`` (see :func:`read_opencv_fisheye_calibration`)."""
-    found = _read_node(fs, _K_NAMES)
-    if found is None:
-        raise ValueError(f"{path}: missing field 'camera_matrix' (3x3 camera matrix K)")
-    k_name, node = found
-    K = node.mat()
-    if K is None or np.shape(K) != (3, 3):
-        raise ValueError(f"{path}: field '{k_name}' must be a 3x3 matrix; got shape {np.shape(K)}")
-    found = _read_node(fs, _D_NAMES)
-    if found is None:
-        raise ValueError(f"{path}: missing field 'dist_coeff' (4 fisheye coefficients k1..k4)")
-    d_name, node = found
-    D = node.mat()
-    if D is None or np.size(D) != 4:
-        raise ValueError(
-            f"{path}: field '{d_name}' must hold 4 coefficients; got shape {np.shape(D)}"
-        )
-    w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
-    if not w_node.empty() and not h_node.empty():
-        width, height = int(w_node.real()), int(h_node.real())
-    elif image_size is not None:
-        width, height = (int(s) for s in image_size)
-    else:
-        missing = "image_width" if w_node.empty() else "image_height"
-        raise ValueError(f"{path}: missing field '{missing}'; pass image_size=(width, height)")
-    K = np.asarray(K, dtype=np.float64)
-    if abs(K[0, 1]) > 1e-12 * abs(K[0, 0]) or not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
-        raise ValueError(
-            f"{path}: field '{k_name}' must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
-            f"(no skew); got {K.tolist()}"
-        )
-    try:
-        return OpenCVFisheyeCamera(
-            width=width,
-            height=height,
-            focal=[K[0, 0], K[1, 1]],
-            principal_point=[K[0, 2], K[1, 2]],
-            distortion=np.asarray(D, dtype=np.float64).reshape(4),
-        )
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") from None
-
-
-def write_opencv_fisheye_calibration(path: str | os.PathLike, camera: OpenCVFisheyeCamera) -> None:
-    """Write a single camera as ``image_width``, ``image_height``, ``camera_matrix``, ``dist_coeff``.
-
-    The format (chosen by the extension, e.g. .yml) is readable by ``cv2.FileStorage`` and by
-    :func:`read_opencv_fisheye_calibration`.
-    """
-    import cv2
-
-    if not isinstance(camera, OpenCVFisheyeCamera):
-        raise ValueError(
-            f"write_opencv_fisheye_calibration: expected an OpenCVFisheyeCamera, got {type(camera).__name__}"
-        )
-    p = _single_params(camera, "write_opencv_fisheye_calibration")
-    (fx, fy), (cx, cy) = p["focal"], p["principal_point"]
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    D = np.asarray(camera.distortion, dtype=np.float64).reshape(4, 1)
-    path = os.fspath(path)
-    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_WRITE)
-    if not fs.isOpened():
-        raise ValueError(f"{path}: cannot open for writing")
-    try:
-        fs.write("image_width", int(camera.width))
-        fs.write("image_height", int(camera.height))
-        fs.write("camera_matrix", K)
-        fs.write("dist_coeff", D)
-    finally:
-        fs.release()
+        raise ValueError(f"{caller}: expected a single camera, got batch shape {camera.batch_shape}")
+    return np.asarray(camera.focal, dtype=np.float64), np.asarray(camera.principal_point, dtype=np.float64)

@@ -3,43 +3,18 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
-from pathlib import Path
 
+from .atomic import write_json_atomic
+from .compilation_cache import enable_compilation_cache
+from .frontend.command import add_frontend_command
+from .io.output_folder import output_folder
+from .kcs.command import add_kcs_command
+from .markers.command import add_markers_command
+from .pipeline.command import add_run_command
 from .sim.studio_command import add_simulate_command
-
-
-def enable_compilation_cache() -> None:
-    """Persist XLA compilations across runs (``BCMOCAP_CACHE_DIR``, default ``~/.cache/bcmocap/jax``)."""
-    import jax
-
-    cache = os.environ.get("BCMOCAP_CACHE_DIR", str(Path.home() / ".cache" / "bcmocap" / "jax"))
-    try:
-        Path(cache).mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return
-    jax.config.update("jax_compilation_cache_dir", cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-
-
-def write_json_atomic(path: Path, payload: dict) -> None:
-    """Write JSON to ``path`` through a temporary file in the same folder."""
-    from .io.atomic import atomic_path
-
-    with atomic_path(path, suffix=".json") as tmp:
-        tmp.write_text(json.dumps(payload, indent=2) + "\n")
-
-
-def output_folder(command: str, out: str | os.PathLike) -> Path | None:
-    """``--out`` as a Path, or None after telling the user (on stderr) that it exists and is not a folder."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        print(f"bcmocap {command}: --out {out} exists and is not a folder", file=sys.stderr)
-        return None
-    return out
 
 
 def _table(rows: list[tuple[str, dict]]) -> str:
@@ -177,11 +152,11 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
 # Modules are imported lazily inside their ``run`` so that ``bcmocap --help`` stays fast.
 COMMANDS = [
     add_demo_command,
-    __import__("bcmocap.markers.command", fromlist=["add_markers_command"]).add_markers_command,
+    add_markers_command,
     add_simulate_command,
-    __import__("bcmocap.kcs.command", fromlist=["add_kcs_command"]).add_kcs_command,
-    __import__("bcmocap.frontend.command", fromlist=["add_frontend_command"]).add_frontend_command,
-    __import__("bcmocap.pipeline.command", fromlist=["add_run_command"]).add_run_command,
+    add_kcs_command,
+    add_frontend_command,
+    add_run_command,
 ]
 
 

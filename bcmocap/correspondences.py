@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
+
 
 @dataclasses.dataclass
 class Correspondences:
@@ -142,8 +144,6 @@ class Correspondences:
 
     def save(self, path: str | Path) -> None:
         """Write an ``.npz`` file atomically (a temporary file in the same folder, then renamed)."""
-        from .io.atomic import atomic_path
-
         with atomic_path(path, suffix=".npz") as tmp:
             np.savez_compressed(tmp, **{f.name: np.asarray(getattr(self, f.name)) for f in dataclasses.fields(self)})
 

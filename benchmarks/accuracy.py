@@ -29,7 +29,7 @@ from _common import solve_summary, write_json  # noqa: E402
 from estimated_skeleton import GOAL_ANGLE_DEG, GOAL_POSITION_CM  # noqa: E402
 from estimated_skeleton import run_motion as run_estimated_skeleton  # noqa: E402
 
-from bcmocap.cli import enable_compilation_cache  # noqa: E402
+from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
 from bcmocap.eval import evaluate_motion  # noqa: E402
 from bcmocap.sim import standard_capture  # noqa: E402
 from bcmocap.solver import SolverOptions, solve  # noqa: E402

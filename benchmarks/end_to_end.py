@@ -25,7 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, peak_rss_mb, write_json  # noqa: E402
 
-from bcmocap.cli import enable_compilation_cache  # noqa: E402
+from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
 from bcmocap.pipeline import RunConfig, run_pipeline  # noqa: E402
 from bcmocap.sim.studio import StudioSettings, write_capture  # noqa: E402
 

@@ -201,7 +201,7 @@ def main(argv=None) -> int:
     parser.add_argument("--refine", action="store_true", help="also refine bone offsets and mounts (issue 3, item 6)")
     parser.add_argument("--rounds", type=int, default=1, help="refinement rounds with --refine (a second one moved nothing on walk)")
     args = parser.parse_args(argv)
-    from bcmocap.cli import enable_compilation_cache
+    from bcmocap.compilation_cache import enable_compilation_cache
 
     enable_compilation_cache()
     if args.refine:

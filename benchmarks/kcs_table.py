@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json  # noqa: E402
 
-from bcmocap.cli import enable_compilation_cache  # noqa: E402
+from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
 from bcmocap.io import read_amc, read_asf  # noqa: E402
 from bcmocap.kcs import (  # noqa: E402
     CMU_JOINTS,

@@ -26,7 +26,7 @@ from _common import write_json  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bcmocap.cli import enable_compilation_cache  # noqa: E402
+from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
 from bcmocap.markers import MarkerOptions, MarkerTrajectories, fit_marker_skeleton  # noqa: E402
 from bcmocap.sim.markers import MarkerNoise, linkage_markers, linkage_motion, linkage_skeleton, simulate_markers  # noqa: E402
 

@@ -39,7 +39,7 @@ from _common import write_json  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bcmocap.cli import enable_compilation_cache  # noqa: E402
+from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
 from bcmocap.kinematics import Motion, joint_positions  # noqa: E402
 from bcmocap.markers import MarkerOptions, MarkerTrajectories, fit_marker_skeleton, merge_identities, preprocess  # noqa: E402
 from bcmocap.sim import load_body_motion  # noqa: E402

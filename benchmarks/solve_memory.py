@@ -62,7 +62,7 @@ def tile(run: Path, repeats: int, folder: Path) -> CorrespondenceStore:
 
 def child(mode: str, run: Path, folder: Path) -> dict:
     """Solve the tiled trial in ``folder`` (this process only), return the figures."""
-    from bcmocap.cli import enable_compilation_cache
+    from bcmocap.compilation_cache import enable_compilation_cache
     from bcmocap.pipeline.config import load_config
     from bcmocap.pipeline.run import load_model, load_motion, objective_weights
     from bcmocap.solver import Problem, SolverOptions, solve

@@ -31,7 +31,7 @@ import scipy.optimize  # noqa: E402
 import scipy.sparse  # noqa: E402
 from _common import peak_rss_mb, write_json  # noqa: E402
 
-from bcmocap.cli import enable_compilation_cache  # noqa: E402
+from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
 from bcmocap.residuals import CameraPairTerm, PairTerm  # noqa: E402
 from bcmocap.sim import standard_capture  # noqa: E402
 from bcmocap.solver import SolverOptions, solve, whole_sequence_residual_function  # noqa: E402

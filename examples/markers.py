@@ -22,7 +22,7 @@ import warnings
 from collections import Counter
 from pathlib import Path
 
-from bcmocap.cli import enable_compilation_cache
+from bcmocap.compilation_cache import enable_compilation_cache
 from bcmocap.io import read_c3d
 from bcmocap.kinematics import Motion
 from bcmocap.markers import MarkerOptions, MarkerTrajectories, fit_marker_skeleton

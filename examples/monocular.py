@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from bcmocap.cameras import PinholeCamera
-from bcmocap.cli import enable_compilation_cache
+from bcmocap.compilation_cache import enable_compilation_cache
 from bcmocap.io import load_cmu
 from bcmocap.kcs import (
     CMU_JOINTS,

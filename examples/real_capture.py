@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bcmocap.cli import enable_compilation_cache
+from bcmocap.compilation_cache import enable_compilation_cache
 from bcmocap.kinematics import joint_positions
 from bcmocap.pipeline import STAGES, load_config, load_model, load_motion, run_pipeline
 

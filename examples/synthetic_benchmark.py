@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from bcmocap.cli import enable_compilation_cache
+from bcmocap.compilation_cache import enable_compilation_cache
 from bcmocap.eval import evaluate_motion
 from bcmocap.sim import CMU_TRIALS, standard_capture
 from bcmocap.solver import SolverOptions, solve

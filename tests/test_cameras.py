@@ -21,12 +21,10 @@ from bcmocap.cameras import (
     OpenCVFisheyeCamera,
     PinholeCamera,
     camera_at,
-    from_pycolmap,
-    read_opencv_fisheye_calibration,
     stack_cameras,
-    to_pycolmap,
-    write_opencv_fisheye_calibration,
 )
+from bcmocap.io.colmap import from_pycolmap, to_pycolmap
+from bcmocap.io.opencv_calibration import read_opencv_fisheye_calibration, write_opencv_fisheye_calibration
 
 DATA = Path(__file__).parent / "data" / "fisheye"
 JEVOIS_YML = DATA / "jevois120_circlegrid_calibration.yml"

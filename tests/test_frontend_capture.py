@@ -8,9 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from bcmocap.cameras import FOVCamera, OpenCVFisheyeCamera, PinholeCamera, write_opencv_fisheye_calibration
+from bcmocap.cameras import FOVCamera, OpenCVFisheyeCamera, PinholeCamera
 from bcmocap.frontend import read_camera_json, read_capture
-from bcmocap.sim.audio import write_wav
+from bcmocap.io.opencv_calibration import write_opencv_fisheye_calibration
+from bcmocap.io.wav import write_wav
 
 CAMERAS = ("head", "left_foot")
 FRAMES = 9

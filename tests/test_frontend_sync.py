@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from bcmocap.frontend import clap_candidates, given_offsets, read_capture, synchronize, synchronize_tracks
-from bcmocap.sim.audio import soundtrack, write_wav
+from bcmocap.io.wav import write_wav
+from bcmocap.sim.audio import soundtrack
 from bcmocap.sim.studio import StudioSettings, _clap_samples, _timeline
 
 from test_frontend_capture import CAMERAS, make_capture

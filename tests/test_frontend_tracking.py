@@ -5,7 +5,7 @@ test_frontend_register is registered by KLT tracking between keyframes, accurate
 import numpy as np
 import pytest
 
-from bcmocap.cameras import to_pycolmap
+from bcmocap.io.colmap import to_pycolmap
 from bcmocap.frontend.selection import measurement_score, select_measurements
 from bcmocap.frontend.tracking import CameraTrack, TrackingOptions, frames_for_rounds, predict_pose, track_camera
 from bcmocap.geometry import matrix_from_quat, quat_from_matrix

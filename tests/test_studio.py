@@ -14,12 +14,14 @@ import numpy as np
 import pytest
 from conftest import one_line_error
 
-from bcmocap.cameras import FOVCamera, camera_at, read_opencv_fisheye_calibration
+from bcmocap.cameras import FOVCamera, camera_at
 from bcmocap.cli import main
 from bcmocap.geometry import SE3
 from bcmocap.io import read_bvh
+from bcmocap.io.opencv_calibration import read_opencv_fisheye_calibration
+from bcmocap.io.wav import read_wav
 from bcmocap.kinematics import forward_kinematics
-from bcmocap.sim.audio import clap_onsets, read_wav
+from bcmocap.sim.audio import clap_onsets
 from bcmocap.sim.studio import StudioSettings, load_ground_truth, write_capture
 
 pytestmark = pytest.mark.slow  # rendering capture folders

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import atomic_path
+from ..atomic import atomic_path
 
 __all__ = [
     "plot_camera_centres",

@@ -20,8 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import CameraModel, from_pycolmap, read_opencv_fisheye_calibration
+from ..cameras import CameraModel
+from ..io.colmap import from_pycolmap
 from ..io.names import checked_name, checked_relative_path
+from ..io.opencv_calibration import read_opencv_fisheye_calibration
 
 __all__ = ["Capture", "CaptureCamera", "VideoInfo", "read_capture", "read_camera_json"]
 

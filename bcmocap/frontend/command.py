@@ -24,6 +24,9 @@ import json
 import sys
 import time
 
+from ..atomic import write_json_atomic
+from ..io.output_folder import output_folder
+
 
 MAX_MEASUREMENTS = 400
 """Measurements per camera-frame for the tracking frontend's solver (issue 18: the paper used about 300 inliers per image)."""
@@ -139,7 +142,6 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     """
     import numpy as np
 
-    from ..cli import write_json_atomic
     from ..correspondence_store import write_store
     from .register import RegistrationOptions
     from .relative import extract_trial_features
@@ -304,7 +306,6 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
 
 
 def run_frontend(args: argparse.Namespace) -> int:
-    from ..cli import output_folder
     from .capture import read_capture
     from .register import reference_index
 

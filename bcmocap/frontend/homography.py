@@ -20,8 +20,9 @@ import dataclasses
 
 import numpy as np
 
-from ..cameras import CameraModel, to_pycolmap
+from ..cameras import CameraModel
 from ..geometry import matrix_from_quat, quat_from_matrix, slerp
+from ..io.colmap import to_pycolmap
 from .reference import match_descriptors
 from .relative import pixel_rays
 

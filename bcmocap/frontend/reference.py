@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import CameraModel, to_pycolmap
+from ..cameras import CameraModel
+from ..io.colmap import to_pycolmap
 
 __all__ = ["DescriptorIndex", "ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "verify_matches"]
 
@@ -321,7 +322,7 @@ def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
               "database": os.path.relpath(model.database_path, folder),
               "pair_inliers": [[a, b, n] for (a, b), n in model.pair_inliers.items()],
               "seconds": model.seconds, "mapping_attempts": model.mapping_attempts}
-    from ..io.atomic import atomic_path
+    from ..atomic import atomic_path
 
     path = folder / "reference.json"
     with atomic_path(path) as tmp:

@@ -8,7 +8,7 @@ A frame is registered on its own against the reference reconstruction:
 2. :func:`register_frame` extracts OpenCV SIFT from the frame, matches it to the index (FLANN k-d trees,
    Lowe's ratio test, several reference observations of one 3D point allowed but one 2D feature per 3D
    point kept), and hands the 2D–3D correspondences (+0.5 px into COLMAP's pixel convention) with the
-   frame's camera (e.g. the FOV fisheye, via :func:`~bcmocap.cameras.to_pycolmap`) to
+   frame's camera (e.g. the FOV fisheye, via :func:`~bcmocap.io.colmap.to_pycolmap`) to
    ``pycolmap.estimate_and_refine_absolute_pose`` (LO-RANSAC P3P, then non-linear refinement);
 3. the pose is accepted with more than ``min_inliers`` inliers and a mean inlier reprojection error
    below ``max_mean_error_px``.
@@ -27,7 +27,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..cameras import CameraModel, to_pycolmap
+from ..cameras import CameraModel
+from ..io.colmap import to_pycolmap
 from .reference import DescriptorIndex, ReferenceModel, extract_sift
 
 __all__ = ["ReferenceIndex", "FrameRegistration", "RegistrationOptions", "TrialRegistration",

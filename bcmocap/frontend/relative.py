@@ -39,7 +39,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..cameras import CameraModel, to_pycolmap
+from ..cameras import CameraModel
+from ..io.colmap import to_pycolmap
 from .features import read_camera_features, write_camera_features
 from .reference import extract_sift, match_descriptors, uint8_descriptors
 from .register import ReferenceIndex, RegistrationOptions, _pose_wxyz_xyz, match_to_reference

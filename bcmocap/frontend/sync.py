@@ -19,7 +19,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..sim.audio import read_wav
+from ..io.wav import read_wav
 from .capture import Capture
 
 __all__ = ["SyncResult", "clap_candidates", "given_offsets", "synchronize", "synchronize_tracks"]

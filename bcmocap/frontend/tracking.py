@@ -530,7 +530,7 @@ def track_trial(capture, trial: str, index: ReferenceIndex, *, starts, num_frame
     from concurrent.futures import ThreadPoolExecutor
     from pathlib import Path
 
-    from ..cameras import to_pycolmap
+    from ..io.colmap import to_pycolmap
     from .features import read_camera_features, write_camera_features
     from .relative import ProgressCounter
 
@@ -777,7 +777,7 @@ def _track_into_gaps(capture, trial: str, lookup: ReferenceIndex, registered: Ca
     import os
     from concurrent.futures import ThreadPoolExecutor
 
-    from ..cameras import to_pycolmap
+    from ..io.colmap import to_pycolmap
 
     names = capture.camera_names
     starts = np.asarray(starts, np.int64)
@@ -938,7 +938,7 @@ def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list
 
     Returns ``(features, initial, points, leave)``, ``leave (T, C)`` the unregistered frames the rounds
     skip (``register_capture(..., leave=leave)``; :func:`track_after_rounds` fills them)."""
-    from ..cameras import to_pycolmap
+    from ..io.colmap import to_pycolmap
     from .relative import RelativeOptions
 
     cams = [to_pycolmap(c.intrinsics) for c in capture.cameras]

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
+from ..atomic import atomic_path
 
 __all__ = ["read_ply", "read_ply_elements", "write_camera_paths_ply", "write_ply", "write_ply_pieces"]
 

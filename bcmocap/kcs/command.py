@@ -11,6 +11,10 @@ import math
 import sys
 import time
 
+from ..atomic import write_json_atomic
+from ..compilation_cache import enable_compilation_cache
+from ..io.output_folder import output_folder
+
 _DESCRIPTION = """\
 Reconstruct the 3-D motion of a kinematic chain (a person, an animal, a robot arm) from its 2-D joints in
 one uncalibrated, (nearly) static camera, with no training data and no known bone lengths: the kinematic
@@ -72,8 +76,6 @@ def _flag_problem(args: argparse.Namespace) -> str | None:
 
 
 def run_kcs(args: argparse.Namespace) -> int:
-    from ..cli import enable_compilation_cache, output_folder, write_json_atomic
-
     enable_compilation_cache()
     import numpy as np
 

@@ -6,6 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..compilation_cache import enable_compilation_cache
+from ..io.output_folder import output_folder
+
 
 def _frame_range(text: str | None) -> slice:
     """``--frames FIRST:LAST`` as a slice (either end may be left out); ValueError naming the flag."""
@@ -57,8 +60,6 @@ def _read(args: argparse.Namespace):
 
 
 def run_markers(args: argparse.Namespace) -> int:
-    from ..cli import enable_compilation_cache, output_folder
-
     enable_compilation_cache()
     from .pipeline import MarkerOptions, fit_marker_skeleton
 

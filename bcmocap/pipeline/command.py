@@ -15,6 +15,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..compilation_cache import enable_compilation_cache
+from ..io.output_folder import output_folder
+
 #: flag → dotted setting (see :mod:`bcmocap.pipeline.config`).
 FLAGS = {
     "stride": ("frontend.stride", int, "use every n-th video frame of the capture trial"),
@@ -53,7 +56,6 @@ def add_run_command(sub: argparse._SubParsersAction) -> None:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    from ..cli import enable_compilation_cache, output_folder
     from .config import load_config
     from .run import run_pipeline
 

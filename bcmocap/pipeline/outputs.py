@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import atomic_path
+from ..atomic import atomic_path, write_json_atomic
 
 
 def rotation_vectors_deg(rotations: np.ndarray) -> np.ndarray:
@@ -104,8 +104,6 @@ def write_outputs(ctx) -> dict:
     metrics = aligned = None
     if truth is not None:
         metrics, aligned = evaluate_run(skeleton, rig, {"initial": initial, "solved": motion}, corr, truth)
-        from ..cli import write_json_atomic
-
         write_json_atomic(out / "metrics.json", metrics)
         s = metrics["solved"]
         ctx.log(f"metrics (after the §5.1 similarity, {metrics['frames_evaluated']} frames): joint position "

@@ -36,8 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli import write_json_atomic as _write_json
-from ..io.atomic import atomic_path
+from ..atomic import atomic_path, write_json_atomic
 from .config import RunConfig
 
 STAGES = ("frontend", "world", "skeleton", "initial", "solve", "outputs")
@@ -94,12 +93,12 @@ class RunLog:
     def record(self, stage: str, fingerprint: str, seconds: float, **extra) -> None:
         self.data["stages"][stage] = {"fingerprint": fingerprint, "seconds": round(seconds, 3),
                                       "finished": datetime.datetime.now().isoformat(timespec="seconds"), **extra}
-        _write_json(self.path, self.data)
+        write_json_atomic(self.path, self.data)
 
     def forget_from(self, stage: str) -> None:
         for s in STAGES[STAGES.index(stage):]:
             self.data["stages"].pop(s, None)
-        _write_json(self.path, self.data)
+        write_json_atomic(self.path, self.data)
 
 
 def fingerprints(config: RunConfig) -> dict[str, str]:
@@ -184,7 +183,7 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
     if not run_log.finished("skeleton", fingerprints(config)["skeleton"]):
         _topology(ctx)  # a capture without its subject description fails now, not after the frontend
         _rest_seconds(ctx)
-    _write_json(out / "config.json", config.to_dict())
+    write_json_atomic(out / "config.json", config.to_dict())
     prints = fingerprints(config)
     redo = False
     for i, stage in enumerate(STAGES, start=1):
@@ -325,7 +324,7 @@ def _stage_world(ctx: RunContext) -> dict:
     k = ctx.config.skeleton
     upright = upright_frame(est.skeleton, rest_motion, k.up_from, k.up_to, factor)
     sim = provisional.then(upright)
-    _write_json(ctx.path("world", "similarity.json"), {
+    write_json_atomic(ctx.path("world", "similarity.json"), {
         **sim.to_dict(), "maps": "reference model frame → metric world (m, Z up, origin on the floor under the rest pose)",
         "provisional_scale": provisional.scale, "measurement_factor": factor})
     ctx.log(f"world: {sim.scale:.4g} m per reference-model unit (measurements × {factor:.3f} on the provisional scale)")
@@ -343,8 +342,8 @@ def _stage_skeleton(ctx: RunContext) -> dict:
 
     poses, registered, rest = _rom_inputs(ctx)
     est = _estimate_skeleton(ctx, _world(ctx).poses(poses), registered, rest)
-    _write_json(ctx.path("model", "skeleton.json"), skeleton_to_dict(est.skeleton))
-    _write_json(ctx.path("model", "rig.json"), rig_to_dict(est.rig, est.skeleton))
+    write_json_atomic(ctx.path("model", "skeleton.json"), skeleton_to_dict(est.skeleton))
+    write_json_atomic(ctx.path("model", "rig.json"), rig_to_dict(est.rig, est.skeleton))
     with atomic_path(ctx.path("model", "rom_summary.txt"), suffix=".txt") as tmp:
         tmp.write_text(est.summary() + "\n")
     ctx.log("skeleton:\n" + est.summary())
@@ -426,11 +425,11 @@ def _stage_solve(ctx: RunContext) -> dict:
     def save(index, report, motion):
         reports.append(dataclasses.asdict(report))
         save_motion(checkpoint_path, motion)
-        _write_json(reports_path, {"fingerprint": fingerprints(ctx.config)["solve"], "reports": reports})
+        write_json_atomic(reports_path, {"fingerprint": fingerprints(ctx.config)["solve"], "reports": reports})
 
     solution = solve(problem, initial, options, progress=True, skip_windows=skip, checkpoint=save)
     save_motion(ctx.path("solve", "motion.npz"), solution.motion)
-    _write_json(ctx.path("solve", "reports.json"), {"windows": reports})
+    write_json_atomic(ctx.path("solve", "reports.json"), {"windows": reports})
     return {"windows": len(reports), "converged": all(r["converged"] for r in reports)}
 
 

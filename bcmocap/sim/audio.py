@@ -6,22 +6,16 @@ two claps: an impulse (the boards meeting) followed by a burst of decaying noise
 gain (distance and direction of the microphone). Sound travel between cameras on one body (< 6 ms) is
 neglected, so a clap's first sample is exactly the written position.
 
-Tracks are mono 16-bit PCM WAV files written with Python's :mod:`wave` module (OpenCV cannot add an
-audio stream to an MP4; see :mod:`bcmocap.sim.studio`).
+Tracks are written as WAV files by :mod:`bcmocap.io.wav` (see :mod:`bcmocap.sim.studio`).
 """
 
 from __future__ import annotations
 
-import os
-import wave
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import atomic_path
-
-__all__ = ["CLAP_SECONDS", "clap_onsets", "read_wav", "soundtrack", "write_wav"]
+__all__ = ["CLAP_SECONDS", "clap_onsets", "soundtrack"]
 
 #: Length of a clap's decaying burst (s).
 CLAP_SECONDS = 0.12
@@ -62,34 +56,6 @@ def soundtrack(num_samples: int, clap_samples: Sequence[int], rate: int, rng: np
         if hi > lo:
             track[lo:hi] += clap[lo - int(start): hi - int(start)]
     return np.clip(track, -1.0, 1.0)
-
-
-def write_wav(path: str | os.PathLike, samples: np.ndarray, rate: int) -> Path:
-    """Write mono samples in [-1, 1] as 16-bit PCM WAV (atomically: temporary file, then rename)."""
-    path = Path(path)
-    pcm = np.round(np.clip(np.asarray(samples, np.float64), -1.0, 1.0) * 32767.0).astype("<i2")
-    with atomic_path(path) as tmp, wave.open(str(tmp), "wb") as out:
-        out.setnchannels(1)
-        out.setsampwidth(2)
-        out.setframerate(int(rate))
-        out.writeframes(pcm.tobytes())
-    return path
-
-
-def read_wav(path: str | os.PathLike) -> tuple[np.ndarray, int]:
-    """``(samples in [-1, 1], rate)`` of a mono 16-bit PCM WAV file."""
-    path = os.fspath(path)
-    try:
-        with wave.open(path, "rb") as f:
-            if f.getnchannels() != 1 or f.getsampwidth() != 2:
-                raise ValueError(
-                    f"{path}: expected mono 16-bit PCM, got {f.getnchannels()} channels of {8 * f.getsampwidth()} bits"
-                )
-            rate = f.getframerate()
-            data = np.frombuffer(f.readframes(f.getnframes()), "<i2")
-    except (wave.Error, EOFError) as err:
-        raise ValueError(f"{path}: not a readable WAV file ({err})") from None
-    return data.astype(np.float64) / 32767.0, rate
 
 
 def clap_onsets(samples: np.ndarray, rate: int, count: int = 2, threshold: float = 0.5,

@@ -15,7 +15,7 @@ Folder layout (``CAPTURE_DIR``)::
     rig.json                      which camera is strapped to which body segment (mounts are unknown
                                   in a real shoot: they are in ground_truth/rig.json)
     intrinsics/<camera>.yml       cv2.fisheye calibration (image_width, image_height, camera_matrix,
-                                  dist_coeff), as bcmocap.cameras.read_opencv_fisheye_calibration reads;
+                                  dist_coeff), as bcmocap.io.opencv_calibration.read_opencv_fisheye_calibration reads;
                                   for the default FOV lens it is the Kannala-Brandt fit of that lens
     intrinsics/<camera>.json      the exact lens: {"model": "FOV" | "OPENCV_FISHEYE", "width", "height",
                                   "params": [fx, fy, cx, cy, omega | k1..k4]} (OpenCV pixel convention:
@@ -75,14 +75,15 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from ..atomic import atomic_path
 from ..cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
 from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
-from ..io.atomic import atomic_path
 from ..io.model_json import camera_from_dict, camera_to_dict, rig_from_dict, rig_to_dict, skeleton_from_dict, skeleton_to_dict
+from ..io.wav import write_wav
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import JointType, Motion, Skeleton
-from .audio import soundtrack, write_wav
+from .audio import soundtrack
 from .motions import CMU_TRIALS, load_body_motion
 from .observe import body_capsules
 from .render import Renderer, RenderOptions, capsule_colors
@@ -270,7 +271,7 @@ def _write_opencv_yaml(path: Path, camera: CameraModel) -> None:
     """cv2.FileStorage calibration: fisheye via bcmocap.cameras' writer, pinhole with 5 zero coefficients."""
     import cv2
 
-    from ..cameras import write_opencv_fisheye_calibration
+    from ..io.opencv_calibration import write_opencv_fisheye_calibration
 
     with atomic_path(path, suffix=path.suffix) as tmp:  # OpenCV picks the format from the suffix
         if isinstance(camera, OpenCVFisheyeCamera):

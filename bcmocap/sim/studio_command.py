@@ -6,6 +6,8 @@ import argparse
 import sys
 import time
 
+from ..compilation_cache import enable_compilation_cache
+
 
 def add_simulate_command(sub: argparse._SubParsersAction) -> None:
     """Add the ``simulate`` subcommand (heavy imports happen when it runs)."""
@@ -35,7 +37,6 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     def run(args: argparse.Namespace) -> int:
-        from ..cli import enable_compilation_cache
         from .studio import MAX_FPS, MAX_SECONDS, StudioSettings, write_capture
 
         try:

@@ -1,8 +1,12 @@
-"""Atomic file writes: write beside the target under a temporary name, then rename over it."""
+"""Atomic file writes: write beside the target under a temporary name, then rename over it.
+
+Needed from the core (:meth:`bcmocap.correspondences.Correspondences.save`) up, so it imports nothing of bcmocap.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 from collections.abc import Iterator
@@ -30,3 +34,9 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def write_json_atomic(path: str | os.PathLike, payload: dict) -> None:
+    """Write JSON to ``path`` through a temporary file in the same folder."""
+    with atomic_path(path, suffix=".json") as tmp:
+        tmp.write_text(json.dumps(payload, indent=2) + "\n")

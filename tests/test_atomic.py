@@ -1,8 +1,8 @@
-"""bcmocap.io.atomic: a file is replaced whole or not at all."""
+"""bcmocap.atomic: a file is replaced whole or not at all."""
 
 import pytest
 
-from bcmocap.io.atomic import atomic_path
+from bcmocap.atomic import atomic_path
 
 
 def test_atomic_path_replaces_on_success_and_leaves_the_original_on_failure(tmp_path):
