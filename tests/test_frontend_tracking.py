@@ -272,3 +272,38 @@ def test_sift_for_homographies_extracts_the_frames_left_and_their_neighbours_wit
     # a registered neighbour keeps its measurement after its new SIFT keypoints
     assert len(before.descriptors) > 20 and before.point_ids[-1] == 7 and (before.keypoints[-1] == [5.0, 6.0]).all()
     assert len(after.descriptors) == 1 and len(states[0][0].descriptors) == 0  # not a neighbour of frame 3
+
+
+@pytest.mark.slow
+def test_rounds_for_the_rest_register_a_frame_tracking_could_not_reach(studio, walk):  # noqa: F811
+    """Two cameras see the walk; camera 1's frame 5 was left by the rounds and could not be tracked. The
+    second pass extracts SIFT for it and its neighbours, triangulates new points between them and registers
+    it relative to them; everything else keeps its registration."""
+    import types
+
+    from bcmocap.frontend.relative import CaptureRegistration, FrameState
+    from bcmocap.frontend.tracking import rounds_for_the_rest
+
+    frames, poses = walk
+    cam = to_pycolmap(studio.fisheye)
+    track = track_camera(frames[:10], cam, studio.index)
+    assert track.registered.all()
+    empty = np.zeros((0, 128), np.uint8)
+    states = [[FrameState(track.pixels[t], empty, track.point_ids[t].copy(), track.poses[t], "tracked", 0)
+               for _ in range(2)] for t in range(10)]
+    states[5][1] = FrameState(np.zeros((0, 2)), empty, np.zeros(0, np.int64), np.full(7, np.nan))
+    points = {int(i): x for i, x in zip(studio.index.point3D_ids, studio.index.xyz)} | track.points
+    result = CaptureRegistration(np.arange(10), states, points, set(), [{"registered": 19, "new_points": 0}], [cam, cam])
+    capture = types.SimpleNamespace(
+        camera_names=("a", "b"), cameras=[types.SimpleNamespace(intrinsics=studio.fisheye)] * 2,
+        frames=lambda trial, name, *, stride, start, stop, gray: ((k, frames[k]) for k in range(start, min(stop, 10))))
+    leave = np.zeros((10, 2), bool)
+    leave[5, 1] = True
+    second = rounds_for_the_rest(capture, "capture", result, leave, [[1], [0]], studio.index, starts=[0, 0], stride=1,
+                                 first=0)
+    assert second.registered.all() and second.states[5][1].how == "relative"
+    assert len(second.rounds) >= 2 and second.new_point_ids
+    rot_deg, pos_cm = _errors(studio.align, second.states[5][1].world_from_camera, poses[5])
+    assert rot_deg < 0.5 and pos_cm < 2.0, (rot_deg, pos_cm)
+    assert rounds_for_the_rest(capture, "capture", second, leave, [[1], [0]], studio.index, starts=[0, 0], stride=1,
+                               first=0) is second  # nothing left

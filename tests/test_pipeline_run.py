@@ -16,6 +16,7 @@ import pytest
 from bcmocap.correspondence_store import CorrespondenceStore, write_store
 from bcmocap.correspondences import Correspondences
 from bcmocap.frontend.capture import Capture, CaptureCamera
+from bcmocap.frontend.command import trial_settings
 from bcmocap.geometry import SO3
 from bcmocap.pipeline import RunConfig, run_pipeline
 from bcmocap.pipeline.outputs import evaluate_run
@@ -42,13 +43,18 @@ def simulated_run(tmp_path_factory):
                                 rotation_sigma_deg=0.3, position_sigma_m=0.003, seed=3)
     sfm_from_world = Similarity(0.37, np.asarray(SO3.exp(np.array([0.4, -1.1, 2.0])).as_matrix()), np.array([3.0, -1.0, 0.5]))
     frontend = root / "out" / "frontend"
+    config = RunConfig().with_overrides({"frontend.stride": 1, "frontend.rom_stride": 1, "solver.window": 20,
+                                         "solver.overlap": 5})
+    f = config.frontend
     for trial, corr in (("rom", _rom_correspondences(rom)), ("capture", capture.correspondences())):
         sfm = dataclasses.replace(corr, points=sfm_from_world.points(corr.points),
                                   world_from_camera=sfm_from_world.poses(corr.world_from_camera))
         write_store(frontend / trial / "correspondences", [sfm], block_frames=7)
+        settings = trial_settings(stride=1, frames=None, max_features=f.max_features, homographies=trial == "capture",
+                                  chunk_frames=f.chunk_frames, registration=f.registration, max_measurements=None)
         (frontend / trial / "registration.json").write_text(json.dumps(
             {"stride": 1, "frames": sfm.num_frames, "registered_fraction": float(sfm.registered.mean()),
-             "cameras": list(rig.names)}))
+             "cameras": list(rig.names), "settings": settings}))
     (frontend / "reference" / "model").mkdir(parents=True)
     pycolmap.Reconstruction().write(str(frontend / "reference" / "model"))
     subject = subject_record(skeleton, 0, FPS)
@@ -58,8 +64,6 @@ def simulated_run(tmp_path_factory):
 
     cameras = tuple(dataclasses.replace(c, intrinsics=camera_at(rig.intrinsics, i)) for i, c in enumerate(cameras))
     fake = Capture(root / "capture", {"subject": subject}, FPS, None, cameras, tuple(skeleton.names), ("rom", "capture"), (), None)
-    config = RunConfig().with_overrides({"frontend.stride": 1, "frontend.rom_stride": 1, "solver.window": 20,
-                                         "solver.overlap": 5})
     lines = []
     run_log = run_pipeline(fake, root / "out", config, log=lines.append)
     return root / "out", run_log, lines, capture, sfm_from_world, fake, config
@@ -210,3 +214,25 @@ def test_run_command_refuses_bad_input_without_writing(tmp_path, capsys):
     assert main(["run", str(capture), "--out", str(tmp_path / "o"), "--config", str(bad)]) == 2
     assert "solver.windo is not a setting" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_saved_registration_is_reused_only_with_the_same_settings(simulated_run, tmp_path, monkeypatch):
+    import shutil
+
+    import bcmocap.frontend.command as frontend_command
+
+    out, _, _, _, _, fake, config = simulated_run
+    copy = tmp_path / "out"
+    shutil.copytree(out / "frontend", copy / "frontend")
+    lines = []
+    run_pipeline(fake, copy, config, log=lines.append, stop_after="frontend")
+    assert sum("registration found" in line for line in lines) == 2
+
+    def redo(*args, **kwargs):
+        raise RuntimeError("registration redone")
+
+    monkeypatch.setattr(frontend_command, "process_trial", redo)
+    monkeypatch.setattr(frontend_command, "prepare_reference", lambda *args, **kwargs: None)
+    monkeypatch.setattr("bcmocap.frontend.register.reference_index", lambda model: None)
+    with pytest.raises(RuntimeError, match="registration redone"):  # --max-features changed: not reused
+        run_pipeline(fake, copy, config.with_overrides({"frontend.max_features": 1234}), log=lines.append)

@@ -31,6 +31,10 @@ from ..io.output_folder import output_folder
 MAX_MEASUREMENTS = 400
 """Measurements per camera-frame for the tracking frontend's solver (issue 18: the paper used about 300 inliers per image)."""
 
+SETTINGS_VERSION = 2
+"""Bumped when registration changes for the same settings (2: the tracking frontend's rounds work on every
+third frame left, :func:`~.tracking.round_seeds`), so an earlier ``registration.json`` is not reused."""
+
 CHUNK_FRAMES = 400
 """Default chunk: registration holds about 1 GB per 1000 images of a chunk (measured: 1080 images of the
 rendered walk), so 400 frames of 18 cameras stay within a few GB; shorter trials are one chunk."""
@@ -146,9 +150,10 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     from .register import RegistrationOptions
     from .relative import extract_trial_features
     from .sync import given_offsets, synchronize
-    from .tracking import (TrackingOptions, sift_for_homographies, states_for_rounds, track_after_rounds,
-                           track_trial)
+    from .tracking import (TrackingOptions, rounds_for_the_rest, sift_for_homographies, states_for_rounds,
+                           track_after_rounds, track_trial)
 
+    requested_frames = frames
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
     starts = np.asarray(sync.offsets, np.int64)
     available = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(capture.camera_names, starts))
@@ -185,16 +190,22 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         :func:`_register_frames`."""
         if tracks is None:
             return features[a:b], None, None, None, None
-        *inputs, leave = states_for_rounds(capture, trial, tracks, keyframe_features, index, starts=starts,
-                                           stride=stride, first=a, stop=b, options=options, log=log)
+        *inputs, leave, partners = states_for_rounds(capture, trial, tracks, keyframe_features, index, starts=starts,
+                                                     stride=stride, first=a, stop=b, options=options, log=log)
 
-        def after_rounds(result) -> int:
+        def after_rounds(result, progress):
+            """The frames the rounds left: tracked from theirs, a second pass for the rest, SIFT for the
+            homographies of what is still left. Returns ``(registration, frames tracked)``."""
             filled = track_after_rounds(capture, trial, result, starts=starts, stride=stride, first=a, options=options)
+            rest = int((leave & ~result.registered).sum())
+            result = rounds_for_the_rest(capture, trial, result, leave, partners, index, starts=starts, stride=stride,
+                                         first=a, max_features=max_features, progress=progress)
             extracted = sift_for_homographies(capture, trial, result, leave, starts=starts, stride=stride, first=a,
                                               max_features=max_features) if homographies else 0
-            log(f"{trial}: frames {a}-{b - 1}: {filled} of the {int(leave.sum())} frames the rounds left "
-                f"tracked from the frames they registered; SIFT of {extracted} frames for the homographies")
-            return filled
+            log(f"{trial}: frames {a}-{b - 1}: of the {int(leave.sum())} frames the rounds left, {filled} tracked "
+                f"from the frames they registered, {rest - int((leave & ~result.registered).sum())} of the {rest} "
+                f"others in a second pass; SIFT of {extracted} frames for the homographies")
+            return result, filled
 
         return (*inputs, leave, after_rounds)
 
@@ -229,6 +240,9 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
               "chunk_frames": chunk_frames}
     report["registration"] = registration
     report["max_measurements"] = max_measurements
+    report["settings"] = trial_settings(stride=stride, frames=requested_frames, max_features=max_features,
+                                        homographies=homographies, chunk_frames=chunk_frames,
+                                        registration=registration, max_measurements=max_measurements)
     for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
                 "tracked_after_rounds", "points", "new_points", "filled_by_homographies", "homography_pairs"):
         report[key] = int(sum(c.get(key, 0) for c in chunks))
@@ -242,6 +256,15 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         f"{report['registered_relative']} relative); "
         f"wrote {store.path}")
     return report
+
+
+def trial_settings(*, stride: int, frames: int | None, max_features: int, homographies: bool, chunk_frames: int,
+                   registration: str, max_measurements: int | None) -> dict:
+    """The settings of :func:`process_trial` that its result depends on, as saved in ``registration.json``
+    (``"settings"``): a saved registration is reused only when they are all the same."""
+    return {"stride": int(stride), "frames": None if frames is None else int(frames), "max_features": int(max_features),
+            "homographies": bool(homographies), "chunk_frames": int(chunk_frames), "registration": str(registration),
+            "max_measurements": None if max_measurements is None else int(max_measurements), "version": SETTINGS_VERSION}
 
 
 def chunk_bounds(num_frames: int, chunk_frames: int) -> list[tuple[int, int]]:
@@ -274,7 +297,8 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
     """Registration (from ``initial`` when given, :func:`~.relative.register_capture`) and homographies of the
     processed frames ``first … first + len(features) − 1``: ``(Correspondences, summary)``; the registration's
     points and tracks are released on return. The rounds skip the frames in ``leave`` ((T, C) bool or None);
-    ``after_rounds(result) → count``, when given, registers frames after them (before the homographies)."""
+    ``after_rounds(result, progress) → (result, count)``, when given, registers frames after them (before the
+    homographies)."""
     import numpy as np
 
     from .homography import fill_with_homographies
@@ -290,7 +314,9 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
     options = RelativeOptions(second_order_pairs=initial is None)
     result = register_capture(features, cameras, index, options, frames=(first + np.arange(len(features))) * stride,
                               initial=initial, initial_points=initial_points, leave=leave, progress=progress)
-    tracked_after = after_rounds(result) if after_rounds is not None else 0
+    tracked_after = 0
+    if after_rounds is not None:
+        result, tracked_after = after_rounds(result, progress)
     fill = fill_with_homographies(result, cameras) if homographies else None
     corr = result.correspondences(fps=capture.fps / stride, homographies=fill, max_per_frame=max_measurements)
     states = [s for row in result.states for s in row]

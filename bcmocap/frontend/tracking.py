@@ -886,19 +886,13 @@ def track_after_rounds(capture, trial: str, result, *, starts, stride: int, firs
                             first=first, stop=first + len(states), options=options, workers=workers)
 
 
-def sift_for_homographies(capture, trial: str, result, leave: np.ndarray, *, starts, stride: int, first: int,
-                          max_features: int = 8000) -> int:
-    """SIFT for the frames in ``leave`` that are still unregistered in ``result`` (a
-    :class:`~.relative.CaptureRegistration` of the processed frames ``first …``) and for their neighbours in
-    time that have no descriptors, so that :func:`~.homography.fill_with_homographies` can match each such
-    frame with the one before it. A registered frame keeps its measurements after its new SIFT keypoints.
-    Returns how many frames were extracted."""
+def _attach_sift(capture, trial: str, result, want: np.ndarray, *, starts, stride: int, first: int,
+                 max_features: int) -> int:
+    """Extract SIFT for the frames ``want (T, C)`` of ``result`` that have no descriptors and attach it to
+    their states: an unregistered frame's keypoints become the SIFT keypoints, a registered frame keeps its
+    measurements after them. Returns how many frames were extracted."""
     states = result.states
-    left = np.asarray(leave, bool) & ~result.registered
-    want = left.copy()
-    want[1:] |= left[:-1]
-    want[:-1] |= left[1:]
-    want &= np.array([[not len(st.descriptors) for st in row] for row in states], bool).reshape(want.shape)
+    want = want & np.array([[not len(st.descriptors) for st in row] for row in states], bool).reshape(want.shape)
     found = sift_at(capture, trial, want, starts=starts, stride=stride, first=first, max_features=max_features)
     for (t, c), (kp, desc) in found.items():
         st = states[t - first][c]
@@ -909,6 +903,44 @@ def sift_for_homographies(capture, trial: str, result, leave: np.ndarray, *, sta
             st.keypoints, st.point_ids = kp, np.full(len(kp), -1, np.int64)
         st.descriptors = desc
     return len(found)
+
+
+def sift_for_homographies(capture, trial: str, result, leave: np.ndarray, *, starts, stride: int, first: int,
+                          max_features: int = 8000) -> int:
+    """SIFT for the frames in ``leave`` that are still unregistered in ``result`` (a
+    :class:`~.relative.CaptureRegistration` of the processed frames ``first …``) and for their neighbours in
+    time that have no descriptors, so that :func:`~.homography.fill_with_homographies` can match each such
+    frame with the one before it. Returns how many frames were extracted."""
+    left = np.asarray(leave, bool) & ~result.registered
+    want = left.copy()
+    want[1:] |= left[:-1]
+    want[:-1] |= left[1:]
+    return _attach_sift(capture, trial, result, want, starts=starts, stride=stride, first=first,
+                        max_features=max_features)
+
+
+def rounds_for_the_rest(capture, trial: str, result, leave: np.ndarray, partners: list, index: ReferenceIndex, *,
+                        starts, stride: int, first: int, max_features: int = 8000, progress=None):
+    """A second pass of the rounds of relative registration for the frames in ``leave`` that neither the
+    first pass (on the seeds) nor :func:`track_after_rounds` registered: SIFT for them and their neighbours
+    (:func:`frames_for_rounds` with the ``partners`` of :func:`states_for_rounds`), then
+    :func:`~.relative.register_capture` from ``result``'s registration. Returns the new
+    :class:`~.relative.CaptureRegistration` (``result`` itself when nothing is left)."""
+    from .relative import RelativeOptions, register_capture
+
+    rest = np.asarray(leave, bool) & ~result.registered
+    if not rest.any():
+        return result
+    options = RelativeOptions(second_order_pairs=False)
+    _attach_sift(capture, trial, result, frames_for_rounds(~rest, options.max_time_gap, partners), starts=starts,
+                 stride=stride, first=first, max_features=max_features)
+    features = [[(s.keypoints, s.descriptors) for s in row] for row in result.states]
+    initial = [[(s.world_from_camera, s.point_ids, s.how) for s in row] for row in result.states]
+    second = register_capture(features, result.cameras, index, options, frames=result.frames, initial=initial,
+                              initial_points=result.points, progress=progress)
+    second.new_point_ids |= result.new_point_ids
+    second.rounds = result.rounds + second.rounds[1:]
+    return second
 
 
 def round_seeds(registered: np.ndarray, stride: int) -> np.ndarray:
@@ -927,7 +959,7 @@ def round_seeds(registered: np.ndarray, stride: int) -> np.ndarray:
 
 def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list, index: ReferenceIndex, *,
                       starts, stride: int, first: int, stop: int, options: TrackingOptions = TrackingOptions(),
-                      round_stride: int = 3, log: Callable[[str], None] = print) -> tuple[list, list, dict, np.ndarray]:
+                      round_stride: int = 3, log: Callable[[str], None] = print) -> tuple:
     """What :func:`~.relative.register_capture` needs for the processed frames ``first … stop − 1`` after
     tracking: the frames tracking left go through :func:`relocalise` and :func:`retrack` (``tracks`` are
     updated); of those still left, the rounds work on :func:`round_seeds` (every ``round_stride``-th of
@@ -936,8 +968,9 @@ def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list
     ``max_time_gap`` away; at the same time, the other cameras whose maps its frames matched most), and
     :func:`tracking_states` assembles features, initial registration and points.
 
-    Returns ``(features, initial, points, leave)``, ``leave (T, C)`` the unregistered frames the rounds
-    skip (``register_capture(..., leave=leave)``; :func:`track_after_rounds` fills them)."""
+    Returns ``(features, initial, points, leave, partners)``: ``leave (T, C)`` the unregistered frames the
+    rounds skip (``register_capture(..., leave=leave)``; :func:`track_after_rounds` fills them), ``partners[c]``
+    the cameras whose frames at the same time camera ``c``'s frames are matched with."""
     from ..io.colmap import to_pycolmap
     from .relative import RelativeOptions
 
@@ -962,4 +995,4 @@ def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list
     need &= ~np.stack([t.keyframe[first:stop] for t in tracks], 1)  # keyframes have their SIFT already
     extra = sift_at(capture, trial, need, starts=starts, stride=stride, first=first,
                     max_features=options.registration.max_features)
-    return (*tracking_states(tracks, keyframe_features, extra, first, stop, found), leave)
+    return (*tracking_states(tracks, keyframe_features, extra, first, stop, found), leave, partners)

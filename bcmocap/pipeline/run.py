@@ -207,7 +207,7 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
 
 # ---- stages -------------------------------------------------------------------------------------
 def _stage_frontend(ctx: RunContext) -> dict:
-    from ..frontend.command import prepare_reference, process_trial
+    from ..frontend.command import prepare_reference, process_trial, trial_settings
     from ..frontend.register import reference_index
 
     f = ctx.config.frontend
@@ -219,11 +219,12 @@ def _stage_frontend(ctx: RunContext) -> dict:
     reports = {}
     for trial, stride, homographies in (("rom", f.rom_stride, False), ("capture", f.stride, True)):
         done = folder / trial / "registration.json"
+        settings = trial_settings(stride=stride, frames=f.frames or None, max_features=f.max_features,
+                                  homographies=homographies, chunk_frames=f.chunk_frames, registration=f.registration,
+                                  max_measurements=f.max_measurements or None)
         if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
             report = _read_json(done)
-            same = (report.get("stride"), report.get("registration", "global"), report.get("max_measurements")) \
-                == (stride, f.registration, f.max_measurements or None)
-            if same:
+            if report.get("settings") == settings:
                 ctx.log(f"{trial}: registration found in {done}, reused")
                 reports[trial] = report
                 continue
