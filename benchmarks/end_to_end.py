@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, peak_rss_mb, write_json  # noqa: E402
 
 from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
+from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.pipeline import RunConfig, run_pipeline  # noqa: E402
 from bcmocap.sim.studio import StudioSettings, write_capture  # noqa: E402
 
@@ -46,7 +47,8 @@ def end_to_end(capture: Path, out: Path, config: RunConfig) -> dict:
         "solve_frames_per_second": solve_frames / stage_seconds["solve"] if stage_seconds.get("solve") else None,
         "registration": registration["capture"].get("registration", "global"),
         "registered_how": {t: {k: r.get(k) for k in ("registered_absolute", "registered_tracked",
-                                                     "registered_relocalised", "registered_relative")}
+                                                     "registered_relocalised", "registered_relative",
+                                                     "tracked_after_rounds")}
                            for t, r in registration.items()},
         "joint_position_error_cm": metrics["solved"]["joint_position_error_cm"],
         "joint_angle_error_deg": metrics["solved"]["joint_angle_error_deg"],
@@ -99,6 +101,7 @@ def main(argv=None) -> int:
                              "'global' (SIFT and reference matching of every frame): stored beside this run as "
                              "baseline_global_registration, after checking its capture settings match")
     args = parser.parse_args(argv)
+    enable_float64()
     enable_compilation_cache()
 
     from bcmocap.pipeline.config import load_config

@@ -127,10 +127,11 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     are given), through sync, features, registration and homographies, written under ``out``.
 
     ``registration`` "tracking" tracks each camera's video (:mod:`~.tracking`: KLT and PnP, SIFT
-    and global matching only at keyframes; cached in ``out/tracks/<trial>/``) and hands the frames it leaves
-    to the rounds of relative registration, with SIFT extracted only for them and their neighbours;
+    and global matching only at keyframes; cached in ``out/tracks/<trial>/``) and hands every third frame it
+    leaves to the rounds of relative registration, with SIFT extracted only for them and their neighbours,
+    then tracks the others from the frames the rounds registered (a second pass of the rounds takes the rest);
     "global" (default) extracts SIFT of every frame and matches each against the reference (tracking is
-    about twice as fast on the 10 s walk but not yet as accurate). ``max_measurements`` caps the
+    about three times as fast on the 10 s walk but not yet as accurate). ``max_measurements`` caps the
     measurements per camera-frame (:mod:`~.selection`; None keeps all).
 
     With ``chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
