@@ -14,6 +14,7 @@ from .io.output_folder import output_folder
 from .kcs.command import add_kcs_command
 from .markers.command import add_markers_command
 from .pipeline.command import add_run_command
+from .precision import enable_float64
 from .sim.studio_command import add_simulate_command
 
 
@@ -166,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     for add in COMMANDS:
         add(sub)
     args = parser.parse_args(argv)
+    enable_float64()
     try:
         return int(args.run(args))
     except KeyboardInterrupt:

@@ -30,6 +30,7 @@ from estimated_skeleton import GOAL_ANGLE_DEG, GOAL_POSITION_CM  # noqa: E402
 from estimated_skeleton import run_motion as run_estimated_skeleton  # noqa: E402
 
 from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
+from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.eval import evaluate_motion  # noqa: E402
 from bcmocap.sim import standard_capture  # noqa: E402
 from bcmocap.solver import SolverOptions, solve  # noqa: E402
@@ -58,6 +59,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--known-skeleton-only", action="store_true", help="skip the estimated-skeleton row")
     args = parser.parse_args(argv)
+    enable_float64()
     enable_compilation_cache()
     results = {}
     print("known skeleton and mounts:")

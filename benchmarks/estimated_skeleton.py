@@ -202,7 +202,9 @@ def main(argv=None) -> int:
     parser.add_argument("--rounds", type=int, default=1, help="refinement rounds with --refine (a second one moved nothing on walk)")
     args = parser.parse_args(argv)
     from bcmocap.compilation_cache import enable_compilation_cache
+    from bcmocap.precision import enable_float64
 
+    enable_float64()
     enable_compilation_cache()
     if args.refine:
         return main_refined(args)

@@ -51,6 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import write_json  # noqa: E402
 
 from bcmocap.frontend import read_capture, synchronize  # noqa: E402
+from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.frontend.reference import build_reference  # noqa: E402
 from bcmocap.frontend.register import reference_index, similarity  # noqa: E402
 from bcmocap.frontend.homography import fill_with_homographies  # noqa: E402
@@ -268,6 +269,7 @@ def earlier_end_to_end(path: Path, settings: dict) -> dict:
 
 
 def main(argv=None) -> int:
+    enable_float64()
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--json", help="write the figures to this file")
     parser.add_argument("--capture", type=Path, help="a rendered capture folder (default: render a small one)")

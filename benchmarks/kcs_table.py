@@ -41,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import write_json  # noqa: E402
 
 from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
+from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.io import read_amc, read_asf  # noqa: E402
 from bcmocap.kcs import (  # noqa: E402
     CMU_JOINTS,
@@ -220,6 +221,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-ablation", action="store_true", help="skip the row for the paper's relaxation as printed")
     args = parser.parse_args(argv)
+    enable_float64()
     enable_compilation_cache()
     options = KCSOptions()
     chain, trials = load_trials(args.cmu_dir)

@@ -27,6 +27,7 @@ from _common import write_json  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
+from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.markers import MarkerOptions, MarkerTrajectories, fit_marker_skeleton  # noqa: E402
 from bcmocap.sim.markers import MarkerNoise, linkage_markers, linkage_motion, linkage_skeleton, simulate_markers  # noqa: E402
 
@@ -80,6 +81,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, default=20.0, help="length of each trial")
     parser.add_argument("--fps", type=float, default=120.0)
     args = parser.parse_args(argv)
+    enable_float64()
     enable_compilation_cache()
     trials = []
     print(f"{'trial':>5}{'result cm':>11}{'error cm':>10}{'error %':>9}{'groups ok':>11}{'IK rms mm':>11}{'seconds':>9}")

@@ -40,6 +40,7 @@ from _common import write_json  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
+from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.kinematics import Motion, joint_positions  # noqa: E402
 from bcmocap.markers import MarkerOptions, MarkerTrajectories, fit_marker_skeleton, merge_identities, preprocess  # noqa: E402
 from bcmocap.sim import load_body_motion  # noqa: E402
@@ -178,6 +179,7 @@ def main(argv=None) -> int:
     parser.add_argument("--calibration-seconds", type=float, default=10.0)
     parser.add_argument("--skip-cmu-only", action="store_true", help="skip the block without calibration sequence")
     args = parser.parse_args(argv)
+    enable_float64()
     enable_compilation_cache()
     header = (f"{'motion':<6}{'seed':>5}{'frames':>7}{'labels':>7}{'topology':>10}{'joint cm':>10}{'len %':>9}"
               f"{'merge %':>9}{'spectr %':>10}{'s/1000f':>10}")

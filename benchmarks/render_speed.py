@@ -31,6 +31,7 @@ from _common import write_json  # noqa: E402
 
 from bcmocap.cameras import camera_at  # noqa: E402
 from bcmocap.kinematics import camera_poses  # noqa: E402
+from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.sim import load_body_motion, standard_rig  # noqa: E402
 from bcmocap.sim.render import Renderer  # noqa: E402
 from bcmocap.sim.scene import make_textured_scene  # noqa: E402
@@ -128,6 +129,7 @@ def stats(values) -> dict:
 
 
 def main() -> int:
+    enable_float64()
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--json", help="write the figures to this file")
     parser.add_argument("--frames", type=int, default=24, help="frames per camera at 640x360 (1280x720: a third)")

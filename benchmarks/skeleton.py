@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json  # noqa: E402
 
+from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.sim import load_body_motion, range_of_motion_trial, skeleton_errors, standard_rig  # noqa: E402
 
 GOALS = {"joint_centre_error_cm": 1.0, "bone_length_error_pct": 2.0, "mount_rotation_error_deg": 1.0}
@@ -79,6 +80,7 @@ def run_subject(motion: str, seed: int, outlier_fraction: float = 0.0) -> dict:
 
 
 def main(argv=None) -> int:
+    enable_float64()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", help="write the figures to this file")
     parser.add_argument("--subjects", nargs="+", default=list(SUBJECTS), choices=list(SUBJECTS))

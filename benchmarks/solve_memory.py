@@ -63,11 +63,13 @@ def tile(run: Path, repeats: int, folder: Path) -> CorrespondenceStore:
 def child(mode: str, run: Path, folder: Path) -> dict:
     """Solve the tiled trial in ``folder`` (this process only), return the figures."""
     from bcmocap.compilation_cache import enable_compilation_cache
+    from bcmocap.precision import enable_float64
     from bcmocap.pipeline.config import load_config
     from bcmocap.pipeline.run import load_model, load_motion, objective_weights
     from bcmocap.solver import Problem, SolverOptions, solve
     from bcmocap.solver.objective import StoredProblem, paper_terms
 
+    enable_float64()
     enable_compilation_cache()
     config = load_config(run / "config.json" if (run / "config.json").is_file() else None)
     s = config.solver

@@ -32,6 +32,7 @@ import scipy.sparse  # noqa: E402
 from _common import peak_rss_mb, write_json  # noqa: E402
 
 from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
+from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.residuals import CameraPairTerm, PairTerm  # noqa: E402
 from bcmocap.sim import standard_capture  # noqa: E402
 from bcmocap.solver import SolverOptions, solve, whole_sequence_residual_function  # noqa: E402
@@ -117,6 +118,7 @@ def measure_speed(seconds: float, scipy_seconds: float) -> dict:
 
 def rss_child(seconds: float) -> None:
     """Solve a sequence whose measurements are simulated window by window; print peak RSS as JSON."""
+    enable_float64()
     enable_compilation_cache()
     capture = standard_capture("walk", seconds=seconds, repeat=True)
     initial = capture.initial_motion()
@@ -145,6 +147,7 @@ def main(argv=None) -> int:
     if args.rss_child is not None:
         rss_child(args.rss_child)
         return 0
+    enable_float64()
     enable_compilation_cache()
     result = measure_speed(args.seconds, args.scipy_seconds)
     rss = {f"{s:g}s": measure_rss(s) for s in args.rss}

@@ -14,12 +14,9 @@ import argparse
 import jax.numpy as jnp
 import numpy as np
 
+from bcmocap import FrameTerm, JointType, Problem, SolverOptions, enable_float64, paper_terms, solve
 from bcmocap.eval import evaluate_motion
-from bcmocap.kinematics import JointType
-from bcmocap.residuals import FrameTerm
 from bcmocap.sim import standard_capture
-from bcmocap.solver import Problem, SolverOptions, solve
-from bcmocap.solver.objective import paper_terms
 
 
 class HingeLimits(FrameTerm):
@@ -42,6 +39,7 @@ class HingeLimits(FrameTerm):
 
 
 def main(argv=None):
+    enable_float64()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=1.0)
     args = parser.parse_args(argv)

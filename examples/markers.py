@@ -23,6 +23,7 @@ from collections import Counter
 from pathlib import Path
 
 from bcmocap.compilation_cache import enable_compilation_cache
+from bcmocap.precision import enable_float64
 from bcmocap.io import read_c3d
 from bcmocap.kinematics import Motion
 from bcmocap.markers import MarkerOptions, MarkerTrajectories, fit_marker_skeleton
@@ -81,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.groups is not None and args.groups < 1:
         parser.error("--groups must be at least 1")
+    enable_float64()
     enable_compilation_cache()
 
     truth = None

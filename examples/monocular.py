@@ -22,6 +22,7 @@ import numpy as np
 
 from bcmocap.cameras import PinholeCamera
 from bcmocap.compilation_cache import enable_compilation_cache
+from bcmocap.precision import enable_float64
 from bcmocap.io import load_cmu
 from bcmocap.kcs import (
     CMU_JOINTS,
@@ -67,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--frames must be at least 2")
     if not args.distance > 0:
         parser.error("--distance must be positive")
+    enable_float64()
     enable_compilation_cache()
 
     chain, truth = cmu_joints(args.motion)

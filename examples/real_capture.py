@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from bcmocap.compilation_cache import enable_compilation_cache
+from bcmocap.precision import enable_float64
 from bcmocap.kinematics import joint_positions
 from bcmocap.pipeline import STAGES, load_config, load_model, load_motion, run_pipeline
 
@@ -83,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         parser.error(str(exc))
 
+    enable_float64()
     enable_compilation_cache()
     try:
         log = run_pipeline(args.capture, out, config, log=lambda line: print(line, flush=True),

@@ -17,6 +17,7 @@ import argparse
 import time
 
 from bcmocap.compilation_cache import enable_compilation_cache
+from bcmocap.precision import enable_float64
 from bcmocap.eval import evaluate_motion
 from bcmocap.sim import CMU_TRIALS, standard_capture
 from bcmocap.solver import SolverOptions, solve
@@ -41,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--seconds must be positive")
     if not 0 <= args.overlap < args.window:
         parser.error("--overlap must be in [0, --window)")
+    enable_float64()
     enable_compilation_cache()  # later runs skip most of the XLA compilation
 
     start = time.perf_counter()

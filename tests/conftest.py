@@ -10,7 +10,6 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 import pytest
 
-import bcmocap  # noqa: F401  (turns on float64)
 from bcmocap.cameras import FOVCamera
 from bcmocap.geometry import SE3, SO3
 from bcmocap.kinematics import Motion, Rig, Skeleton

@@ -63,3 +63,27 @@ def test_expected_failures_of_any_stage_end_in_one_line(tmp_path, monkeypatch, c
         assert main(["run", str(capture), "--out", str(tmp_path / "out")]) == code
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and err.startswith("bcmocap run: ") and line in err, err
+
+
+def test_importing_bcmocap_leaves_float32_and_the_solver_says_what_to_do():
+    """No import-time side effect: a fresh interpreter importing bcmocap keeps JAX's float32 default, and
+    bcmocap.solve refuses it with the fix in the message; enable_float64 turns it on."""
+    import subprocess
+
+    code = (
+        "import jax, bcmocap\n"
+        "assert not jax.config.read('jax_enable_x64')\n"
+        "try:\n"
+        "    bcmocap.solve(None, None)\n"
+        "except RuntimeError as err:\n"
+        "    print(err)\n"
+        "bcmocap.enable_float64()\n"
+        "assert jax.numpy.zeros(1).dtype == 'float64'\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "bcmocap.solve needs float64 in JAX: call bcmocap.enable_float64()" in out.stdout
+    import bcmocap
+
+    assert {"Skeleton", "Motion", "Rig", "Problem", "solve", "paper_problem", "FrameTerm"} <= set(bcmocap.__all__)
+    assert all(hasattr(bcmocap, name) for name in bcmocap.__all__)

@@ -49,6 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..precision import require_float64
 from .anatomy import Anatomy, human_anatomy
 from .cameras import WeakPerspectiveCameras, fit_cameras, initial_cameras, reprojection_rms
 from .chain_space import KinematicChainSpace
@@ -538,6 +539,7 @@ def reconstruct(
         ValueError: wrong shapes (naming the expected and actual ones), infinite values, a mean pose with
             NaN, or a sequence where no frame observes two bones.
     """
+    require_float64("bcmocap.kcs.reconstruct")
     if options.rank is not None:
         frames = np.shape(joints_2d)[-3] if np.ndim(joints_2d) >= 3 else 0
         if options.rank > min(2 * frames, chain.num_bones):

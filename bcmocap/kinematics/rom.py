@@ -50,6 +50,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ..cameras import CameraModel
+from ..precision import require_float64
 from .rig import Rig
 from .skeleton import JointType, Skeleton
 from .virtual import (
@@ -373,6 +374,7 @@ def skeleton_from_range_of_motion(
         UserWarning: a camera registered with its segment's other cameras in few frames; a hinge whose
             rotations are not about one axis; a degenerate ball joint regularised as a hinge.
     """
+    require_float64("bcmocap.kinematics.skeleton_from_range_of_motion")
     if isinstance(topology, Skeleton):
         topology = Topology.from_skeleton(topology)
     pairs = _as_pairs(cameras)

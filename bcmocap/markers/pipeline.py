@@ -21,6 +21,7 @@ import numpy as np
 
 from ..kinematics.fk import joint_positions
 from ..kinematics.skeleton import Motion, Skeleton
+from ..precision import require_float64
 from .identities import IdentityMerge, merge_identities
 from .ik import IkResult, initial_motion, solve_ik
 from .joints import JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
@@ -292,6 +293,7 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
     Raises:
         ValueError: input the pipeline cannot use; the message names the marker, group or segment.
     """
+    require_float64("bcmocap.markers.fit_marker_skeleton")
     notes: list[str] = []
     seconds: dict[str, float] = {}
 

@@ -62,6 +62,7 @@ from ..geometry import SE3, SO3
 from ..kinematics.rig import Rig, camera_poses
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 from ..residuals import Reprojection
+from ..precision import require_float64
 from .objective import ObjectiveWeights, paper_problem, paper_terms
 from .solve import Solution, SolverOptions, solve
 
@@ -536,6 +537,7 @@ def refine_skeleton_and_rig(
     Raises:
         ValueError: measurements, motion or prior that do not fit the model; unknown ``root_origin``.
     """
+    require_float64("bcmocap.solver.refine_skeleton_and_rig")
     start_time = time.perf_counter()
     _check_inputs(correspondences, skeleton, rig, motion, prior)
     base_skeleton, base_rig = prior if prior is not None else (skeleton, rig)

@@ -23,6 +23,7 @@ import optimistix as optx
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
 from ..residuals.base import CameraPairTerm, CameraTerm, Term
+from ..precision import require_float64
 from .levenberg_marquardt import StructuredLevenbergMarquardt
 from .window import WindowProblem, normal_equations, residuals
 
@@ -193,6 +194,7 @@ def solve(
         ValueError: mismatched shapes, NaN/inf, or a window without any usable observation.
         FloatingPointError: a window's solve produced a non-finite motion.
     """
+    require_float64("bcmocap.solve")
     skeleton, rig, num_frames = problem.skeleton, problem.rig, problem.num_frames
     initial_motion.check(skeleton, "initial_motion")
     if initial_motion.num_frames != num_frames:
