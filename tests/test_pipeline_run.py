@@ -128,6 +128,11 @@ def test_rerun_reuses_finished_stages_and_changed_settings_redo_only_what_they_a
     lines = []
     run_pipeline(fake, out, config.with_overrides({"outputs.pictures": False}), log=lines.append)
     assert sum("reused" in line for line in lines) == 5 and any("outputs: settings changed" in line for line in lines)
+    (out / "motion.bvh").unlink()  # a deleted output is written again, not taken as done
+    lines = []
+    run_pipeline(fake, out, config.with_overrides({"outputs.pictures": False}), log=lines.append)
+    assert sum("reused" in line for line in lines) == 5 and (out / "motion.bvh").is_file()
+    assert any("motion.bvh is missing, redoing it" in line for line in lines)
 
 
 def test_an_interrupted_solve_resumes_at_the_next_window(simulated_run, tmp_path):

@@ -43,6 +43,16 @@ STAGES = ("frontend", "world", "skeleton", "initial", "solve", "outputs")
 #: Config sections each stage depends on (a change redoes the stage and every later one).
 _STAGE_SECTIONS = {"frontend": ("frontend",), "world": ("skeleton",), "skeleton": ("skeleton",),
                    "initial": (), "solve": ("solver",), "outputs": ("outputs",)}
+#: What each stage writes (relative to DIR): a finished stage whose outputs were deleted is done again.
+STAGE_OUTPUTS = {
+    "frontend": ("frontend/rom/registration.json", "frontend/rom/correspondences/index.json",
+                 "frontend/capture/registration.json", "frontend/capture/correspondences/index.json"),
+    "world": ("world/similarity.json",),
+    "skeleton": ("model/skeleton.json", "model/rig.json"),
+    "initial": ("solve/initial.npz", "solve/correspondences/index.json"),
+    "solve": ("solve/motion.npz",),
+    "outputs": ("motion.bvh", "motion.npz", "joint_angles.csv", "joint_positions.csv", "scene.ply", "camera_paths.ply"),
+}
 RUN_FORMAT = "bcmocap-run"
 
 
@@ -187,10 +197,13 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
     prints = fingerprints(config)
     redo = False
     for i, stage in enumerate(STAGES, start=1):
-        if not redo and run_log.finished(stage, prints[stage]):
+        missing = [name for name in STAGE_OUTPUTS[stage] if not (out / name).exists()]
+        if not redo and run_log.finished(stage, prints[stage]) and not missing:
             say(f"[{i}/{len(STAGES)}] {stage}: done before, reused")
         else:
-            if not redo and stage in run_log.data["stages"]:
+            if not redo and run_log.finished(stage, prints[stage]):
+                say(f"[{i}/{len(STAGES)}] {stage}: {out / missing[0]} is missing, redoing it and the stages after it")
+            elif not redo and stage in run_log.data["stages"]:
                 say(f"[{i}/{len(STAGES)}] {stage}: settings changed, redoing it and the stages after it")
             redo = True
             run_log.forget_from(stage)
