@@ -187,3 +187,17 @@ def test_motion_from_tangent_roundtrip(setup):
     y = np.asarray(skeleton.difference(init, truth)).ravel()
     back = motion_from_tangent(make_problem(setup), init, y)
     assert evaluate_motion(skeleton, back, truth)["joint_position_error_cm"]["max"] < 1e-6
+
+
+def test_a_window_stopped_at_max_steps_reports_it(setup):
+    """A window cut short by max_steps is reported as not converged, with its step count, and the cost it
+    reached; given the steps it needs, the same window converges."""
+    _, _, _, _, _, init = setup
+    problem = make_problem(setup)
+    short = solve(problem, init, SolverOptions(window=T, overlap=0, max_steps=1, rtol=1e-12, atol=1e-12))
+    (report,) = short.reports
+    assert not report.converged and not short.converged
+    assert report.num_steps == 1 and report.final_cost <= report.initial_cost
+    full = solve(problem, init, SolverOptions(window=T, overlap=0, max_steps=50))
+    assert full.converged and full.reports[0].num_steps > 1
+    assert full.reports[0].final_cost < report.final_cost
