@@ -285,6 +285,7 @@ def test_depth_smoothing_is_a_normalised_gaussian(rng):
 # ---- Algorithm 1 -----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_quadruped_reconstructs(scene, solved):
     """A non-human chain (§4.3): far better than the rest pose it starts from, bone lengths recovered."""
     chain, joints, rest, rotations, uv = scene

@@ -255,6 +255,7 @@ def test_rigid_skeleton_of_the_linkage(linkage):
 # ---- identities -------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_identity_merging_on_the_linkage():
     skeleton = linkage_skeleton(LENGTHS)
     markers = linkage_markers(LENGTHS, seed=8)

@@ -54,6 +54,7 @@ def test_cli_on_a_c3d_file_with_broken_labels(tmp_path, capsys):
     assert (out / "report.txt").read_text().startswith(f"{sim.positions.shape[0]} frames at 60 Hz")
 
 
+@pytest.mark.slow
 def test_pipeline_on_an_array_fills_gaps_and_recovers_the_middle_rod():
     sim = linkage_capture(seed=6, noise=MarkerNoise(sigma_m=0.0005, spike_probability=0.0, gap_rate_hz=0.1,
                                                        gap_seconds=(0.1, 0.3), relabel_after_gap=0.0, label_break_rate_hz=0.0))

@@ -49,6 +49,7 @@ def calls(d):
     }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["angles", "positions", "centres", "top", "skeleton"])
 def test_writes_png_and_overwrites_atomically(tmp_path, data, name):
     draw = calls(data)[name]

@@ -52,6 +52,7 @@ def expected_floor_colour(scene, points, footprint, options):
     return scene.colors[0] * ((0.15 + 0.85 * grey) * lit)[:, None] * 255.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model", sorted(CAMERAS))
 def test_floor_texel_lands_where_project_puts_it(model):
     camera = CAMERAS[model]
@@ -174,6 +175,7 @@ def test_interpolate_poses_holds_ends_and_slerps():
     np.testing.assert_allclose(rot[0], np.eye(3), atol=1e-12)
 
 
+@pytest.mark.slow
 def test_sift_keeps_many_inliers_between_consecutive_frames():
     # A camera carried at walking speed (1.4 m/s, turning 20°/s) past the clutter, 320x180, 170° FOV.
     scene = make_textured_scene(np.array([[0.0, 0.0], [3.0, 0.0]]), seed=1)

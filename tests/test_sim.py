@@ -50,6 +50,7 @@ def test_frames_depend_only_on_seed_and_frame_index(capture, corr):
             np.testing.assert_array_equal(a[1:FRAMES], b, err_msg=f.name)
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_measurements(capture, corr):
     # A second capture with the same truth, scene and seed (this compiles a second simulator: one frame only).
     twin = dataclasses.replace(capture)
@@ -202,6 +203,7 @@ def test_resample(skeleton):
     np.testing.assert_allclose(odd.root_position[1], 0.6 * p[2] + 0.4 * p[3], atol=1e-14)
 
 
+@pytest.mark.slow
 def test_lazy_problem_windows_equal_the_in_memory_problem(capture, corr):
     """Simulating a window on demand gives the same terms as slicing the whole sequence's problem."""
     from bcmocap.solver.objective import paper_terms
