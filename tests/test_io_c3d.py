@@ -87,3 +87,14 @@ def test_bad_files(tmp_path):
     c.write(str(path))
     with pytest.raises(ValueError, match="POINT:UNITS is 'furlong'"):
         read_c3d(path)
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.5, 0.95])
+def test_a_truncated_file_is_refused_not_read_short(tmp_path, fraction):
+    """ezc3d reads a truncated file's complete frames and adjusts the header it returns; the raw header's
+    frame count gives the truncation away."""
+    data = SAMPLE.read_bytes()
+    cut = tmp_path / "cut.c3d"
+    cut.write_bytes(data[: int(len(data) * fraction)])
+    with pytest.raises(ValueError, match=r"cut\.c3d: truncated: the header announces 450 frames, the file holds"):
+        read_c3d(cut)

@@ -105,6 +105,25 @@ def _strip_subject(label: str) -> str:
     return label.split(":", 1)[1] if ":" in label else label
 
 
+def _announced_frames(path: Path) -> int | None:
+    """Frames the raw C3D header announces (words 4–5: first and last frame), or None where it cannot
+    say: a header that is not C3D's, or a trial longer than its 16-bit fields (ezc3d adjusts the header it
+    returns to the frames it could read, so truncation is only visible in the bytes)."""
+    import struct
+
+    with open(path, "rb") as f:
+        head = f.read(12)
+        if len(head) < 12 or head[1] != 0x50:
+            return None
+        f.seek(512 * (head[0] - 1) + 3)
+        processor = f.read(1)
+    order = ">" if processor == bytes([86]) else "<"  # 84 Intel, 85 DEC: little-endian words; 86 MIPS: big
+    first, last = struct.unpack(order + "HH", head[6:10])
+    if last == 0xFFFF or last < first:
+        return None
+    return last - first + 1
+
+
 def read_c3d(
     path: str | os.PathLike,
     *,
@@ -144,6 +163,10 @@ def read_c3d(
     if data.ndim != 3 or data.shape[1] == 0 or data.shape[2] == 0:
         shape = tuple(data.shape) if data.ndim == 3 else data.shape
         raise ValueError(f"{path}: the C3D file has no 3D points (POINT:USED = {_param(point, 'USED')}, data {shape})")
+    announced = _announced_frames(path)
+    if announced is not None and data.shape[2] < announced:
+        raise ValueError(f"{path}: truncated: the header announces {announced} frames, the file holds "
+                         f"{data.shape[2]}")
     count = data.shape[1]
     labels = _labels(point, count)
 
