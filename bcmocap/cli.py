@@ -173,9 +173,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"bcmocap {args.command}: interrupted (rerun the same command to resume)", file=sys.stderr)
         return 130
-    except (ValueError, OSError, MemoryError) as exc:
-        # Expected failures of any stage (bad input files, a full disk, an impossible allocation) end in one
-        # line naming what failed; BCMOCAP_TRACEBACK=1 shows where.
+    except (ValueError, OSError, MemoryError, FloatingPointError) as exc:
+        # Expected failures of any stage (bad input files, a full disk, an impossible allocation, a solve
+        # gone non-finite) end in one line naming what failed; BCMOCAP_TRACEBACK=1 shows where.
         if os.environ.get("BCMOCAP_TRACEBACK"):
             raise
         print(f"bcmocap {args.command}: {one_line_error(exc)}", file=sys.stderr)

@@ -46,7 +46,8 @@ def test_custom_residual_example_runs(monkeypatch, capsys):
 
 
 def test_expected_failures_of_any_stage_end_in_one_line(tmp_path, monkeypatch, capsys):
-    """ValueError, OSError and MemoryError from inside a command, and Ctrl-C, print one line, no traceback."""
+    """ValueError, OSError, MemoryError and a non-finite solve from inside a command, and Ctrl-C, print one
+    line, no traceback."""
     import bcmocap.pipeline.run as run_module
 
     capture = tmp_path / "capture"
@@ -54,6 +55,7 @@ def test_expected_failures_of_any_stage_end_in_one_line(tmp_path, monkeypatch, c
     for raised, code, line in [
         (OSError(28, "No space left on device", str(tmp_path / "out" / "x.npz")), 2, "x.npz: No space left on device"),
         (MemoryError(), 2, "out of memory"),
+        (FloatingPointError("solve: window of frames [0, 60) has a non-finite cost"), 2, "window of frames [0, 60)"),
         (KeyboardInterrupt(), 130, "interrupted (rerun the same command to resume)"),
     ]:
         def fail(*args, raised=raised, **kwargs):

@@ -201,3 +201,21 @@ def test_a_window_stopped_at_max_steps_reports_it(setup):
     full = solve(problem, init, SolverOptions(window=T, overlap=0, max_steps=50))
     assert full.converged and full.reports[0].num_steps > 1
     assert full.reports[0].final_cost < report.final_cost
+
+
+class _BrokenPrior(FrameTerm):
+    """A user term with a bug: the log of a negative number on frame 2 (NaN residual)."""
+
+    def residual(self, state, data):
+        return jnp.log(data - 2.5 + state.motion.root_position[0] * 0.0)[None, None], jnp.ones(1, bool)
+
+
+def test_a_non_finite_window_is_rejected_naming_the_window_and_term(setup):
+    skeleton, rig, truth, points, (ids, pix, w), init = setup
+    problem = Problem(skeleton, rig, [
+        Reprojection({"point_ids": ids, "pixels": pix, "weights": w}, points=points, name="reprojection"),
+        _BrokenPrior(np.where(np.arange(T) == 2, 1.0, 3.0), name="broken prior"),
+    ])
+    with pytest.raises(FloatingPointError, match=r"window of frames \[0, 6\) has a non-finite cost or motion: "
+                                                 r"term\(s\) 'broken prior' are non-finite at its initial motion"):
+        solve(problem, init, SolverOptions(window=T, overlap=0, max_steps=3))

@@ -164,6 +164,16 @@ def _solve_window(problem: WindowProblem, options: SolverOptions):
     )
 
 
+def _non_finite_window(wp: WindowProblem, start: int, stop: int, num_dofs: int) -> str:
+    """Why window ``[start, stop)`` went non-finite: the terms whose residuals are already non-finite at its
+    initial motion, or else the steps."""
+    blocks = residuals(wp, jnp.zeros((stop - start, num_dofs)))
+    bad = [t.label for t, b in zip(wp.terms, blocks) if not np.all(np.isfinite(np.asarray(b)))]
+    why = (f"term(s) {', '.join(repr(b) for b in bad)} are non-finite at its initial motion" if bad
+           else "its terms are finite at its initial motion, so the Levenberg–Marquardt steps diverged")
+    return f"solve: window of frames [{start}, {stop}) has a non-finite cost or motion: {why}; nothing was kept"
+
+
 def solve(
     problem: SequenceProblem,
     initial_motion: Motion,
@@ -192,7 +202,8 @@ def solve(
 
     Raises:
         ValueError: mismatched shapes, NaN/inf, or a window without any usable observation.
-        FloatingPointError: a window's solve produced a non-finite motion.
+        FloatingPointError: a window's cost or motion became non-finite (naming the window and the terms that
+            are non-finite at its initial motion).
     """
     require_float64("bcmocap.solve")
     skeleton, rig, num_frames = problem.skeleton, problem.rig, problem.num_frames
@@ -227,8 +238,8 @@ def solve(
         wp = WindowProblem(skeleton, rig, terms, reference, jnp.asarray(start > 0))
         motion, c0, c1, steps, accepted, ok = _solve_window(wp, options)
         new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
-        if not (np.all(np.isfinite(new_root)) and np.all(np.isfinite(new_rot))):
-            raise FloatingPointError(f"solve: window of frames [{start}, {stop}) produced a non-finite motion")
+        if not (np.all(np.isfinite(new_root)) and np.all(np.isfinite(new_rot)) and np.isfinite(c0) and np.isfinite(c1)):
+            raise FloatingPointError(_non_finite_window(wp, start, stop, skeleton.num_dofs))
         root[start:stop], rotations[start:stop] = new_root, new_rot
         report = WindowReport(start, stop, float(c0), float(c1), int(steps), int(accepted), bool(ok), time.perf_counter() - t0)
         reports.append(report)
