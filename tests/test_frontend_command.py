@@ -18,3 +18,20 @@ def test_frontend_command_errors(tmp_path, capsys):
     a_file.write_text("keep me")
     assert main(["frontend", str(capture), "--out", str(a_file)]) == 2
     assert "exists and is not a folder" in capsys.readouterr().err and a_file.read_text() == "keep me"
+    assert main(["frontend", str(capture), "--out", str(capture / "out")]) == 2
+    assert "is inside the capture folder" in capsys.readouterr().err and not (capture / "out").exists()
+
+
+def test_a_second_command_on_the_same_output_is_refused(tmp_path, capsys):
+    import os
+
+    from bcmocap.io.output_folder import locked_output
+
+    capture = make_capture(tmp_path / "capture")
+    out = tmp_path / "out"
+    out.mkdir()
+    with locked_output(out):  # a `bcmocap run` or `bcmocap frontend` already writing there
+        assert main(["frontend", str(capture), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"another bcmocap command (pid {os.getpid()}) is writing" in err
+    assert sorted(p.name for p in out.iterdir()) == ["run.lock"]  # nothing else was written

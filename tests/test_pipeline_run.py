@@ -182,13 +182,13 @@ def test_missing_subject_is_a_clear_error(simulated_run, tmp_path):
 
 
 def test_a_second_run_on_the_same_output_is_refused(simulated_run, tmp_path):
-    from bcmocap.pipeline.run import _locked
+    from bcmocap.io.output_folder import locked_output
 
     _, _, _, _, _, fake, config = simulated_run
     out = tmp_path / "out"
     out.mkdir()
-    with _locked(out):  # another run holds the folder (flock: a second open file description conflicts)
-        with pytest.raises(ValueError, match=rf"another bcmocap run \(pid {os.getpid()}\) is writing"):
+    with locked_output(out):  # another run holds the folder (flock: a second open file description conflicts)
+        with pytest.raises(ValueError, match=rf"another bcmocap command \(pid {os.getpid()}\) is writing"):
             run_pipeline(fake, out, config, log=lambda line: None)
     assert sorted(p.name for p in out.iterdir()) == ["run.lock"]
 

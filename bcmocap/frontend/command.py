@@ -25,7 +25,7 @@ import sys
 import time
 
 from ..atomic import write_json_atomic
-from ..io.output_folder import output_folder
+from ..io.output_folder import check_outside, locked_output, output_folder
 
 
 MAX_MEASUREMENTS = 400
@@ -341,6 +341,7 @@ def run_frontend(args: argparse.Namespace) -> int:
         return 2
     try:
         capture = read_capture(args.capture)
+        check_outside(out, capture.path)
         trials = args.trial or list(capture.trials)
         unknown = [t for t in trials if t not in capture.trials]
         if unknown:
@@ -351,14 +352,14 @@ def run_frontend(args: argparse.Namespace) -> int:
             if len(offsets) != len(capture.camera_names):
                 raise ValueError(f"--offsets gives {len(offsets)} values for {len(capture.camera_names)} cameras")
         out.mkdir(parents=True, exist_ok=True)
-        model = prepare_reference(capture, out / "reference", log=lambda m: print(m, flush=True))
     except ValueError as exc:
         print(f"bcmocap frontend: {exc}", file=sys.stderr)
         return 2
-    index = reference_index(model)
-    for trial in trials:
-        process_trial(capture, index, trial, out, stride=args.stride, frames=args.frames,
-                      max_features=args.max_features, offsets=offsets, chunk_frames=args.chunk_frames,
-                      registration=args.registration, max_measurements=args.max_measurements or None,
-                      log=lambda m: print(m, flush=True))
+    with locked_output(out):  # a second command on this --out is refused (bcmocap's main prints it)
+        index = reference_index(prepare_reference(capture, out / "reference", log=lambda m: print(m, flush=True)))
+        for trial in trials:
+            process_trial(capture, index, trial, out, stride=args.stride, frames=args.frames,
+                          max_features=args.max_features, offsets=offsets, chunk_frames=args.chunk_frames,
+                          registration=args.registration, max_measurements=args.max_measurements or None,
+                          log=lambda m: print(m, flush=True))
     return 0

@@ -1,9 +1,12 @@
-"""The ``--out`` folder of a command."""
+"""The ``--out`` folder of a command: checked, and locked while a command writes to it."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -14,3 +17,31 @@ def output_folder(command: str, out: str | os.PathLike) -> Path | None:
         print(f"bcmocap {command}: --out {out} exists and is not a folder", file=sys.stderr)
         return None
     return out
+
+
+def check_outside(out: Path, capture: Path) -> None:
+    """``ValueError`` if ``out`` is the capture folder or inside it: a capture is only ever read."""
+    out, capture = Path(out).resolve(), Path(capture).resolve()
+    if out == capture or capture in out.parents:
+        raise ValueError(f"--out {out} is inside the capture folder {capture}: the capture is never written")
+
+
+@contextlib.contextmanager
+def locked_output(out: Path) -> Iterator[None]:
+    """Hold ``out/run.lock`` (an advisory ``flock``, released by the kernel even on kill -9) while the block
+    runs, or raise ``ValueError`` naming the holder's pid when another process holds it: two commands never
+    write into one output folder at once."""
+    path = Path(out) / "run.lock"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            raise ValueError(f"{out}: another bcmocap command (pid {holder}) is writing to this folder; wait for it "
+                             "or choose another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)

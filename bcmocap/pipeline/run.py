@@ -23,10 +23,8 @@ Nothing in the capture folder is written; every output file is written atomicall
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import datetime
-import fcntl
 import hashlib
 import json
 import os
@@ -37,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path, write_json_atomic
+from ..io.output_folder import check_outside, locked_output
 from .config import RunConfig
 
 STAGES = ("frontend", "world", "skeleton", "initial", "solve", "outputs")
@@ -141,31 +140,10 @@ def run_pipeline(capture_dir: str | Path, out: str | Path, config: RunConfig = R
         raise ValueError(f"stop_after must be one of {STAGES}, got {stop_after!r}")
     capture = capture_dir if isinstance(capture_dir, Capture) else read_capture(capture_dir)
     out = Path(out)
-    if out.resolve() == capture.path.resolve() or capture.path.resolve() in out.resolve().parents:
-        raise ValueError(f"--out {out} is inside the capture folder {capture.path}: the capture is never written")
+    check_outside(out, capture.path)
     out.mkdir(parents=True, exist_ok=True)
-    with _locked(out):
+    with locked_output(out):
         return _run_stages(capture, out, config, log, stop_after)
-
-
-@contextlib.contextmanager
-def _locked(out: Path):
-    """Hold ``DIR/run.lock`` (an advisory ``flock``, released by the kernel even on kill -9) for the run, or
-    raise ``ValueError`` when another process holds it."""
-    path = out / "run.lock"
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
-            raise ValueError(f"{out}: another bcmocap run (pid {holder}) is writing to this folder; wait for it "
-                             "or choose another --out") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        yield
-    finally:
-        os.close(fd)
 
 
 def _append_line(path: Path, line: str) -> None:
