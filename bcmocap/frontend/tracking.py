@@ -912,9 +912,7 @@ def sift_for_homographies(capture, trial: str, result, leave: np.ndarray, *, sta
     time that have no descriptors, so that :func:`~.homography.fill_with_homographies` can match each such
     frame with the one before it. Returns how many frames were extracted."""
     left = np.asarray(leave, bool) & ~result.registered
-    want = left.copy()
-    want[1:] |= left[:-1]
-    want[:-1] |= left[1:]
+    want = frames_for_rounds(~left, 1, [()] * left.shape[1])  # each such frame and the ones beside it in time
     return _attach_sift(capture, trial, result, want, starts=starts, stride=stride, first=first,
                         max_features=max_features)
 
