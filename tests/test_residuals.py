@@ -20,6 +20,7 @@ from bcmocap.residuals import (
     CauchyLoss,
     FrameTerm,
     HomographyTransfer,
+    MultiFrameTerm,
     HuberLoss,
     JointSmoothness,
     Reprojection,
@@ -252,13 +253,18 @@ def assert_structured_matches_dense(problem, y):
     grad = (jac.T @ r).reshape(W, d)
     hess = irls_reference(problem, y).reshape(W, d, W, d)
     ne = structured_system(problem, y)
-    assert ne.diag.shape == (W, d, d) and ne.upper.shape == (W - 1, d, d) and ne.grad.shape == (W, d)
+    assert ne.diag.shape == (W, d, d) and ne.grad.shape == (W, d)
+    assert [b.shape for b in ne.bands] == [(W - k, d, d) for k in range(1, problem.history + 1)]
     scale = np.abs(hess).max()
     for t in range(W):
         np.testing.assert_allclose(ne.diag[t], hess[t, :, t], rtol=1e-8, atol=1e-9 * scale)
         np.testing.assert_allclose(ne.grad[t], grad[t], rtol=1e-8, atol=1e-9 * np.abs(grad).max())
-    for t in range(W - 1):
-        np.testing.assert_allclose(ne.upper[t], hess[t, :, t + 1], rtol=1e-8, atol=1e-9 * scale)
+    for k, band in enumerate(ne.bands, start=1):
+        for t in range(W - k):
+            np.testing.assert_allclose(band[t], hess[t, :, t + k], rtol=1e-8, atol=1e-9 * scale)
+    for t in range(W):  # nothing outside the band
+        for u in range(t + problem.history + 1, W):
+            np.testing.assert_array_equal(hess[t, :, u], 0.0)
     return hess, scale
 
 
@@ -593,3 +599,61 @@ def test_user_frame_camera_and_translating_pair_terms_match_the_dense_jacobian(s
     # only the pair term couples neighbouring frames: every camera centre moves with the root position, so
     # the root-position block of the coupling is −λ·C·I
     np.testing.assert_allclose(hess[0, :3, 1, :3], -100.0 * c * np.eye(3), atol=1e-9 * scale)
+
+
+class _CentreAcceleration(MultiFrameTerm):
+    """A user's three-frame term: each camera centre's second difference (an accelerometer's view of the
+    camera, in m per frame²)."""
+
+    span = 3
+
+    def residual(self, states, data):
+        centres = states.world_from_camera.translation()  # (3, C, 3)
+        return centres[2] - 2.0 * centres[1] + centres[0] - data["acceleration"], data["valid"]
+
+
+def _with_history(reference, history, rng):
+    """``reference`` (1 frame before the window) with ``history`` frames before the window."""
+    extra = history - 1
+    root = np.asarray(reference.root_position)
+    rot = np.asarray(reference.rotations)
+    root = np.concatenate([root[:1] + rng.normal(scale=0.02, size=(extra, 3)), root])
+    return Motion(root, np.concatenate([np.repeat(rot[:1], extra, axis=0), rot]))
+
+
+@pytest.fixture(scope="module")
+def span_problems(skeleton, rig, scene):
+    """Reprojection, root smoothness and a three-frame term over the window, with 0, 1 and 2 fixed frames."""
+    rng = np.random.default_rng(8)
+    c = rig.num_cameras
+    terms = [
+        Reprojection(scene["reprojection"], points=scene["points"], loss=CauchyLoss(2.0), name="reprojection"),
+        RootSmoothness(np.ones(W), weight=30.0, name="root smoothness"),
+        _CentreAcceleration({"acceleration": rng.normal(scale=0.01, size=(W, c, 3)), "valid": np.ones((W, c), bool)},
+                            weight=1e4, loss=HuberLoss(0.02), name="acceleration"),
+    ]
+    reference = _with_history(scene["reference"], 2, rng)
+    return {n: make_window_problem(skeleton, rig, [t.window(0, W) for t in terms], reference, n) for n in (0, 1, 2)}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("num_previous", [0, 2])
+def test_multi_frame_term_gives_the_banded_dense_system(span_problems, skeleton, num_previous):
+    """A three-frame term makes the window's matrix block banded with bandwidth 2; the structured system is
+    the dense one (gradient and IRLS matrix) and really couples frames two apart."""
+    problem = span_problems[num_previous]
+    assert problem.history == 2 and problem.num_frames == W
+    y = jnp.asarray(np.random.default_rng(9).normal(scale=0.01, size=(W, skeleton.num_dofs)))
+    hess, scale = assert_structured_matches_dense(problem, y)
+    assert np.abs(hess[0, :, 2]).max() > 1e-3 * scale
+
+
+def test_multi_frame_term_is_dropped_where_its_frames_are_missing(span_problems, skeleton):
+    """Block t of a three-frame term reads frames t−2…t: it exists iff t − 2 ≥ −num_previous."""
+    y = jnp.zeros((W, skeleton.num_dofs))
+    blocks = {n: np.asarray(residuals(p, y)[2]) for n, p in span_problems.items()}
+    for n, b in blocks.items():
+        for t in range(W):
+            present = t - 2 >= -n
+            assert (np.abs(b[t]).max() > 0) == present, (n, t)
+    np.testing.assert_array_equal(blocks[0][2], blocks[2][2])  # the full block does not depend on the history

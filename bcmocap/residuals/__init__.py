@@ -1,6 +1,6 @@
 """Residual terms of Eq. (1) and the API for adding new ones."""
 
-from .base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, PairTerm, Term, camera_slot_count, camera_slots, slot_cameras
+from .base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, MultiFrameTerm, PairTerm, Term, camera_slot_count, camera_slots, slot_cameras
 from .homography import HomographyTransfer
 from .losses import CauchyLoss, HuberLoss, RobustLoss, TrivialLoss, loss_from_name
 from .reprojection import Reprojection
@@ -15,6 +15,7 @@ __all__ = [
     "HomographyTransfer",
     "HuberLoss",
     "JointSmoothness",
+    "MultiFrameTerm",
     "PairTerm",
     "Reprojection",
     "RobustLoss",

@@ -9,6 +9,7 @@ kind                   the residual is a function of                    data lea
 =====================  ==============================================  ==========================
 ``FrameTerm``          one frame's :class:`FrameState`                  ``(T, ...)``
 ``PairTerm``           consecutive frames ``(t-1, t)``                  ``(T, ...)`` (indexed by t)
+``MultiFrameTerm``     frames ``t-S+1 … t`` (``S = span``)              ``(T, ...)`` (indexed by t)
 ``CameraTerm``         one camera's ``cam_from_world`` at one frame     ``(T, C, ...)``
 ``CameraPairTerm``     one camera's ``cam_from_world`` at ``t-1, t``    ``(T, C, ...)`` (indexed by t)
 =====================  ==============================================  ==========================
@@ -204,6 +205,25 @@ class PairTerm(Term):
     @abc.abstractmethod
     def residual(self, prev: FrameState, curr: FrameState, data: Any) -> tuple[jax.Array, jax.Array]:
         """Returns ``(r (n, k), valid (n,))`` for the pair ``(t-1, t)``."""
+
+
+class MultiFrameTerm(Term):
+    """A residual on ``span`` consecutive frames ``t − span + 1 … t`` (an accelerometer over three frames,
+    a jerk prior). ``data[t]`` belongs to the frames ending at ``t``; blocks whose first frames fall
+    before the sequence are dropped. The normal equations become block banded with bandwidth
+    ``span − 1`` (:mod:`bcmocap.solver.block_banded`), and each window keeps ``span − 1`` solved frames
+    before it fixed, so the term also connects across window seams.
+
+    Attributes:
+        span: the number of frames (class attribute, ≥ 2; a static property of the term's kind).
+    """
+
+    span = 3
+
+    @abc.abstractmethod
+    def residual(self, states: FrameState, data: Any) -> tuple[jax.Array, jax.Array]:
+        """Args: the frames' states with leading axis ``span`` (oldest first) and ``data[t]``.
+        Returns ``(r (n, k), valid (n,))``."""
 
 
 class CameraTerm(Term):

@@ -6,13 +6,14 @@ linearise the residual function at every trial point (a full tangent pass) and i
 solvers would materialise the dense Jacobian of the window. Here instead:
 
 - :class:`StructuredLevenbergMarquardt` evaluates only the residuals at a trial point; when the trust
-  region accepts it, it assembles the block-tridiagonal normal equations
+  region accepts it, it assembles the block-banded normal equations
   (:func:`bcmocap.solver.window.normal_equations`) there, unless the step already satisfies the
   stopping rule (then they would never be used). The model ``f + gᵀδ + ½ δᵀHδ`` is handed to the
   trust region as :class:`optimistix.FunctionInfo.EvalGradHessian` with ``H`` a
-  :class:`BlockTridiagonalOperator`, so its predicted reduction costs one block matvec.
+  :class:`BlockBandedOperator`, so its predicted reduction costs one block matvec.
 - :class:`StructuredDampedNewtonDescent` solves the damped system ``(H + μ diag(H)) δ = −g``
-  (Marquardt scaling, μ = damping_scale / step size) by a block Cholesky scan at every trial step.
+  (Marquardt scaling, μ = damping_scale / step size) by a block Cholesky scan at every trial step
+  (block tridiagonal for the paper's terms, block banded for terms over more frames).
 
 With a robust loss, ``g`` is the exact gradient and ``H`` the IRLS Gauss–Newton model (as Ceres), so
 the trust region compares the true cost change with the reduction of the model the step minimises.
@@ -29,31 +30,25 @@ import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
 
-from .block_tridiagonal import block_tridiagonal_matvec, solve_block_tridiagonal
+from .block_banded import block_banded_dense, block_banded_matvec, solve_block_banded
 from .window import NormalEquations
 
 
-class BlockTridiagonalOperator(lx.AbstractLinearOperator):
-    """Symmetric block-tridiagonal ``(W·D) × (W·D)`` operator on ``(W, D)`` arrays.
+class BlockBandedOperator(lx.AbstractLinearOperator):
+    """Symmetric block-banded ``(W·D) × (W·D)`` operator on ``(W, D)`` arrays.
 
     Attributes:
-        diag: ``(W, D, D)`` diagonal blocks; upper: ``(W-1, D, D)`` with ``upper[t] = A[t, t+1]``.
+        diag: ``(W, D, D)`` diagonal blocks; bands: ``bands[k-1]`` ``(W-k, D, D)`` = ``A[t, t+k]``.
     """
 
     diag: jax.Array
-    upper: jax.Array
+    bands: tuple[jax.Array, ...]
 
     def mv(self, vector):
-        return block_tridiagonal_matvec(self.diag, self.upper, vector)
+        return block_banded_matvec(self.diag, self.bands, vector)
 
     def as_matrix(self):
-        w, d, _ = self.diag.shape
-        dense = jnp.zeros((w, d, w, d), self.diag.dtype)
-        t = jnp.arange(w)
-        dense = dense.at[t, :, t, :].set(self.diag)
-        dense = dense.at[t[:-1], :, t[1:], :].set(self.upper)
-        dense = dense.at[t[1:], :, t[:-1], :].set(jnp.swapaxes(self.upper, -1, -2))
-        return dense.reshape(w * d, w * d)
+        return block_banded_dense(self.diag, self.bands)
 
     def transpose(self):
         return self
@@ -65,18 +60,18 @@ class BlockTridiagonalOperator(lx.AbstractLinearOperator):
         return self.in_structure()
 
 
-@lx.is_symmetric.register(BlockTridiagonalOperator)
+@lx.is_symmetric.register(BlockBandedOperator)
 def _(operator):
     return True
 
 
 class _DescentState(eqx.Module):
     grad: jax.Array
-    hessian: BlockTridiagonalOperator
+    hessian: BlockBandedOperator
 
 
 class StructuredDampedNewtonDescent(optx.AbstractDescent):
-    """Damped Gauss–Newton step from the block-tridiagonal model in ``EvalGradHessian``.
+    """Damped Gauss–Newton step from the block-banded model in ``EvalGradHessian``.
 
     Attributes:
         damping_scale: μ = damping_scale / step size; optimistix's trust region starts at step size 1.
@@ -88,10 +83,8 @@ class StructuredDampedNewtonDescent(optx.AbstractDescent):
     min_diagonal: float = 1e-9
 
     def init(self, y, f_info_struct):
-        del f_info_struct
-        zeros = lambda *shape: jnp.zeros(shape, y.dtype)
-        w, d = y.shape
-        return _DescentState(zeros(w, d), BlockTridiagonalOperator(zeros(w, d, d), zeros(max(w - 1, 0), d, d)))
+        zeros = lambda a: jnp.zeros(a.shape, a.dtype)
+        return _DescentState(zeros(y), jax.tree.map(zeros, f_info_struct.hessian))
 
     def query(self, y, f_info, state):
         del y, state
@@ -104,7 +97,7 @@ class StructuredDampedNewtonDescent(optx.AbstractDescent):
         floor = self.min_diagonal * jnp.maximum(jnp.max(d), 1.0)
         damping = mu * jnp.maximum(d, floor)
         damped = hessian.diag + jax.vmap(jnp.diag)(damping)
-        delta = -solve_block_tridiagonal(damped, hessian.upper, state.grad)
+        delta = -solve_block_banded(damped, hessian.bands, state.grad)
         ok = jnp.all(jnp.isfinite(delta))
         delta = jnp.where(ok, delta, 0.0)
         result = optx.RESULTS.where(ok, optx.RESULTS.successful, optx.RESULTS.singular)
@@ -125,7 +118,7 @@ class _SolverState(eqx.Module):
 
 
 def _model(cost: jax.Array, system: NormalEquations) -> optx.FunctionInfo.EvalGradHessian:
-    return optx.FunctionInfo.EvalGradHessian(cost, system.grad, BlockTridiagonalOperator(system.diag, system.upper))
+    return optx.FunctionInfo.EvalGradHessian(cost, system.grad, BlockBandedOperator(system.diag, system.bands))
 
 
 class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):

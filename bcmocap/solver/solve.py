@@ -25,7 +25,7 @@ from ..kinematics.skeleton import Motion, Skeleton
 from ..residuals.base import CameraPairTerm, CameraTerm, Term
 from ..precision import require_float64
 from .levenberg_marquardt import StructuredLevenbergMarquardt
-from .window import WindowProblem, normal_equations, residuals
+from .window import WindowProblem, normal_equations, residuals, window_history
 
 
 class SequenceProblem(Protocol):
@@ -153,7 +153,7 @@ def _solve_window(problem: WindowProblem, options: SolverOptions):
     fn = lambda y, args: residuals(args, y)
     y0 = jnp.zeros((w, d))
     sol = optx.least_squares(fn, solver, y0, args=problem, max_steps=options.max_steps, throw=False)
-    motion = problem.skeleton.retract(problem.reference[1:], sol.value)
+    motion = problem.skeleton.retract(problem.reference[problem.history :], sol.value)
     return (
         motion,
         sol.state.initial_cost,
@@ -230,12 +230,13 @@ def solve(
         t0 = time.perf_counter()
         terms = tuple(problem.window(start, stop))
         _check_window_has_observations(terms, start, stop)
-        prev = max(start - 1, 0)
+        history = window_history(terms)
+        before = np.maximum(np.arange(start - history, start), 0)  # the fixed frames (repeats of 0 at the start)
         reference = Motion(
-            np.concatenate([root[prev : prev + 1], root[start:stop]]),
-            np.concatenate([rotations[prev : prev + 1], rotations[start:stop]]),
+            np.concatenate([root[before], root[start:stop]]),
+            np.concatenate([rotations[before], rotations[start:stop]]),
         )
-        wp = WindowProblem(skeleton, rig, terms, reference, jnp.asarray(start > 0))
+        wp = WindowProblem(skeleton, rig, terms, reference, min(start, history))
         motion, c0, c1, steps, accepted, ok = _solve_window(wp, options)
         new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
         if not (np.all(np.isfinite(new_root)) and np.all(np.isfinite(new_rot)) and np.isfinite(c0) and np.isfinite(c1)):
@@ -278,11 +279,12 @@ def whole_sequence_residual_function(problem: SequenceProblem, initial_motion: M
     skeleton = problem.skeleton
     n = problem.num_frames
     terms = tuple(problem.window(0, n))
+    before = np.zeros(window_history(terms), int)
     reference = Motion(
-        np.concatenate([np.asarray(initial_motion.root_position[:1]), np.asarray(initial_motion.root_position)]),
-        np.concatenate([np.asarray(initial_motion.rotations[:1]), np.asarray(initial_motion.rotations)]),
+        np.concatenate([np.asarray(initial_motion.root_position)[before], np.asarray(initial_motion.root_position)]),
+        np.concatenate([np.asarray(initial_motion.rotations)[before], np.asarray(initial_motion.rotations)]),
     )
-    wp = WindowProblem(skeleton, problem.rig, terms, reference, jnp.asarray(False))
+    wp = WindowProblem(skeleton, problem.rig, terms, reference, 0)
 
     @jax.jit
     def fn(y_flat):

@@ -1,9 +1,11 @@
 """One time window of Eq. (1): its residuals and its structured Gauss–Newton normal equations.
 
-A window holds ``W`` frames of variables plus, at index 0 of its reference motion, the frame just
-before it (solved by the previous window and held fixed) so that pair terms connect across the seam.
+A window holds ``W`` frames of variables plus, first in its reference motion, the ``H`` frames just
+before it (solved by the previous window and held fixed) so that terms over several frames connect
+across the seam: ``H = 1`` for the paper's pair terms, ``span − 1`` for a :class:`MultiFrameTerm`.
 Variables are tangent vectors ``y`` ``(W, D)`` relative to the reference motion (see
 :meth:`Skeleton.retract`), so the solver always steps in the tangent space of the current pose.
+Indices below called *extended* count those ``H`` fixed frames first.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from ..geometry import SE3, transform_points
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
-from ..residuals.base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, PairTerm, Term, slot_cameras
+from ..residuals.base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, MultiFrameTerm, PairTerm, Term, slot_cameras
 
 
 class WindowProblem(eqx.Module):
@@ -28,20 +30,33 @@ class WindowProblem(eqx.Module):
     Attributes:
         skeleton, rig: the model (rig may be None for problems without cameras).
         terms: residual terms restricted to the window (data leading axis ``W``).
-        reference: motion with ``W + 1`` frames: the fixed previous frame, then the window's frames.
-        has_previous: scalar bool; False for the first window of a sequence (pair terms at its
-            first frame are then dropped).
+        reference: motion with ``H + W`` frames: the ``H`` fixed frames before the window
+            (:func:`window_history`), then the window's frames.
+        num_previous: scalar int, how many of those ``H`` frames exist (fewer at the start of a
+            sequence; terms reaching further back are dropped at the window's first frames).
     """
 
     skeleton: Skeleton
     rig: Rig | None
     terms: tuple[Term, ...]
     reference: Motion
-    has_previous: jax.Array
+    num_previous: jax.Array = eqx.field(converter=lambda n: jnp.asarray(n, jnp.int32))
+
+    @property
+    def history(self) -> int:
+        return window_history(self.terms)
 
     @property
     def num_frames(self) -> int:
-        return self.reference.root_position.shape[0] - 1
+        return self.reference.root_position.shape[0] - self.history
+
+
+def window_history(terms: Sequence[Term]) -> int:
+    """``H``: fixed frames a window needs before its first (1, or ``span − 1`` of the widest multi-frame term).
+
+    It is also the bandwidth of the normal equations: frames up to ``H`` apart are coupled.
+    """
+    return max([2, *(t.span for t in terms if isinstance(t, MultiFrameTerm))]) - 1
 
 
 def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.Array) -> FrameState:
@@ -56,12 +71,23 @@ def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.A
 
 
 def _extended(problem: WindowProblem, y: jax.Array) -> jax.Array:
-    return jnp.concatenate([jnp.zeros_like(y[:1]), y], axis=0)
+    return jnp.concatenate([jnp.zeros((problem.history, y.shape[1]), y.dtype), y], axis=0)
+
+
+def _span_ok(problem: WindowProblem, span: int) -> jax.Array:
+    """``(W,)``: whether the frames ``t − span + 1 … t`` all exist (the fixed ones included)."""
+    return jnp.arange(problem.num_frames) - (span - 1) >= -problem.num_previous
+
+
+def _span_index(problem: WindowProblem, span: int) -> jax.Array:
+    """``(W, span)`` extended indices of frames ``t − span + 1 … t`` (oldest first)."""
+    w, h = problem.num_frames, problem.history
+    return h + jnp.arange(w)[:, None] + jnp.arange(span)[None, :] - (span - 1)
 
 
 def _pair_valid(problem: WindowProblem, valid: jax.Array) -> jax.Array:
     """Drop the pair (previous, first) when there is no previous frame."""
-    return valid.at[0].set(valid[0] & problem.has_previous)
+    return valid & _span_ok(problem, 2).reshape(-1, *([1] * (valid.ndim - 1)))
 
 
 def _slot_gather(term: Term, per_camera: jax.Array) -> jax.Array:
@@ -82,9 +108,10 @@ def _slot_intrinsics(term: Term, rig: Rig):
 
 def residuals(problem: WindowProblem, y: jax.Array) -> tuple[jax.Array, ...]:
     """All finished residual blocks of the window, one array per term (shapes ``(W, ..., k)``)."""
+    h = problem.history
     states = frame_state(problem.skeleton, problem.rig, problem.reference, _extended(problem, y))
-    prev_states = jax.tree.map(lambda a: a[:-1], states)
-    curr_states = jax.tree.map(lambda a: a[1:], states)
+    prev_states = jax.tree.map(lambda a: a[h - 1 : -1], states)
+    curr_states = jax.tree.map(lambda a: a[h:], states)
     out = []
     cam_from_world = states.world_from_camera.inverse() if problem.rig is not None else None
     for term in problem.terms:
@@ -93,22 +120,26 @@ def residuals(problem: WindowProblem, y: jax.Array) -> tuple[jax.Array, ...]:
         elif isinstance(term, PairTerm):
             r, v = jax.vmap(term.residual)(prev_states, curr_states, term.data)
             v = _pair_valid(problem, v)
+        elif isinstance(term, MultiFrameTerm):
+            spans = jax.tree.map(lambda a: a[_span_index(problem, term.span)], states)
+            r, v = jax.vmap(term.residual)(spans, term.data)
+            v = v & _span_ok(problem, term.span).reshape(-1, *([1] * (v.ndim - 1)))
         elif isinstance(term, CameraTerm):
             fn = lambda pose, cam, data, term=term: term.residual(SE3(pose), cam, data)
             cams, cam_axis = _slot_intrinsics(term, problem.rig)
             r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0)), in_axes=(0, cam_axis, 0))(
-                _slot_gather(term, cam_from_world.wxyz_xyz[1:]), cams, term.data
+                _slot_gather(term, cam_from_world.wxyz_xyz[h:]), cams, term.data
             )
         elif isinstance(term, CameraPairTerm):
             fn = lambda prev, pose, cam, data, term=term: term.residual(SE3(prev), SE3(pose), cam, data)
             cams, cam_axis = _slot_intrinsics(term, problem.rig)
             r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0)), in_axes=(0, 0, cam_axis, 0))(
-                _slot_gather(term, cam_from_world.wxyz_xyz[:-1]), _slot_gather(term, cam_from_world.wxyz_xyz[1:]),
+                _slot_gather(term, cam_from_world.wxyz_xyz[h - 1 : -1]), _slot_gather(term, cam_from_world.wxyz_xyz[h:]),
                 cams, term.data,
             )
             v = _pair_valid(problem, v)
         else:
-            raise TypeError(f"{term.label}: a term must subclass FrameTerm, PairTerm, CameraTerm or CameraPairTerm")
+            raise TypeError(f"{term.label}: {_KINDS}")
         out.append(term.finish(r, v))
     return tuple(out)
 
@@ -119,15 +150,21 @@ def cost(problem: WindowProblem, y: jax.Array) -> jax.Array:
 
 
 class NormalEquations(eqx.Module):
-    """Gauss–Newton system of a window: ``H = JᵀJ`` (block tridiagonal) and ``g = Jᵀr``.
+    """Gauss–Newton system of a window: ``H = JᵀJ`` (block banded) and ``g = Jᵀr``.
 
     Attributes:
-        diag: ``(W, D, D)``; upper: ``(W-1, D, D)`` with ``upper[t] = H[t, t+1]``; grad: ``(W, D)``.
+        diag: ``(W, D, D)``; bands: ``B`` arrays, ``bands[k-1]`` ``(W-k, D, D)`` = ``H[t, t+k]``
+            (``B`` = 1 for the paper's terms); grad: ``(W, D)``.
     """
 
     diag: jax.Array
-    upper: jax.Array
+    bands: tuple[jax.Array, ...]
     grad: jax.Array
+
+    @property
+    def upper(self) -> jax.Array:
+        """``(W-1, D, D)``: ``H[t, t+1]``."""
+        return self.bands[0]
 
 
 def _log_near_identity(matrix: jax.Array) -> jax.Array:
@@ -182,16 +219,18 @@ def _camera_measurement_jacobians(residual_fn, poses: tuple[jax.Array, ...], rot
 
 
 def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
-    """Assemble the block-tridiagonal Gauss–Newton system of the window at ``y`` ``(W, D)``.
+    """Assemble the block-banded Gauss–Newton system of the window at ``y`` ``(W, D)``.
 
-    ``grad`` is the exact gradient of the window's cost; ``diag``/``upper`` are the IRLS Gauss–Newton
-    matrix ``Σ λ ρ'(s) JᵀJ`` (exactly ``JᵀJ`` of the residuals when no robust loss is used).
+    ``grad`` is the exact gradient of the window's cost; ``diag``/``bands`` are the IRLS Gauss–Newton
+    matrix ``Σ λ ρ'(s) JᵀJ`` (exactly ``JᵀJ`` of the residuals when no robust loss is used). The
+    bandwidth is the window's history ``H`` (1 unless a multi-frame term spans more than two frames).
     """
     w, d = y.shape
+    h = problem.history
     y_ext = _extended(problem, y)
-    diag = jnp.zeros((w + 1, d, d))  # index 0: the fixed previous frame (discarded)
-    upper = jnp.zeros((w, d, d))  # upper[t] couples extended frames t and t+1
-    grad = jnp.zeros((w + 1, d))
+    diag = jnp.zeros((h + w, d, d))  # extended: the H fixed frames first (discarded)
+    bands = [jnp.zeros((h + w, d, d)) for _ in range(h)]  # bands[k-1][u] couples extended frames u and u+k
+    grad = jnp.zeros((h + w, d))
     needs_cameras = any(isinstance(t, (CameraTerm, CameraPairTerm)) for t in problem.terms)
     if needs_cameras:
         cam_poses, pose_jac = _camera_pose_jacobians(problem, y_ext)
@@ -202,30 +241,42 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
             state = frame_state(problem.skeleton, problem.rig, ref_t, y_t)
             return tuple(t.masked(*t.residual(state, dt)) for t, dt in zip(frame_terms, data))
 
-        args = (y, problem.reference[1:], tuple(t.data for t in frame_terms))
+        args = (y, problem.reference[h:], tuple(t.data for t in frame_terms))
         rs, jacs = jax.vmap(frame_residuals)(*args), jax.vmap(_jacobian(frame_residuals, args))(*args)
         for term, r, jac in zip(frame_terms, rs, jacs):
             r, jac = _irls_rows(term, r, jac)
-            diag = diag.at[1:].add(jnp.einsum("tri,trj->tij", jac, jac))
-            grad = grad.at[1:].add(jnp.einsum("tri,tr->ti", jac, r))
+            diag = diag.at[h:].add(jnp.einsum("tri,trj->tij", jac, jac))
+            grad = grad.at[h:].add(jnp.einsum("tri,tr->ti", jac, r))
     if pair_terms:  # likewise one differentiation of both frames of each pair
         def pair_residuals(y_pair, ref_prev, ref_curr, data, ok):
             prev = frame_state(problem.skeleton, problem.rig, ref_prev, y_pair[0])
             curr = frame_state(problem.skeleton, problem.rig, ref_curr, y_pair[1])
             return tuple(t.masked(*_and_valid(t.residual(prev, curr, dt), ok)) for t, dt in zip(pair_terms, data))
 
-        pairs = jnp.stack([y_ext[:-1], y_ext[1:]], axis=1)  # (W, 2, D)
-        ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
-        args = (pairs, problem.reference[:-1], problem.reference[1:], tuple(t.data for t in pair_terms), ok)
+        pairs = jnp.stack([y_ext[h - 1 : -1], y_ext[h:]], axis=1)  # (W, 2, D)
+        args = (pairs, problem.reference[h - 1 : -1], problem.reference[h:], tuple(t.data for t in pair_terms),
+                _span_ok(problem, 2))
         rs, jacs = jax.vmap(pair_residuals)(*args), jax.vmap(_jacobian(pair_residuals, args))(*args)
         for term, r, jac in zip(pair_terms, rs, jacs):  # jac: (W, n, k, 2, D)
             r, jac = _irls_rows(term, r, jac.reshape(*jac.shape[:3], -1))
             jac = jac.reshape(*jac.shape[:2], 2, d)
-            diag, upper, grad = _add_pair_blocks(diag, upper, grad, r, jac[:, :, 0], jac[:, :, 1])
+            diag, bands, grad = _add_span_blocks(diag, bands, grad, r, jac, h)
     for term in problem.terms:
         if isinstance(term, (FrameTerm, PairTerm)):
             continue
-        if isinstance(term, CameraTerm):
+        if isinstance(term, MultiFrameTerm):
+            span = term.span
+
+            def span_residuals(y_span, ref_span, data, ok, term=term):
+                states = frame_state(problem.skeleton, problem.rig, ref_span, y_span)
+                return term.masked(*_and_valid(term.residual(states, data), ok))
+
+            index = _span_index(problem, span)
+            args = (y_ext[index], jax.tree.map(lambda a: a[index], problem.reference), term.data, _span_ok(problem, span))
+            r, jac = jax.vmap(span_residuals)(*args), jax.vmap(_jacobian(span_residuals, args))(*args)
+            r, jac = _irls_rows(term, r, jac.reshape(*jac.shape[:3], -1))  # jac: (W, n, k, span, D) → (W, m, span·D)
+            diag, bands, grad = _add_span_blocks(diag, bands, grad, r, jac.reshape(*jac.shape[:2], span, d), h)
+        elif isinstance(term, CameraTerm):
             def cam_blocks(pose, cam, data, term=term):
                 if term.world_points(data) is None:
                     fn = lambda p: term.masked(*term.residual(p, cam, data))
@@ -236,33 +287,36 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
 
             cams, cam_axis = _slot_intrinsics(term, problem.rig)
             hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0)), in_axes=(0, cam_axis, 0))(
-                _slot_gather(term, cam_poses[1:]), cams, term.data
+                _slot_gather(term, cam_poses[h:]), cams, term.data
             )  # (W, C, 6, 6), (W, C, 6) (C: cameras or slots)
-            jp = _slot_gather(term, pose_jac[1:])
-            diag = diag.at[1:].add(jnp.einsum("tcai,tcab,tcbj->tij", jp, hess, jp))
-            grad = grad.at[1:].add(jnp.einsum("tcai,tca->ti", jp, g))
+            jp = _slot_gather(term, pose_jac[h:])
+            diag = diag.at[h:].add(jnp.einsum("tcai,tcab,tcbj->tij", jp, hess, jp))
+            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jp, g))
         elif isinstance(term, CameraPairTerm):
             def cam_pair_blocks(prev, pose, cam, data, ok, term=term):
                 fn = lambda p0, p1: term.masked(*_and_valid(term.residual(p0, p1, cam, data), ok))
                 r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (prev, pose), term.rotation_only))
                 return jac.T @ jac, jac.T @ r
 
-            ok = jnp.ones(w, bool).at[0].set(problem.has_previous)
             cams, cam_axis = _slot_intrinsics(term, problem.rig)
             hess, g = jax.vmap(jax.vmap(cam_pair_blocks, in_axes=(0, 0, 0, 0, None)), in_axes=(0, 0, cam_axis, 0, 0))(
-                _slot_gather(term, cam_poses[:-1]), _slot_gather(term, cam_poses[1:]), cams, term.data, ok
+                _slot_gather(term, cam_poses[h - 1 : -1]), _slot_gather(term, cam_poses[h:]), cams, term.data,
+                _span_ok(problem, 2),
             )  # (W, C, 12, 12), (W, C, 12) (C: cameras or slots)
-            jp_prev, jp_curr = _slot_gather(term, pose_jac[:-1]), _slot_gather(term, pose_jac[1:])
+            jp_prev, jp_curr = _slot_gather(term, pose_jac[h - 1 : -1]), _slot_gather(term, pose_jac[h:])
             h00 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, :6], jp_prev)
             h11 = jnp.einsum("tcai,tcab,tcbj->tij", jp_curr, hess[:, :, 6:, 6:], jp_curr)
             h01 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, 6:], jp_curr)
-            diag = diag.at[:-1].add(h00).at[1:].add(h11)
-            upper = upper + h01
-            grad = grad.at[:-1].add(jnp.einsum("tcai,tca->ti", jp_prev, g[:, :, :6]))
-            grad = grad.at[1:].add(jnp.einsum("tcai,tca->ti", jp_curr, g[:, :, 6:]))
+            diag = diag.at[h - 1 : -1].add(h00).at[h:].add(h11)
+            bands[0] = bands[0].at[h - 1 : -1].add(h01)
+            grad = grad.at[h - 1 : -1].add(jnp.einsum("tcai,tca->ti", jp_prev, g[:, :, :6]))
+            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jp_curr, g[:, :, 6:]))
         else:
-            raise TypeError(f"{term.label}: a term must subclass FrameTerm, PairTerm, CameraTerm or CameraPairTerm")
-    return NormalEquations(diag[1:], upper[1:], grad[1:])
+            raise TypeError(f"{term.label}: {_KINDS}")
+    return NormalEquations(diag[h:], tuple(band[h : h + w - k] for k, band in enumerate(bands, start=1)), grad[h:])
+
+
+_KINDS = "a term must subclass FrameTerm, PairTerm, MultiFrameTerm, CameraTerm or CameraPairTerm"
 
 
 def _jacobian(fn, batched_args):
@@ -306,14 +360,21 @@ def _and_valid(result, ok):
     return r, v & ok
 
 
-def _add_pair_blocks(diag, upper, grad, r, jac_prev, jac_curr):
-    """Add a pair term's ``(W, m)`` residuals and Jacobians w.r.t. extended frames t and t+1."""
-    diag = diag.at[:-1].add(jnp.einsum("tri,trj->tij", jac_prev, jac_prev))
-    diag = diag.at[1:].add(jnp.einsum("tri,trj->tij", jac_curr, jac_curr))
-    upper = upper + jnp.einsum("tri,trj->tij", jac_prev, jac_curr)
-    grad = grad.at[:-1].add(jnp.einsum("tri,tr->ti", jac_prev, r))
-    grad = grad.at[1:].add(jnp.einsum("tri,tr->ti", jac_curr, r))
-    return diag, upper, grad
+def _add_span_blocks(diag, bands, grad, r, jac, history):
+    """Add a term's IRLS rows ``r`` ``(W, m)`` with Jacobians ``jac`` ``(W, m, S, D)`` w.r.t. frames
+    ``t − S + 1 … t`` to the banded system (extended arrays of a window with ``history`` fixed frames)."""
+    w, span = jac.shape[0], jac.shape[2]
+    bands = list(bands)
+    for i in range(span):
+        rows = slice(history - (span - 1) + i, history - (span - 1) + i + w)  # extended index of frame t − S + 1 + i
+        grad = grad.at[rows].add(jnp.einsum("tri,tr->ti", jac[:, :, i], r))
+        for j in range(i, span):
+            block = jnp.einsum("tri,trj->tij", jac[:, :, i], jac[:, :, j])
+            if i == j:
+                diag = diag.at[rows].add(block)
+            else:
+                bands[j - i - 1] = bands[j - i - 1].at[rows].add(block)
+    return diag, bands, grad
 
 
 def make_window_problem(
@@ -321,6 +382,8 @@ def make_window_problem(
     rig: Rig | None,
     terms: Sequence[Term],
     reference: Motion,
-    has_previous: bool,
+    num_previous: int | bool,
 ) -> WindowProblem:
-    return WindowProblem(skeleton, rig, tuple(terms), reference, jnp.asarray(has_previous))
+    """A :class:`WindowProblem`; ``reference`` holds :func:`window_history` fixed frames first, of which
+    ``num_previous`` exist (a bool for the paper's terms: whether the frame before the window exists)."""
+    return WindowProblem(skeleton, rig, tuple(terms), reference, int(num_previous))
