@@ -241,3 +241,60 @@ def test_a_saved_registration_is_reused_only_with_the_same_settings(simulated_ru
     monkeypatch.setattr("bcmocap.frontend.register.reference_index", lambda model: None)
     with pytest.raises(RuntimeError, match="registration redone"):  # --max-features changed: not reused
         run_pipeline(fake, copy, config.with_overrides({"frontend.max_features": 1234}), log=lines.append)
+
+
+USER_TERM_MODULE = '''
+import numpy as np
+from bcmocap.residuals import FrameTerm
+
+CALLS = []
+
+
+class RootHeight(FrameTerm):
+    def residual(self, state, data):
+        return (state.motion.root_position[2] - data)[None, None], np.ones(1, bool)
+
+
+def root_height(window, weight):
+    """The root's height read from the trial folder's own file (m), one value per solver frame."""
+    CALLS.append((window.start, window.stop, window.times.copy()))
+    heights = np.loadtxt(window.trial_folder / "root_height.txt")
+    return RootHeight(heights[window.start : window.stop], weight=weight, name="root height")
+'''
+
+
+def test_a_user_term_named_in_the_config_reaches_the_solve(simulated_run, tmp_path, monkeypatch):
+    """``[[solver.user_terms]]`` names a factory by import path; bcmocap run imports it before any stage, calls
+    it for every window with the window's frames, times and the capture's trial folder, and solves with its
+    terms (here a strong pull of the root to a height read from the trial folder)."""
+    import importlib
+    import shutil
+
+    out, _, _, _, _, fake, config = simulated_run
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    (tmp_path / "user_terms_for_run.py").write_text(USER_TERM_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    module = importlib.import_module("user_terms_for_run")
+    trial = fake.path / "trials" / "capture"
+    trial.mkdir(parents=True, exist_ok=True)
+    frames = load_motion(out / "solve" / "motion.npz").num_frames
+    np.savetxt(trial / "root_height.txt", np.full(frames, 5.0))
+    user = RunConfig.from_dict({**config.to_dict(), "solver": {**config.to_dict()["solver"], "user_terms": [
+        {"factory": "user_terms_for_run:root_height", "weight": 1e8}]}})
+    lines = []
+    run_pipeline(fake, copy, user, log=lines.append)
+    assert sum("reused" in line for line in lines) == 4 and any("solve: settings changed" in line for line in lines)
+    starts = [r["start"] for r in json.loads((copy / "solve" / "reports.json").read_text())["windows"]]
+    assert [c[0] for c in module.CALLS] == starts
+    for start, stop, times in module.CALLS:
+        np.testing.assert_allclose(times, (start + np.arange(stop - start)) / FPS)
+    solved = load_motion(copy / "solve" / "motion.npz")
+    np.testing.assert_allclose(np.asarray(solved.root_position)[:, 2], 5.0, atol=1e-3)
+    assert abs(np.asarray(load_motion(out / "solve" / "motion.npz").root_position)[:, 2] - 5.0).min() > 0.5
+
+    broken = RunConfig.from_dict({**user.to_dict(), "solver": {**user.to_dict()["solver"], "user_terms": [
+        {"factory": "user_terms_for_run:missing"}]}})
+    with pytest.raises(ValueError, match="term factory 'user_terms_for_run:missing': module 'user_terms_for_run' has no 'missing'"):
+        run_pipeline(fake, tmp_path / "other", broken, log=lines.append)
+    assert not (tmp_path / "other" / "frontend").exists()

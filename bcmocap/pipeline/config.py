@@ -33,6 +33,11 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     loss_scale = 8.0          # px
     terms = ["reprojection", "homography", "smoothness"]
 
+    [[solver.user_terms]]     # a user's terms, any number of these tables (see bcmocap.solver.objective)
+    factory = "mypackage.terms:imu_terms"   # 'module:name' importable from PYTHONPATH, called per window
+    weight = 100.0            # every other key is a keyword argument of the factory (numbers, strings,
+                              # booleans, lists of them)
+
     [outputs]
     pictures = true
 """
@@ -73,6 +78,14 @@ class SkeletonConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class UserTermConfig:
+    """One ``[[solver.user_terms]]`` table: a term factory's import path and its keyword arguments."""
+
+    factory: str
+    settings: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
 class SolverConfig:
     window: int = 60
     overlap: int = 10
@@ -82,6 +95,7 @@ class SolverConfig:
     loss: str = "cauchy"
     loss_scale: float = 8.0
     terms: tuple[str, ...] = TERMS
+    user_terms: tuple[UserTermConfig, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,7 +186,9 @@ def _override(default, given: dict, where: str):
     values = {}
     for name, value in given.items():
         current = getattr(default, name)
-        if isinstance(current, tuple):
+        if fields[name].type == "tuple[UserTermConfig, ...]":
+            value = _user_terms(value, f"{where}.{name}")
+        elif isinstance(current, tuple):
             numbers = fields[name].type == "tuple[float, ...]"
             kind = (int, float) if numbers else str
             if not isinstance(value, (list, tuple)) or any(isinstance(v, bool) or not isinstance(v, kind) for v in value):
@@ -192,6 +208,29 @@ def _override(default, given: dict, where: str):
             raise ValueError(f"{where}.{name} must be a string, got {value!r}")
         values[name] = value
     return dataclasses.replace(default, **values)
+
+
+def _user_terms(value, where: str) -> tuple[UserTermConfig, ...]:
+    """``[[solver.user_terms]]`` tables (or their saved form, ``{"factory", "settings"}``) → configs."""
+    if not isinstance(value, (list, tuple)):
+        raise ValueError(f"{where} must be a list of tables ([[solver.user_terms]]), got {value!r}")
+    out = []
+    for i, table in enumerate(value):
+        here = f"{where}[{i}]"
+        if isinstance(table, UserTermConfig):
+            table = dataclasses.asdict(table)
+        if not isinstance(table, dict) or not isinstance(table.get("factory"), str):
+            raise ValueError(f"{here} must be a table with a 'factory' string ('module:name'), got {table!r}")
+        settings = dict(table.get("settings", {})) if set(table) <= {"factory", "settings"} else \
+            {k: v for k, v in table.items() if k != "factory"}
+        for key, setting in settings.items():
+            items = setting if isinstance(setting, list) else [setting]
+            if not all(isinstance(v, (bool, int, float, str)) for v in items):
+                raise ValueError(f"{here}.{key} must be a number, string, boolean or a list of them, got {setting!r}")
+            if not all(math.isfinite(v) for v in items if isinstance(v, float)):
+                raise ValueError(f"{here}.{key} must be finite, got {setting!r}")
+        out.append(UserTermConfig(table["factory"], settings))
+    return tuple(out)
 
 
 def load_config(path: str | Path | None) -> RunConfig:

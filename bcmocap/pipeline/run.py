@@ -168,6 +168,7 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
         _append_line(log_file, f"{datetime.datetime.now().isoformat(timespec='seconds')} {line}")
 
     ctx = RunContext(capture, config, out, say)
+    _user_terms(ctx)  # a user term that cannot be imported fails now, not after the frontend
     if not run_log.finished("skeleton", fingerprints(config)["skeleton"]):
         _topology(ctx)  # a capture without its subject description fails now, not after the frontend
         _rest_seconds(ctx)
@@ -390,6 +391,13 @@ def objective_weights(s):
                             homography=s.homography, loss=s.loss, loss_scale=s.loss_scale)
 
 
+def _user_terms(ctx: RunContext) -> list:
+    """The ``[[solver.user_terms]]`` of the settings as :class:`~bcmocap.solver.objective.UserTerms`."""
+    from ..solver.objective import UserTerms, import_term_factory
+
+    return [UserTerms(import_term_factory(u.factory), u.settings, u.factory) for u in ctx.config.solver.user_terms]
+
+
 def _stage_solve(ctx: RunContext) -> dict:
     """The sliding-window solve; each window's measurements are read from the metric store on disk
     (:class:`~bcmocap.solver.objective.StoredProblem`), so memory does not grow with the trial."""
@@ -401,7 +409,8 @@ def _stage_solve(ctx: RunContext) -> dict:
     s = ctx.config.solver
     corr = CorrespondenceStore.open(ctx.path("solve", "correspondences"))
     skeleton, rig = load_model(ctx.out)
-    problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None)
+    problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None,
+                            extra_terms=_user_terms(ctx), trial_folder=ctx.capture.path / "trials" / "capture")
     options = SolverOptions(window=s.window, overlap=s.overlap)
     initial = load_motion(ctx.path("solve", "initial.npz"))
     checkpoint_path, reports_path = ctx.path("solve", "checkpoint.npz"), ctx.path("solve", "checkpoint.json")

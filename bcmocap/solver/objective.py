@@ -1,8 +1,24 @@
-"""Eq. (1) of the paper from correspondences: E_r (reprojection + homography) + λ_O E_O + λ_A E_A."""
+"""The objective of a capture: Eq. (1) of the paper from correspondences — E_r (reprojection +
+homography) + λ_O E_O + λ_A E_A — plus any terms a user adds.
+
+A user adds terms through a *term factory*: a callable ``factory(window: TermWindow, **settings)``
+returning one :class:`~bcmocap.residuals.Term` or a list of them, with data over the window's frames.
+The window tells it which frames (``start``, ``stop``, ``times`` in seconds since the trial's first
+clap), the model, the window's correspondences and the capture's trial folder (for the user's own
+measurement files). The same factory serves :func:`paper_problem`, :class:`StoredProblem` and
+``bcmocap run``, whose config names it by import path (``"mypackage.terms:imu_terms"``, see
+:func:`import_term_factory`). Every window of a sequence must get terms of the same kinds and data
+shapes (one compilation serves them all).
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import re
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -81,13 +97,114 @@ def paper_terms(
     return terms
 
 
+@dataclasses.dataclass(frozen=True)
+class TermWindow:
+    """What a term factory is given: frames ``[start, stop)`` of a trial.
+
+    Attributes:
+        start, stop: the window's frames in the trial (solver frames, ``fps`` per second).
+        fps: solver frames per second.
+        skeleton, rig: the model the terms will be evaluated on.
+        correspondences: the window's measurements (frames ``[start, stop)``), or None.
+        trial_folder: the capture's folder of this trial (``CAPTURE/trials/<trial>``) where a user's own
+            measurement files live, or None when the problem does not come from a capture folder.
+    """
+
+    start: int
+    stop: int
+    fps: float
+    skeleton: Skeleton
+    rig: Rig | None
+    correspondences: Correspondences | None = None
+    trial_folder: Path | None = None
+
+    @property
+    def num_frames(self) -> int:
+        return self.stop - self.start
+
+    @property
+    def times(self) -> np.ndarray:
+        """``(W,)`` seconds of the window's frames since the trial's first clap (the synchronised clock)."""
+        return (self.start + np.arange(self.num_frames)) / self.fps
+
+    @property
+    def first_frame_has_previous(self) -> bool:
+        return self.start > 0
+
+
+TermFactory = Callable[[TermWindow], Sequence[Term]]
+
+
+@dataclasses.dataclass(frozen=True)
+class UserTerms:
+    """A user's term factory with its settings: ``factory(window, **settings)`` → term(s), checked.
+
+    Attributes:
+        factory: the callable; settings: keyword arguments for it; name: how errors name it (e.g. its
+            import path).
+    """
+
+    factory: Callable[..., Any]
+    settings: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    name: str = ""
+
+    def __call__(self, window: TermWindow) -> tuple[Term, ...]:
+        label = self.name or getattr(self.factory, "__qualname__", repr(self.factory))
+        made = self.factory(window, **self.settings)
+        terms = (made,) if isinstance(made, Term) else tuple(made)
+        num_cameras = window.rig.num_cameras if window.rig is not None else 0
+        for term in terms:
+            if not isinstance(term, Term):
+                raise ValueError(f"term factory {label}: returned {type(term).__name__}, not a bcmocap Term")
+            try:
+                term.check(window.num_frames, num_cameras)
+            except ValueError as exc:
+                raise ValueError(f"term factory {label} (frames [{window.start}, {window.stop})): {exc}") from None
+        return terms
+
+
+_IMPORT_PATH = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*$")
+
+
+def import_term_factory(path: str) -> Callable[..., Any]:
+    """The object named by ``"package.module:name"`` (imported from ``sys.path``, e.g. ``PYTHONPATH``).
+
+    A :class:`~bcmocap.residuals.Term` subclass gives its ``from_window`` classmethod, so a term class can be
+    its own factory.
+
+    Raises:
+        ValueError: malformed path, module not importable, no such name, or not callable.
+    """
+    if not isinstance(path, str) or not _IMPORT_PATH.match(path):
+        raise ValueError(f"term factory {path!r}: expected 'package.module:name'")
+    module_name, name = path.split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ValueError(f"term factory {path!r}: cannot import {module_name!r} ({exc}); is it on PYTHONPATH?") from None
+    target = getattr(module, name, None)
+    if target is None:
+        raise ValueError(f"term factory {path!r}: module {module_name!r} has no {name!r}")
+    if isinstance(target, type) and issubclass(target, Term):
+        target = getattr(target, "from_window", None)
+        if target is None:
+            raise ValueError(f"term factory {path!r}: a Term class used as a factory needs a from_window classmethod")
+    if not callable(target):
+        raise ValueError(f"term factory {path!r}: {name!r} is not callable")
+    return target
+
+
 def paper_problem(
-    correspondences: Correspondences, skeleton: Skeleton, rig: Rig, weights: ObjectiveWeights = ObjectiveWeights()
+    correspondences: Correspondences, skeleton: Skeleton, rig: Rig, weights: ObjectiveWeights = ObjectiveWeights(),
+    *, extra_terms: Sequence[TermFactory] = (), fps: float = 30.0, trial_folder: Path | None = None,
 ) -> Problem:
-    """A :class:`Problem` for Eq. (1), checking the correspondences against the rig."""
+    """A :class:`Problem` for Eq. (1) plus the terms of ``extra_terms`` (factories given the whole
+    sequence as one :class:`TermWindow` at ``fps``), checking the correspondences against the rig."""
     if correspondences.num_cameras != rig.num_cameras:
         raise ValueError(f"correspondences have {correspondences.num_cameras} cameras, the rig has {rig.num_cameras}")
-    return Problem(skeleton, rig, paper_terms(correspondences, skeleton, weights))
+    window = TermWindow(0, correspondences.num_frames, fps, skeleton, rig, correspondences, trial_folder)
+    extra = [term for factory in extra_terms for term in factory(window)]
+    return Problem(skeleton, rig, [*paper_terms(correspondences, skeleton, weights), *extra])
 
 
 @dataclasses.dataclass
@@ -101,6 +218,9 @@ class StoredProblem:
         store: the trial's correspondences (``C`` cameras, matching the rig).
         skeleton, rig: the model; weights: λ's and robust loss.
         include_homography: the homography term in or out; by default in if the trial has any match.
+        extra_terms: term factories (see the module docstring) called for every window, e.g.
+            :class:`UserTerms`.
+        trial_folder: the capture's trial folder handed to the factories.
     """
 
     store: CorrespondenceStore
@@ -108,6 +228,8 @@ class StoredProblem:
     rig: Rig
     weights: ObjectiveWeights = ObjectiveWeights()
     include_homography: bool | None = None
+    extra_terms: Sequence[TermFactory] = ()
+    trial_folder: Path | None = None
 
     def __post_init__(self):
         if self.store.num_cameras != self.rig.num_cameras:
@@ -125,4 +247,6 @@ class StoredProblem:
         corr = self.store.frames(start, stop)
         terms = paper_terms(corr, self.skeleton, self.weights, first_frame_has_previous=start > 0,
                             include_homography=self.include_homography, homography_cameras=self._homography_cameras)
+        window = TermWindow(start, stop, self.store.fps, self.skeleton, self.rig, corr, self.trial_folder)
+        terms += [term for factory in self.extra_terms for term in factory(window)]
         return tuple(t.window(0, stop - start) for t in terms)

@@ -1,0 +1,93 @@
+"""bcmocap.solver.objective: user term factories by import path, their checks, and the run config's
+``[[solver.user_terms]]``."""
+
+import textwrap
+
+import numpy as np
+import pytest
+
+from bcmocap.pipeline.config import RunConfig, load_config
+from bcmocap.residuals import FrameTerm
+from bcmocap.solver.objective import TermWindow, UserTerms, import_term_factory
+
+from conftest import make_rig, make_skeleton
+
+
+class RootHeight(FrameTerm):
+    """The root's height equals ``data`` (m)."""
+
+    def residual(self, state, data):
+        return (state.motion.root_position[2] - data)[None, None], np.ones(1, bool)
+
+    @classmethod
+    def from_window(cls, window, height=1.0, weight=1.0):
+        return cls(np.full(window.num_frames, height), weight=weight, name="root height")
+
+
+@pytest.fixture(scope="module")
+def window():
+    skeleton = make_skeleton()
+    return TermWindow(10, 16, 20.0, skeleton, make_rig(skeleton))
+
+
+def test_window_times_are_seconds_since_the_first_clap(window):
+    np.testing.assert_allclose(window.times, [0.5, 0.55, 0.6, 0.65, 0.7, 0.75])
+    assert window.num_frames == 6 and window.first_frame_has_previous
+
+
+def test_import_path_names_a_factory_or_a_term_class(tmp_path, monkeypatch, window):
+    (tmp_path / "my_terms.py").write_text(textwrap.dedent("""
+        from test_objective import RootHeight
+
+        def heights(window, height):
+            return [RootHeight.from_window(window, height=height)]
+
+        not_callable = 3
+    """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    factory = import_term_factory("my_terms:heights")
+    (term,) = UserTerms(factory, {"height": 2.0}, "my_terms:heights")(window)
+    np.testing.assert_array_equal(term.data, np.full(6, 2.0))
+    from_class = import_term_factory("test_objective:RootHeight")  # a Term class: its from_window
+    assert UserTerms(from_class, {"weight": 3.0})(window)[0].weight == 3.0
+    for path, message in [("my_terms", "expected 'package.module:name'"), ("../x:y", "expected"),
+                          ("no_such_module_xyz:f", "cannot import 'no_such_module_xyz'"),
+                          ("my_terms:missing", "has no 'missing'"), ("my_terms:not_callable", "is not callable"),
+                          ("bcmocap.residuals:FrameTerm", "needs a from_window classmethod")]:
+        with pytest.raises(ValueError, match=message):
+            import_term_factory(path)
+
+
+def test_user_terms_are_checked_against_the_window(window):
+    wrong_length = lambda w: RootHeight(np.ones(w.num_frames + 1), name="short")
+    with pytest.raises(ValueError, match=r"term factory f \(frames \[10, 16\)\): short: data.* expected leading axes \(6,\)"):
+        UserTerms(wrong_length, name="f")(window)
+    with pytest.raises(ValueError, match="term factory g: returned str, not a bcmocap Term"):
+        UserTerms(lambda w: ["x"], name="g")(window)
+    with pytest.raises(ValueError, match="NaN/inf"):
+        UserTerms(lambda w: RootHeight(np.full(w.num_frames, np.nan)), name="h")(window)
+
+
+def test_config_user_terms(tmp_path):
+    path = tmp_path / "run.toml"
+    path.write_text(textwrap.dedent("""
+        [[solver.user_terms]]
+        factory = "my_terms:heights"
+        height = 2.0
+        cameras = ["head", "chest"]
+
+        [[solver.user_terms]]
+        factory = "test_objective:RootHeight"
+    """))
+    config = load_config(path)
+    first, second = config.solver.user_terms
+    assert first.factory == "my_terms:heights" and first.settings == {"height": 2.0, "cameras": ["head", "chest"]}
+    assert second.settings == {}
+    assert RunConfig.from_dict(config.to_dict()) == config  # the saved config.json reads back the same
+    for text, message in [('[solver]\nuser_terms = "x:y"', "must be a list of tables"),
+                          ("[[solver.user_terms]]\nweight = 1.0", "must be a table with a 'factory' string"),
+                          ('[[solver.user_terms]]\nfactory = "a:b"\nweight = nan', r"user_terms\[0\].weight must be finite"),
+                          ('[[solver.user_terms]]\nfactory = "a:b"\nx = {y = 1}', "must be a number, string, boolean")]:
+        path.write_text(text)
+        with pytest.raises(ValueError, match=message):
+            load_config(path)
