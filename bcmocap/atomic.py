@@ -6,11 +6,15 @@ Needed from the core (:meth:`bcmocap.correspondences.Correspondences.save`) up, 
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import os
 import tempfile
-from collections.abc import Iterator
+import zipfile
+from collections.abc import Iterator, Mapping
 from pathlib import Path
+
+import numpy as np
 
 # mkstemp creates 0600 files; renamed into place they should get the permissions a plain open() gives.
 _UMASK = os.umask(0)
@@ -40,3 +44,17 @@ def write_json_atomic(path: str | os.PathLike, payload: dict) -> None:
     """Write JSON to ``path`` through a temporary file in the same folder."""
     with atomic_path(path, suffix=".json") as tmp:
         tmp.write_text(json.dumps(payload, indent=2) + "\n")
+
+
+def write_npz_atomic(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> None:
+    """A deterministic ``.npz`` (fixed zip timestamps: the same arrays give the same bytes), written atomically."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as z:
+        for name, value in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            body = io.BytesIO()
+            np.lib.format.write_array(body, np.asarray(value), allow_pickle=False)
+            z.writestr(info, body.getvalue())
+    with atomic_path(path, suffix=".npz") as tmp:
+        tmp.write_bytes(buffer.getvalue())

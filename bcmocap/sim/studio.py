@@ -26,6 +26,10 @@ Folder layout (``CAPTURE_DIR``)::
                                   camera_matrix and 5 zero distortion_coefficients)
     trials/<trial>/<camera>.mp4   one video per body camera (MPEG-4 part 2, "mp4v", via OpenCV)
     trials/<trial>/<camera>.wav   that camera's soundtrack (mono 16-bit PCM), same start as the video
+    trials/<trial>/imu.npz        the IMU in every body camera (gyro, accelerometer, their mounts) and
+    trials/<trial>/contacts.npz   foot-contact flags, from the first clap to the second on the claps'
+                                  clock (formats: bcmocap.io.sensors; simulation: bcmocap.sim.sensors,
+                                  whose write_sensor_data adds them to a capture written before them)
     ground_truth/skeleton.json    segment names, parents, rest offsets (m), joint types, hinge axes
     ground_truth/rig.json         cameras: segment, segment_from_camera (wxyz_xyz), exact intrinsics
     ground_truth/scene.json       the textured scene's surfaces (bcmocap.sim.scene.TexturedScene)
@@ -75,7 +79,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ..atomic import atomic_path
+from ..atomic import atomic_path, write_npz_atomic
 from ..cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
 from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
 from ..io.model_json import camera_from_dict, camera_to_dict, rig_from_dict, rig_to_dict, skeleton_from_dict, skeleton_to_dict
@@ -89,6 +93,7 @@ from .observe import body_capsules
 from .render import Renderer, RenderOptions, capsule_colors
 from .rig import standard_rig
 from .scene import TexturedScene, make_textured_scene
+from .sensors import write_trial_sensors
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -190,20 +195,6 @@ def _atomic_bytes(path: Path, data: bytes) -> None:
 
 def _write_json(path: Path, payload: dict) -> None:
     _atomic_bytes(path, (json.dumps(payload, indent=1) + "\n").encode())
-
-
-def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    import io
-
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as z:
-        for name, value in arrays.items():
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            body = io.BytesIO()
-            np.lib.format.write_array(body, np.asarray(value), allow_pickle=False)
-            z.writestr(info, body.getvalue())
-    _atomic_bytes(path, buffer.getvalue())
 
 
 def _read_json(path: Path) -> dict:
@@ -753,7 +744,8 @@ def _write_reference_photos(folder: Path, plan: _Plan, todo: list[int], advance:
 
 
 def _write_static_files(folder: Path, plan: _Plan) -> None:
-    """Intrinsics, rig and ground truth (cheap and deterministic: rewritten on every run)."""
+    """Intrinsics, rig, ground truth and the trials' sensor files (cheap and deterministic: rewritten on every
+    run, so resuming a capture written before the sensor files adds them)."""
     from ..io.bvh import write_bvh
 
     s, rig, skeleton = plan.settings, plan.rig, plan.skeleton
@@ -775,13 +767,13 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
     _write_json(gt / "rig.json", rig_to_dict(rig, skeleton))
     _write_json(gt / "scene.json", plan.scene.to_dict())
     points, materials = plan.scene.sample_points(seed=s.seed)
-    _write_npz(gt / "world_points.npz", {"points": points, "materials": materials})
-    _write_npz(gt / "reference.npz", {"names": np.array([f"photo_{i:03d}.jpg" for i in range(len(plan.reference_poses))]),
+    write_npz_atomic(gt / "world_points.npz", {"points": points, "materials": materials})
+    write_npz_atomic(gt / "reference.npz", {"names": np.array([f"photo_{i:03d}.jpg" for i in range(len(plan.reference_poses))]),
                                       "world_from_camera": plan.reference_poses})
     for ti, (trial, motion) in enumerate(plan.trials.items()):
         fk = forward_kinematics(skeleton, motion)
         markers = _simulate_markers(skeleton, motion, s.fps, s.markers_per_segment, _rng(s.seed, 3, ti))
-        _write_npz(gt / f"{trial}.npz", {
+        write_npz_atomic(gt / f"{trial}.npz", {
             "root_position": np.asarray(motion.root_position),
             "rotations": np.asarray(motion.rotations),
             "joint_positions": np.asarray(fk.translation()),
@@ -797,6 +789,8 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
             "markers": markers.positions,
         })
         write_bvh(gt / f"{trial}.bvh", skeleton, motion, 1.0 / s.fps)
+        write_trial_sensors(folder / "trials" / trial, skeleton, rig, motion, s.fps, plan.timelines[trial]["clap_frames"],
+                            seed=s.seed, trial_index=ti)
 
 
 # ---------------------------------------------------------------------------------------------

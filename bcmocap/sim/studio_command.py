@@ -35,9 +35,26 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--motion-blur", action="store_true", help="render motion blur (4 sub-exposures, half-frame shutter)")
     cmd.add_argument("--rolling-shutter", action="store_true", help="expose rows one after another (0.8 frame readout)")
     cmd.add_argument("--no-progress", action="store_true", help="no progress bar")
+    cmd.add_argument("--sensors-only", action="store_true",
+                     help="only add trials/<trial>/imu.npz and contacts.npz to the existing capture CAPTURE_DIR from its "
+                     "ground truth (nothing rendered; the other options are ignored)")
 
     def run(args: argparse.Namespace) -> int:
         from .studio import MAX_FPS, MAX_SECONDS, StudioSettings, write_capture
+
+        if args.sensors_only:
+            from .sensors import write_sensor_data
+
+            start = time.perf_counter()
+            try:
+                written = write_sensor_data(args.capture_dir)
+            except ValueError as err:
+                print(f"bcmocap simulate: {err}", file=sys.stderr)
+                return 2
+            for trial, paths in written.items():
+                print(f"{trial}: " + ", ".join(str(p) for p in paths))
+            print(f"wrote the sensor files of {len(written)} trials in {time.perf_counter() - start:.1f} s")
+            return 0
 
         try:
             ref_w, ref_h = (int(x) for x in args.reference_size.lower().split("x"))
