@@ -224,6 +224,19 @@ def test_relative_registration_reaches_frames_the_reference_does_not_see(studio,
     k = corr.point_ids[1, 2] >= 0
     assert k.sum() == len(has) and np.allclose(corr.points[corr.point_ids[1, 2, k]], xyz)
     assert np.allclose(corr.pixels[1, 2, k], s.keypoints[has]) and np.all(corr.weights[1, 2, k] == 1.0)
+    # points="reference": only the reference model's points are measured (the turned camera, registered through
+    # new points, keeps far fewer)
+    assert out.reference_point_ids == frozenset(int(i) for i in studio.index.point3D_ids)
+    ref = out.correspondences(fps=60.0, points="reference")
+    measured = ref.weights > 0
+    reference_xyz = {tuple(x) for x in np.round(studio.index.xyz, 9)}
+    assert all(tuple(x) in reference_xyz for x in np.round(ref.points[ref.point_ids[measured]], 9))
+    for t in range(2):
+        for c in range(3):
+            assert measured[t, c].sum() == int(np.isin(out.states[t][c].point_ids, studio.index.point3D_ids).sum())
+    assert measured[1, 2].sum() < 0.5 * (corr.weights[1, 2] > 0).sum()
+    with pytest.raises(ValueError, match="points must be 'all' or 'reference'"):
+        out.correspondences(fps=60.0, points="some")
     with pytest.raises(ValueError, match="features hold 3 cameras per frame, cameras 2"):
         register_capture(features, [studio.fisheye] * 2, studio.index)
 

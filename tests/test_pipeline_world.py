@@ -114,6 +114,15 @@ def test_config_file_flags_and_errors(tmp_path):
         config.with_overrides({"solver.nope": 1})
 
 
+def test_run_refuses_a_user_term_it_cannot_import_before_reading_the_capture(tmp_path, capsys):
+    path = tmp_path / "run.toml"
+    path.write_text('[[solver.user_terms]]\nfactory = "no_such_module_xyz:f"\n')
+    out = tmp_path / "out"
+    assert main(["run", str(tmp_path / "no capture here"), "--out", str(out), "--config", str(path)]) == 2
+    one_line_error(capsys, "run", "term factory 'no_such_module_xyz:f': cannot import 'no_such_module_xyz'", "PYTHONPATH")
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("name, text, culprit", [
     ("run.toml", "[solver]\nloss_scale = inf\n", "solver.loss_scale must be finite, got inf"),
     ("run.toml", "[solver]\nroot_smoothness = inf\n", "solver.root_smoothness must be finite"),
@@ -123,6 +132,7 @@ def test_config_file_flags_and_errors(tmp_path):
     ("run.toml", '[skeleton]\nrest_seconds = ["a"]\n', "skeleton.rest_seconds must be a list of numbers"),
     ("run.toml", "[skeleton]\nrest_seconds = [0.0, nan]\n", "skeleton.rest_seconds must be finite"),
     ("run.json", '{"skeleton": {"root_origin": [1]}}', "skeleton.root_origin must be a list of strings"),
+    ("run.toml", '[frontend]\npoints = "some"\n', "frontend.points must be 'all' or 'reference', got 'some'"),
 ])
 def test_run_refuses_non_finite_huge_or_mistyped_settings(tmp_path, capsys, name, text, culprit):
     path = tmp_path / name

@@ -62,6 +62,10 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--max-measurements", type=int, default=0,
                      help=f"at most this many measurements per camera-frame, spread over the image (0, the "
                           f"default: keep all; {MAX_MEASUREMENTS} with tracking in benchmarks/configs/tracking.toml)")
+    cmd.add_argument("--points", choices=["all", "reference"], default="all",
+                     help="which 3D points the solver measures: all, or only the reference model's (points "
+                          "triangulated from a body camera carry that camera's pose error; 'reference' in "
+                          "benchmarks/configs/tracking.toml)")
     cmd.add_argument("--chunk-frames", type=int, default=CHUNK_FRAMES,
                      help="register each trial in equal chunks of at most this many processed frames, each saved as "
                           f"it is done, so memory does not grow with the trial (default {CHUNK_FRAMES}; 0: the whole "
@@ -121,7 +125,7 @@ def prepare_reference(capture, ref_dir, log=print):
 
 def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
                   max_features: int = 8000, offsets=None, homographies: bool = True, chunk_frames: int = 0,
-                  registration: str = "global", max_measurements: int | None = None,
+                  registration: str = "global", max_measurements: int | None = None, points: str = "all",
                   log=print) -> dict:
     """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
     are given), through sync, features, registration and homographies, written under ``out``.
@@ -132,7 +136,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     then tracks the others from the frames the rounds registered (a second pass of the rounds takes the rest);
     "global" (default) extracts SIFT of every frame and matches each against the reference (tracking is
     about three times as fast on the 10 s walk but not yet as accurate). ``max_measurements`` caps the
-    measurements per camera-frame (:mod:`~.selection`; None keeps all).
+    measurements per camera-frame (:mod:`~.selection`; None keeps all); ``points`` "reference" keeps only the
+    measurements of reference-model points (:meth:`~.relative.CaptureRegistration.correspondences`).
 
     With ``chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
     frames (:func:`chunk_bounds`), one after the other: a chunk's points, tracks and matches are dropped
@@ -184,7 +189,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         raise ValueError(f"trial {trial!r}: no frames to register after the first clap (stride {stride})")
     bounds = chunk_bounds(count, chunk_frames)
     settings = {"first_clap_frames": starts.tolist(), "stride": stride, "max_features": max_features,
-                "homographies": homographies, "registration": registration, "max_measurements": max_measurements}
+                "homographies": homographies, "registration": registration, "max_measurements": max_measurements,
+                **({} if points == "all" else {"points": points})}
 
     def chunk_inputs(a: int, b: int):
         """``(features, initial, points, leave, after_rounds)`` of the processed frames ``a … b − 1`` for
@@ -223,7 +229,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
                 log(f"{label}: reused {saved.with_suffix('.npz')}")
             else:
                 part, summary = _register_frames(*chunk_inputs(a, b), a, capture, index, stride, homographies, label,
-                                                 max_measurements)
+                                                 max_measurements, points)
                 summary = {"frames": [a, b], "settings": settings, **summary}
                 if len(bounds) > 1:
                     part.save(saved.with_suffix(".npz"))
@@ -241,9 +247,10 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
               "chunk_frames": chunk_frames}
     report["registration"] = registration
     report["max_measurements"] = max_measurements
+    report["points"] = points
     report["settings"] = trial_settings(stride=stride, frames=requested_frames, max_features=max_features,
                                         homographies=homographies, chunk_frames=chunk_frames,
-                                        registration=registration, max_measurements=max_measurements)
+                                        registration=registration, max_measurements=max_measurements, points=points)
     for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
                 "tracked_after_rounds", "points", "new_points", "filled_by_homographies", "homography_pairs"):
         report[key] = int(sum(c.get(key, 0) for c in chunks))
@@ -260,12 +267,13 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
 
 
 def trial_settings(*, stride: int, frames: int | None, max_features: int, homographies: bool, chunk_frames: int,
-                   registration: str, max_measurements: int | None) -> dict:
+                   registration: str, max_measurements: int | None, points: str = "all") -> dict:
     """The settings of :func:`process_trial` that its result depends on, as saved in ``registration.json``
     (``"settings"``): a saved registration is reused only when they are all the same."""
     return {"stride": int(stride), "frames": None if frames is None else int(frames), "max_features": int(max_features),
             "homographies": bool(homographies), "chunk_frames": int(chunk_frames), "registration": str(registration),
-            "max_measurements": None if max_measurements is None else int(max_measurements), "version": SETTINGS_VERSION}
+            "max_measurements": None if max_measurements is None else int(max_measurements), "version": SETTINGS_VERSION,
+            **({} if points == "all" else {"points": str(points)})}  # registrations saved before the setting: "all"
 
 
 def chunk_bounds(num_frames: int, chunk_frames: int) -> list[tuple[int, int]]:
@@ -294,7 +302,7 @@ def _saved_chunk(saved, settings: dict, frames: list[int]):
 
 
 def _register_frames(features, initial, initial_points, leave, after_rounds, first: int, capture, index, stride: int,
-                     homographies: bool, label: str, max_measurements: int | None):
+                     homographies: bool, label: str, max_measurements: int | None, points: str = "all"):
     """Registration (from ``initial`` when given, :func:`~.relative.register_capture`) and homographies of the
     processed frames ``first … first + len(features) − 1``: ``(Correspondences, summary)``; the registration's
     points and tracks are released on return. The rounds skip the frames in ``leave`` ((T, C) bool or None);
@@ -319,7 +327,8 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
     if after_rounds is not None:
         result, tracked_after = after_rounds(result, progress)
     fill = fill_with_homographies(result, cameras) if homographies else None
-    corr = result.correspondences(fps=capture.fps / stride, homographies=fill, max_per_frame=max_measurements)
+    corr = result.correspondences(fps=capture.fps / stride, homographies=fill, max_per_frame=max_measurements,
+                                  points=points)
     states = [s for row in result.states for s in row]
     summary = {"registered_absolute": sum(s.how == "absolute" for s in states),
                "registered_tracked": sum(s.how == "tracked" for s in states),
@@ -361,5 +370,5 @@ def run_frontend(args: argparse.Namespace) -> int:
             process_trial(capture, index, trial, out, stride=args.stride, frames=args.frames,
                           max_features=args.max_features, offsets=offsets, chunk_frames=args.chunk_frames,
                           registration=args.registration, max_measurements=args.max_measurements or None,
-                          log=lambda m: print(m, flush=True))
+                          points=args.points, log=lambda m: print(m, flush=True))
     return 0

@@ -15,6 +15,8 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     chunk_frames = 400    # register in chunks of at most this many processed frames, saved as done (0: whole trial)
     registration = "global"   # global (SIFT + reference matching of every frame) | tracking (KLT + PnP, SIFT at keyframes)
     max_measurements = 0      # measurements per camera-frame kept for the solver (0: all; e.g. 400 with tracking)
+    points = "all"            # all | reference: the solver measures only the reference model's points (those
+                              # triangulated from a body camera carry its pose error; "reference" with tracking)
 
     [skeleton]
     root_origin = ["torso"]   # children whose joint centres' mean is the root's origin
@@ -66,6 +68,7 @@ class FrontendConfig:
     chunk_frames: int = 400
     registration: str = "global"
     max_measurements: int = 0
+    points: str = "all"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,6 +133,7 @@ class RunConfig:
         _check(f.registration in ("tracking", "global"), "frontend.registration", "must be 'tracking' or 'global'",
                f.registration)
         _check(f.max_measurements >= 0, "frontend.max_measurements", "must be ≥ 0", f.max_measurements)
+        _check(f.points in ("all", "reference"), "frontend.points", "must be 'all' or 'reference'", f.points)
         _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)

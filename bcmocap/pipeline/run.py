@@ -136,8 +136,12 @@ def run_pipeline(capture_dir: str | Path, out: str | Path, config: RunConfig = R
     """
     from ..frontend.capture import Capture, read_capture
 
+    from ..solver.objective import import_term_factory
+
     if stop_after is not None and stop_after not in STAGES:
         raise ValueError(f"stop_after must be one of {STAGES}, got {stop_after!r}")
+    for user in config.solver.user_terms:  # a user term that cannot be imported fails now, not after the frontend
+        import_term_factory(user.factory)
     capture = capture_dir if isinstance(capture_dir, Capture) else read_capture(capture_dir)
     out = Path(out)
     check_outside(out, capture.path)
@@ -168,7 +172,6 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
         _append_line(log_file, f"{datetime.datetime.now().isoformat(timespec='seconds')} {line}")
 
     ctx = RunContext(capture, config, out, say)
-    _user_terms(ctx)  # a user term that cannot be imported fails now, not after the frontend
     if not run_log.finished("skeleton", fingerprints(config)["skeleton"]):
         _topology(ctx)  # a capture without its subject description fails now, not after the frontend
         _rest_seconds(ctx)
@@ -213,7 +216,7 @@ def _stage_frontend(ctx: RunContext) -> dict:
         done = folder / trial / "registration.json"
         settings = trial_settings(stride=stride, frames=f.frames or None, max_features=f.max_features,
                                   homographies=homographies, chunk_frames=f.chunk_frames, registration=f.registration,
-                                  max_measurements=f.max_measurements or None)
+                                  max_measurements=f.max_measurements or None, points=f.points)
         if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
             report = _read_json(done)
             if report.get("settings") == settings:
@@ -225,7 +228,7 @@ def _stage_frontend(ctx: RunContext) -> dict:
         reports[trial] = process_trial(ctx.capture, index, trial, folder, stride=stride, frames=f.frames or None,
                                        max_features=f.max_features, homographies=homographies,
                                        chunk_frames=f.chunk_frames, registration=f.registration,
-                                       max_measurements=f.max_measurements or None, log=ctx.log)
+                                       max_measurements=f.max_measurements or None, points=f.points, log=ctx.log)
     return {trial: {"registered_fraction": r["registered_fraction"], "frames": r["frames"]}
             for trial, r in reports.items()}
 
