@@ -57,3 +57,12 @@ def test_indefinite_system_gives_nan():
     diag = diag.copy()
     diag[3] = -np.eye(2) * 100.0
     assert np.isnan(np.asarray(solve_block_banded(diag, bands, np.ones((6, 2))))).any()
+
+
+@pytest.mark.parametrize("bandwidth", [1, 2])
+def test_several_right_hand_sides_share_one_solve(bandwidth):
+    rng = np.random.default_rng(20 + bandwidth)
+    diag, bands, dense = random_banded_spd(rng, 7, 3, bandwidth)
+    rhs = rng.normal(size=(7, 3, 4))
+    x = np.asarray(solve_block_banded(diag, bands, rhs))
+    np.testing.assert_allclose(x.reshape(21, 4), np.linalg.solve(dense, rhs.reshape(21, 4)), rtol=1e-9, atol=1e-10)

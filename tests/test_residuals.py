@@ -21,6 +21,7 @@ from bcmocap.residuals import (
     FrameTerm,
     HomographyTransfer,
     MultiFrameTerm,
+    PairTerm,
     HuberLoss,
     JointSmoothness,
     Reprojection,
@@ -535,7 +536,7 @@ def test_camera_slots_give_the_same_cost_and_normal_equations(skeleton, rig, sce
         systems.append(structured_system(problem, y))
     assert costs[0] == pytest.approx(costs[1], rel=1e-12)
     for a, b in zip(jax.tree.leaves(systems[0]), jax.tree.leaves(systems[1])):
-        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(a).max())
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(a).max(initial=0.0))
 
 
 def test_camera_slot_errors_are_named(scene):
@@ -657,3 +658,63 @@ def test_multi_frame_term_is_dropped_where_its_frames_are_missing(span_problems,
             present = t - 2 >= -n
             assert (np.abs(b[t]).max() > 0) == present, (n, t)
     np.testing.assert_array_equal(blocks[0][2], blocks[2][2])  # the full block does not depend on the history
+
+
+class _OffsetHeadUp(FrameTerm):
+    """A user's frame term reading a static variable: the head's z axis equals world +z plus a constant tilt."""
+
+    def static_variables(self):
+        return {"tilt": 3}
+
+    def residual(self, state, data):
+        z = state.world_from_segment.rotation().as_matrix()[2, :, 2]
+        return (z - jnp.array([0.0, 0.0, 1.0]) - state.statics["tilt"])[None], data[None] > 0
+
+
+class _OffsetRootStep(PairTerm):
+    """A pair term sharing the static variable: the root's step between frames equals the tilt (a drift)."""
+
+    def static_variables(self):
+        return {"tilt": 3}
+
+    def residual(self, prev, curr, data):
+        step = curr.motion.root_position - prev.motion.root_position
+        return (step - curr.statics["tilt"])[None], data[None] > 0
+
+
+@pytest.mark.slow
+def test_static_variables_give_the_dense_bordered_system(skeleton, rig, scene):
+    """Frame and pair terms reading one static variable: the structured system's banded part, its border
+    (coupling H[t, z], H[z, z]) and both gradients are those of the dense autodiff Jacobian over (y, z)."""
+    terms = [Reprojection(scene["reprojection"], points=scene["points"], loss=CauchyLoss(2.0), name="reprojection"),
+             _OffsetHeadUp(np.ones(W), weight=4.0, name="head up"),
+             _OffsetRootStep(np.ones(W), weight=30.0, loss=HuberLoss(0.01), name="root step")]
+    problem = make_window_problem(skeleton, rig, [t.window(0, W) for t in terms], scene["reference"], True,
+                                  {"tilt": np.array([0.01, -0.02, 0.03])})
+    assert problem.num_statics == 3
+    rng = np.random.default_rng(13)
+    d = skeleton.num_dofs
+    y, z = jnp.asarray(rng.normal(scale=0.01, size=(W, d))), jnp.asarray(rng.normal(scale=0.01, size=3))
+    flat = lambda v: jnp.concatenate([r.reshape(-1) for r in residuals(problem, v[: W * d].reshape(W, d), v[W * d :])])
+    raw = eqx.tree_at(lambda p: p.terms, problem,
+                      tuple(eqx.tree_at(lambda t: (t.loss, t.weight), t, (TrivialLoss(), jnp.asarray(1.0))) for t in problem.terms))
+    raw_flat = lambda v: jnp.concatenate([r.reshape(-1) for r in residuals(raw, v[: W * d].reshape(W, d), v[W * d :])])
+    v = jnp.concatenate([y.reshape(-1), z])
+    r, jac = np.asarray(flat(v)), np.asarray(jax.jacfwd(flat)(v))
+    blocks = residuals(raw, y, z)
+    row_weights = np.concatenate([np.asarray(jnp.broadcast_to(
+        (t.weight * t.loss.derivative(jnp.sum(b * b, axis=-1)))[..., None], b.shape)).reshape(-1)
+        for t, b in zip(problem.terms, blocks)])
+    raw_jac = np.asarray(jax.jacfwd(raw_flat)(v))
+    hess = raw_jac.T @ (row_weights[:, None] * raw_jac)
+    grad = jac.T @ r
+    ne = eqx.filter_jit(normal_equations)(problem, y, z)
+    scale = np.abs(hess).max()
+    n = W * d
+    np.testing.assert_allclose(np.asarray(ne.static_matrix), hess[n:, n:], rtol=1e-8, atol=1e-9 * scale)
+    np.testing.assert_allclose(np.asarray(ne.coupling).reshape(n, 3), hess[:n, n:], rtol=1e-8, atol=1e-9 * scale)
+    np.testing.assert_allclose(np.asarray(ne.static_grad), grad[n:], rtol=1e-8, atol=1e-9 * np.abs(grad).max())
+    np.testing.assert_allclose(np.asarray(ne.grad).reshape(-1), grad[:n], rtol=1e-8, atol=1e-9 * np.abs(grad).max())
+    for t in range(W):
+        np.testing.assert_allclose(ne.diag[t], hess[t * d : (t + 1) * d, t * d : (t + 1) * d], rtol=1e-8, atol=1e-9 * scale)
+    assert np.abs(hess[:n, n:]).max() > 1.0  # the border is really there (λ = 4 and 30 terms)

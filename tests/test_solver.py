@@ -265,3 +265,46 @@ def test_a_three_frame_term_reaches_scipys_minimum_in_windows(setup):
     assert np.abs(grad[2:]).max() < 1e-6 * scale and np.abs(grad[:2]).max() > 1e-3 * scale
     diff = evaluate_motion(skeleton, windowed.motion, whole.motion)
     assert diff["joint_position_error_cm"]["max"] < 1.0
+
+
+class BiasedCentres(FrameTerm):
+    """Every camera centre measured with one unknown constant offset (a static variable, m)."""
+
+    def static_variables(self):
+        return {"centre_offset": 3}
+
+    def residual(self, state, data):
+        centres = state.world_from_camera.translation()  # (C, 3)
+        return centres + state.statics["centre_offset"] - data, jnp.ones(data.shape[0], bool)
+
+
+@pytest.mark.slow
+def test_static_variables_reach_scipys_minimum_and_are_recovered(setup):
+    """A term with a static variable (an offset shared by all frames): the Schur-complement step reaches scipy's
+    minimum over motion and offset together, the offset is recovered, and windows carry it over."""
+    skeleton, rig, truth, _, _, init = setup
+    offset = np.array([0.05, -0.03, 0.02])
+    centres = np.asarray(camera_poses(skeleton, rig, truth).translation())
+    measured = centres + offset + 0.001 * np.random.default_rng(12).normal(size=centres.shape)
+    base = make_problem(setup)
+    problem = Problem(skeleton, rig, [*base.terms, BiasedCentres(measured, weight=1e4, name="biased centres")])
+    fn, ref = scipy_minimum_with_statics(problem, init, 3)
+    whole = solve(problem, init, SolverOptions(window=T, overlap=0, rtol=1e-10, atol=1e-12, max_steps=60))
+    assert whole.converged and set(whole.statics) == {"centre_offset"}
+    assert abs(whole.reports[0].final_cost - ref.cost) <= 1e-6 * ref.cost
+    np.testing.assert_allclose(whole.statics["centre_offset"], ref.x[-3:], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(skeleton.difference(init, whole.motion)).ravel(), ref.x[:-3], atol=1e-6)
+    np.testing.assert_allclose(whole.statics["centre_offset"], offset, atol=5e-3)  # the motion is known to mm
+    windowed = solve(problem, init, SolverOptions(window=4, overlap=2))
+    np.testing.assert_allclose(windowed.statics["centre_offset"], offset, atol=5e-3)
+
+
+def scipy_minimum_with_statics(problem, init, num_statics):
+    """scipy's minimum over the motion offsets and ``num_statics`` static variables together."""
+    fn = whole_sequence_residual_function(problem, init)
+    jac = jax.jit(jax.jacfwd(fn))
+    ref = scipy.optimize.least_squares(
+        lambda y: np.asarray(fn(y)), np.zeros(T * problem.skeleton.num_dofs + num_statics), jac=lambda y: np.asarray(jac(y)),
+        method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=200,
+    )
+    return fn, ref

@@ -54,11 +54,14 @@ class FrameState(eqx.Module):
         motion: the frame's root position and rotations (batch shape ``()``).
         world_from_segment: SE3 with batch shape ``(J,)``.
         world_from_camera: SE3 with batch shape ``(C,)`` (empty if the problem has no rig).
+        statics: the window's static variables by name (``(n,)`` each, the same at every frame): what terms
+            declare in :meth:`Term.static_variables`, e.g. an accelerometer bias or a mount correction.
     """
 
     motion: Motion
     world_from_segment: SE3
     world_from_camera: SE3
+    statics: dict = eqx.field(default_factory=dict)
 
 
 class Term(eqx.Module):
@@ -123,6 +126,17 @@ class Term(eqx.Module):
             if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
                 idx = tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])
                 raise ValueError(f"{self.label}: data{jax.tree_util.keystr(path)} has NaN/inf at index {idx}")
+
+    def static_variables(self) -> dict[str, int]:
+        """Static variable blocks this term reads from ``state.statics``: ``{name: size}``.
+
+        Static variables are vectors (Euclidean) shared by every frame of a window — a sensor bias, a
+        calibration correction — solved with the motion: the solver eliminates them by a Schur complement
+        (so they cost ``O(size)`` extra banded solves per step), starts them at 0 in the first window and
+        carries each window's estimate into the next. Terms that name the same variable share it. Only
+        frame, pair and multi-frame terms can read them (camera terms see camera poses only).
+        """
+        return {}
 
     def finish(self, r: jax.Array, valid: jax.Array) -> jax.Array:
         """Mask, robustify and weight raw residual blocks ``(..., k)``: the residuals whose squares are the cost."""

@@ -21,18 +21,18 @@ def solve_block_banded(diag: jax.Array, bands: tuple[jax.Array, ...], rhs: jax.A
 
     Args:
         diag: ``(W, D, D)`` diagonal blocks; bands: ``B`` arrays, ``bands[k-1]`` ``(W-k, D, D)`` = ``A[t, t+k]``.
-        rhs: ``(W, D)``.
+        rhs: ``(W, D)``, or ``(W, D, K)`` for ``K`` right-hand sides sharing one factorisation.
 
     Returns:
-        ``(W, D)`` solution; NaN if a pivot is not positive definite.
+        The solution, shaped as ``rhs``; NaN if a pivot is not positive definite.
     """
     if len(bands) <= 1:
         upper = bands[0] if bands else jnp.zeros((max(diag.shape[0] - 1, 0), *diag.shape[1:]), diag.dtype)
         return solve_block_tridiagonal(diag, upper, rhs)
-    w, d = rhs.shape
+    w, d, *k = rhs.shape
     super_diag, super_upper, padded = _super_blocks(diag, bands, len(bands))
-    x = solve_block_tridiagonal(super_diag, super_upper, _pad(rhs, padded - w).reshape(-1, len(bands) * d))
-    return x.reshape(padded, d)[:w]
+    x = solve_block_tridiagonal(super_diag, super_upper, _pad(rhs, padded - w).reshape(-1, len(bands) * d, *k))
+    return x.reshape(padded, d, *k)[:w]
 
 
 def block_banded_matvec(diag: jax.Array, bands: tuple[jax.Array, ...], x: jax.Array) -> jax.Array:

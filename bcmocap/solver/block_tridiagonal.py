@@ -18,10 +18,10 @@ def solve_block_tridiagonal(diag: jax.Array, upper: jax.Array, rhs: jax.Array) -
     Args:
         diag: ``(W, D, D)`` diagonal blocks ``A[t, t]``.
         upper: ``(W-1, D, D)`` super-diagonal blocks ``A[t, t+1]`` (``A[t+1, t] = upper[t]ᵀ``).
-        rhs: ``(W, D)``.
+        rhs: ``(W, D)``, or ``(W, D, K)`` for ``K`` right-hand sides sharing one factorisation.
 
     Returns:
-        ``(W, D)`` solution; NaN if a pivot block is not positive definite.
+        The solution, shaped as ``rhs``; NaN if a pivot block is not positive definite.
     """
     if rhs.shape[0] == 1:
         return cho_solve((jnp.linalg.cholesky(diag[0]), True), rhs[0])[None]

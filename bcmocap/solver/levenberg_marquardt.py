@@ -35,26 +35,43 @@ from .window import NormalEquations
 
 
 class BlockBandedOperator(lx.AbstractLinearOperator):
-    """Symmetric block-banded ``(W·D) × (W·D)`` operator on ``(W, D)`` arrays.
+    """Symmetric block-banded ``(W·D) × (W·D)`` operator on ``(W, D)`` arrays, bordered by ``S`` static
+    variables: then on ``(y (W, D), z (S,))`` pairs, ``[[A, B], [Bᵀ, C]]``.
 
     Attributes:
         diag: ``(W, D, D)`` diagonal blocks; bands: ``bands[k-1]`` ``(W-k, D, D)`` = ``A[t, t+k]``.
+        coupling: ``(W, D, S)`` = ``B``; static_matrix: ``(S, S)`` = ``C`` (``S`` = 0: no border).
     """
 
     diag: jax.Array
     bands: tuple[jax.Array, ...]
+    coupling: jax.Array
+    static_matrix: jax.Array
+
+    @property
+    def has_statics(self) -> bool:
+        return self.static_matrix.shape[0] > 0
 
     def mv(self, vector):
-        return block_banded_matvec(self.diag, self.bands, vector)
+        if not self.has_statics:
+            return block_banded_matvec(self.diag, self.bands, vector)
+        y, z = vector
+        return (block_banded_matvec(self.diag, self.bands, y) + jnp.einsum("tis,s->ti", self.coupling, z),
+                jnp.einsum("tis,ti->s", self.coupling, y) + self.static_matrix @ z)
 
     def as_matrix(self):
-        return block_banded_dense(self.diag, self.bands)
+        banded = block_banded_dense(self.diag, self.bands)
+        if not self.has_statics:
+            return banded
+        b = self.coupling.reshape(-1, self.coupling.shape[-1])
+        return jnp.block([[banded, b], [b.T, self.static_matrix]])
 
     def transpose(self):
         return self
 
     def in_structure(self):
-        return jax.ShapeDtypeStruct(self.diag.shape[:2], self.diag.dtype)
+        motion = jax.ShapeDtypeStruct(self.diag.shape[:2], self.diag.dtype)
+        return (motion, jax.ShapeDtypeStruct(self.static_matrix.shape[:1], self.diag.dtype)) if self.has_statics else motion
 
     def out_structure(self):
         return self.in_structure()
@@ -66,7 +83,7 @@ def _(operator):
 
 
 class _DescentState(eqx.Module):
-    grad: jax.Array
+    grad: Any  # (W, D), or ((W, D), (S,)) with static variables
     hessian: BlockBandedOperator
 
 
@@ -84,7 +101,7 @@ class StructuredDampedNewtonDescent(optx.AbstractDescent):
 
     def init(self, y, f_info_struct):
         zeros = lambda a: jnp.zeros(a.shape, a.dtype)
-        return _DescentState(zeros(y), jax.tree.map(zeros, f_info_struct.hessian))
+        return _DescentState(jax.tree.map(zeros, y), jax.tree.map(zeros, f_info_struct.hessian))
 
     def query(self, y, f_info, state):
         del y, state
@@ -95,18 +112,28 @@ class StructuredDampedNewtonDescent(optx.AbstractDescent):
         mu = self.damping_scale / step_size
         d = jnp.diagonal(hessian.diag, axis1=-2, axis2=-1)
         floor = self.min_diagonal * jnp.maximum(jnp.max(d), 1.0)
-        damping = mu * jnp.maximum(d, floor)
-        damped = hessian.diag + jax.vmap(jnp.diag)(damping)
-        delta = -solve_block_banded(damped, hessian.bands, state.grad)
-        ok = jnp.all(jnp.isfinite(delta))
-        delta = jnp.where(ok, delta, 0.0)
+        damped = hessian.diag + jax.vmap(jnp.diag)(mu * jnp.maximum(d, floor))
+        if not hessian.has_statics:
+            delta = -solve_block_banded(damped, hessian.bands, state.grad)
+        else:  # eliminate the motion: Schur complement onto the static variables
+            g_y, g_z = state.grad
+            c = jnp.diagonal(hessian.static_matrix)
+            damped_c = hessian.static_matrix + jnp.diag(mu * jnp.maximum(c, self.min_diagonal * jnp.maximum(jnp.max(c), 1.0)))
+            columns = jnp.concatenate([g_y[..., None], hessian.coupling], axis=-1)  # (W, D, 1 + S)
+            solved = solve_block_banded(damped, hessian.bands, columns)  # one factorisation, 1 + S columns
+            a_inv_g, a_inv_b = solved[..., 0], solved[..., 1:]
+            schur = damped_c - jnp.einsum("tis,tiu->su", hessian.coupling, a_inv_b)
+            delta_z = -jnp.linalg.solve(schur, g_z - jnp.einsum("tis,ti->s", hessian.coupling, a_inv_g))
+            delta = (-(a_inv_g + jnp.einsum("tis,s->ti", a_inv_b, delta_z)), delta_z)
+        ok = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(delta)]))
+        delta = jax.tree.map(lambda x: jnp.where(ok, x, 0.0), delta)
         result = optx.RESULTS.where(ok, optx.RESULTS.successful, optx.RESULTS.singular)
         return delta, result
 
 
 class _SolverState(eqx.Module):
     first_step: jax.Array
-    y_eval: jax.Array
+    y_eval: Any  # (W, D), or ((W, D), (S,)) with static variables
     f_info: optx.FunctionInfo.EvalGradHessian  # model at the last accepted point (f: its cost)
     initial_cost: jax.Array  # cost at the starting point
     aux: Any
@@ -118,7 +145,9 @@ class _SolverState(eqx.Module):
 
 
 def _model(cost: jax.Array, system: NormalEquations) -> optx.FunctionInfo.EvalGradHessian:
-    return optx.FunctionInfo.EvalGradHessian(cost, system.grad, BlockBandedOperator(system.diag, system.bands))
+    operator = BlockBandedOperator(system.diag, system.bands, system.coupling, system.static_matrix)
+    grad = (system.grad, system.static_grad) if operator.has_statics else system.grad
+    return optx.FunctionInfo.EvalGradHessian(cost, grad, operator)
 
 
 class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
@@ -156,12 +185,13 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, args, options, f_struct, tags
         system = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(self.build, y))
-        f_info = _model(jnp.zeros((), y.dtype), system)
+        dtype = jax.tree.leaves(y)[0].dtype
+        f_info = _model(jnp.zeros((), dtype), system)
         return _SolverState(
             first_step=jnp.array(True),
             y_eval=y,
             f_info=f_info,
-            initial_cost=jnp.zeros((), y.dtype),
+            initial_cost=jnp.zeros((), dtype),
             aux=jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), aux_struct),
             search_state=self.search.init(y, f_info),
             descent_state=self.descent.init(y, f_info),
@@ -171,7 +201,7 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         )
 
     def _converged(self, y, y_diff, cost, cost_diff):
-        y_small = self.norm(jnp.abs(y_diff) / (self.atol + self.rtol * jnp.abs(y))) < 1
+        y_small = self.norm(jax.tree.map(lambda a, b: jnp.abs(a) / (self.atol + self.rtol * jnp.abs(b)), y_diff, y)) < 1
         cost_small = jnp.abs(cost_diff) < self.atol + self.rtol * jnp.abs(cost)
         return y_small & cost_small
 
@@ -186,7 +216,7 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
 
         def accepted(_):
             terminate = ~state.first_step & self._converged(
-                state.y_eval, state.y_eval - y, state.f_info.f, cost_eval - state.f_info.f
+                state.y_eval, jax.tree.map(jnp.subtract, state.y_eval, y), state.f_info.f, cost_eval - state.f_info.f
             )
             # The normal equations at the final point would never be used.
             system = jax.lax.cond(
@@ -206,7 +236,7 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         result = optx.RESULTS.where(search_result == optx.RESULTS.successful, descent_result, search_result)
         new_state = _SolverState(
             first_step=jnp.array(False),
-            y_eval=y + y_descent,
+            y_eval=jax.tree.map(jnp.add, y, y_descent),
             f_info=f_info,
             initial_cost=jnp.where(state.first_step, cost_eval, state.initial_cost),
             aux=aux,

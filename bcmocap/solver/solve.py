@@ -25,7 +25,7 @@ from ..kinematics.skeleton import Motion, Skeleton
 from ..residuals.base import CameraPairTerm, CameraTerm, Term
 from ..precision import require_float64
 from .levenberg_marquardt import StructuredLevenbergMarquardt
-from .window import WindowProblem, normal_equations, residuals, window_history
+from .window import WindowProblem, make_window_problem, normal_equations, residuals, static_values, window_history
 
 
 class SequenceProblem(Protocol):
@@ -125,10 +125,12 @@ class WindowReport:
 
 @dataclasses.dataclass
 class Solution:
-    """Result of :func:`solve`: the motion over all frames and one report per window."""
+    """Result of :func:`solve`: the motion over all frames, one report per window, and the static variables
+    the terms declared (``{name: (n,)}``, the last window's estimate; empty without any)."""
 
     motion: Motion
     reports: list[WindowReport]
+    statics: dict = dataclasses.field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -145,17 +147,24 @@ def window_starts(num_frames: int, window: int, overlap: int) -> list[int]:
     return starts
 
 
+def _system(problem: WindowProblem, v) -> jax.Array:
+    """The normal equations at the solver's variables: ``y``, or ``(y, z)`` with static variables."""
+    return normal_equations(problem, *v) if isinstance(v, tuple) else normal_equations(problem, v)
+
+
 @eqx.filter_jit
 def _solve_window(problem: WindowProblem, options: SolverOptions):
-    w, d = problem.num_frames, problem.skeleton.num_dofs
-    build = eqx.Partial(normal_equations, problem)
-    solver = StructuredLevenbergMarquardt(build, options.rtol, options.atol, damping_scale=options.damping_scale)
-    fn = lambda y, args: residuals(args, y)
-    y0 = jnp.zeros((w, d))
-    sol = optx.least_squares(fn, solver, y0, args=problem, max_steps=options.max_steps, throw=False)
-    motion = problem.skeleton.retract(problem.reference[problem.history :], sol.value)
+    w, d, n_static = problem.num_frames, problem.skeleton.num_dofs, problem.num_statics
+    solver = StructuredLevenbergMarquardt(eqx.Partial(_system, problem), options.rtol, options.atol,
+                                          damping_scale=options.damping_scale)
+    fn = lambda v, args: residuals(args, *v) if isinstance(v, tuple) else residuals(args, v)
+    v0 = (jnp.zeros((w, d)), jnp.zeros(n_static)) if n_static else jnp.zeros((w, d))
+    sol = optx.least_squares(fn, solver, v0, args=problem, max_steps=options.max_steps, throw=False)
+    y, z = sol.value if n_static else (sol.value, None)
+    motion = problem.skeleton.retract(problem.reference[problem.history :], y)
     return (
         motion,
+        static_values(problem, z),
         sol.state.initial_cost,
         sol.state.f_info.f,  # the cost at the returned point, the last accepted one
         sol.stats["num_steps"],
@@ -215,6 +224,7 @@ def solve(
     root = np.array(initial_motion.root_position, dtype=np.float64)
     rotations = np.array(initial_motion.rotations, dtype=np.float64)
     reports: list[WindowReport] = []
+    statics: dict[str, np.ndarray] = {}  # static variables (if the terms declare any): 0 in the first window
     bar = None
     if progress is True:
         from tqdm.auto import tqdm
@@ -236,12 +246,15 @@ def solve(
             np.concatenate([root[before], root[start:stop]]),
             np.concatenate([rotations[before], rotations[start:stop]]),
         )
-        wp = WindowProblem(skeleton, rig, terms, reference, min(start, history))
-        motion, c0, c1, steps, accepted, ok = _solve_window(wp, options)
+        wp = make_window_problem(skeleton, rig, terms, reference, min(start, history), statics)
+        motion, new_statics, c0, c1, steps, accepted, ok = _solve_window(wp, options)
         new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
-        if not (np.all(np.isfinite(new_root)) and np.all(np.isfinite(new_rot)) and np.isfinite(c0) and np.isfinite(c1)):
+        new_statics = {k: np.asarray(v) for k, v in new_statics.items()}
+        finite = [new_root, new_rot, np.asarray(c0), np.asarray(c1), *new_statics.values()]
+        if not all(np.all(np.isfinite(a)) for a in finite):
             raise FloatingPointError(_non_finite_window(wp, start, stop, skeleton.num_dofs))
         root[start:stop], rotations[start:stop] = new_root, new_rot
+        statics = new_statics  # the next window starts from this window's estimate
         report = WindowReport(start, stop, float(c0), float(c1), int(steps), int(accepted), bool(ok), time.perf_counter() - t0)
         reports.append(report)
         if bar is not None:
@@ -254,7 +267,7 @@ def solve(
         done = stop
     if bar is not None:
         bar.close()
-    return Solution(Motion(root, rotations), reports)
+    return Solution(Motion(root, rotations), reports, statics)
 
 
 def _check_window_has_observations(terms: Sequence[Term], start: int, stop: int) -> None:
@@ -271,10 +284,11 @@ def _check_window_has_observations(terms: Sequence[Term], start: int, stop: int)
 
 
 def whole_sequence_residual_function(problem: SequenceProblem, initial_motion: Motion) -> Callable[[np.ndarray], np.ndarray]:
-    """The residual vector of the whole sequence as one window, ``y (T·D,) ↦ r``, for reference solvers.
+    """The residual vector of the whole sequence as one window, ``y (T·D + S,) ↦ r``, for reference solvers.
 
-    ``y`` is the tangent offset from ``initial_motion`` (so ``y = 0`` is the initial guess); the
-    residuals are exactly those the windowed solver minimises.
+    ``y`` is the tangent offset from ``initial_motion`` (so ``y = 0`` is the initial guess) followed by the
+    ``S`` static variables the terms declare (starting at 0; none for the paper's terms); the residuals are
+    exactly those the windowed solver minimises.
     """
     skeleton = problem.skeleton
     n = problem.num_frames
@@ -284,11 +298,12 @@ def whole_sequence_residual_function(problem: SequenceProblem, initial_motion: M
         np.concatenate([np.asarray(initial_motion.root_position)[before], np.asarray(initial_motion.root_position)]),
         np.concatenate([np.asarray(initial_motion.rotations)[before], np.asarray(initial_motion.rotations)]),
     )
-    wp = WindowProblem(skeleton, problem.rig, terms, reference, 0)
+    wp = make_window_problem(skeleton, problem.rig, terms, reference, 0)
+    size = n * skeleton.num_dofs
 
     @jax.jit
     def fn(y_flat):
-        r = residuals(wp, y_flat.reshape(n, skeleton.num_dofs))
+        r = residuals(wp, y_flat[:size].reshape(n, skeleton.num_dofs), y_flat[size:] if wp.num_statics else None)
         return jnp.concatenate([a.reshape(-1) for a in r])
 
     return fn
@@ -297,4 +312,4 @@ def whole_sequence_residual_function(problem: SequenceProblem, initial_motion: M
 def motion_from_tangent(problem: SequenceProblem, initial_motion: Motion, y_flat: np.ndarray) -> Motion:
     """The motion at tangent offset ``y`` ``(T·D,)`` from ``initial_motion`` (inverse of the above's variables)."""
     d = problem.skeleton.num_dofs
-    return problem.skeleton.retract(initial_motion, jnp.asarray(y_flat).reshape(-1, d))
+    return problem.skeleton.retract(initial_motion, jnp.asarray(y_flat)[: initial_motion.num_frames * d].reshape(-1, d))

@@ -34,6 +34,8 @@ class WindowProblem(eqx.Module):
             (:func:`window_history`), then the window's frames.
         num_previous: scalar int, how many of those ``H`` frames exist (fewer at the start of a
             sequence; terms reaching further back are dropped at the window's first frames).
+        statics: the static variables' values the window starts from, ``{name: (n,)}`` for every block of
+            :func:`static_layout` (the solver's variables ``z`` are offsets from them).
     """
 
     skeleton: Skeleton
@@ -41,10 +43,16 @@ class WindowProblem(eqx.Module):
     terms: tuple[Term, ...]
     reference: Motion
     num_previous: jax.Array = eqx.field(converter=lambda n: jnp.asarray(n, jnp.int32))
+    statics: dict = eqx.field(default_factory=dict)
 
     @property
     def history(self) -> int:
         return window_history(self.terms)
+
+    @property
+    def num_statics(self) -> int:
+        """``S``: the length of the static variables' vector ``z``."""
+        return sum(size for _, size in static_layout(self.terms))
 
     @property
     def num_frames(self) -> int:
@@ -59,15 +67,45 @@ def window_history(terms: Sequence[Term]) -> int:
     return max([2, *(t.span for t in terms if isinstance(t, MultiFrameTerm))]) - 1
 
 
-def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.Array) -> FrameState:
-    """State of frames with batch shape ``S`` from tangent vectors ``(*S, D)``."""
+def static_layout(terms: Sequence[Term]) -> tuple[tuple[str, int], ...]:
+    """The static variable blocks the terms declare, ``((name, size), …)`` sorted by name; ``z`` stacks them.
+
+    Raises:
+        ValueError: two terms give one name different sizes.
+    """
+    sizes: dict[str, tuple[int, str]] = {}
+    for term in terms:
+        for name, size in term.static_variables().items():
+            if isinstance(term, (CameraTerm, CameraPairTerm)):
+                raise ValueError(f"{term.label}: camera terms cannot read static variables ({name!r})")
+            if name in sizes and sizes[name][0] != int(size):
+                raise ValueError(f"static variable {name!r}: {sizes[name][1]} gives size {sizes[name][0]}, "
+                                 f"{term.label} {int(size)}")
+            sizes[name] = (int(size), term.label)
+    return tuple((name, sizes[name][0]) for name in sorted(sizes))
+
+
+def static_values(problem: WindowProblem, z: jax.Array | None) -> dict:
+    """``{name: (n,)}``: the window's static variables at offset ``z`` ``(S,)`` (None: at the start)."""
+    out, at = {}, 0
+    for name, size in static_layout(problem.terms):
+        value = problem.statics[name]
+        out[name] = value if z is None else value + z[at : at + size]
+        at += size
+    return out
+
+
+def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.Array, statics: dict | None = None) -> FrameState:
+    """State of frames with batch shape ``S`` from tangent vectors ``(*S, D)`` (static variables repeated)."""
     motion = skeleton.retract(reference, y)
     world_from_segment = forward_kinematics(skeleton, motion)
     if rig is None:
         world_from_camera = SE3.identity(batch_axes=(*y.shape[:-1], 0))
     else:
         world_from_camera = rig.world_from_camera(world_from_segment)
-    return FrameState(motion, world_from_segment, world_from_camera)
+    batch = y.shape[:-1]
+    statics = {k: jnp.broadcast_to(v, (*batch, *jnp.shape(v))) for k, v in (statics or {}).items()}
+    return FrameState(motion, world_from_segment, world_from_camera, statics)
 
 
 def _extended(problem: WindowProblem, y: jax.Array) -> jax.Array:
@@ -106,10 +144,11 @@ def _slot_intrinsics(term: Term, rig: Rig):
     return jax.tree.map(lambda a: a[index], rig.intrinsics), 0
 
 
-def residuals(problem: WindowProblem, y: jax.Array) -> tuple[jax.Array, ...]:
-    """All finished residual blocks of the window, one array per term (shapes ``(W, ..., k)``)."""
+def residuals(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) -> tuple[jax.Array, ...]:
+    """All finished residual blocks of the window, one array per term (shapes ``(W, ..., k)``), at motion
+    offsets ``y`` ``(W, D)`` and static-variable offsets ``z`` ``(S,)`` (None: 0)."""
     h = problem.history
-    states = frame_state(problem.skeleton, problem.rig, problem.reference, _extended(problem, y))
+    states = frame_state(problem.skeleton, problem.rig, problem.reference, _extended(problem, y), static_values(problem, z))
     prev_states = jax.tree.map(lambda a: a[h - 1 : -1], states)
     curr_states = jax.tree.map(lambda a: a[h:], states)
     out = []
@@ -155,11 +194,16 @@ class NormalEquations(eqx.Module):
     Attributes:
         diag: ``(W, D, D)``; bands: ``B`` arrays, ``bands[k-1]`` ``(W-k, D, D)`` = ``H[t, t+k]``
             (``B`` = 1 for the paper's terms); grad: ``(W, D)``.
+        coupling: ``(W, D, S)`` = ``H[t, z]``; static_matrix: ``(S, S)`` = ``H[z, z]``; static_grad: ``(S,)``
+            (``S`` = 0 without static variables).
     """
 
     diag: jax.Array
     bands: tuple[jax.Array, ...]
     grad: jax.Array
+    coupling: jax.Array
+    static_matrix: jax.Array
+    static_grad: jax.Array
 
     @property
     def upper(self) -> jax.Array:
@@ -218,8 +262,9 @@ def _camera_measurement_jacobians(residual_fn, poses: tuple[jax.Array, ...], rot
     return r, jac
 
 
-def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
-    """Assemble the block-banded Gauss–Newton system of the window at ``y`` ``(W, D)``.
+def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) -> NormalEquations:
+    """Assemble the block-banded Gauss–Newton system of the window at ``y`` ``(W, D)`` and static-variable
+    offsets ``z`` ``(S,)`` (None: 0).
 
     ``grad`` is the exact gradient of the window's cost; ``diag``/``bands`` are the IRLS Gauss–Newton
     matrix ``Σ λ ρ'(s) JᵀJ`` (exactly ``JᵀJ`` of the residuals when no robust loss is used). The
@@ -227,55 +272,63 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
     """
     w, d = y.shape
     h = problem.history
+    n_static = problem.num_statics
+    z = jnp.zeros(n_static) if z is None else z
     y_ext = _extended(problem, y)
     diag = jnp.zeros((h + w, d, d))  # extended: the H fixed frames first (discarded)
     bands = [jnp.zeros((h + w, d, d)) for _ in range(h)]  # bands[k-1][u] couples extended frames u and u+k
     grad = jnp.zeros((h + w, d))
+    statics = _StaticBlocks(jnp.zeros((h + w, d, n_static)), jnp.zeros((n_static, n_static)), jnp.zeros(n_static))
+    with_z = lambda v: jnp.concatenate([v, jnp.broadcast_to(z, (v.shape[0], n_static))], axis=1)  # (W, n) → (W, n + S)
     needs_cameras = any(isinstance(t, (CameraTerm, CameraPairTerm)) for t in problem.terms)
     if needs_cameras:
         cam_poses, pose_jac = _camera_pose_jacobians(problem, y_ext)
     frame_terms = [t for t in problem.terms if isinstance(t, FrameTerm)]
     pair_terms = [t for t in problem.terms if isinstance(t, PairTerm)]
+    # Frame, pair and multi-frame terms are differentiated w.r.t. their frames' tangents and z together.
     if frame_terms:  # one differentiation of the frame state serves every frame term
-        def frame_residuals(y_t, ref_t, data):
-            state = frame_state(problem.skeleton, problem.rig, ref_t, y_t)
+        def frame_residuals(v, ref_t, data):
+            state = frame_state(problem.skeleton, problem.rig, ref_t, v[:d], static_values(problem, v[d:]))
             return tuple(t.masked(*t.residual(state, dt)) for t, dt in zip(frame_terms, data))
 
-        args = (y, problem.reference[h:], tuple(t.data for t in frame_terms))
+        args = (with_z(y), problem.reference[h:], tuple(t.data for t in frame_terms))
         rs, jacs = jax.vmap(frame_residuals)(*args), jax.vmap(_jacobian(frame_residuals, args))(*args)
         for term, r, jac in zip(frame_terms, rs, jacs):
-            r, jac = _irls_rows(term, r, jac)
-            diag = diag.at[h:].add(jnp.einsum("tri,trj->tij", jac, jac))
-            grad = grad.at[h:].add(jnp.einsum("tri,tr->ti", jac, r))
+            r, jac = _irls_rows(term, r, jac)  # jac: (W, m, D + S)
+            diag, bands, grad, statics = _add_span_blocks(diag, bands, grad, statics, r, jac[..., None, :d], jac[..., d:], h)
     if pair_terms:  # likewise one differentiation of both frames of each pair
-        def pair_residuals(y_pair, ref_prev, ref_curr, data, ok):
-            prev = frame_state(problem.skeleton, problem.rig, ref_prev, y_pair[0])
-            curr = frame_state(problem.skeleton, problem.rig, ref_curr, y_pair[1])
+        def pair_residuals(v, ref_prev, ref_curr, data, ok):
+            at = static_values(problem, v[2 * d :])
+            prev = frame_state(problem.skeleton, problem.rig, ref_prev, v[:d], at)
+            curr = frame_state(problem.skeleton, problem.rig, ref_curr, v[d : 2 * d], at)
             return tuple(t.masked(*_and_valid(t.residual(prev, curr, dt), ok)) for t, dt in zip(pair_terms, data))
 
-        pairs = jnp.stack([y_ext[h - 1 : -1], y_ext[h:]], axis=1)  # (W, 2, D)
-        args = (pairs, problem.reference[h - 1 : -1], problem.reference[h:], tuple(t.data for t in pair_terms),
+        pairs = jnp.concatenate([y_ext[h - 1 : -1], y_ext[h:]], axis=1)  # (W, 2D)
+        args = (with_z(pairs), problem.reference[h - 1 : -1], problem.reference[h:], tuple(t.data for t in pair_terms),
                 _span_ok(problem, 2))
         rs, jacs = jax.vmap(pair_residuals)(*args), jax.vmap(_jacobian(pair_residuals, args))(*args)
-        for term, r, jac in zip(pair_terms, rs, jacs):  # jac: (W, n, k, 2, D)
-            r, jac = _irls_rows(term, r, jac.reshape(*jac.shape[:3], -1))
-            jac = jac.reshape(*jac.shape[:2], 2, d)
-            diag, bands, grad = _add_span_blocks(diag, bands, grad, r, jac, h)
+        for term, r, jac in zip(pair_terms, rs, jacs):  # jac: (W, n, k, 2D + S)
+            r, jac = _irls_rows(term, r, jac)
+            jy = jac[..., : 2 * d].reshape(*jac.shape[:2], 2, d)
+            diag, bands, grad, statics = _add_span_blocks(diag, bands, grad, statics, r, jy, jac[..., 2 * d :], h)
     for term in problem.terms:
         if isinstance(term, (FrameTerm, PairTerm)):
             continue
         if isinstance(term, MultiFrameTerm):
             span = term.span
 
-            def span_residuals(y_span, ref_span, data, ok, term=term):
-                states = frame_state(problem.skeleton, problem.rig, ref_span, y_span)
+            def span_residuals(v, ref_span, data, ok, term=term, span=span):
+                states = frame_state(problem.skeleton, problem.rig, ref_span, v[: span * d].reshape(span, d),
+                                     static_values(problem, v[span * d :]))
                 return term.masked(*_and_valid(term.residual(states, data), ok))
 
             index = _span_index(problem, span)
-            args = (y_ext[index], jax.tree.map(lambda a: a[index], problem.reference), term.data, _span_ok(problem, span))
+            args = (with_z(y_ext[index].reshape(w, span * d)), jax.tree.map(lambda a: a[index], problem.reference),
+                    term.data, _span_ok(problem, span))
             r, jac = jax.vmap(span_residuals)(*args), jax.vmap(_jacobian(span_residuals, args))(*args)
-            r, jac = _irls_rows(term, r, jac.reshape(*jac.shape[:3], -1))  # jac: (W, n, k, span, D) → (W, m, span·D)
-            diag, bands, grad = _add_span_blocks(diag, bands, grad, r, jac.reshape(*jac.shape[:2], span, d), h)
+            r, jac = _irls_rows(term, r, jac)  # jac: (W, n, k, span·D + S) → (W, m, span·D + S)
+            jy = jac[..., : span * d].reshape(*jac.shape[:2], span, d)
+            diag, bands, grad, statics = _add_span_blocks(diag, bands, grad, statics, r, jy, jac[..., span * d :], h)
         elif isinstance(term, CameraTerm):
             def cam_blocks(pose, cam, data, term=term):
                 if term.world_points(data) is None:
@@ -313,7 +366,17 @@ def normal_equations(problem: WindowProblem, y: jax.Array) -> NormalEquations:
             grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jp_curr, g[:, :, 6:]))
         else:
             raise TypeError(f"{term.label}: {_KINDS}")
-    return NormalEquations(diag[h:], tuple(band[h : h + w - k] for k, band in enumerate(bands, start=1)), grad[h:])
+    return NormalEquations(diag[h:], tuple(band[h : h + w - k] for k, band in enumerate(bands, start=1)), grad[h:],
+                           statics.coupling[h:], statics.matrix, statics.grad)
+
+
+class _StaticBlocks(eqx.Module):
+    """Accumulators of the static variables' blocks: coupling ``(H + W, D, S)`` (extended), matrix ``(S, S)``,
+    grad ``(S,)``."""
+
+    coupling: jax.Array
+    matrix: jax.Array
+    grad: jax.Array
 
 
 _KINDS = "a term must subclass FrameTerm, PairTerm, MultiFrameTerm, CameraTerm or CameraPairTerm"
@@ -360,21 +423,28 @@ def _and_valid(result, ok):
     return r, v & ok
 
 
-def _add_span_blocks(diag, bands, grad, r, jac, history):
-    """Add a term's IRLS rows ``r`` ``(W, m)`` with Jacobians ``jac`` ``(W, m, S, D)`` w.r.t. frames
-    ``t − S + 1 … t`` to the banded system (extended arrays of a window with ``history`` fixed frames)."""
-    w, span = jac.shape[0], jac.shape[2]
+def _add_span_blocks(diag, bands, grad, statics, r, jy, jz, history):
+    """Add a term's IRLS rows ``r`` ``(W, m)`` with Jacobians ``jy`` ``(W, m, N, D)`` w.r.t. frames ``t − N + 1 … t``
+    and ``jz`` ``(W, m, S)`` w.r.t. the static variables to the banded system (extended arrays of a window with
+    ``history`` fixed frames) and the static blocks."""
+    w, span = jy.shape[0], jy.shape[2]
     bands = list(bands)
+    coupling = statics.coupling
     for i in range(span):
-        rows = slice(history - (span - 1) + i, history - (span - 1) + i + w)  # extended index of frame t − S + 1 + i
-        grad = grad.at[rows].add(jnp.einsum("tri,tr->ti", jac[:, :, i], r))
+        rows = slice(history - (span - 1) + i, history - (span - 1) + i + w)  # extended index of frame t − N + 1 + i
+        grad = grad.at[rows].add(jnp.einsum("tri,tr->ti", jy[:, :, i], r))
         for j in range(i, span):
-            block = jnp.einsum("tri,trj->tij", jac[:, :, i], jac[:, :, j])
+            block = jnp.einsum("tri,trj->tij", jy[:, :, i], jy[:, :, j])
             if i == j:
                 diag = diag.at[rows].add(block)
             else:
                 bands[j - i - 1] = bands[j - i - 1].at[rows].add(block)
-    return diag, bands, grad
+        if jz.shape[-1]:
+            coupling = coupling.at[rows].add(jnp.einsum("tri,trs->tis", jy[:, :, i], jz))
+    if jz.shape[-1]:
+        statics = _StaticBlocks(coupling, statics.matrix + jnp.einsum("trs,tru->su", jz, jz),
+                                statics.grad + jnp.einsum("trs,tr->s", jz, r))
+    return diag, bands, grad, statics
 
 
 def make_window_problem(
@@ -383,7 +453,12 @@ def make_window_problem(
     terms: Sequence[Term],
     reference: Motion,
     num_previous: int | bool,
+    statics: dict | None = None,
 ) -> WindowProblem:
     """A :class:`WindowProblem`; ``reference`` holds :func:`window_history` fixed frames first, of which
-    ``num_previous`` exist (a bool for the paper's terms: whether the frame before the window exists)."""
-    return WindowProblem(skeleton, rig, tuple(terms), reference, int(num_previous))
+    ``num_previous`` exist (a bool for the paper's terms: whether the frame before the window exists);
+    ``statics`` the static variables' starting values (missing blocks start at 0)."""
+    statics = dict(statics or {})
+    for name, size in static_layout(terms):
+        statics[name] = jnp.asarray(statics.get(name, jnp.zeros(size)), jnp.float64).reshape(size)
+    return WindowProblem(skeleton, rig, tuple(terms), reference, int(num_previous), statics)
