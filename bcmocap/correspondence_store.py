@@ -20,6 +20,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import zipfile
+import zlib
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
@@ -28,6 +30,7 @@ import numpy as np
 from .correspondences import Correspondences, pad_slots
 
 FORMAT = "bcmocap.correspondence_store/1"
+_UNREADABLE = (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)  # a damaged .npz
 _MEASUREMENTS = ("point_ids", "pixels", "weights", "homography_pixels", "homography_pixels_prev", "homography_weights")
 
 
@@ -86,20 +89,22 @@ class CorrespondenceStore:
             index = json.loads((path / "index.json").read_text())
         except (OSError, ValueError) as err:
             raise ValueError(f"{path / 'index.json'}: not readable ({err})") from None
-        if index.get("format") != FORMAT:
-            raise ValueError(f"{path / 'index.json'}: format {index.get('format')!r}, expected {FORMAT!r}")
+        if not isinstance(index, dict) or index.get("format") != FORMAT:
+            found = index.get("format") if isinstance(index, dict) else type(index).__name__
+            raise ValueError(f"{path / 'index.json'}: format {found!r}, expected {FORMAT!r}")
         for key in ("fps", "frames", "cameras", "points", "slots", "homography_slots", "homography_cameras", "blocks"):
             if key not in index:
                 raise ValueError(f"{path / 'index.json'}: missing field {key!r}")
+        _check_index(path / "index.json", index)
         num_points = int(index["points"])
         points_file = path / "points.f64"
         if not points_file.is_file() or points_file.stat().st_size != 24 * num_points:
             size = points_file.stat().st_size if points_file.is_file() else "missing"
             raise ValueError(f"{points_file}: expected {num_points} points ({24 * num_points} bytes), found {size}")
         try:
-            with np.load(path / "poses.npz") as poses:
+            with np.load(path / "poses.npz", allow_pickle=False) as poses:
                 world_from_camera, registered = poses["world_from_camera"], poses["registered"].astype(bool)
-        except (OSError, KeyError, ValueError) as err:
+        except _UNREADABLE as err:
             raise ValueError(f"{path / 'poses.npz'}: not readable ({err})") from None
         t, c = int(index["frames"]), int(index["cameras"])
         if world_from_camera.shape != (t, c, 7) or registered.shape != (t, c):
@@ -113,12 +118,26 @@ class CorrespondenceStore:
 
     def block(self, k: int) -> dict[str, np.ndarray]:
         """Block ``k``'s measurement arrays (each padded only to the block's own widths)."""
-        file = self.path / self.blocks[k].file
+        b = self.blocks[k]
+        file = self.path / b.file
         try:
-            with np.load(file) as archive:
-                return {name: archive[name] for name in _MEASUREMENTS}
-        except (OSError, KeyError, ValueError) as err:
+            with np.load(file, allow_pickle=False) as archive:
+                data = {name: archive[name] for name in _MEASUREMENTS}
+        except _UNREADABLE as err:
             raise ValueError(f"{file}: not a readable block of {self.path} ({err})") from None
+        frames, cameras = b.stop - b.start, self.num_cameras
+        for name, a in data.items():
+            width = self.slots if name in _MEASUREMENTS[:3] else self.homography_slots
+            tail = (2,) if name in ("pixels", "homography_pixels", "homography_pixels_prev") else ()
+            if a.ndim != 3 + len(tail) or a.shape[:2] != (frames, cameras) or a.shape[2] > width or a.shape[3:] != tail:
+                raise ValueError(f"{file}: {name} has shape {a.shape}, expected ({frames}, {cameras}, ≤{width}"
+                                 f"{''.join(f', {n}' for n in tail)}) (block of {self.path})")
+            if not np.issubdtype(a.dtype, np.integer if name == "point_ids" else np.floating):
+                raise ValueError(f"{file}: {name} has dtype {a.dtype} (block of {self.path})")
+        ids = data["point_ids"]
+        if ids.size and (ids.min() < -1 or ids.max() >= self.num_points):
+            raise ValueError(f"{file}: point_ids outside [-1, {self.num_points}) (block of {self.path})")
+        return data
 
     def frames(self, start: int, stop: int) -> Correspondences:
         """Frames ``[start, stop)`` as ``Correspondences`` padded to the store's ``slots`` and
@@ -190,6 +209,27 @@ class CorrespondenceStore:
             np.savez(tmp / "poses.npz", world_from_camera=poses(self.world_from_camera), registered=self.registered)
             shutil.copyfile(self.path / "index.json", tmp / "index.json")
         return CorrespondenceStore.open(path)
+
+
+def _check_index(where: Path, index: dict) -> None:
+    """The index's counts are non-negative integers, fps a positive number, blocks ``[start, stop, file]``
+    with a plain file name (never a path out of the folder)."""
+    for key in ("frames", "cameras", "points", "slots", "homography_slots", "homography_cameras"):
+        value = index[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{where}: field {key!r} must be a non-negative integer, got {value!r}")
+    fps = index["fps"]
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 < fps < float("inf"):
+        raise ValueError(f"{where}: field 'fps' must be a positive number, got {fps!r}")
+    blocks = index["blocks"]
+    if not isinstance(blocks, list):
+        raise ValueError(f"{where}: field 'blocks' must be a list, got {type(blocks).__name__}")
+    for i, block in enumerate(blocks):
+        if (not isinstance(block, list) or len(block) != 3 or not all(isinstance(x, int) and not isinstance(x, bool)
+                                                                        for x in block[:2])
+                or not isinstance(block[2], str) or Path(block[2]).name != block[2] or block[2] in ("", ".", "..")
+                or "\\" in block[2] or "\x00" in block[2] or not block[0] < block[1]):
+            raise ValueError(f"{where}: blocks[{i}] must be [start, stop, file name] with start < stop, got {block!r}")
 
 
 def write_store(path: str | Path, parts: Iterable[Correspondences], *, block_frames: int = 50) -> CorrespondenceStore:

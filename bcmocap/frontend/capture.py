@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -30,6 +31,7 @@ __all__ = ["Capture", "CaptureCamera", "VideoInfo", "read_capture", "read_camera
 CAPTURE_FORMAT = "bcmocap-capture"
 MAX_FPS = 10_000.0  # Hz; a faster video is a corrupt header, not a camera
 MAX_AUDIO_RATE = 1_000_000  # samples/s
+MAX_IMAGE_SIDE = 100_000  # px
 
 
 def _load_json(path: Path) -> dict:
@@ -56,8 +58,11 @@ def read_camera_json(path: str | os.PathLike) -> CameraModel:
         width, height, model = int(data["width"]), int(data["height"]), str(data["model"])
     except KeyError as err:
         raise ValueError(f"{path}: missing field {err} (need model, width, height, params)") from None
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, OverflowError) as err:
         raise ValueError(f"{path}: malformed camera field ({err})") from None
+    if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE) or not all(map(math.isfinite, params)):
+        raise ValueError(f"{path}: width and height must be in [1, {MAX_IMAGE_SIDE}] px and params finite, got "
+                         f"{width} x {height}, {params}")
     expected = {"FOV": 5, "OPENCV_FISHEYE": 8, "PINHOLE": 4}
     if expected.get(model) != len(params):
         raise ValueError(f"{path}: model {model!r} with {len(params)} params; expected one of "

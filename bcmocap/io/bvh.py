@@ -321,6 +321,8 @@ def read_bvh(
     )
     if num_frames < 0:
         raise ValueError(f"{where}:{frames_line}: expected a non-negative frame count, found {num_frames}")
+    if num_frames > len(lines):  # one line per frame: refused before allocating a huge array
+        raise ValueError(f"{where}:{frames_line}: 'Frames: {num_frames}' but the file has only {len(lines)} lines")
     if not frame_time > 0:
         raise ValueError(f"{where}:{time_line}: expected a positive frame time, found {frame_time}")
 

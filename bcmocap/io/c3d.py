@@ -124,6 +124,28 @@ def _announced_frames(path: Path) -> int | None:
     return last - first + 1
 
 
+def _check_sections(path: Path) -> None:
+    """Refuse a file shorter than the sections its header announces: ezc3d loops forever on some (a C3D cut
+    inside its parameter section). Words of the header: byte 0 the first parameter block, word 9 the first
+    data block; byte 2 of the parameter section its number of 512-byte blocks."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(18)
+        if len(head) < 18 or head[1] != 0x50 or head[0] < 1:
+            return  # not C3D's header: ezc3d says so
+        f.seek(512 * (head[0] - 1))
+        parameters = f.read(4)
+    if len(parameters) < 4:
+        raise ValueError(f"{path}: truncated: the header puts the parameter section at byte {512 * (head[0] - 1)}, "
+                         f"the file has {size} bytes")
+    order = ">" if parameters[3] == 86 else "<"
+    data_block = int.from_bytes(head[16:18], "big" if order == ">" else "little")
+    end = max(512 * (head[0] - 1 + parameters[2]), 512 * (data_block - 1))
+    if size < end:
+        raise ValueError(f"{path}: truncated: the header and parameter section announce at least {end} bytes, "
+                         f"the file has {size}")
+
+
 def read_c3d(
     path: str | os.PathLike,
     *,
@@ -153,6 +175,7 @@ def read_c3d(
         import ezc3d
     except ImportError as exc:  # pragma: no cover - a declared dependency
         raise ImportError("read_c3d needs the 'ezc3d' package (pip install 'ezc3d>=1.5,<2')") from exc
+    _check_sections(path)
     try:
         c3d = ezc3d.c3d(str(path))
     except Exception as exc:  # ezc3d raises OSError/RuntimeError with its own words

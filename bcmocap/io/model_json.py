@@ -82,3 +82,6 @@ def rig_from_dict(data: dict, skeleton: Skeleton, where: str) -> Rig:
                    stack_cameras([camera_from_dict(c["intrinsics"], where) for c in cams]))
     except (KeyError, TypeError) as err:
         raise ValueError(f"{where}: missing or malformed field {err}") from None
+    except ValueError as err:
+        message = str(err)
+        raise ValueError(message if message.startswith(where) else f"{where}: {message}") from None

@@ -63,7 +63,7 @@ def _write_npz(path: Path, **arrays) -> None:
 def _read_json(path: Path) -> dict:
     try:
         return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: not UTF-8 or not JSON
         raise ValueError(f"{path}: cannot read ({exc})") from None
 
 
