@@ -421,9 +421,6 @@ class FuzzResult:
 
 def fuzz_reader(name: str, examples: int, worker: Worker, seed: int = 0, on_escape: Callable | None = None) -> FuzzResult:
     """``examples`` hypothesis cases per target file of reader ``name``; the seed run must read cleanly."""
-    from hypothesis import HealthCheck, given, settings
-    from hypothesis import seed as hypothesis_seed
-
     reader = READERS[name]
     result = FuzzResult()
     with tempfile.TemporaryDirectory(prefix=f"bcmocap-seed-{name}-") as tmp:
@@ -439,29 +436,27 @@ def _fuzz_target(name, folder, target, examples, worker, seed, result, on_escape
     from hypothesis import HealthCheck, given, settings
     from hypothesis import seed as hypothesis_seed
 
-    if True:
-        if True:
-            original = (folder / target).read_bytes()
-            kind, detail = worker.run(name, folder, target, original, timeout=max(60.0, worker.timeout))
-            if kind != "ok":
-                raise RuntimeError(f"{name}: the valid seed {target} does not read: {detail}")
+    original = (folder / target).read_bytes()
+    kind, detail = worker.run(name, folder, target, original, timeout=max(60.0, worker.timeout))
+    if kind != "ok":
+        raise RuntimeError(f"{name}: the valid seed {target} does not read: {detail}")
 
-            @hypothesis_seed(seed)
-            @settings(max_examples=examples, deadline=None, database=None, derandomize=False,
-                      suppress_health_check=list(HealthCheck))
-            @given(mutation=mutations())
-            def case(mutation):
-                data = mutation(original)
-                kind, detail = worker.run(name, folder, target, data)
-                result.cases += 1
-                result.valid += kind == "ok"
-                if kind == "escape":
-                    result.escapes += 1
-                    line = f"{target}: {detail}"
-                    key = re.sub(r"\d+", "#", line)[:120]
-                    if len(result.examples) < 20 and key not in {re.sub(r"\d+", "#", e)[:120] for e in result.examples}:
-                        result.examples.append(line)
-                    if on_escape is not None:
-                        on_escape(target, data, detail)
+    @hypothesis_seed(seed)
+    @settings(max_examples=examples, deadline=None, database=None, derandomize=False,
+              suppress_health_check=list(HealthCheck))
+    @given(mutation=mutations())
+    def case(mutation):
+        data = mutation(original)
+        kind, detail = worker.run(name, folder, target, data)
+        result.cases += 1
+        result.valid += kind == "ok"
+        if kind == "escape":
+            result.escapes += 1
+            line = f"{target}: {detail}"
+            key = re.sub(r"\d+", "#", line)[:120]
+            if len(result.examples) < 20 and key not in {re.sub(r"\d+", "#", e)[:120] for e in result.examples}:
+                result.examples.append(line)
+            if on_escape is not None:
+                on_escape(target, data, detail)
 
-            case()
+    case()
