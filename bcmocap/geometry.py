@@ -96,6 +96,36 @@ def matrix_from_quat(q: np.ndarray) -> np.ndarray:
     return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of wxyz quaternions ``(..., 4)`` (numpy, broadcasting)."""
+    w1, v1, w2, v2 = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
+    return np.concatenate([w1 * w2 - np.sum(v1 * v2, -1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)], -1)
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    """The inverse of unit wxyz quaternions ``(..., 4)`` (numpy)."""
+    return np.concatenate([q[..., :1], -q[..., 1:]], -1)
+
+
+def quat_exp(rotvec: np.ndarray) -> np.ndarray:
+    """wxyz unit quaternions ``(..., 4)`` of rotation vectors ``(..., 3)`` (rad; numpy)."""
+    v = np.asarray(rotvec, np.float64)
+    theta = np.linalg.norm(v, axis=-1, keepdims=True)
+    half = 0.5 * theta
+    # sin(θ/2)/θ, with its Taylor series near 0
+    k = np.where(theta > 1e-6, np.sin(half) / np.where(theta > 1e-6, theta, 1.0), 0.5 - theta**2 / 48.0)
+    return np.concatenate([np.cos(half), k * v], axis=-1)
+
+
+def quat_log(q: np.ndarray) -> np.ndarray:
+    """Rotation vectors ``(..., 3)`` of wxyz quaternions ``(..., 4)`` (angle in [0, π]; numpy)."""
+    q = np.where(q[..., :1] < 0, -q, q)
+    n = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    theta = 2.0 * np.arctan2(n, q[..., :1])
+    scale = np.where(n > 1e-12, theta / np.where(n > 1e-12, n, 1.0), 2.0 / q[..., :1])
+    return scale * q[..., 1:]
+
+
 def euler_to_matrix(angles_rad: np.ndarray, order: str) -> np.ndarray:
     """Rotation matrices from intrinsic-order Euler angles as BVH and ASF write them.
 

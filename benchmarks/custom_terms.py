@@ -50,10 +50,8 @@ TERMS_CONFIG = ROOT / "examples" / "wearable_sensors" / "config.toml"
 
 def with_user_terms(config: RunConfig, path: Path) -> RunConfig:
     """``config`` plus the ``[[solver.user_terms]]`` of the TOML file at ``path``."""
-    tables = tomllib.loads(path.read_text())["solver"]["user_terms"]
     data = config.to_dict()
-    data["solver"]["user_terms"] = [{"factory": t["factory"], "settings": {k: v for k, v in t.items() if k != "factory"}}
-                                    for t in tables]
+    data["solver"]["user_terms"] = tomllib.loads(path.read_text())["solver"]["user_terms"]
     return RunConfig.from_dict(data)
 
 

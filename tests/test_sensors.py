@@ -8,12 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from bcmocap.geometry import matrix_from_quat
+from bcmocap.geometry import matrix_from_quat, quat_exp, quat_multiply
 from bcmocap.io.sensors import (
     ContactRecording,
     integrate_gyro,
-    quat_exp,
-    quat_multiply,
     read_contacts,
     read_imu,
     write_contacts,

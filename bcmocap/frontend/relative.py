@@ -201,8 +201,8 @@ class CaptureRegistration:
         ids = np.array(sorted(self.points), np.int64)
         xyz = np.array([self.points[int(i)] for i in ids], np.float64).reshape(-1, 3)
         t_count, c_count = self.registered.shape
-        measured = (lambda ids: ids >= 0) if points == "all" else \
-            (lambda ids: np.isin(ids, np.fromiter(self.reference_point_ids, np.int64)))
+        reference = np.fromiter(self.reference_point_ids, np.int64)
+        measured = (lambda ids: ids >= 0) if points == "all" else (lambda ids: np.isin(ids, reference))
         per = [[np.flatnonzero(measured(s.point_ids)) if s.registered else np.zeros(0, np.int64) for s in row]
                for row in self.states]
         if max_per_frame is not None:

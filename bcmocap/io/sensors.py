@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import write_npz_atomic
+from ..geometry import quat_conjugate, quat_exp, quat_multiply
 
 __all__ = [
     "CONTACTS_FILE",
@@ -37,8 +38,6 @@ __all__ = [
     "ContactRecording",
     "ImuRecording",
     "integrate_gyro",
-    "quat_exp",
-    "quat_multiply",
     "read_contacts",
     "read_imu",
     "write_contacts",
@@ -229,30 +228,6 @@ def write_contacts(path: str | os.PathLike, recording: ContactRecording) -> Path
 # Gyro integration.
 
 
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of wxyz quaternions ``(..., 4)`` (broadcasting)."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
-                     aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
-
-
-def quat_exp(rotvec: np.ndarray) -> np.ndarray:
-    """wxyz unit quaternions ``(..., 4)`` of rotation vectors ``(..., 3)`` (rad)."""
-    v = np.asarray(rotvec, np.float64)
-    theta = np.linalg.norm(v, axis=-1, keepdims=True)
-    half = 0.5 * theta
-    # sin(θ/2)/θ, with its Taylor series near 0
-    k = np.where(theta > 1e-6, np.sin(half) / np.where(theta > 1e-6, theta, 1.0), 0.5 - theta**2 / 48.0)
-    return np.concatenate([np.cos(half), k * v], axis=-1)
-
-
-def _conj(q: np.ndarray) -> np.ndarray:
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
 def _prefix_products(q: np.ndarray) -> np.ndarray:
     """``P`` ``(M + 1, ...)`` with ``P[k] = q[0] ⊗ … ⊗ q[k-1]`` (``P[0]`` identity), by log-depth doubling."""
     out = np.concatenate([np.broadcast_to([1.0, 0.0, 0.0, 0.0], (1, *q.shape[1:])), q])
@@ -330,7 +305,7 @@ def integrate_gyro(time: np.ndarray, gyro: np.ndarray, t0, t1) -> np.ndarray:
         k = np.clip(np.searchsorted(time, t, side="right") - 1, 0, n - 2)
         return quat_multiply(prefix[k], quat_exp(_magnus(time, gyro, time[k], t, k)))
 
-    rel = quat_multiply(_conj(from_start(t0)), from_start(t1))
+    rel = quat_multiply(quat_conjugate(from_start(t0)), from_start(t1))
     rel /= np.linalg.norm(rel, axis=-1, keepdims=True)
     rel = np.where(rel[..., :1] < 0, -rel, rel)
     return rel.reshape(*shape, gyro.shape[1], 4)

@@ -50,6 +50,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ..cameras import CameraModel
+from ..geometry import quat_conjugate, quat_multiply
 from ..precision import require_float64
 from .rig import Rig
 from .skeleton import JointType, Skeleton
@@ -59,9 +60,7 @@ from .virtual import (
     _apply,
     _compose,
     _inverse,
-    _qinv,
     _qmatrix,
-    _qmul,
     _qrot,
     estimate_virtual_camera,
     robust_average_poses,
@@ -458,7 +457,7 @@ def skeleton_from_range_of_motion(
 
     # ---- segment frames, bone vectors (Eq. 15), mounts (Eq. 5) -----------------------------------
     rest_q = np.array([1.0, 0, 0, 0]) if world_from_rest is None else np.asarray(world_from_rest, dtype=np.float64)
-    seg_from_v_rot = _qmul(_qinv(rest_q / np.linalg.norm(rest_q)), world_from_v_rest)
+    seg_from_v_rot = quat_multiply(quat_conjugate(rest_q / np.linalg.norm(rest_q)), world_from_v_rest)
     origin = np.zeros((n, 3))
     kids = topology.children(0)
     chosen = [topology.index(s) for s in root_origin] if root_origin is not None else list(kids)
@@ -528,8 +527,8 @@ def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known) -> J
 def _flexion_sign(world_v, known, j, p, seg_from_v_rot, axis) -> float:
     """+1 if the hinge angles over the trial are mostly positive about ``axis`` (flexion positive), else −1."""
     ok = known[:, j] & known[:, p]
-    seg = _qmul(world_v[ok][:, [p, j], :4], _qinv(seg_from_v_rot[[p, j]]))
-    local = _qmul(_qinv(seg[:, 0]), seg[:, 1])
+    seg = quat_multiply(world_v[ok][:, [p, j], :4], quat_conjugate(seg_from_v_rot[[p, j]]))
+    local = quat_multiply(quat_conjugate(seg[:, 0]), seg[:, 1])
     angle = 2.0 * np.arctan2(local[:, 1:] @ axis, local[:, 0])
     return 1.0 if np.median(angle) >= 0 else -1.0
 

@@ -27,7 +27,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..geometry import average_quaternions
+from ..geometry import average_quaternions, quat_conjugate, quat_multiply
 from .rig import Rig
 
 #: Tukey biweight cut-off, in multiples of the median residual of the sample (for a χ-distributed
@@ -39,16 +39,6 @@ TUKEY_CUTOFF = 4.0
 # The range-of-motion preprocessing runs once on host arrays whose sizes change with every segment
 # and joint; jaxlie's eager ops would compile anew for each shape (minutes in total), so these few
 # wxyz_xyz operations are written in numpy.
-
-
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of wxyz quaternions (broadcasting)."""
-    w1, v1, w2, v2 = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
-    return np.concatenate([w1 * w2 - np.sum(v1 * v2, -1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)], -1)
-
-
-def _qinv(q: np.ndarray) -> np.ndarray:
-    return np.concatenate([q[..., :1], -q[..., 1:]], -1)
 
 
 def _qrot(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -65,11 +55,11 @@ def _qmatrix(q: np.ndarray) -> np.ndarray:
 
 def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a @ b`` for wxyz_xyz transforms (broadcasting)."""
-    return np.concatenate([_qmul(a[..., :4], b[..., :4]), _qrot(a[..., :4], b[..., 4:]) + a[..., 4:]], -1)
+    return np.concatenate([quat_multiply(a[..., :4], b[..., :4]), _qrot(a[..., :4], b[..., 4:]) + a[..., 4:]], -1)
 
 
 def _inverse(a: np.ndarray) -> np.ndarray:
-    q = _qinv(a[..., :4])
+    q = quat_conjugate(a[..., :4])
     return np.concatenate([q, -_qrot(q, a[..., 4:])], -1)
 
 
@@ -129,7 +119,7 @@ def robust_average_poses(
     def distances(mean_q, mean_p):
         """Angles and distances ``(B, ..., N)`` from centres ``(B, ..., 4|3)`` to every sample."""
         expand = (slice(None),) + (None,) * (mean_q.ndim - 2)
-        rel = _qmul(_qinv(mean_q)[..., None, :], q[expand])
+        rel = quat_multiply(quat_conjugate(mean_q)[..., None, :], q[expand])
         angle = 2.0 * np.arctan2(np.linalg.norm(rel[..., 1:], axis=-1), np.abs(rel[..., 0]))  # accurate near 0
         return angle, np.linalg.norm(p[expand] - mean_p[..., None, :], axis=-1)
 

@@ -17,10 +17,10 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import SE3, SO3
+from ..geometry import SE3, SO3, quat_conjugate, quat_multiply
 from ..kinematics.rig import Rig, camera_poses
 from ..kinematics.rom import RomEstimate, RomOptions, Topology, skeleton_from_range_of_motion
-from ..kinematics.virtual import _apply, _inverse, _qinv, _qmul
+from ..kinematics.virtual import _apply, _inverse
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 from .rig import standard_rig
 
@@ -248,7 +248,7 @@ def skeleton_errors(truth: Skeleton, truth_rig: Rig, estimate: Skeleton, estimat
         true_len = np.linalg.norm(true_rest[b] - true_rest[a])
         if true_len > 0.01:
             bones[name] = float(100.0 * abs(np.linalg.norm(est_rest[b] - est_rest[a]) - true_len) / true_len)
-    rel = _qmul(_qinv(est_mounts[:, :4]), true_mounts[:, :4])
+    rel = quat_multiply(quat_conjugate(est_mounts[:, :4]), true_mounts[:, :4])
     rot = np.rad2deg(2.0 * np.arctan2(np.linalg.norm(rel[:, 1:], axis=-1), np.abs(rel[:, 0])))
     trans = np.linalg.norm(est_mounts[:, 4:] - true_mounts[:, 4:], axis=-1)
     axes = {}

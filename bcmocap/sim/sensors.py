@@ -51,15 +51,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import matrix_from_quat
+from ..geometry import matrix_from_quat, quat_conjugate, quat_exp, quat_log, quat_multiply
 from ..io.sensors import (
     CONTACTS_FILE,
     IMU_FILE,
     ContactRecording,
     ImuRecording,
     integrate_gyro,
-    quat_exp,
-    quat_multiply,
     write_contacts,
     write_imu,
 )
@@ -164,15 +162,6 @@ def _position_ends(points: np.ndarray, interval: np.ndarray) -> np.ndarray:
     return np.stack([p[interval], v[interval], a[interval], p[interval + 1], v[interval + 1], a[interval + 1]], axis=1)
 
 
-def _quat_log(q: np.ndarray) -> np.ndarray:
-    """Rotation vectors ``(..., 3)`` of wxyz quaternions ``(..., 4)`` (angle in [0, π])."""
-    q = np.where(q[..., :1] < 0, -q, q)
-    n = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
-    theta = 2.0 * np.arctan2(n, q[..., :1])
-    scale = np.where(n > 1e-12, theta / np.where(n > 1e-12, n, 1.0), 2.0 / q[..., :1])
-    return scale * q[..., 1:]
-
-
 def _series(theta: np.ndarray, exact, taylor) -> np.ndarray:
     small = theta < 0.05
     safe = np.where(small, 0.1, theta)
@@ -227,8 +216,7 @@ def _rotation_trajectory(quats: np.ndarray, interval: np.ndarray, s: np.ndarray,
         ``(K, S, 4)`` rotations and ``(K, S, 3)`` angular velocities in the rotating frame (rad/s).
     """
     q = quats / np.linalg.norm(quats, axis=-1, keepdims=True)
-    conj = q * np.array([1.0, -1.0, -1.0, -1.0])
-    step = _quat_log(quat_multiply(conj[:-1], q[1:]))  # (M + 1, S, 3): from knot i to i + 1, same in both frames
+    step = quat_log(quat_multiply(quat_conjugate(q[:-1]), q[1:]))  # (M + 1, S, 3): from knot i to i + 1, same in both frames
     omega = 0.5 * (step[:-1] + step[1:])  # (M, S, 3) per knot, s-units
     alpha = step[1:] - step[:-1]
     d = step[1:-1]  # (M - 1, S, 3) per interval
@@ -247,9 +235,8 @@ def _consistent_gyro(time: np.ndarray, gyro: np.ndarray, interval: np.ndarray, s
     between every two knots ``(M, S, 4)`` (module docstring): a bump ``c sin²(π s)`` per frame interval, ``c``
     by fixed-point rounds (a handful; stops early if a round does not help, e.g. without samples inside the
     intervals)."""
-    conj = np.array([1.0, -1.0, -1.0, -1.0])
     q = knots / np.linalg.norm(knots, axis=-1, keepdims=True)
-    target = quat_multiply(q[:-1] * conj, q[1:])  # (M - 1, S, 4)
+    target = quat_multiply(quat_conjugate(q[:-1]), q[1:])  # (M - 1, S, 4)
     bump = (np.sin(np.pi * s) ** 2)[:, None, None]
     frame_time = np.arange(len(q)) / fps
     correction = np.zeros((len(q) - 1, *gyro.shape[1:]))
@@ -257,7 +244,7 @@ def _consistent_gyro(time: np.ndarray, gyro: np.ndarray, interval: np.ndarray, s
     for _ in range(max_rounds):
         out = gyro + bump * correction[interval]
         rel = integrate_gyro(time, out, frame_time[:-1], frame_time[1:])
-        residual = _quat_log(quat_multiply(rel * conj, target))
+        residual = quat_log(quat_multiply(quat_conjugate(rel), target))
         error = float(np.max(np.abs(residual), initial=0.0))
         if error >= 0.5 * best_error:
             break

@@ -196,13 +196,13 @@ def import_term_factory(path: str) -> Callable[..., Any]:
 
 def paper_problem(
     correspondences: Correspondences, skeleton: Skeleton, rig: Rig, weights: ObjectiveWeights = ObjectiveWeights(),
-    *, extra_terms: Sequence[TermFactory] = (), fps: float = 30.0, trial_folder: Path | None = None,
+    *, extra_terms: Sequence[TermFactory] = (), trial_folder: Path | None = None,
 ) -> Problem:
     """A :class:`Problem` for Eq. (1) plus the terms of ``extra_terms`` (factories given the whole
-    sequence as one :class:`TermWindow` at ``fps``), checking the correspondences against the rig."""
+    sequence as one :class:`TermWindow`), checking the correspondences against the rig."""
     if correspondences.num_cameras != rig.num_cameras:
         raise ValueError(f"correspondences have {correspondences.num_cameras} cameras, the rig has {rig.num_cameras}")
-    window = TermWindow(0, correspondences.num_frames, fps, skeleton, rig, correspondences, trial_folder)
+    window = TermWindow(0, correspondences.num_frames, correspondences.fps, skeleton, rig, correspondences, trial_folder)
     extra = [term for factory in extra_terms for term in factory(window)]
     return Problem(skeleton, rig, [*paper_terms(correspondences, skeleton, weights), *extra])
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from bcmocap.geometry import SE3, SO3
 from bcmocap.io.sensors import CONTACTS_FILE, IMU_FILE, ContactRecording, ImuRecording, integrate_gyro, read_contacts, read_imu
-from bcmocap.residuals import CauchyLoss, HuberLoss, MultiFrameTerm, PairTerm, TrivialLoss
+from bcmocap.residuals import MultiFrameTerm, PairTerm, loss_from_name
 from bcmocap.solver.objective import TermWindow
 
 GRAVITY = 9.81  # m/s², along world −Z
@@ -64,10 +64,6 @@ def _rig_slots(window: TermWindow, imu: ImuRecording) -> tuple[np.ndarray, np.nd
     return index, np.array([n in imu.cameras for n in names])
 
 
-def _loss(name: str, scale: float):
-    return {"none": TrivialLoss(), "huber": HuberLoss(scale), "cauchy": CauchyLoss(scale)}[name]
-
-
 # ---- gyroscope ----------------------------------------------------------------------------------
 
 
@@ -93,7 +89,7 @@ def gyroscope(window: TermWindow, weight: float = 1e6, loss: str = "none", loss_
     in_camera = np.asarray((mount @ SO3(jnp.asarray(change)) @ mount.inverse()).wxyz)  # (W, S, 4)
     index, has = _rig_slots(window, imu)
     data = {"rotation": in_camera[:, index], "valid": inside[:, None] & has[None, :]}
-    return CameraRotationChange(data, weight=weight, loss=_loss(loss, loss_scale), name="gyroscope")
+    return CameraRotationChange(data, weight=weight, loss=loss_from_name(loss, loss_scale), name="gyroscope")
 
 
 # ---- foot contact -------------------------------------------------------------------------------
@@ -123,7 +119,7 @@ def foot_contact(window: TermWindow, weight: float = 1e4, loss: str = "huber", l
     inside = (t0 >= contacts.time[0]) & (t1 <= contacts.time[-1])
     flags = contacts.at(t1) & contacts.at(np.maximum(t0, contacts.time[0])) & inside[:, None]
     return PlantedJoints(flags, segments=tuple(names.index(s) for s in contacts.segments), weight=weight,
-                         loss=_loss(loss, loss_scale), name="foot contact")
+                         loss=loss_from_name(loss, loss_scale), name="foot contact")
 
 
 # ---- accelerometer ------------------------------------------------------------------------------
@@ -161,10 +157,16 @@ def _second_difference_force(imu: ImuRecording, middle: np.ndarray, dt: float) -
     middle = np.clip(middle, imu.time[0], imu.time[-1])  # frames outside the recording are marked invalid
     times = np.clip(middle[:, None] + offsets[None, :], imu.time[0], imu.time[-1])  # (W, K)
     rotation = integrate_gyro(imu.time, imu.gyro, np.broadcast_to(middle[:, None], times.shape), times)  # (W, K, S, 4)
-    force = np.stack([np.stack([np.interp(times, imu.time, imu.accel[:, s, k]) for k in range(3)], axis=-1)
-                      for s in range(len(imu.cameras))], axis=-2)  # (W, K, S, 3)
+    force = _interpolate(imu.time, imu.accel, times)  # (W, K, S, 3)
     turned = np.asarray(SO3(jnp.asarray(rotation)) @ jnp.asarray(force))
     return np.einsum("k,wksd->wsd", weights, turned)
+
+
+def _interpolate(time: np.ndarray, samples: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Samples ``(N, ...)`` linearly interpolated at times ``at`` (within ``time``), shape ``(*at.shape, ...)``."""
+    k = np.clip(np.searchsorted(time, at, side="right") - 1, 0, len(time) - 2)
+    w = ((at - time[k]) / (time[k + 1] - time[k])).reshape(*at.shape, *([1] * (samples.ndim - 1)))
+    return (1.0 - w) * samples[k] + w * samples[k + 1]
 
 
 def accelerometer(window: TermWindow, weight: float = 1.0, loss: str = "huber", loss_scale: float = 3.0):
@@ -177,5 +179,5 @@ def accelerometer(window: TermWindow, weight: float = 1.0, loss: str = "huber", 
     force = _second_difference_force(imu, middle, dt)[:, index]  # (W, C, 3)
     mounts = np.where(has[:, None], imu.camera_from_imu[index], np.array([1.0, 0, 0, 0, 0, 0, 0]))
     return ImuAcceleration({"force": force, "valid": inside[:, None] & has[None, :]}, dt=dt,
-                           camera_from_imu=jnp.asarray(mounts), weight=weight, loss=_loss(loss, loss_scale),
+                           camera_from_imu=jnp.asarray(mounts), weight=weight, loss=loss_from_name(loss, loss_scale),
                            name="accelerometer")
