@@ -30,7 +30,7 @@ def random_banded_spd(rng, w, d, bandwidth, ridge=0.1):
     return diag, bands, dense
 
 
-@pytest.mark.parametrize("w, bandwidth", [(1, 2), (2, 2), (6, 2), (7, 2), (7, 3), (9, 4), (5, 1)])
+@pytest.mark.parametrize("w, bandwidth", [(1, 2), (2, 2), (6, 2), (7, 2), (7, 3), (9, 4), (5, 1), (5, 0), (1, 0)])
 def test_solve_matches_dense_solve(w, bandwidth):
     """Windows that are and are not multiples of the bandwidth (identity padding), and bandwidth 1."""
     rng = np.random.default_rng(10 * w + bandwidth)
@@ -41,7 +41,7 @@ def test_solve_matches_dense_solve(w, bandwidth):
     np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-9, atol=1e-10)
 
 
-@pytest.mark.parametrize("bandwidth", [1, 3])
+@pytest.mark.parametrize("bandwidth", [0, 1, 3])
 def test_matvec_and_dense_agree(bandwidth):
     rng = np.random.default_rng(bandwidth)
     w, d = 8, 2
@@ -51,15 +51,16 @@ def test_matvec_and_dense_agree(bandwidth):
     np.testing.assert_allclose(np.asarray(block_banded_matvec(diag, bands, x)).reshape(-1), dense @ x.reshape(-1), atol=1e-10)
 
 
-def test_indefinite_system_gives_nan():
+@pytest.mark.parametrize("bandwidth", [0, 2])
+def test_indefinite_system_gives_nan(bandwidth):
     rng = np.random.default_rng(0)
-    diag, bands, _ = random_banded_spd(rng, 6, 2, 2)
+    diag, bands, _ = random_banded_spd(rng, 6, 2, bandwidth)
     diag = diag.copy()
     diag[3] = -np.eye(2) * 100.0
     assert np.isnan(np.asarray(solve_block_banded(diag, bands, np.ones((6, 2))))).any()
 
 
-@pytest.mark.parametrize("bandwidth", [1, 2])
+@pytest.mark.parametrize("bandwidth", [0, 1, 2])
 def test_several_right_hand_sides_share_one_solve(bandwidth):
     rng = np.random.default_rng(20 + bandwidth)
     diag, bands, dense = random_banded_spd(rng, 7, 3, bandwidth)

@@ -4,10 +4,9 @@ Once the skeleton and each marker's offset in its segment are known, each frame'
 root orientation, one rotation per ball joint) is the one whose markers best match the observed ones:
 a Levenberg–Marquardt solve per frame, ``vmap``-ed over chunks of frames. Unseen markers
 carry no weight, so the pose fills the gaps; a weak prior towards the initial pose keeps a segment with
-no marker in sight at a frame where interpolation in time put it. The solver is a small dense
-Levenberg–Marquardt written in JAX (Jacobian by ``jacfwd``, ``D × D`` normal equations per frame,
-``lax.while_loop``): optimistix's ``LevenbergMarquardt`` under ``vmap`` took minutes for the same
-frames here, where this takes seconds.
+no marker in sight at a frame where interpolation in time put it. The solver is the project's one
+Levenberg–Marquardt (:func:`bcmocap.solver.levenberg_marquardt`) with a one-frame system: the Jacobian
+by ``jacfwd``, ``D × D`` normal equations per frame.
 
 The initial pose comes from per-segment rigid alignment (Kabsch) of the segment's markers and joints
 (from the joint solve) where at least three are seen, interpolated in time (slerp) elsewhere.
@@ -18,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 from functools import partial
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,6 +26,7 @@ from ..geometry import SO3, quat_from_matrix
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.ik import fill_gaps
 from ..kinematics.skeleton import Motion, Skeleton
+from ..solver.levenberg_marquardt import NormalEquations, levenberg_marquardt
 from .rigid import RigidSkeleton, kabsch
 
 __all__ = ["IkResult", "initial_motion", "marker_model_positions", "solve_ik"]
@@ -104,42 +105,33 @@ def initial_motion(rigid: RigidSkeleton, positions: np.ndarray, joint_positions:
 
 
 def _residual(delta, skeleton, start, observed, seen, segs, offsets, prior):
+    """``(3M + D,)`` marker misfits (m) and the prior ``prior · δ`` at tangent ``delta`` ``(D,)`` from ``start``."""
     motion = skeleton.retract(start, delta)
     pred = marker_model_positions(skeleton, motion, segs, offsets)
     r = (pred - observed) * seen[:, None]
     return jnp.concatenate([r.reshape(-1), prior * delta])
 
 
+def _frame_residual(y, frame):
+    """:func:`_residual` for the solver's ``(1, D)`` variables; ``frame``: the other arguments."""
+    return _residual(y[0], *frame)
+
+
+def _frame_system(frame, y):
+    """One frame's dense ``D × D`` Gauss–Newton system (a block-banded system of one frame, no bands)."""
+    jac = jax.jacfwd(_frame_residual)(y, frame)[:, 0]  # (R, D)
+    r = _frame_residual(y, frame)
+    hess, grad = jac.T @ jac, jac.T @ r
+    return NormalEquations(hess[None], (), grad[None], jnp.zeros((1, len(grad), 0)), jnp.zeros((0, 0)), jnp.zeros(0))
+
+
 def _lm_frame(skeleton, start, observed, seen, segs, offsets, prior, max_steps):
-    """Levenberg–Marquardt (Marquardt's diagonal scaling) for one frame's tangent vector."""
-    fun = partial(_residual, skeleton=skeleton, start=start, observed=observed, seen=seen, segs=segs, offsets=offsets, prior=prior)
-    jac = jax.jacfwd(fun)
-    n = skeleton.num_dofs
-
-    def body(state):
-        delta, lam, cost, it, done = state
-        r = fun(delta)
-        j = jac(delta)
-        h = j.T @ j
-        g = j.T @ r
-        diag = jnp.diag(h) + 1e-12
-        step = jnp.linalg.solve(h + lam * jnp.diag(diag), -g)
-        r_new = fun(delta + step)
-        new = r_new @ r_new
-        better = new < cost
-        # stop when the step no longer changes the cost (relative 1e-12) or the step is tiny
-        small = (cost - new <= 1e-9 * cost) | (jnp.max(jnp.abs(step)) < 1e-8)
-        delta = jnp.where(better, delta + step, delta)
-        lam = jnp.where(better, jnp.maximum(lam * 0.3, 1e-10), lam * 10.0)
-        return delta, lam, jnp.where(better, new, cost), it + 1, (better & small) | (lam > 1e10)
-
-    def cond(state):
-        return (state[3] < max_steps) & ~state[4]
-
-    y0 = jnp.zeros(n)
-    r0 = fun(y0)
-    delta, _, cost, it, done = jax.lax.while_loop(cond, body, (y0, jnp.asarray(1e-3), r0 @ r0, jnp.asarray(0), jnp.asarray(False)))
-    return skeleton.retract(start, delta), done | (it < max_steps)
+    """One frame's tangent by :func:`bcmocap.solver.levenberg_marquardt`; returns the pose and whether it converged."""
+    frame = (skeleton, start, observed, seen, segs, offsets, prior)
+    # Tolerances: 10 nm or rad·1e-8 for the pose, 1e-6 of the cost: far below marker noise.
+    y, report = levenberg_marquardt(_frame_residual, eqx.Partial(_frame_system, frame), jnp.zeros((1, skeleton.num_dofs)),
+                                    frame, rtol=1e-6, atol=1e-8, max_steps=max_steps)
+    return skeleton.retract(start, y[0]), report.converged
 
 
 @partial(jax.jit, static_argnames=("max_steps",))

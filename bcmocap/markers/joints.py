@@ -11,9 +11,10 @@ the first term is the paper's variance of the marker–joint distance). The smal
 the joint of two unconnected groups from escaping to infinity; it is squared here (the paper adds
 ``α·d̄``) so that the problem stays a least-squares problem.
 
-The minimisation is a Levenberg–Marquardt solve in JAX over ``3F + K`` unknowns: the normal equations
-are block-arrow shaped (one 3×3 block per frame, coupled only through the ``K`` distances), so the frames
-are eliminated (Schur complement) and each step costs ``O(F K²)``. Every pair of groups is solved at once
+The minimisation is a Levenberg–Marquardt solve (:func:`bcmocap.solver.levenberg_marquardt`) over
+``3F + K`` unknowns: the normal equations are block-arrow shaped (one 3×3 block per frame, coupled only
+through the ``K`` distances, the solver's static variables), so the frames are eliminated (Schur
+complement) and each step costs ``O(F K²)``. Every pair of groups is solved at once
 (``vmap``) on a subsample of frames; the minimum spanning tree of ``Q`` is the topology; the chosen joints
 are then re-solved on all frames in two stages: a larger penalty first (which places the joint along any
 axis the motion leaves free: a hinge exercised about one axis only, where the variance is flat), then a
@@ -31,10 +32,12 @@ import warnings
 from collections.abc import Sequence
 from functools import partial
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..solver.levenberg_marquardt import NormalEquations, levenberg_marquardt
 from .preprocess import MarkerTrajectories
 
 #: Eigenvalue ratio (smallest / largest of the reduced normal matrix) below which a direction of the
@@ -118,50 +121,31 @@ def _normal_equations(c, d, points, seen, w, beta):
     return hcc, hcd, hdd, gc, gd, cost
 
 
-def _lm_step(c, d, points, seen, valid, w, beta, lam):
-    hcc, hcd, hdd, gc, gd, cost = _normal_equations(c, d, points, seen, w, beta)
-    scale_c = jnp.trace(hcc, axis1=1, axis2=2) / 3.0
-    floor = 1e-9 * jnp.maximum(jnp.max(scale_c), 1e-30)
-    a = hcc + (lam * scale_c + floor + lam * floor)[:, None, None] * jnp.eye(3)
-    a_inv = jnp.linalg.inv(a)  # (F, 3, 3)
-    ainv_b = jnp.einsum("fij,fkj->fik", a_inv, hcd)  # A⁻¹ B_f, (F, 3, K)
-    schur = jnp.diag(hdd * (1.0 + lam)) - jnp.einsum("fki,fil->kl", hcd, ainv_b)
-    schur = schur + jnp.diag(1.0 - valid)  # padding slots: δd = 0
-    rhs = -gd + jnp.einsum("fki,fij,fj->k", hcd, a_inv, gc)
-    dd = jnp.linalg.solve(schur, rhs) * valid
-    dc = -jnp.einsum("fij,fj->fi", a_inv, gc + jnp.einsum("fki,k->fi", hcd, dd))
-    return dc, dd, cost
+def _pair_residuals(y, args):
+    """Whitened residuals of one pair: ``(F, K)`` distance misfits and ``(K,)`` penalties; ``½ Σ r²`` is ``½ Q``."""
+    (c, d), (points, seen, w, beta) = y, args
+    e = _safe_norm(c[:, None, :] - points) - d[None, :]
+    return jnp.sqrt(w[None, :] * seen) * e, jnp.sqrt(beta) * d
+
+
+def _pair_system(args, valid, y):
+    """The block-arrow Gauss–Newton system of one pair: a ``3 × 3`` block per frame (no bands between
+    frames), bordered by the ``K`` distances, which :func:`bcmocap.solver.levenberg_marquardt` eliminates
+    by a Schur complement. Padding slots get a unit diagonal and no gradient, so they stay at 0."""
+    (c, d), (points, seen, w, beta) = y, args
+    hcc, hcd, hdd, gc, gd, _ = _normal_equations(c, d, points, seen, w, beta)
+    return NormalEquations(hcc, (), gc, jnp.swapaxes(hcd, 1, 2), jnp.diag(hdd + (1.0 - valid)), gd)
 
 
 @partial(jax.jit, static_argnames=("max_iterations",))
-def _solve_pair(points, seen, valid, c0, d0, alpha, max_iterations: int = 100, tol=1e-10):
+def _solve_pair(points, seen, valid, c0, d0, alpha, max_iterations: int = 100):
+    """Minimise the joint cost of one pair from ``(c0, d0)``; returns ``c``, ``d``, ``Q`` and whether it converged."""
     w, beta = _weights(seen, valid, alpha)
-
-    def objective(c, d):
-        e = _safe_norm(c[:, None, :] - points) - d[None, :]
-        return jnp.sum(w[None, :] * seen * e * e) + jnp.sum(beta * d * d)
-
-    def body(state):
-        c, d, cost, lam, it, _, stalls = state
-        dc, dd, _ = _lm_step(c, d, points, seen, valid, w, beta, lam)
-        c_new, d_new = c + dc, d + dd
-        new = objective(c_new, d_new)
-        better = new < cost
-        tiny_step = jnp.maximum(jnp.max(jnp.abs(dc)), jnp.max(jnp.abs(dd))) < 1e-9  # metres
-        small = ((cost - new) <= tol * jnp.maximum(cost, 1e-30)) | tiny_step
-        c = jnp.where(better, c_new, c)
-        d = jnp.where(better, d_new, d)
-        stalls = jnp.where(better & small, stalls + 1, jnp.where(better, 0, stalls))
-        done = (better & small & (stalls >= 2)) | (lam > 1e12)
-        lam = jnp.where(better, jnp.maximum(lam / 3.0, 1e-12), lam * 5.0)
-        return c, d, jnp.where(better, new, cost), lam, it + 1, done, stalls
-
-    def cond(state):
-        return (state[4] < max_iterations) & ~state[5]
-
-    init = (c0, d0, objective(c0, d0), jnp.asarray(1e-3), jnp.asarray(0), jnp.asarray(False), jnp.asarray(0))
-    c, d, cost, _, it, done, _ = jax.lax.while_loop(cond, body, init)
-    return c, d, cost, done
+    args = (points, seen, w, beta)
+    # Tolerances: about 10 nm on the joint and the distances, 1e-8 of the cost.
+    (c, d), report = levenberg_marquardt(_pair_residuals, eqx.Partial(_pair_system, args, valid), (c0, d0), args,
+                                         rtol=1e-8, atol=1e-12, max_steps=max_iterations)
+    return c, d, 2.0 * report.final_cost, report.converged
 
 
 @jax.jit

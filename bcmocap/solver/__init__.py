@@ -1,7 +1,13 @@
 """Eq. (1) of the body-mounted cameras paper, solved by structured Levenberg–Marquardt in windows."""
 
 from .block_tridiagonal import solve_block_tridiagonal
-from .levenberg_marquardt import StructuredDampedNewtonDescent, StructuredLevenbergMarquardt
+from .levenberg_marquardt import (
+    Convergence,
+    NormalEquations,
+    StructuredDampedNewtonDescent,
+    StructuredLevenbergMarquardt,
+    levenberg_marquardt,
+)
 from .refine import (
     RefineOptions,
     RefineReport,
@@ -22,9 +28,10 @@ from .solve import (
     whole_sequence_residual_function,
     window_starts,
 )
-from .window import NormalEquations, WindowProblem, cost, normal_equations, residuals
+from .window import WindowProblem, cost, normal_equations, residuals
 
 __all__ = [
+    "Convergence",
     "NormalEquations",
     "Problem",
     "RefineOptions",
@@ -39,6 +46,7 @@ __all__ = [
     "WindowProblem",
     "WindowReport",
     "cost",
+    "levenberg_marquardt",
     "motion_from_tangent",
     "normal_equations",
     "refine_skeleton_and_rig",

@@ -3,7 +3,8 @@
 A term that reads frames ``t−B … t`` couples frames up to ``B`` apart, so the Gauss–Newton matrix of a
 window has ``D × D`` blocks ``A[t, t+k]`` for ``k ≤ B`` only. Grouping ``B`` consecutive frames into one
 super-block of size ``B·D`` makes it block tridiagonal, which :func:`solve_block_tridiagonal` solves by
-a Cholesky scan in O(W B² D³); for ``B = 1`` (the paper's terms) nothing is regrouped.
+a Cholesky scan in O(W B² D³); for ``B = 1`` (the paper's terms) nothing is regrouped, and for ``B = 0``
+(independent frames, e.g. joint centres or one frame's IK) the blocks are factorised all at once.
 
 The bands are a tuple: ``bands[k-1]`` ``(W-k, D, D)`` holds ``A[t, t+k]``; ``A[t+k, t]`` is its transpose.
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.scipy.linalg import cho_solve
 
 from .block_tridiagonal import block_tridiagonal_matvec, solve_block_tridiagonal
 
@@ -26,6 +28,8 @@ def solve_block_banded(diag: jax.Array, bands: tuple[jax.Array, ...], rhs: jax.A
     Returns:
         The solution, shaped as ``rhs``; NaN if a pivot is not positive definite.
     """
+    if not bands:  # block diagonal: independent frames
+        return _solve_block_diagonal(diag, rhs)
     if len(bands) <= 1:
         upper = bands[0] if bands else jnp.zeros((max(diag.shape[0] - 1, 0), *diag.shape[1:]), diag.dtype)
         return solve_block_tridiagonal(diag, upper, rhs)
@@ -35,8 +39,16 @@ def solve_block_banded(diag: jax.Array, bands: tuple[jax.Array, ...], rhs: jax.A
     return x.reshape(padded, d, *k)[:w]
 
 
+def _solve_block_diagonal(diag: jax.Array, rhs: jax.Array) -> jax.Array:
+    """``x[t] = diag[t]⁻¹ rhs[t]`` by batched Cholesky; NaN where a block is not positive definite."""
+    chol = jnp.linalg.cholesky(diag)
+    return jax.vmap(lambda c, b: cho_solve((c, True), b))(chol, rhs)
+
+
 def block_banded_matvec(diag: jax.Array, bands: tuple[jax.Array, ...], x: jax.Array) -> jax.Array:
     """``A x`` for the block-banded ``A`` of :func:`solve_block_banded`; ``x`` ``(W, D)``."""
+    if not bands:
+        return jnp.einsum("tij,tj->ti", diag, x)
     if len(bands) == 1:
         return block_tridiagonal_matvec(diag, bands[0], x)
     out = jnp.einsum("tij,tj->ti", diag, x)

@@ -31,7 +31,30 @@ import lineax as lx
 import optimistix as optx
 
 from .block_banded import block_banded_dense, block_banded_matvec, solve_block_banded
-from .window import NormalEquations
+
+
+class NormalEquations(eqx.Module):
+    """Gauss–Newton system ``H = JᵀJ`` (block banded over ``W`` frames, bordered by ``S`` static variables)
+    and ``g = Jᵀr``: what :class:`StructuredLevenbergMarquardt` steps with.
+
+    Attributes:
+        diag: ``(W, D, D)``; bands: ``B`` arrays, ``bands[k-1]`` ``(W-k, D, D)`` = ``H[t, t+k]``
+            (``B`` = 1 for the paper's terms); grad: ``(W, D)``.
+        coupling: ``(W, D, S)`` = ``H[t, z]``; static_matrix: ``(S, S)`` = ``H[z, z]``; static_grad: ``(S,)``
+            (``S`` = 0 without static variables).
+    """
+
+    diag: jax.Array
+    bands: tuple[jax.Array, ...]
+    grad: jax.Array
+    coupling: jax.Array
+    static_matrix: jax.Array
+    static_grad: jax.Array
+
+    @property
+    def upper(self) -> jax.Array:
+        """``(W-1, D, D)``: ``H[t, t+1]``."""
+        return self.bands[0]
 
 
 class BlockBandedOperator(lx.AbstractLinearOperator):
@@ -150,11 +173,19 @@ def _model(cost: jax.Array, system: NormalEquations) -> optx.FunctionInfo.EvalGr
     return optx.FunctionInfo.EvalGradHessian(cost, grad, operator)
 
 
+def _predicted_reduction(f_info: optx.FunctionInfo.EvalGradHessian, delta) -> jax.Array:
+    """``−(gᵀδ + ½ δᵀHδ)``: the cost decrease the Gauss–Newton model predicts for step ``δ``."""
+    dot = lambda a, b: sum(jnp.vdot(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))  # noqa: E731
+    return -(dot(f_info.grad, delta) + 0.5 * dot(delta, f_info.hessian.mv(delta)))
+
+
 class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     """Levenberg–Marquardt for a window: structured normal equations, optimistix trust region and loop.
 
     Stops when an accepted step changes ``y`` by less than ``atol + rtol |y|`` (in ``norm``) and the
-    cost by less than ``atol + rtol · cost`` (optimistix's Cauchy rule, on the cost).
+    cost by less than ``atol + rtol · cost`` (optimistix's Cauchy rule, on the cost), or when the trust
+    region rejects a step for which the model predicted a decrease below that cost tolerance (the
+    comparison was rounding, and no step can gain more than the tolerance).
 
     Attributes:
         build: ``y ↦ NormalEquations`` (an ``eqx.Partial`` closing over the window problem).
@@ -200,10 +231,12 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             num_accepted_steps=jnp.array(0),
         )
 
+    def _cost_tolerance(self, cost):
+        return self.atol + self.rtol * jnp.abs(cost)
+
     def _converged(self, y, y_diff, cost, cost_diff):
         y_small = self.norm(jax.tree.map(lambda a, b: jnp.abs(a) / (self.atol + self.rtol * jnp.abs(b)), y_diff, y)) < 1
-        cost_small = jnp.abs(cost_diff) < self.atol + self.rtol * jnp.abs(cost)
-        return y_small & cost_small
+        return y_small & (jnp.abs(cost_diff) < self._cost_tolerance(cost))
 
     def step(self, fn, y, args, options, state, tags):
         del options, tags
@@ -228,7 +261,10 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             return state.y_eval, _model(cost_eval, system), aux_eval, terminate
 
         def rejected(_):
-            return y, state.f_info, state.aux, jnp.array(False)
+            # The model promised less than the cost tolerance for this step, so rounding decided that it
+            # failed: there is nothing left to gain here (otherwise the trust region shrinks until max_steps).
+            delta = jax.tree.map(jnp.subtract, state.y_eval, y)
+            return y, state.f_info, state.aux, _predicted_reduction(state.f_info, delta) <= self._cost_tolerance(state.f_info.f)
 
         y, f_info, aux, terminate = jax.lax.cond(accept, accepted, rejected, None)
         descent_state = self.descent.query(y, f_info, state.descent_state)
@@ -253,3 +289,60 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}
+
+
+class Convergence(eqx.Module):
+    """How one Levenberg–Marquardt solve went (arrays: one more leading axis per ``vmap``).
+
+    Attributes:
+        initial_cost, final_cost: ``½ Σ r²`` at the start and at the returned point.
+        num_steps: iterations (accepted or rejected); num_accepted_steps: those the trust region accepted.
+        converged: stopped by the tolerances, not by ``max_steps`` or a failed step.
+    """
+
+    initial_cost: jax.Array
+    final_cost: jax.Array
+    num_steps: jax.Array
+    num_accepted_steps: jax.Array
+    converged: jax.Array
+
+
+def levenberg_marquardt(
+    residual_fn: Callable,
+    build: Callable,
+    y0,
+    args=None,
+    *,
+    rtol: float = 1e-4,
+    atol: float = 1e-4,
+    damping_scale: float = 1e-3,
+    max_steps: int = 100,
+    norm: Callable = optx.rms_norm,
+):
+    """Minimise ``½ Σ r(y)²`` from ``y0``: the one Levenberg–Marquardt of bcmocap (jit- and vmap-able).
+
+    The windowed motion solve, the skeleton and mount refinement, the joint centres of marker groups
+    and marker IK all step through here; what differs is only ``build``, the structure of their
+    Gauss–Newton system (block banded over frames, bordered by static variables, or one dense block).
+
+    Args:
+        residual_fn: ``(y, args) ↦`` residual pytree (its squared sum is twice the cost).
+        build: ``y ↦`` :class:`NormalEquations` of ``residual_fn`` at ``y`` (a pytree such as an
+            ``eqx.Partial``, so that compiled callers are not retraced).
+        y0: ``(W, D)`` array, or ``((W, D), (S,))`` when the system has ``S`` static variables.
+        rtol, atol, norm, damping_scale: see :class:`StructuredLevenbergMarquardt`.
+        max_steps: iterations at most (accepted or rejected).
+
+    Returns:
+        ``(y, Convergence)``: the last accepted point and how the solve went.
+    """
+    solver = StructuredLevenbergMarquardt(build, rtol, atol, norm, damping_scale)
+    sol = optx.least_squares(residual_fn, solver, y0, args=args, max_steps=max_steps, throw=False)
+    report = Convergence(
+        sol.state.initial_cost,
+        sol.state.f_info.f,  # the cost at the returned point, the last accepted one
+        sol.stats["num_steps"],
+        sol.state.num_accepted_steps,
+        sol.result == optx.RESULTS.successful,
+    )
+    return sol.value, report

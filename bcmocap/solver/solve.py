@@ -18,13 +18,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
 from ..residuals.base import CameraPairTerm, CameraTerm, Term
 from ..precision import require_float64
-from .levenberg_marquardt import StructuredLevenbergMarquardt
+from .levenberg_marquardt import Convergence, levenberg_marquardt
 from .window import WindowProblem, make_window_problem, normal_equations, residuals, static_values, window_history
 
 
@@ -122,6 +121,11 @@ class WindowReport:
     converged: bool
     seconds: float
 
+    @classmethod
+    def from_convergence(cls, start: int, stop: int, lm: Convergence, seconds: float) -> WindowReport:
+        return cls(start, stop, float(lm.initial_cost), float(lm.final_cost), int(lm.num_steps),
+                   int(lm.num_accepted_steps), bool(lm.converged), seconds)
+
 
 @dataclasses.dataclass
 class Solution:
@@ -155,22 +159,13 @@ def _system(problem: WindowProblem, v) -> jax.Array:
 @eqx.filter_jit
 def _solve_window(problem: WindowProblem, options: SolverOptions):
     w, d, n_static = problem.num_frames, problem.skeleton.num_dofs, problem.num_statics
-    solver = StructuredLevenbergMarquardt(eqx.Partial(_system, problem), options.rtol, options.atol,
-                                          damping_scale=options.damping_scale)
     fn = lambda v, args: residuals(args, *v) if isinstance(v, tuple) else residuals(args, v)
     v0 = (jnp.zeros((w, d)), jnp.zeros(n_static)) if n_static else jnp.zeros((w, d))
-    sol = optx.least_squares(fn, solver, v0, args=problem, max_steps=options.max_steps, throw=False)
-    y, z = sol.value if n_static else (sol.value, None)
+    value, report = levenberg_marquardt(fn, eqx.Partial(_system, problem), v0, problem, rtol=options.rtol,
+                                        atol=options.atol, damping_scale=options.damping_scale, max_steps=options.max_steps)
+    y, z = value if n_static else (value, None)
     motion = problem.skeleton.retract(problem.reference[problem.history :], y)
-    return (
-        motion,
-        static_values(problem, z),
-        sol.state.initial_cost,
-        sol.state.f_info.f,  # the cost at the returned point, the last accepted one
-        sol.stats["num_steps"],
-        sol.state.num_accepted_steps,
-        sol.result == optx.RESULTS.successful,
-    )
+    return motion, static_values(problem, z), report
 
 
 def _non_finite_window(wp: WindowProblem, start: int, stop: int, num_dofs: int) -> str:
@@ -247,15 +242,15 @@ def solve(
             np.concatenate([rotations[before], rotations[start:stop]]),
         )
         wp = make_window_problem(skeleton, rig, terms, reference, min(start, history), statics)
-        motion, new_statics, c0, c1, steps, accepted, ok = _solve_window(wp, options)
+        motion, new_statics, lm = _solve_window(wp, options)
         new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
         new_statics = {k: np.asarray(v) for k, v in new_statics.items()}
-        finite = [new_root, new_rot, np.asarray(c0), np.asarray(c1), *new_statics.values()]
+        finite = [new_root, new_rot, np.asarray(lm.initial_cost), np.asarray(lm.final_cost), *new_statics.values()]
         if not all(np.all(np.isfinite(a)) for a in finite):
             raise FloatingPointError(_non_finite_window(wp, start, stop, skeleton.num_dofs))
         root[start:stop], rotations[start:stop] = new_root, new_rot
         statics = new_statics  # the next window starts from this window's estimate
-        report = WindowReport(start, stop, float(c0), float(c1), int(steps), int(accepted), bool(ok), time.perf_counter() - t0)
+        report = WindowReport.from_convergence(start, stop, lm, time.perf_counter() - t0)
         reports.append(report)
         if bar is not None:
             bar.update(stop - done)

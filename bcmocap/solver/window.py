@@ -21,6 +21,7 @@ from ..geometry import SE3, transform_points
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
+from .levenberg_marquardt import NormalEquations
 from ..residuals.base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, MultiFrameTerm, PairTerm, Term, slot_cameras
 
 
@@ -186,29 +187,6 @@ def residuals(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) 
 def cost(problem: WindowProblem, y: jax.Array) -> jax.Array:
     """½ Σ of all finished squared residuals."""
     return 0.5 * sum(jnp.sum(r * r) for r in residuals(problem, y))
-
-
-class NormalEquations(eqx.Module):
-    """Gauss–Newton system of a window: ``H = JᵀJ`` (block banded) and ``g = Jᵀr``.
-
-    Attributes:
-        diag: ``(W, D, D)``; bands: ``B`` arrays, ``bands[k-1]`` ``(W-k, D, D)`` = ``H[t, t+k]``
-            (``B`` = 1 for the paper's terms); grad: ``(W, D)``.
-        coupling: ``(W, D, S)`` = ``H[t, z]``; static_matrix: ``(S, S)`` = ``H[z, z]``; static_grad: ``(S,)``
-            (``S`` = 0 without static variables).
-    """
-
-    diag: jax.Array
-    bands: tuple[jax.Array, ...]
-    grad: jax.Array
-    coupling: jax.Array
-    static_matrix: jax.Array
-    static_grad: jax.Array
-
-    @property
-    def upper(self) -> jax.Array:
-        """``(W-1, D, D)``: ``H[t, t+1]``."""
-        return self.bands[0]
 
 
 def _log_near_identity(matrix: jax.Array) -> jax.Array:
