@@ -13,20 +13,23 @@ by alternating two steps (:func:`solve_with_refinement`):
     (:func:`refine_skeleton_and_rig`).
 
 Step (b) does not hold the motion fixed (a plain block-coordinate descent would: ``hold_motion``).
-The frames are independent given θ, so each frame's motion is eliminated from the Gauss–Newton
-system (Schur complement, per frame): ``S = Σ_t C_t − B_tᵀ A_t⁻¹ B_t`` where ``A_t``, ``B_t``,
-``C_t`` are the frame's motion–motion, motion–θ and θ–θ blocks of ``Σ ρ' JᵀJ``. The step in θ
-therefore already accounts for how the motion re-fits, and each frame's motion moves with it
-(``δm_t = −A_t⁻¹(g_t + B_t δθ)``): a joint Levenberg–Marquardt in (motion, θ), damped in θ. With
-the motion held fixed instead, the motion has compensated the wrong skeleton and pins θ near its
-old value, and the alternation crawls; eliminated, one round does nearly all of it.
+It is one least-squares problem over every used frame's motion tangent and θ, solved by the
+project's one Levenberg–Marquardt (:func:`~bcmocap.solver.levenberg_marquardt`). The frames are
+independent given θ, so the Gauss–Newton matrix is block diagonal in the motion, bordered by θ (θ
+is the solver's static variables) and each step eliminates the motion (Schur complement, per frame):
+``S = Σ_t C_t − B_tᵀ A_t⁻¹ B_t`` where ``A_t``, ``B_t``, ``C_t`` are the frame's motion–motion,
+motion–θ and θ–θ blocks of ``Σ ρ' JᵀJ``. The step in θ therefore already accounts for how the
+motion re-fits, and each frame's motion moves with it (``δm_t = −A_t⁻¹(g_t + B_t δθ)``). With the
+motion held fixed instead, the motion has compensated the wrong skeleton and pins θ near its old
+value, and the alternation crawls; eliminated, one round does nearly all of it.
 
 Only the reprojection term enters (b): smoothness acts on the motion alone, and the homography
 transfer (camera-frames that did not register) carries almost nothing on the mounts. The Jacobian
 is never formed over all measurements: a camera's measurements enter through its ``3 × 4``
 ``cam_from_world`` matrix (a ``12 × 12`` normal block per camera), chained with the autodiff
-Jacobian of those matrices with respect to the frame's motion tangent and θ. Frames are processed
-in fixed-size chunks (one compilation), keeping ``A_t⁻¹ B_t`` per frame (``T × D × P`` numbers).
+Jacobian of those matrices with respect to the frame's motion tangent and θ. Frames are linearised
+in fixed-size chunks (``lax.map``, one compilation); the system holds ``A_t`` and ``B_t`` per frame
+(``T × D × (D + P)`` numbers).
 
 Gauge. With the motion free, several directions of θ are not observable from the capture at all:
 where the root's origin sits among its cameras (any shift is absorbed by the root position); the
@@ -63,6 +66,7 @@ from ..kinematics.rig import Rig, camera_poses
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 from ..residuals import Reprojection
 from ..precision import require_float64
+from .levenberg_marquardt import NormalEquations, levenberg_marquardt
 from .objective import ObjectiveWeights, paper_problem, paper_terms
 from .solve import Solution, SolverOptions, solve
 
@@ -86,10 +90,11 @@ class RefineOptions:
         root_origin: children of the root whose mean joint is the root's origin (held); default:
             the root's children with a zero offset if there are any, else all of them.
         max_steps: Levenberg–Marquardt iterations (accepted or rejected).
-        xtol: stop after an accepted step below this in every parameter (m and rad).
-        ftol: stop when the model promises less than this fraction of the cost.
+        xtol, ftol: stop after an accepted step that changes the variables (motion tangents and θ) by
+            less than ``xtol`` in RMS (m and rad) and the cost by less than ``xtol + ftol · cost``
+            (the ``atol`` and ``rtol`` of :func:`~bcmocap.solver.levenberg_marquardt`).
         damping_scale: initial damping relative to the Marquardt diagonal.
-        chunk_frames: frames linearised per compiled call.
+        chunk_frames: frames linearised together (``vmap``; the chunks run in sequence).
         frame_stride: use every k-th frame (the motion of the others does not move in (b)).
     """
 
@@ -104,8 +109,8 @@ class RefineOptions:
     hold_segment_frames: bool = True
     root_origin: tuple[str, ...] | None = None
     max_steps: int = 15
-    xtol: float = 1e-6
-    ftol: float = 1e-12
+    xtol: float = 1e-5
+    ftol: float = 1e-10
     damping_scale: float = 1e-4
     chunk_frames: int = 16
     frame_stride: int = 1
@@ -128,8 +133,8 @@ class RefineReport:
     Attributes:
         initial_cost, final_cost: robust reprojection cost ``½ Σ λρ`` plus the prior, before and after.
         initial_reprojection_cost, final_reprojection_cost: the reprojection part alone.
-        num_steps, num_accepted_steps: Levenberg–Marquardt iterations; converged: stopped by
-            ``xtol`` or ``ftol`` (not by ``max_steps``).
+        num_steps, num_accepted_steps, converged: from the solver's
+            :class:`~bcmocap.solver.Convergence` (converged: stopped by the tolerances, not by ``max_steps``).
         offset_change_m: largest change of an offset vector (norm, m) against the input.
         mount_translation_change_m, mount_rotation_change_deg: largest change of a mount.
         hinge_axis_change_deg: largest change of a hinge axis.
@@ -161,9 +166,9 @@ class Refinement:
 
     Attributes:
         skeleton, rig: the refined model (same topology, cameras and intrinsics as the input).
-        motion: the input motion moved with the parameters (each used frame's Gauss–Newton response;
-            with ``hold_motion`` only its hinge rotations, re-expressed about the refined axes with
-            the same angles), a starting point for the next solve.
+        motion: the used frames' motion solved with the parameters (the other frames', and with
+            ``hold_motion`` all of them, only re-expressed about the refined hinge axes with the same
+            angles), a starting point for the next solve.
         report: costs, steps and parameter changes.
     """
 
@@ -382,37 +387,41 @@ def _camera_normal_block(term: Reprojection, matrix: jax.Array, camera, data):
     return jnp.einsum("nki,nkj->ij", jac, jac), jnp.einsum("nki,nk->i", jac, r), cost
 
 
-def _frame_system(model: _Model, theta: jax.Array, reference: Motion, data):
-    """One frame's system in θ with its motion eliminated.
+def _frame_model(model: _Model, theta: jax.Array, reference_axes: jax.Array, reference: Motion, tangent: jax.Array):
+    """The skeleton, rig and one frame's motion at θ ``(P,)`` and the frame's tangent ``(D,)`` (``(0,)``:
+    motion held): the reference pose with its hinge angles kept about the axes at θ, then moved."""
+    skeleton, rig = _apply(model.layout, model.skeleton, model.rig, theta)
+    motion = _reaxis(model.layout, reference, reference_axes, skeleton.hinge_axes)
+    return skeleton, rig, (skeleton.retract(motion, tangent) if tangent.shape[0] else motion)
 
-    Returns ``S (P, P)``, ``s (P,)``, ``q = gᵀA⁻¹g`` (the model decrease available to the motion
-    alone), the cost, and ``A⁻¹B (D, P)``, ``A⁻¹g (D,)`` for the motion's response.
+
+def _frame_system(model: _Model, theta: jax.Array, reference_axes: jax.Array, reference: Motion, tangent: jax.Array, data):
+    """One frame's Gauss–Newton blocks in (its motion tangent, the active entries of θ) at ``(tangent, θ)``.
+
+    Returns ``A (D, D)``, ``B (D, Pa)``, ``C (Pa, Pa)``, ``g_m (D,)``, ``g_θ (Pa,)`` and the frame's robust
+    cost (``D`` = 0 with the motion held). The reprojections enter through each camera's 3×4 matrix.
     """
-    layout, d = model.layout, 0 if model.hold_motion else model.skeleton.num_dofs
-    active = np.asarray(layout.active)
-    axes = _apply(layout, model.skeleton, model.rig, theta)[0].hinge_axes
+    active, d = np.asarray(model.layout.active), tangent.shape[0]
 
     def matrices(z):
-        skeleton, rig = _apply(layout, model.skeleton, model.rig, theta.at[active].add(z[d:]))
-        motion = _reaxis(layout, reference, axes, skeleton.hinge_axes)
-        motion = skeleton.retract(motion, z[:d]) if d else motion
+        skeleton, rig, motion = _frame_model(model, theta.at[active].set(z[d:]), reference_axes, reference, z[:d])
         return camera_poses(skeleton, rig, motion).inverse().as_matrix()[:, :3, :]
 
-    z0 = jnp.zeros(d + len(active))
-    mats, d_mats = matrices(z0), jax.jacfwd(matrices)(z0)  # (C, 3, 4), (C, 3, 4, Z)
+    z = jnp.concatenate([tangent, theta[active]])
+    mats, d_mats = matrices(z), jax.jacfwd(matrices)(z)  # (C, 3, 4), (C, 3, 4, Z)
     hess, grad, cost = jax.vmap(lambda m, cam, dt: _camera_normal_block(model.term, m, cam, dt))(mats, model.rig.intrinsics, data)
     chain = d_mats.reshape(d_mats.shape[0], 12, -1)
     h = jnp.einsum("cai,cab,cbj->ij", chain, hess, chain)
     g = jnp.einsum("cai,ca->i", chain, grad)
-    if not d:
-        return h, g, jnp.zeros(()), jnp.sum(cost), jnp.zeros((0, len(active))), jnp.zeros(0)
-    a, b = h[:d, :d], h[:d, d:]
-    # Motion DOFs without data in this frame (a leaf whose camera did not register) have zero rows
-    # in B and g: the tiny shift keeps A invertible and leaves their response at zero.
-    shift = 1e-9 * jnp.trace(a) / d + 1e-12
-    solved = jnp.linalg.solve(a + shift * jnp.eye(d), jnp.concatenate([b, g[:d, None]], axis=1))
-    gain, response = solved[:, :-1], solved[:, -1]
-    return h[d:, d:] - b.T @ gain, g[d:] - b.T @ response, g[:d] @ response, jnp.sum(cost), gain, response
+    return h[:d, :d], h[:d, d:], h[d:, d:], g[:d], g[d:], jnp.sum(cost)
+
+
+def _frame_residuals(model: _Model, theta: jax.Array, reference_axes: jax.Array, reference: Motion, tangent: jax.Array, data):
+    """One frame's finished reprojection residuals ``(C, n, 2)`` (``½ Σ r²`` is its robust cost)."""
+    skeleton, rig, motion = _frame_model(model, theta, reference_axes, reference, tangent)
+    cam_from_world = camera_poses(skeleton, rig, motion).inverse()
+    one = lambda p, cam, dt: model.term.finish(*model.term.residual(SE3(p), cam, dt))  # noqa: E731
+    return jax.vmap(one)(cam_from_world.wxyz_xyz, rig.intrinsics, data)
 
 
 def _reaxis(layout: _Layout, motion: Motion, old_axes: jax.Array, new_axes: jax.Array) -> Motion:
@@ -429,28 +438,11 @@ def _reaxis(layout: _Layout, motion: Motion, old_axes: jax.Array, new_axes: jax.
     return Motion(motion.root_position, motion.rotations.at[..., idx, :].set(turned))
 
 
-@eqx.filter_jit
-def _chunk_pass(model: _Model, theta_old, theta, step, gain, response, reference: Motion, data):
-    """Move a chunk's frames by their response to ``step`` (θ already includes it) and linearise there.
-
-    Args:
-        theta_old: ``(P,)`` θ of the previous linearisation; theta: the new θ; step: ``(Pa,)`` the
-            change of its active entries.
-        gain, response: ``(F, D, Pa)``, ``(F, D)`` from the previous linearisation (zeros at first).
-        reference: ``(F, J)`` motion of the chunk at the previous linearisation.
-
-    Returns:
-        The moved motion and, summed over the chunk, ``S``, ``s``, ``q`` and the cost; per frame the new ``gain``, ``response``.
-    """
-    old = _apply(model.layout, model.skeleton, model.rig, theta_old)[0]
-    moved = reference if model.hold_motion else old.retract(reference, -(response + jnp.einsum("fdp,p->fd", gain, step)))
-    moved = _reaxis(model.layout, moved, old.hinge_axes, _apply(model.layout, model.skeleton, model.rig, theta)[0].hinge_axes)
-    s_mat, s_vec, q, cost, new_gain, new_response = jax.vmap(lambda ref, dt: _frame_system(model, theta, ref, dt))(moved, data)
-    return moved, s_mat.sum(0), s_vec.sum(0), q.sum(), cost.sum(), new_gain, new_response
-
-
 class _Frames:
-    """The used frames of a capture cut into equal chunks (padded with zero-weight frames)."""
+    """The used frames of a capture cut into equal chunks (padded with zero-weight frames).
+
+    ``motion`` and ``data`` are stacked per chunk: ``(K, F, ...)`` for ``K`` chunks of ``F`` frames.
+    """
 
     def __init__(self, term: Reprojection, motion: Motion, stride: int, chunk: int):
         self.index = np.arange(0, motion.num_frames, stride)
@@ -460,30 +452,78 @@ class _Frames:
         take = np.concatenate([self.index, np.full(pad, self.index[-1])])
         data = {k: np.asarray(v)[take] for k, v in term.data.items()}
         data["weights"][n:] = 0.0
-        self.term = eqx.tree_at(lambda t: t.data, term, data)
-        self.motion = jax.tree.map(lambda a: np.asarray(a)[take], motion)
+        padded = eqx.tree_at(lambda t: t.data, term, data)
+        # The term's window resolves point ids into points (n, 3) per camera-frame.
+        chunks = [padded.window(a, a + self.chunk).data for a in range(0, n + pad, self.chunk)]
+        self.data = jax.tree.map(lambda *a: jnp.stack(a), *chunks)
+        self.motion = jax.tree.map(lambda a: jnp.asarray(np.asarray(a)[take]).reshape(-1, self.chunk, *a.shape[1:]), motion)
         self.num_frames = n
 
-    def starts(self) -> range:
-        return range(0, len(self.motion.root_position), self.chunk)
-
-    def data(self, start: int):
-        return self.term.window(start, start + self.chunk).data
+    @property
+    def num_padded(self) -> int:
+        return len(self.index) + (-len(self.index) % self.chunk)
 
 
-def _sweep(model: _Model, frames: _Frames, motion: Motion, theta_old, theta, step, gains, responses):
-    """Run :func:`_chunk_pass` over all chunks; returns (motion, S, s, q, cost, gains, responses)."""
-    pieces, totals, new_gains, new_responses = [], None, [], []
-    for i, start in enumerate(frames.starts()):
-        ref = jax.tree.map(lambda a: a[start : start + frames.chunk], motion)
-        out = _chunk_pass(model, theta_old, theta, step, gains[i], responses[i], ref, frames.data(start))
-        pieces.append(out[0])
-        sums = [np.asarray(x) for x in out[1:5]]
-        totals = sums if totals is None else [a + b for a, b in zip(totals, sums)]
-        new_gains.append(out[5])
-        new_responses.append(out[6])
-    moved = Motion.concatenate(pieces)
-    return (moved, *totals, new_gains, new_responses)
+class _Problem(eqx.Module):
+    """Refinement as one least-squares problem over ``v = (tangents (T, D), θ_active (Pa,))`` (the motion
+    eliminated by :func:`levenberg_marquardt`'s Schur step), or ``θ_active[None]`` with the motion held:
+    the robust reprojections of the used frames and the prior ``(θ/σ)``."""
+
+    model: _Model
+    theta: jax.Array  # (P,) θ; its active entries are variables
+    sqrt_precision: jax.Array  # (Pa,) 1/σ of the active entries
+    reference_axes: jax.Array  # (J, 3) hinge axes the reference motion's rotations are about
+    reference: Motion  # (K, F) per chunk
+    data: dict  # (K, F, C, ...) per chunk
+
+    def split(self, v):
+        """``(tangents (K, F, D), θ (P,), θ_active (Pa,))``."""
+        k, f = self.reference.root_position.shape[:2]
+        tangents, active_values = (jnp.zeros((k * f, 0)), v[0]) if self.model.hold_motion else v
+        theta = self.theta.at[np.asarray(self.model.layout.active)].set(active_values)
+        return tangents.reshape(k, f, tangents.shape[-1]), theta, active_values
+
+    def _per_frame(self, fn, v):
+        tangents, theta, _ = self.split(v)
+        frames = jax.vmap(lambda ref, t, dt: fn(self.model, theta, self.reference_axes, ref, t, dt))
+        chunked = jax.lax.map(lambda xs: frames(*xs), (self.reference, tangents, self.data))
+        return jax.tree.map(lambda a: a.reshape(a.shape[0] * a.shape[1], *a.shape[2:]), chunked)
+
+    def residuals(self, v, args=None):
+        return self._per_frame(_frame_residuals, v), self.sqrt_precision * self.split(v)[2]
+
+    def system(self, v) -> NormalEquations:
+        a, b, c, g_m, g_theta, _ = self._per_frame(_frame_system, v)
+        values = self.split(v)[2]
+        precision = self.sqrt_precision**2
+        static_matrix = jnp.sum(c, axis=0) + jnp.diag(precision)
+        static_grad = jnp.sum(g_theta, axis=0) + precision * values
+        if self.model.hold_motion:  # θ alone: one dense block
+            return NormalEquations(static_matrix[None], (), static_grad[None], jnp.zeros((1, len(values), 0)),
+                                   jnp.zeros((0, 0)), jnp.zeros(0))
+        return NormalEquations(a, (), g_m, b, static_matrix, static_grad)
+
+    def data_schur(self, v) -> jax.Array:
+        """``Σ_t C_t − B_tᵀ A_t⁻¹ B_t`` without the prior: what the data say about θ once each frame's motion re-fits."""
+        a, b, c, *_ = self._per_frame(_frame_system, v)
+        if self.model.hold_motion:
+            return jnp.sum(c, axis=0)
+        d = a.shape[-1]
+        # Motion DOFs without data in a frame (a leaf whose camera did not register) have zero rows in
+        # B: the tiny shift keeps A invertible and leaves them out.
+        shift = 1e-9 * jnp.trace(a, axis1=1, axis2=2)[:, None, None] / d + 1e-12
+        gain = jnp.linalg.solve(a + shift * jnp.eye(d), b)
+        return jnp.sum(c, axis=0) - jnp.einsum("tdp,tdq->pq", b, gain)
+
+
+@eqx.filter_jit
+def _refine(problem: _Problem, v0, options: RefineOptions):
+    """The Levenberg–Marquardt solve; returns the solution, its report, the robust reprojection cost at
+    the start and the end, and the data's Schur matrix at the end."""
+    value, report = levenberg_marquardt(problem.residuals, eqx.Partial(_Problem.system, problem), v0, rtol=options.ftol,
+                                        atol=options.xtol, damping_scale=options.damping_scale, max_steps=options.max_steps)
+    data_cost = lambda v: 0.5 * jnp.sum(problem.residuals(v)[0] ** 2)  # noqa: E731
+    return value, report, data_cost(v0), data_cost(value), problem.data_schur(value)
 
 
 def _reprojection_term(correspondences: Correspondences, skeleton: Skeleton, weights: ObjectiveWeights) -> Reprojection:
@@ -544,60 +584,31 @@ def refine_skeleton_and_rig(
     layout = _layout(base_skeleton, base_rig, options)
     active = np.asarray(layout.active)
     theta_in = _difference(layout, base_skeleton, base_rig, skeleton, rig)
-    theta = theta_in.copy()
-    precision = 1.0 / layout.sigmas(options)[active] ** 2
+    sigmas = layout.sigmas(options)[active]
     term = _reprojection_term(correspondences, skeleton, weights)
     model = _Model(base_skeleton, base_rig, _without_data(term), layout, options.hold_motion)
     frames = _Frames(term, motion, options.frame_stride, options.chunk_frames)
-    num_chunks = len(frames.starts())
-    d = 0 if options.hold_motion else skeleton.num_dofs
-    zeros = [jnp.zeros((frames.chunk, d, len(active)))] * num_chunks, [jnp.zeros((frames.chunk, d))] * num_chunks
-    prior_cost = lambda th: 0.5 * float(np.sum(precision * th[active] ** 2))
-    current = _sweep(model, frames, frames.motion, jnp.asarray(theta), jnp.asarray(theta), jnp.zeros(len(active)), *zeros)
-    initial_data_cost = data_cost = float(current[4])
-    cost = data_cost + prior_cost(theta)
-    initial_cost = cost
-    damping, factor = options.damping_scale, 2.0
-    steps = accepted = 0
-    converged = False
-    while steps < options.max_steps:
-        motion_now, s_mat, s_vec, q, _, gains, responses = current
-        hess = s_mat + np.diag(precision)
-        grad = s_vec + precision * theta[active]
-        diag = np.maximum(np.diag(hess), 1e-12 * np.max(np.diag(hess)))
-        step = -np.linalg.solve(hess + damping * np.diag(diag), grad)
-        predicted = 0.5 * q - grad @ step - 0.5 * step @ hess @ step
-        if predicted <= options.ftol * cost:  # below what the cost's rounding can confirm
-            converged = True
-            break
-        steps += 1
-        new_theta = theta.copy()
-        new_theta[active] += step
-        trial = _sweep(model, frames, motion_now, jnp.asarray(theta), jnp.asarray(new_theta), jnp.asarray(step), gains, responses)
-        new_cost = float(trial[4]) + prior_cost(new_theta)
-        ratio = (cost - new_cost) / predicted if predicted > 0 else -1.0
-        if np.isfinite(new_cost) and ratio > 0:
-            theta, current, cost, data_cost = new_theta, trial, new_cost, float(trial[4])
-            accepted += 1
-            damping *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
-            factor = 2.0
-            if np.all(np.abs(step) <= options.xtol):
-                converged = True
-                break
-        else:
-            damping *= factor
-            factor *= 2.0
-    whitened = current[1] / np.sqrt(np.outer(precision, precision))
+    problem = _Problem(model, jnp.asarray(theta_in), jnp.asarray(1.0 / sigmas), skeleton.hinge_axes, frames.motion, frames.data)
+    theta0 = jnp.asarray(theta_in[active])
+    v0 = theta0[None] if options.hold_motion else (jnp.zeros((frames.num_padded, skeleton.num_dofs)), theta0)
+    value, lm, reprojection_before, reprojection_after, schur = _refine(problem, v0, options)
+    tangents, theta, _ = problem.split(value)
+    theta = np.asarray(theta)
+    whitened = np.asarray(schur) * np.outer(sigmas, sigmas)
     prior_directions = int(np.sum(np.linalg.eigvalsh(0.5 * (whitened + whitened.T)) < 1.0))
     # Held means are no direction of the model: they are zero by construction, not by the prior.
     prior_directions -= 3 * (bool(layout.origin_children) * options.refine_offsets + len(layout.held_frames) * options.refine_mounts)
     new_skeleton, new_rig = _apply(layout, base_skeleton, base_rig, jnp.asarray(theta))
     moved = _reaxis(layout, motion, skeleton.hinge_axes, new_skeleton.hinge_axes)  # frames left out by the stride
     root, rotations = np.array(moved.root_position, dtype=np.float64), np.array(moved.rotations, dtype=np.float64)
-    root[frames.index] = np.asarray(current[0].root_position)[: frames.num_frames]
-    rotations[frames.index] = np.asarray(current[0].rotations)[: frames.num_frames]
+    if not options.hold_motion:
+        used = jax.tree.map(lambda a: a.reshape(-1, *a.shape[2:])[: frames.num_frames], frames.motion)
+        solved = new_skeleton.retract(_reaxis(layout, used, skeleton.hinge_axes, new_skeleton.hinge_axes),
+                                      tangents.reshape(-1, skeleton.num_dofs)[: frames.num_frames])
+        root[frames.index], rotations[frames.index] = np.asarray(solved.root_position), np.asarray(solved.rotations)
     report = RefineReport(
-        initial_cost, cost, initial_data_cost, data_cost, steps, accepted, converged,
+        float(lm.initial_cost), float(lm.final_cost), float(reprojection_before), float(reprojection_after),
+        int(lm.num_steps), int(lm.num_accepted_steps), bool(lm.converged),
         *_changes(layout, theta_in, theta), prior_directions, len(active), frames.num_frames,
         time.perf_counter() - start_time,
     )
@@ -612,9 +623,9 @@ def reprojection_cost(
     term = _reprojection_term(correspondences, skeleton, weights)
     frames = _Frames(term, motion, 1, RefineOptions.chunk_frames)
     total = 0.0
-    for start in frames.starts():
-        ref = jax.tree.map(lambda a: a[start : start + frames.chunk], frames.motion)
-        total += float(_chunk_cost(skeleton, rig, _without_data(term), ref, frames.data(start)))
+    for k in range(frames.num_padded // frames.chunk):
+        ref = jax.tree.map(lambda a: a[k], frames.motion)
+        total += float(_chunk_cost(skeleton, rig, _without_data(term), ref, {name: a[k] for name, a in frames.data.items()}))
     return total
 
 
