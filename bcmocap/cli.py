@@ -14,6 +14,7 @@ from .io.output_folder import output_folder
 from .kcs.command import add_kcs_command
 from .markers.command import add_markers_command
 from .pipeline.command import add_run_command
+from .pipeline.view_command import add_view_command
 from .precision import enable_float64
 from .sim.studio_command import add_simulate_command
 
@@ -158,6 +159,7 @@ COMMANDS = [
     add_kcs_command,
     add_frontend_command,
     add_run_command,
+    add_view_command,
 ]
 
 

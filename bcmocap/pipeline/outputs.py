@@ -136,17 +136,23 @@ def _write_reference(ctx, sim) -> None:
 # ---- ground truth ---------------------------------------------------------------------------------
 def _truth(ctx, corr):
     """The capture trial's ground truth resampled to the run's frames, or None without ground truth."""
-    if not (ctx.capture.path / "ground_truth").is_dir():
+    return capture_truth(ctx.capture.path, corr)
+
+
+def capture_truth(capture_path: Path, corr):
+    """:func:`_truth` of the capture folder ``capture_path`` (also read by ``bcmocap view``)."""
+    if not (Path(capture_path) / "ground_truth").is_dir():
         return None
     from ..sim.studio import load_ground_truth
 
-    gt = load_ground_truth(ctx.capture.path)
+    gt = load_ground_truth(capture_path)
     trial = gt.trials["capture"]
     stride = int(round(trial.fps / corr.fps))
     frames = int(trial.clap_frames[0]) + stride * np.arange(corr.num_frames)
     valid = (frames >= 0) & (frames < trial.motion.num_frames)
     idx = np.clip(frames, 0, trial.motion.num_frames - 1)
     return {"skeleton": gt.skeleton, "rig": gt.rig, "motion": trial.motion[idx],
+            "joint_positions": trial.joint_positions[idx],
             "world_from_camera": trial.world_from_camera[idx], "valid": valid}
 
 
@@ -162,18 +168,13 @@ def evaluate_run(skeleton, rig, motions: dict, corr, truth: dict):
             poses are aligned.
         truth: from :func:`_truth`.
     """
-    from ..frontend.register import similarity
     from ..geometry import rotation_angle
     from ..kinematics.fk import joint_positions
-    from .world import Similarity, transform_model
+    from .world import transform_model
 
     valid = truth["valid"]
-    reg = corr.registered & valid[:, None]
-    src = corr.world_from_camera[reg][:, 4:]
-    dst = np.asarray(truth["world_from_camera"])[reg][:, 4:]
-    s, r, tr = similarity(src, dst)
-    sim = Similarity(s, r, tr)
-    residual = np.linalg.norm(sim.points(src) - dst, axis=-1)
+    sim, residual = align_to_truth(corr, truth)
+    s = sim.scale
     true_sk, true_rig, true_motion = truth["skeleton"], truth["rig"], truth["motion"][np.flatnonzero(valid)]
     true_joints = np.asarray(joint_positions(true_sk, true_motion))
     true_cams = _camera_centres(true_sk, true_rig, true_motion)
@@ -190,6 +191,19 @@ def evaluate_run(skeleton, rig, motions: dict, corr, truth: dict):
                      "joint_angle_error_deg": _stats(angles),
                      "camera_centre_error_cm": _stats(100 * np.linalg.norm(cams - true_cams, axis=-1))}
     return out, sim
+
+
+def align_to_truth(corr, truth: dict):
+    """The §5.1 similarity (run world → true world: Umeyama of the registered camera centres onto the true
+    ones, over the frames the truth covers) and its ``(N,)`` residuals (m)."""
+    from ..frontend.register import similarity
+    from .world import Similarity
+
+    reg = corr.registered & truth["valid"][:, None]
+    src = corr.world_from_camera[reg][:, 4:]
+    dst = np.asarray(truth["world_from_camera"])[reg][:, 4:]
+    sim = Similarity(*similarity(src, dst))
+    return sim, np.linalg.norm(sim.points(src) - dst, axis=-1)
 
 
 def _stats(x: np.ndarray) -> dict:
