@@ -126,6 +126,61 @@ def quat_log(q: np.ndarray) -> np.ndarray:
     return scale * q[..., 1:]
 
 
+def rotation_from_covariance(m):
+    """The proper rotation (det +1) ``R`` maximising ``tr(Rᵀ M)``: the least-squares ``R source ≈ target``.
+
+    Args:
+        m: ``(..., 3, 3)`` cross-covariance ``M = Σ w_i target_i source_iᵀ`` (of centred points for a
+            rigid fit). numpy in, numpy out; a JAX array (also traced) in, JAX out.
+
+    Returns:
+        ``(..., 3, 3)`` rotations (Kabsch, with the reflection fixed by the last singular vector).
+    """
+    xp = jnp if isinstance(m, jax.Array) else np
+    u, _, vt = xp.linalg.svd(m)
+    det = xp.sign(xp.linalg.det(u @ vt))
+    det = xp.where(det == 0, 1.0, det)
+    flip = xp.concatenate([xp.ones((*det.shape, 2)), det[..., None]], axis=-1)
+    return (u * flip[..., None, :]) @ vt
+
+
+def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation with ``target ≈ R @ source + t`` in the weighted least-squares sense (numpy).
+
+    Args:
+        source, target: ``(..., N, 3)`` corresponding points (rows with NaN get zero weight).
+        weights: ``(..., N)`` non-negative weights (None: all 1).
+
+    Returns:
+        ``R`` ``(..., 3, 3)`` proper rotations (det +1) and ``t`` ``(..., 3)``. With fewer than three
+        non-collinear weighted points the rotation about their line is arbitrary (but proper).
+    """
+    source = np.asarray(source, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    if source.shape != target.shape or source.shape[-1] != 3:
+        raise ValueError(f"kabsch: source and target must have the same shape (..., N, 3), got {source.shape} and {target.shape}")
+    w = np.ones(source.shape[:-1]) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = np.where(np.isfinite(source).all(-1) & np.isfinite(target).all(-1), w, 0.0)
+    src, tgt = np.nan_to_num(source), np.nan_to_num(target)
+    total = np.maximum(w.sum(-1, keepdims=True), 1e-300)
+    mu_s = (w[..., None] * src).sum(-2) / total
+    mu_t = (w[..., None] * tgt).sum(-2) / total
+    r = rotation_from_covariance(np.einsum("...n,...ni,...nj->...ij", w, tgt - mu_t[..., None, :], src - mu_s[..., None, :]))
+    return r, mu_t - np.einsum("...ij,...j->...i", r, mu_s)
+
+
+def similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Umeyama: ``(s, R, t)`` minimising ``Σ |s R source_i + t − target_i|²`` over points ``(N, 3)`` (numpy),
+    e.g. to align a reconstruction to the world by its camera centres (§5.1)."""
+    source, target = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    a, b = source - mu_s, target - mu_t
+    m = b.T @ a
+    r = rotation_from_covariance(m)
+    scale = float(np.trace(r.T @ m) / np.sum(a**2))
+    return scale, r, mu_t - scale * r @ mu_s
+
+
 def euler_to_matrix(angles_rad: np.ndarray, order: str) -> np.ndarray:
     """Rotation matrices from intrinsic-order Euler angles as BVH and ASF write them.
 

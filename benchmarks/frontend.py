@@ -53,7 +53,8 @@ from _common import write_json  # noqa: E402
 from bcmocap.frontend import read_capture, synchronize  # noqa: E402
 from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.frontend.reference import build_reference  # noqa: E402
-from bcmocap.frontend.register import reference_index, similarity  # noqa: E402
+from bcmocap.frontend.register import reference_index  # noqa: E402
+from bcmocap.geometry import similarity  # noqa: E402
 from bcmocap.frontend.homography import fill_with_homographies  # noqa: E402
 from bcmocap.frontend.relative import extract_trial_features, register_capture  # noqa: E402
 from bcmocap.sim.studio import StudioSettings, load_ground_truth, write_capture  # noqa: E402

@@ -11,7 +11,8 @@ import pytest
 
 from bcmocap.cameras import PinholeCamera
 from bcmocap.frontend.reference import build_reference
-from bcmocap.frontend.register import RegistrationOptions, reference_index, register_frame, register_trial, similarity
+from bcmocap.frontend.register import RegistrationOptions, reference_index, register_frame, register_trial
+from bcmocap.geometry import similarity
 
 pytestmark = pytest.mark.slow  # rendered frames through SIFT and registration
 
@@ -62,14 +63,6 @@ def studio(tmp_path_factory):
     frames = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in _render(scene, fisheye, queries)]
     return types.SimpleNamespace(model=model, index=reference_index(model), align=align,
                                  fisheye=fisheye, queries=queries, frames=frames)
-
-
-def test_similarity_recovers_a_known_transform():
-    rng = np.random.default_rng(0)
-    src = rng.normal(size=(10, 3))
-    rot = np.asarray(matrix_from_quat(np.array([0.8, 0.2, -0.4, 0.4]) / np.linalg.norm([0.8, 0.2, -0.4, 0.4])))
-    s, r, t = similarity(src, 2.5 * src @ rot.T + [1.0, -2.0, 0.5])
-    assert s == pytest.approx(2.5) and np.allclose(r, rot) and np.allclose(t, [1.0, -2.0, 0.5])
 
 
 def _errors(align, estimate, truth):

@@ -1,4 +1,5 @@
-"""Tests for bcmocap.geometry: rotation angles, quaternion averaging, slerp, Euler angles, conversions."""
+"""Tests for bcmocap.geometry: rotation angles, quaternion averaging, slerp, Euler angles, conversions, rigid and
+similarity fits."""
 
 import itertools
 
@@ -6,14 +7,19 @@ import numpy as np
 import pytest
 from conftest import quat_distance, quat_matrix, quat_multiply, random_quaternions, rodrigues
 
+from scipy.spatial.transform import Rotation
+
 from bcmocap.geometry import (
     average_quaternions,
     canonical_quat,
     euler_to_matrix,
+    kabsch,
     matrix_from_quat,
     quat_from_matrix,
     quat_identity,
     rotation_angle,
+    rotation_from_covariance,
+    similarity,
     slerp,
 )
 
@@ -184,3 +190,38 @@ def test_rotation_angle_gradient_is_finite_at_equal_rotations():
     q = random_quaternions(np.random.default_rng(9), ())
     grad = np.asarray(jax.grad(lambda a: rotation_angle(a, q))(q))
     assert np.all(np.isfinite(grad))
+
+
+def test_kabsch_matches_scipy_and_is_a_proper_rotation():
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(7, 3))
+    rot = Rotation.random(random_state=4)
+    tgt = rot.apply(src) + [0.1, -0.2, 0.3] + rng.normal(scale=1e-3, size=(7, 3))
+    r, t = kabsch(src, tgt)
+    ref, _ = Rotation.align_vectors(tgt - tgt.mean(0), src - src.mean(0))
+    np.testing.assert_allclose(r, ref.as_matrix(), atol=1e-10)
+    np.testing.assert_allclose(r, rot.as_matrix(), atol=5e-3)
+    # a mirrored target still gives det +1
+    r, _ = kabsch(src, src * [1, 1, -1])
+    assert np.linalg.det(r) == pytest.approx(1.0)
+
+
+def test_similarity_recovers_a_known_transform():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(10, 3))
+    rot = np.asarray(matrix_from_quat(np.array([0.8, 0.2, -0.4, 0.4]) / np.linalg.norm([0.8, 0.2, -0.4, 0.4])))
+    s, r, t = similarity(src, 2.5 * src @ rot.T + [1.0, -2.0, 0.5])
+    assert s == pytest.approx(2.5) and np.allclose(r, rot) and np.allclose(t, [1.0, -2.0, 0.5])
+
+
+def test_rotation_from_covariance_is_the_same_in_numpy_and_jax_and_batched():
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(5)
+    m = rng.normal(size=(4, 3, 3))
+    r = rotation_from_covariance(m)
+    np.testing.assert_allclose(np.asarray(rotation_from_covariance(jnp.asarray(m))), r, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-12)
+    for k in range(4):  # R maximises tr(Rᵀ M) over rotations: no random rotation does better
+        best = np.trace(r[k].T @ m[k])
+        assert all(np.trace(q.T @ m[k]) <= best + 1e-12 for q in Rotation.random(200, random_state=k).as_matrix())

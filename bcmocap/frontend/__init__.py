@@ -21,7 +21,6 @@ from .register import (
     reference_index,
     register_frame,
     register_trial,
-    similarity,
 )
 from .homography import HomographyFill, HomographyOptions, fill_with_homographies, rotation_between_frames
 from .relative import CaptureRegistration, FrameState, RelativeOptions, extract_trial_features, register_capture
@@ -66,7 +65,6 @@ __all__ = [
     "reference_index",
     "register_frame",
     "register_trial",
-    "similarity",
     "synchronize",
     "synchronize_tracks",
     "verify_matches",

@@ -21,7 +21,7 @@ import dataclasses
 import numpy as np
 
 from ..cameras import CameraModel
-from ..geometry import matrix_from_quat, quat_from_matrix, slerp
+from ..geometry import matrix_from_quat, quat_from_matrix, rotation_from_covariance, slerp
 from ..io.colmap import to_pycolmap
 from .reference import match_descriptors
 from .relative import pixel_rays
@@ -63,13 +63,6 @@ class HomographyFill:
     relative: dict
 
 
-def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Rotation ``R`` minimising ``Σ |a_i − R b_i|²`` (rows are vectors)."""
-    u, _, vt = np.linalg.svd(a.T @ b)
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    return u @ d @ vt
-
-
 def rotation_between_frames(pixels_prev: np.ndarray, pixels: np.ndarray, camera,
                             options: HomographyOptions = HomographyOptions()):
     """``R_{t-1←t}`` from matched pixels of frames ``t-1`` and ``t`` of one camera (module docstring).
@@ -95,12 +88,12 @@ def rotation_between_frames(pixels_prev: np.ndarray, pixels: np.ndarray, camera,
     inl = mask.ravel().astype(bool)
     if inl.sum() < options.min_inliers:
         return None
-    rot = _kabsch(prev[inl], cur[inl])
+    rot = rotation_from_covariance(prev[inl].T @ cur[inl])
     # Keep the rays the rotation transfers within the threshold (angle ≈ pixels / focal).
     inl = np.linalg.norm(prev - cur @ rot.T, axis=1) < options.ransac_px / focal
     if inl.sum() < options.min_inliers:
         return None
-    return _kabsch(prev[inl], cur[inl]), inl
+    return rotation_from_covariance(prev[inl].T @ cur[inl]), inl
 
 
 def fill_with_homographies(registration, cameras, options: HomographyOptions = HomographyOptions()) -> HomographyFill:

@@ -32,7 +32,7 @@ from ..io.colmap import to_pycolmap
 from .reference import DescriptorIndex, ReferenceModel, extract_sift
 
 __all__ = ["ReferenceIndex", "FrameRegistration", "RegistrationOptions", "TrialRegistration",
-           "match_to_reference", "reference_index", "register_frame", "register_trial", "similarity"]
+           "match_to_reference", "reference_index", "register_frame", "register_trial"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,19 +141,6 @@ def reference_index(model: ReferenceModel) -> ReferenceIndex:
     point_ids = np.concatenate(ids)
     xyz = np.array([rec.point3D(int(i)).xyz for i in point_ids], np.float64)
     return ReferenceIndex(np.ascontiguousarray(np.concatenate(desc)), point_ids, xyz)
-
-
-def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama: ``(s, R, t)`` minimising ``sum |s R src + t - dst|^2`` over points ``(N, 3)`` (e.g. to
-    align the reference model to the world by its photo centres, §5.1)."""
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    u, sig, vt = np.linalg.svd(b.T @ a / len(src))
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rot = u @ d @ vt
-    scale = float(np.trace(np.diag(sig) @ d) / (a ** 2).sum(1).mean())
-    return scale, rot, mu_d - scale * rot @ mu_s
 
 
 def _pose_wxyz_xyz(cam_from_world) -> np.ndarray:

@@ -21,6 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..geometry import rotation_from_covariance
+
 __all__ = ["WeakPerspectiveCameras", "fit_cameras", "initial_cameras", "reprojection_rms"]
 
 
@@ -45,10 +47,7 @@ def _procrustes_step(y, w, bones, rotation, scale):
     depth = scale * rotation[2] @ bones
     target = jnp.concatenate([y, depth[None]], axis=0)
     m = (target * w) @ bones.T
-    u, _, vt = jnp.linalg.svd(m)
-    det = jnp.sign(jnp.linalg.det(u @ vt))
-    det = jnp.where(det == 0, 1.0, det)
-    r = u.at[:, 2].multiply(det) @ vt
+    r = rotation_from_covariance(m)
     rb = r[:2] @ bones
     den = jnp.sum(w * rb * rb)
     s = jnp.sum(w * y * rb) / jnp.where(den > 0, den, 1.0)

@@ -22,6 +22,7 @@ from functools import cached_property
 
 import numpy as np
 
+from ..geometry import rotation_from_covariance
 from ..kinematics.skeleton import Skeleton
 
 __all__ = ["CMU_JOINTS", "KinematicChainSpace", "mean_pose"]
@@ -247,13 +248,6 @@ class KinematicChainSpace:
             )
 
 
-def _kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Rotation ``R`` (3 × 3, det +1) minimising ``‖R source − target‖`` for ``(3, n)`` point sets."""
-    u, _, vt = np.linalg.svd(target @ source.T)
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
 def mean_pose(
     sequences: Sequence[np.ndarray] | np.ndarray,
     chain: KinematicChainSpace | None = None,
@@ -285,10 +279,7 @@ def mean_pose(
     ref = frames[0].T
     for _ in range(iterations):
         m = np.einsum("fjd,kj->fdk", frames, ref)  # Σ_j x_j ref_jᵀ per frame, (F, 3, 3)
-        u, _, vt = np.linalg.svd(np.swapaxes(m, 1, 2))
-        det = np.sign(np.linalg.det(u @ vt))
-        u[..., :, 2] *= det[:, None]
-        rot = u @ vt  # (F, 3, 3), maps frame → ref
+        rot = rotation_from_covariance(np.swapaxes(m, 1, 2))  # (F, 3, 3), maps frame → ref
         ref = np.einsum("fde,fje->dj", rot, frames) / len(frames)
     mean = ref.T
     if chain is not None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import quat_from_matrix
+from ..geometry import quat_from_matrix, rotation_from_covariance
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 from .chain_space import KinematicChainSpace
 
@@ -27,14 +27,6 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     perp /= np.maximum(np.linalg.norm(perp, axis=-1, keepdims=True), 1e-300)
     half = 2 * perp[..., :, None] * perp[..., None, :] - np.eye(3)
     return np.where(opposite[..., None, None], half, rot)
-
-
-def _kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """``(F, 3, 3)`` rotations with ``R source ≈ target`` for ``(F, 3, n)`` column sets."""
-    u, _, vt = np.linalg.svd(target @ np.swapaxes(source, -1, -2))
-    det = np.sign(np.linalg.det(u @ vt))
-    u[..., :, 2] *= np.where(det == 0, 1.0, det)[..., None]
-    return u @ vt
 
 
 def motion_from_joints(
@@ -104,7 +96,7 @@ def motion_from_joints(
             hint = 1e-3 * float(np.mean(lengths))
             src = np.concatenate([np.broadcast_to(src, (f, 3, len(kids))), hint * np.broadcast_to(np.eye(3), (f, 3, 3))], -1)
             dst = np.concatenate([dst, hint * parent_rot], -1)
-            world[:, j] = _kabsch(src, dst)
+            world[:, j] = rotation_from_covariance(dst @ np.swapaxes(src, -1, -2))  # R src ≈ dst
     local = world.copy()
     for j in order:
         if parents[j] != -1:

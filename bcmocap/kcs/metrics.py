@@ -5,6 +5,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ..geometry import rotation_from_covariance
+
 __all__ = ["aligned_joint_distances", "aligned_joint_errors", "joint_errors"]
 
 
@@ -39,15 +41,10 @@ def aligned_joint_distances(estimate, truth, scale: bool = False) -> jax.Array:
     e = estimate - estimate.mean(axis=-2, keepdims=True)
     t = truth - truth.mean(axis=-2, keepdims=True)
     m = jnp.swapaxes(t, -1, -2) @ e  # Σ t eᵀ, (..., 3, 3)
-    u, s, vt = jnp.linalg.svd(m)
-    det = jnp.sign(jnp.linalg.det(u @ vt))
-    det = jnp.where(det == 0, 1.0, det)
-    u = u.at[..., :, 2].multiply(det[..., None])
-    s = s.at[..., 2].multiply(det)
-    r = u @ vt  # truth_from_estimate
+    r = rotation_from_covariance(m)  # truth_from_estimate
     aligned = e @ jnp.swapaxes(r, -1, -2)
     if scale:
-        k = s.sum(-1) / jnp.maximum(jnp.sum(e * e, axis=(-1, -2)), 1e-300)
+        k = jnp.trace(jnp.swapaxes(r, -1, -2) @ m, axis1=-2, axis2=-1) / jnp.maximum(jnp.sum(e * e, axis=(-1, -2)), 1e-300)
         aligned = aligned * k[..., None, None]
     return jnp.linalg.norm(aligned - t, axis=-1)
 

@@ -12,7 +12,7 @@ from .ik import IkResult, initial_motion, marker_model_positions, solve_ik
 from .joints import JointSolution, joint_cost_matrix, joint_objective, minimum_spanning_tree, solve_joints
 from .pipeline import MarkerOptions, MarkerSkeleton, fit_marker_skeleton
 from .preprocess import MarkerTrajectories, PreprocessReport, preprocess, visible_runs
-from .rigid import RigidSkeleton, build_skeleton, kabsch, procrustes
+from .rigid import RigidSkeleton, build_skeleton, procrustes
 from .segmentation import Segmentation, distance_std, jittered_samples, segment_markers, within_group_cost
 from .spectral import eigengap, kmeans, spectral_clustering, spectral_embedding
 
@@ -34,7 +34,6 @@ __all__ = [
     "jittered_samples",
     "joint_cost_matrix",
     "joint_objective",
-    "kabsch",
     "kmeans",
     "label_distances",
     "marker_model_positions",

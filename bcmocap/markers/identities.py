@@ -32,6 +32,7 @@ import dataclasses
 
 import numpy as np
 
+from ..geometry import rotation_from_covariance
 from .preprocess import MarkerTrajectories
 from .spectral import spectral_clustering
 
@@ -93,10 +94,7 @@ def label_distances(
         mu_a = np.einsum("abk,aki->abi", weights, p0[a_idx]) / tot[..., None]
         mu_b = np.einsum("abk,bki->abi", weights, p0) / tot[..., None]
         h = np.einsum("abk,bki,akj->abij", weights, p0, p0[a_idx]) - total[..., None, None] * mu_b[..., :, None] * mu_a[..., None, :]
-        u, _, vt = np.linalg.svd(h)
-        det = np.sign(np.linalg.det(np.swapaxes(vt, -1, -2) @ np.swapaxes(u, -1, -2)))
-        u[..., :, 2] *= np.where(det == 0, 1.0, det)[..., None]
-        rot = np.swapaxes(vt, -1, -2) @ np.swapaxes(u, -1, -2)  # frame b → frame a
+        rot = rotation_from_covariance(np.swapaxes(h, -1, -2))  # frame b → frame a
         moved = np.einsum("abij,abkj->abki", rot, p0[None] - mu_b[:, :, None, :]) + mu_a[:, :, None, :]
         # How well the neighbourhood itself lines up: a poor alignment (a different local pose) can
         # carry a wrong marker onto m_{i,a} by chance, so its misfit is added to the distance.

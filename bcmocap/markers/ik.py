@@ -22,12 +22,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import SO3, quat_from_matrix
+from ..geometry import SO3, kabsch, quat_from_matrix
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.ik import fill_gaps
 from ..kinematics.skeleton import Motion, Skeleton
 from ..solver.levenberg_marquardt import NormalEquations, levenberg_marquardt
-from .rigid import RigidSkeleton, kabsch
+from .rigid import RigidSkeleton
 
 __all__ = ["IkResult", "initial_motion", "marker_model_positions", "solve_ik"]
 

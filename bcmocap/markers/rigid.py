@@ -17,43 +17,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..geometry import kabsch
 from ..kinematics.skeleton import Skeleton
 from .joints import JointSolution
 
-__all__ = ["RigidSkeleton", "build_skeleton", "kabsch", "procrustes"]
-
-
-def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation and translation with ``target ≈ R @ source + t`` in the weighted least-squares sense.
-
-    Args:
-        source, target: ``(..., N, 3)`` corresponding points (NaN rows must have zero weight).
-        weights: ``(..., N)`` non-negative weights (None: all 1).
-
-    Returns:
-        ``R`` ``(..., 3, 3)`` proper rotations (det +1) and ``t`` ``(..., 3)``. With fewer than three
-        non-collinear weighted points the rotation about their line is arbitrary (but proper).
-    """
-    source = np.asarray(source, dtype=np.float64)
-    target = np.asarray(target, dtype=np.float64)
-    if source.shape != target.shape or source.shape[-1] != 3:
-        raise ValueError(f"kabsch: source and target must have the same shape (..., N, 3), got {source.shape} and {target.shape}")
-    w = np.ones(source.shape[:-1]) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = np.where(np.isfinite(source).all(-1) & np.isfinite(target).all(-1), w, 0.0)
-    src = np.nan_to_num(source)
-    tgt = np.nan_to_num(target)
-    total = np.maximum(w.sum(-1, keepdims=True), 1e-300)
-    mu_s = (w[..., None] * src).sum(-2) / total
-    mu_t = (w[..., None] * tgt).sum(-2) / total
-    h = np.einsum("...n,...ni,...nj->...ij", w, src - mu_s[..., None, :], tgt - mu_t[..., None, :])
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(np.swapaxes(vt, -1, -2) @ np.swapaxes(u, -1, -2)))
-    d = np.where(d == 0, 1.0, d)
-    fix = np.broadcast_to(np.eye(3), h.shape).copy()
-    fix[..., 2, 2] = d
-    r = np.swapaxes(vt, -1, -2) @ fix @ np.swapaxes(u, -1, -2)
-    t = mu_t - np.einsum("...ij,...j->...i", r, mu_s)
-    return r, t
+__all__ = ["RigidSkeleton", "build_skeleton", "procrustes"]
 
 
 def procrustes(points: np.ndarray, iterations: int = 10, min_points: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

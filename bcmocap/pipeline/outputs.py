@@ -27,18 +27,18 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path, write_json_atomic
+from ..correspondence_store import CorrespondenceStore
+from ..geometry import quat_log, rotation_angle, similarity
+from ..io import write_bvh
+from ..io.ply import write_camera_paths_ply, write_ply_pieces
+from ..kinematics.fk import joint_positions
+from ..kinematics.rig import camera_poses
+from .world import Similarity, transform_model
 
 
 def rotation_vectors_deg(rotations: np.ndarray) -> np.ndarray:
     """``(..., 4)`` wxyz unit quaternions → ``(..., 3)`` rotation vectors in degrees."""
-    q = np.asarray(rotations, np.float64)
-    q = np.where(q[..., :1] < 0, -q, q)
-    v = q[..., 1:]
-    s = np.linalg.norm(v, axis=-1, keepdims=True)
-    angle = 2 * np.arctan2(s, q[..., :1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        axis = np.where(s > 1e-12, v / np.where(s > 0, s, 1), 0.0)
-    return np.rad2deg(angle * axis)
+    return np.rad2deg(quat_log(np.asarray(rotations, np.float64)))
 
 
 def _write_csv(path: Path, header: list[str], rows: np.ndarray) -> None:
@@ -47,7 +47,6 @@ def _write_csv(path: Path, header: list[str], rows: np.ndarray) -> None:
 
 
 def _camera_centres(skeleton, rig, motion) -> np.ndarray:
-    from ..kinematics.rig import camera_poses
 
     return np.asarray(camera_poses(skeleton, rig, motion).translation())
 
@@ -57,9 +56,6 @@ _PICTURE_POINTS = 200_000  # about this many scene points are kept for the pictu
 
 def write_outputs(ctx) -> dict:
     """Write every output of a finished solve; returns a summary for the run log."""
-    from ..correspondence_store import CorrespondenceStore
-    from ..io import write_bvh
-    from ..kinematics.fk import joint_positions
     from .run import _world, load_model, load_motion
 
     out = ctx.out
@@ -82,7 +78,6 @@ def write_outputs(ctx) -> dict:
     _write_csv(out / "joint_positions.csv", ["time_s"] + [f"{n}.{a}_m" for n in names for a in "xyz"],
                np.column_stack([t, positions.reshape(len(t), -1)]))
 
-    from ..io.ply import write_camera_paths_ply, write_ply_pieces
 
     used = corr.used_mask()
     step = max(1, -(-int(used.sum()) // _PICTURE_POINTS))
@@ -168,9 +163,6 @@ def evaluate_run(skeleton, rig, motions: dict, corr, truth: dict):
             poses are aligned.
         truth: from :func:`_truth`.
     """
-    from ..geometry import rotation_angle
-    from ..kinematics.fk import joint_positions
-    from .world import transform_model
 
     valid = truth["valid"]
     sim, residual = align_to_truth(corr, truth)
@@ -196,8 +188,6 @@ def evaluate_run(skeleton, rig, motions: dict, corr, truth: dict):
 def align_to_truth(corr, truth: dict):
     """The §5.1 similarity (run world → true world: Umeyama of the registered camera centres onto the true
     ones, over the frames the truth covers) and its ``(N,)`` residuals (m)."""
-    from ..frontend.register import similarity
-    from .world import Similarity
 
     reg = corr.registered & truth["valid"][:, None]
     src = corr.world_from_camera[reg][:, 4:]
@@ -223,7 +213,6 @@ def _pictures(folder: Path, skeleton, motion, positions, t, corr, scene, after, 
     if truth is not None and aligned is not None:
         back = aligned.inverse()
         valid = truth["valid"]
-        from ..kinematics.fk import joint_positions
 
         tm = truth["motion"]
         true_angles = np.rad2deg(np.linalg.norm(np.deg2rad(rotation_vectors_deg(np.asarray(tm.rotations)[:, 1:])), axis=-1))
