@@ -31,6 +31,7 @@ from bcmocap.residuals import (
     loss_from_name,
     pair_mask,
 )
+from bcmocap.solver.model_parameters import ModelParameters, parameter_layout
 from bcmocap.solver.window import frame_state, make_window_problem, normal_equations, residuals
 
 W = 3  # frames per window
@@ -692,9 +693,36 @@ def test_static_variables_give_the_dense_bordered_system(skeleton, rig, scene):
     problem = make_window_problem(skeleton, rig, [t.window(0, W) for t in terms], scene["reference"], True,
                                   {"tilt": np.array([0.01, -0.02, 0.03])})
     assert problem.num_statics == 3
-    rng = np.random.default_rng(13)
-    d = skeleton.num_dofs
-    y, z = jnp.asarray(rng.normal(scale=0.01, size=(W, d))), jnp.asarray(rng.normal(scale=0.01, size=3))
+    hess, n = assert_bordered_matches_dense(problem, np.random.default_rng(13))
+    assert np.abs(hess[:n, n:]).max() > 1.0  # the border is really there (λ = 4 and 30 terms)
+
+
+@pytest.mark.slow
+def test_model_parameters_give_the_dense_bordered_system(skeleton, rig, scene):
+    """The skeleton and mounts as static variables (offsets, mounts, the knee's axis, away from their base
+    values) next to a term's own static variable: every term of the paper (reprojection, homography over
+    two frames' camera poses, both smoothness terms) and the prior couple to them as the dense autodiff
+    Jacobian over (y, z) says."""
+    rng = np.random.default_rng(17)
+    layout = parameter_layout(skeleton, rig)
+    sigmas = layout.sigmas(0.01, 0.01, 1.0, 1.0)[np.asarray(layout.active)]
+    parameters = ModelParameters(skeleton, rig, jnp.asarray(0.01 * rng.normal(size=layout.size)), jnp.asarray(1.0 / sigmas), layout)
+    terms = window_terms(skeleton, scene) + [_OffsetHeadUp(np.ones(W), weight=4.0, name="head up").window(0, W)]
+    problem = make_window_problem(skeleton, rig, terms, scene["reference"], True, {"tilt": np.array([0.01, -0.02, 0.03])},
+                                  parameters)
+    assert problem.num_statics == 3 + parameters.size
+    hess, n = assert_bordered_matches_dense(problem, rng)
+    model = slice(n + 3, None)
+    camera_rows = np.abs(hess[:n, model]).max(axis=0)
+    assert np.sum(camera_rows > 1e-6 * np.abs(hess).max()) > 0.5 * parameters.size  # most of θ is seen by the window
+
+
+def assert_bordered_matches_dense(problem, rng):
+    """Check the structured bordered system of ``problem`` at random ``(y, z)`` against the dense autodiff
+    Jacobian over ``(y, z)``: the IRLS matrix (banded part, coupling, static block) and the gradient. Blocks
+    after the terms' (the model's prior) are plain least squares. Returns the dense matrix and ``W·D``."""
+    d, s = problem.skeleton.num_dofs, problem.num_statics
+    y, z = jnp.asarray(rng.normal(scale=0.01, size=(W, d))), jnp.asarray(rng.normal(scale=0.01, size=s))
     flat = lambda v: jnp.concatenate([r.reshape(-1) for r in residuals(problem, v[: W * d].reshape(W, d), v[W * d :])])
     raw = eqx.tree_at(lambda p: p.terms, problem,
                       tuple(eqx.tree_at(lambda t: (t.loss, t.weight), t, (TrivialLoss(), jnp.asarray(1.0))) for t in problem.terms))
@@ -704,7 +732,7 @@ def test_static_variables_give_the_dense_bordered_system(skeleton, rig, scene):
     blocks = residuals(raw, y, z)
     row_weights = np.concatenate([np.asarray(jnp.broadcast_to(
         (t.weight * t.loss.derivative(jnp.sum(b * b, axis=-1)))[..., None], b.shape)).reshape(-1)
-        for t, b in zip(problem.terms, blocks)])
+        for t, b in zip(problem.terms, blocks)] + [np.ones(b.size) for b in blocks[len(problem.terms):]])
     raw_jac = np.asarray(jax.jacfwd(raw_flat)(v))
     hess = raw_jac.T @ (row_weights[:, None] * raw_jac)
     grad = jac.T @ r
@@ -712,9 +740,11 @@ def test_static_variables_give_the_dense_bordered_system(skeleton, rig, scene):
     scale = np.abs(hess).max()
     n = W * d
     np.testing.assert_allclose(np.asarray(ne.static_matrix), hess[n:, n:], rtol=1e-8, atol=1e-9 * scale)
-    np.testing.assert_allclose(np.asarray(ne.coupling).reshape(n, 3), hess[:n, n:], rtol=1e-8, atol=1e-9 * scale)
+    np.testing.assert_allclose(np.asarray(ne.coupling).reshape(n, s), hess[:n, n:], rtol=1e-8, atol=1e-9 * scale)
     np.testing.assert_allclose(np.asarray(ne.static_grad), grad[n:], rtol=1e-8, atol=1e-9 * np.abs(grad).max())
     np.testing.assert_allclose(np.asarray(ne.grad).reshape(-1), grad[:n], rtol=1e-8, atol=1e-9 * np.abs(grad).max())
     for t in range(W):
         np.testing.assert_allclose(ne.diag[t], hess[t * d : (t + 1) * d, t * d : (t + 1) * d], rtol=1e-8, atol=1e-9 * scale)
-    assert np.abs(hess[:n, n:]).max() > 1.0  # the border is really there (λ = 4 and 30 terms)
+    for t in range(W - 1):
+        np.testing.assert_allclose(ne.bands[0][t], hess[t * d : (t + 1) * d, (t + 1) * d : (t + 2) * d], rtol=1e-8, atol=1e-9 * scale)
+    return hess, n

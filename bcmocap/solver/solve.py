@@ -24,7 +24,8 @@ from ..kinematics.skeleton import Motion, Skeleton
 from ..residuals.base import CameraPairTerm, CameraTerm, Term
 from ..precision import require_float64
 from .levenberg_marquardt import Convergence, levenberg_marquardt
-from .window import WindowProblem, make_window_problem, normal_equations, residuals, static_values, window_history
+from .model_parameters import MODEL, ModelParameters, reaxis
+from .window import WindowProblem, make_window_problem, model_state, normal_equations, residuals, static_values, window_history
 
 
 class SequenceProblem(Protocol):
@@ -164,8 +165,9 @@ def _solve_window(problem: WindowProblem, options: SolverOptions):
     value, report = levenberg_marquardt(fn, eqx.Partial(_system, problem), v0, problem, rtol=options.rtol,
                                         atol=options.atol, damping_scale=options.damping_scale, max_steps=options.max_steps)
     y, z = value if n_static else (value, None)
-    motion = problem.skeleton.retract(problem.reference[problem.history :], y)
-    return motion, static_values(problem, z), report
+    statics = static_values(problem, z)
+    motion = model_state(problem, problem.reference[problem.history :], y, statics).motion
+    return motion, statics, report
 
 
 def _non_finite_window(wp: WindowProblem, start: int, stop: int, num_dofs: int) -> str:
@@ -186,6 +188,7 @@ def solve(
     progress: bool | Callable[[WindowReport], None] = False,
     skip_windows: int = 0,
     checkpoint: Callable[[int, WindowReport, Motion], None] | None = None,
+    model_parameters: ModelParameters | None = None,
 ) -> Solution:
     """Minimise Eq. (1) over a whole sequence with overlapping windows.
 
@@ -200,6 +203,11 @@ def solve(
             them exactly as the uninterrupted run did).
         checkpoint: called after each window with its index, its report and the whole motion so far
             (solved frames up to the window's end, ``initial_motion`` after), e.g. to save it.
+        model_parameters: also solve for the skeleton and rig (static variables ``"model"``, with their
+            prior; ``problem.skeleton`` and ``rig`` and ``initial_motion`` must be the model at
+            ``model_parameters.start()``). Each window starts from the previous window's estimate, so
+            the estimate uses all frames only with one window over the sequence
+            (:func:`bcmocap.solver.refine_skeleton_and_rig`). ``Solution.statics["model"]`` holds it.
 
     Returns:
         The solved motion and per-window reports.
@@ -241,7 +249,7 @@ def solve(
             np.concatenate([root[before], root[start:stop]]),
             np.concatenate([rotations[before], rotations[start:stop]]),
         )
-        wp = make_window_problem(skeleton, rig, terms, reference, min(start, history), statics)
+        wp = make_window_problem(skeleton, rig, terms, reference, min(start, history), statics, model_parameters)
         motion, new_statics, lm = _solve_window(wp, options)
         new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
         new_statics = {k: np.asarray(v) for k, v in new_statics.items()}
@@ -249,6 +257,11 @@ def solve(
         if not all(np.all(np.isfinite(a)) for a in finite):
             raise FloatingPointError(_non_finite_window(wp, start, stop, skeleton.num_dofs))
         root[start:stop], rotations[start:stop] = new_root, new_rot
+        if model_parameters is not None:  # later frames keep their hinge angles about the moved axes
+            old_axes = model_parameters.model(wp.statics[MODEL])[0].hinge_axes
+            new_axes = model_parameters.model(jnp.asarray(new_statics[MODEL]))[0].hinge_axes
+            rotations[stop:] = np.asarray(reaxis(model_parameters.layout, Motion(root[stop:], rotations[stop:]),
+                                                 old_axes, new_axes).rotations)
         statics = new_statics  # the next window starts from this window's estimate
         report = WindowReport.from_convergence(start, stop, lm, time.perf_counter() - t0)
         reports.append(report)

@@ -22,6 +22,7 @@ from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
 from .levenberg_marquardt import NormalEquations
+from .model_parameters import MODEL, ModelParameters, reaxis
 from ..residuals.base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, MultiFrameTerm, PairTerm, Term, slot_cameras
 
 
@@ -36,7 +37,9 @@ class WindowProblem(eqx.Module):
         num_previous: scalar int, how many of those ``H`` frames exist (fewer at the start of a
             sequence; terms reaching further back are dropped at the window's first frames).
         statics: the static variables' values the window starts from, ``{name: (n,)}`` for every block of
-            :func:`static_layout` (the solver's variables ``z`` are offsets from them).
+            :func:`problem_static_layout` (the solver's variables ``z`` are offsets from them).
+        model_parameters: the skeleton and rig as static variables (block ``"model"``), or None: every
+            term sees the model at those variables, and their prior joins the objective.
     """
 
     skeleton: Skeleton
@@ -45,6 +48,7 @@ class WindowProblem(eqx.Module):
     reference: Motion
     num_previous: jax.Array = eqx.field(converter=lambda n: jnp.asarray(n, jnp.int32))
     statics: dict = eqx.field(default_factory=dict)
+    model_parameters: ModelParameters | None = None
 
     @property
     def history(self) -> int:
@@ -53,7 +57,7 @@ class WindowProblem(eqx.Module):
     @property
     def num_statics(self) -> int:
         """``S``: the length of the static variables' vector ``z``."""
-        return sum(size for _, size in static_layout(self.terms))
+        return sum(size for _, size in problem_static_layout(self))
 
     @property
     def num_frames(self) -> int:
@@ -86,10 +90,22 @@ def static_layout(terms: Sequence[Term]) -> tuple[tuple[str, int], ...]:
     return tuple((name, sizes[name][0]) for name in sorted(sizes))
 
 
+def problem_static_layout(problem: WindowProblem) -> tuple[tuple[str, int], ...]:
+    """The terms' static blocks (:func:`static_layout`), then the model's (``"model"``) if it is variable."""
+    blocks = static_layout(problem.terms)
+    return blocks if problem.model_parameters is None else (*blocks, (MODEL, problem.model_parameters.size))
+
+
+def _model_block(problem: WindowProblem) -> slice:
+    """Where the model's variables sit in ``z``."""
+    start = sum(size for name, size in static_layout(problem.terms))
+    return slice(start, start + problem.model_parameters.size)
+
+
 def static_values(problem: WindowProblem, z: jax.Array | None) -> dict:
     """``{name: (n,)}``: the window's static variables at offset ``z`` ``(S,)`` (None: at the start)."""
     out, at = {}, 0
-    for name, size in static_layout(problem.terms):
+    for name, size in problem_static_layout(problem):
         value = problem.statics[name]
         out[name] = value if z is None else value + z[at : at + size]
         at += size
@@ -107,6 +123,17 @@ def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.A
     batch = y.shape[:-1]
     statics = {k: jnp.broadcast_to(v, (*batch, *jnp.shape(v))) for k, v in (statics or {}).items()}
     return FrameState(motion, world_from_segment, world_from_camera, statics)
+
+
+def model_state(problem: WindowProblem, reference: Motion, y: jax.Array, statics: dict) -> FrameState:
+    """:func:`frame_state` of the window's model: with variable model parameters, the skeleton and rig at
+    ``statics["model"]``, and the reference's hinge angles kept about the axes that moved."""
+    if problem.model_parameters is None:
+        return frame_state(problem.skeleton, problem.rig, reference, y, statics)
+    parameters = problem.model_parameters
+    skeleton, rig = parameters.model(statics[MODEL])
+    start_axes = parameters.model(problem.statics[MODEL])[0].hinge_axes  # the reference motion's axes
+    return frame_state(skeleton, rig, reaxis(parameters.layout, reference, start_axes, skeleton.hinge_axes), y, statics)
 
 
 def _extended(problem: WindowProblem, y: jax.Array) -> jax.Array:
@@ -149,7 +176,8 @@ def residuals(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) 
     """All finished residual blocks of the window, one array per term (shapes ``(W, ..., k)``), at motion
     offsets ``y`` ``(W, D)`` and static-variable offsets ``z`` ``(S,)`` (None: 0)."""
     h = problem.history
-    states = frame_state(problem.skeleton, problem.rig, problem.reference, _extended(problem, y), static_values(problem, z))
+    at = static_values(problem, z)
+    states = model_state(problem, problem.reference, _extended(problem, y), at)
     prev_states = jax.tree.map(lambda a: a[h - 1 : -1], states)
     curr_states = jax.tree.map(lambda a: a[h:], states)
     out = []
@@ -181,6 +209,8 @@ def residuals(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) 
         else:
             raise TypeError(f"{term.label}: {_KINDS}")
         out.append(term.finish(r, v))
+    if problem.model_parameters is not None:  # the prior on the skeleton and rig
+        out.append(problem.model_parameters.prior_residual(at[MODEL]))
     return tuple(out)
 
 
@@ -201,19 +231,24 @@ def _log_near_identity(matrix: jax.Array) -> jax.Array:
     return jnp.concatenate([matrix[..., :3, 3], omega], axis=-1)
 
 
-def _camera_pose_jacobians(problem: WindowProblem, y_ext: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``cam_from_world`` ``(W+1, C, 7)`` and its Jacobian ``(W+1, C, 6, D)`` w.r.t. each frame's variables.
+def _camera_pose_jacobians(problem: WindowProblem, y_ext: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``cam_from_world`` ``(H+W, C, 7)`` and its Jacobian ``(H+W, C, 6, D)`` w.r.t. each frame's variables,
+    ``(H+W, C, 6, D + S)`` w.r.t. them and the static variables ``z`` when the model is variable.
 
     The camera tangent is a left perturbation: ``cam_from_world(y') = exp(ξ) · cam_from_world(y)``.
     """
+    d = y_ext.shape[1]
+    with_model = problem.model_parameters is not None
 
     def per_frame(reference: Motion, y_t: jax.Array):
-        def pose(yy):
-            return frame_state(problem.skeleton, problem.rig, reference, yy).world_from_camera.inverse()
+        def pose(v):
+            at = static_values(problem, v[d:] if with_model else z)
+            return model_state(problem, reference, v[:d], at).world_from_camera.inverse()
 
-        current = jax.lax.stop_gradient(pose(y_t))
-        tangent = lambda yy: _log_near_identity((pose(yy) @ current.inverse()).as_matrix())
-        return current.wxyz_xyz, jax.jacfwd(tangent)(y_t)
+        v0 = jnp.concatenate([y_t, z]) if with_model else y_t
+        current = jax.lax.stop_gradient(pose(v0))
+        tangent = lambda v: _log_near_identity((pose(v) @ current.inverse()).as_matrix())
+        return current.wxyz_xyz, jax.jacfwd(tangent)(v0)
 
     return jax.vmap(per_frame)(problem.reference, y_ext)
 
@@ -260,13 +295,13 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
     with_z = lambda v: jnp.concatenate([v, jnp.broadcast_to(z, (v.shape[0], n_static))], axis=1)  # (W, n) → (W, n + S)
     needs_cameras = any(isinstance(t, (CameraTerm, CameraPairTerm)) for t in problem.terms)
     if needs_cameras:
-        cam_poses, pose_jac = _camera_pose_jacobians(problem, y_ext)
+        cam_poses, pose_jac = _camera_pose_jacobians(problem, y_ext, z)  # (H+W, C, 6, D [+ S])
     frame_terms = [t for t in problem.terms if isinstance(t, FrameTerm)]
     pair_terms = [t for t in problem.terms if isinstance(t, PairTerm)]
     # Frame, pair and multi-frame terms are differentiated w.r.t. their frames' tangents and z together.
     if frame_terms:  # one differentiation of the frame state serves every frame term
         def frame_residuals(v, ref_t, data):
-            state = frame_state(problem.skeleton, problem.rig, ref_t, v[:d], static_values(problem, v[d:]))
+            state = model_state(problem, ref_t, v[:d], static_values(problem, v[d:]))
             return tuple(t.masked(*t.residual(state, dt)) for t, dt in zip(frame_terms, data))
 
         args = (with_z(y), problem.reference[h:], tuple(t.data for t in frame_terms))
@@ -277,8 +312,8 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
     if pair_terms:  # likewise one differentiation of both frames of each pair
         def pair_residuals(v, ref_prev, ref_curr, data, ok):
             at = static_values(problem, v[2 * d :])
-            prev = frame_state(problem.skeleton, problem.rig, ref_prev, v[:d], at)
-            curr = frame_state(problem.skeleton, problem.rig, ref_curr, v[d : 2 * d], at)
+            prev = model_state(problem, ref_prev, v[:d], at)
+            curr = model_state(problem, ref_curr, v[d : 2 * d], at)
             return tuple(t.masked(*_and_valid(t.residual(prev, curr, dt), ok)) for t, dt in zip(pair_terms, data))
 
         pairs = jnp.concatenate([y_ext[h - 1 : -1], y_ext[h:]], axis=1)  # (W, 2D)
@@ -296,8 +331,7 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
             span = term.span
 
             def span_residuals(v, ref_span, data, ok, term=term, span=span):
-                states = frame_state(problem.skeleton, problem.rig, ref_span, v[: span * d].reshape(span, d),
-                                     static_values(problem, v[span * d :]))
+                states = model_state(problem, ref_span, v[: span * d].reshape(span, d), static_values(problem, v[span * d :]))
                 return term.masked(*_and_valid(term.residual(states, data), ok))
 
             index = _span_index(problem, span)
@@ -321,8 +355,11 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
                 _slot_gather(term, cam_poses[h:]), cams, term.data
             )  # (W, C, 6, 6), (W, C, 6) (C: cameras or slots)
             jp = _slot_gather(term, pose_jac[h:])
-            diag = diag.at[h:].add(jnp.einsum("tcai,tcab,tcbj->tij", jp, hess, jp))
-            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jp, g))
+            jy = jp[..., :d]
+            diag = diag.at[h:].add(jnp.einsum("tcai,tcab,tcbj->tij", jy, hess, jy))
+            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jy, g))
+            if jp.shape[-1] > d:  # the model is variable: the poses depend on z as well
+                statics = _add_camera_statics(statics, [(h, jy)], jp[..., d:], hess, g)
         elif isinstance(term, CameraPairTerm):
             def cam_pair_blocks(prev, pose, cam, data, ok, term=term):
                 fn = lambda p0, p1: term.masked(*_and_valid(term.residual(p0, p1, cam, data), ok))
@@ -335,6 +372,12 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
                 _span_ok(problem, 2),
             )  # (W, C, 12, 12), (W, C, 12) (C: cameras or slots)
             jp_prev, jp_curr = _slot_gather(term, pose_jac[h - 1 : -1]), _slot_gather(term, pose_jac[h:])
+            if jp_curr.shape[-1] > d:  # the model is variable: the poses depend on z as well
+                jz = jnp.concatenate([jp_prev[..., d:], jp_curr[..., d:]], axis=2)  # (W, C, 12, S)
+                blocks = [(h - 1, jnp.concatenate([jp_prev[..., :d], jnp.zeros_like(jp_curr[..., :d])], axis=2)),
+                          (h, jnp.concatenate([jnp.zeros_like(jp_prev[..., :d]), jp_curr[..., :d]], axis=2))]
+                statics = _add_camera_statics(statics, blocks, jz, hess, g)
+                jp_prev, jp_curr = jp_prev[..., :d], jp_curr[..., :d]
             h00 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, :6], jp_prev)
             h11 = jnp.einsum("tcai,tcab,tcbj->tij", jp_curr, hess[:, :, 6:, 6:], jp_curr)
             h01 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, 6:], jp_curr)
@@ -344,6 +387,12 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
             grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jp_curr, g[:, :, 6:]))
         else:
             raise TypeError(f"{term.label}: {_KINDS}")
+    if problem.model_parameters is not None:  # the prior ½ Σ (θ/σ)² on the model's variables
+        block = _model_block(problem)
+        precision = problem.model_parameters.sqrt_precision ** 2
+        values = static_values(problem, z)[MODEL]
+        statics = _StaticBlocks(statics.coupling, statics.matrix.at[block, block].add(jnp.diag(precision)),
+                                statics.grad.at[block].add(precision * values))
     return NormalEquations(diag[h:], tuple(band[h : h + w - k] for k, band in enumerate(bands, start=1)), grad[h:],
                            statics.coupling[h:], statics.matrix, statics.grad)
 
@@ -396,6 +445,18 @@ def _irls_rows(term: Term, r: jax.Array, jac: jax.Array) -> tuple[jax.Array, jax
     return r.reshape(*r.shape[:-2], -1), jac.reshape(*jac.shape[:-3], -1, jac.shape[-1])
 
 
+def _add_camera_statics(statics: _StaticBlocks, frames, jz, hess, g) -> _StaticBlocks:
+    """Add camera blocks ``hess`` ``(W, C, K, K)``, ``g`` ``(W, C, K)`` whose poses' Jacobian w.r.t. ``z`` is ``jz``
+    ``(W, C, K, S)`` to the static blocks; ``frames``: ``(first extended index, Jacobian (W, C, K, D) w.r.t.
+    those frames' variables)`` for the frames the poses depend on."""
+    coupling = statics.coupling
+    hz = jnp.einsum("tcab,tcbs->tcas", hess, jz)
+    for first, jy in frames:
+        coupling = coupling.at[first : first + jy.shape[0]].add(jnp.einsum("tcai,tcas->tis", jy, hz))
+    return _StaticBlocks(coupling, statics.matrix + jnp.einsum("tcas,tcau->su", jz, hz),
+                         statics.grad + jnp.einsum("tcas,tca->s", jz, g))
+
+
 def _and_valid(result, ok):
     r, v = result
     return r, v & ok
@@ -432,11 +493,23 @@ def make_window_problem(
     reference: Motion,
     num_previous: int | bool,
     statics: dict | None = None,
+    model_parameters: ModelParameters | None = None,
 ) -> WindowProblem:
     """A :class:`WindowProblem`; ``reference`` holds :func:`window_history` fixed frames first, of which
     ``num_previous`` exist (a bool for the paper's terms: whether the frame before the window exists);
-    ``statics`` the static variables' starting values (missing blocks start at 0)."""
+    ``statics`` the static variables' starting values (missing blocks start at 0; the model's at
+    ``model_parameters.start()``), the reference motion being expressed in the model at those values.
+
+    Raises:
+        ValueError: a term declares a static variable named ``"model"`` while the model is variable.
+    """
     statics = dict(statics or {})
-    for name, size in static_layout(terms):
+    layout = static_layout(terms)
+    if model_parameters is not None:
+        if MODEL in dict(layout):
+            raise ValueError(f"static variable {MODEL!r} is the model's; a term may not declare it")
+        layout = (*layout, (MODEL, model_parameters.size))
+        statics.setdefault(MODEL, model_parameters.start())
+    for name, size in layout:
         statics[name] = jnp.asarray(statics.get(name, jnp.zeros(size)), jnp.float64).reshape(size)
-    return WindowProblem(skeleton, rig, tuple(terms), reference, int(num_previous), statics)
+    return WindowProblem(skeleton, rig, tuple(terms), reference, int(num_previous), statics, model_parameters)
