@@ -8,6 +8,7 @@ import sys
 import time
 
 from .atomic import write_json_atomic
+from .calibrate.command import add_calibrate_command
 from .compilation_cache import enable_compilation_cache
 from .frontend.command import add_frontend_command
 from .io.output_folder import output_folder
@@ -160,6 +161,7 @@ COMMANDS = [
     add_frontend_command,
     add_run_command,
     add_view_command,
+    add_calibrate_command,
 ]
 
 

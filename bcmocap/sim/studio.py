@@ -83,6 +83,7 @@ from ..atomic import atomic_path, write_npz_atomic
 from ..cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
 from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
 from ..io.model_json import camera_from_dict, camera_to_dict, rig_from_dict, rig_to_dict, skeleton_from_dict, skeleton_to_dict
+from ..io.opencv_calibration import fit_opencv_fisheye
 from ..io.wav import write_wav
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
@@ -102,7 +103,6 @@ __all__ = [
     "StudioSettings",
     "TrialTruth",
     "capsule_ends",
-    "fit_opencv_fisheye",
     "load_ground_truth",
     "write_capture",
 ]
@@ -218,44 +218,6 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
 
 # ---------------------------------------------------------------------------------------------
 # Cameras and skeletons as JSON.
-
-
-def fit_opencv_fisheye(camera: CameraModel) -> tuple[OpenCVFisheyeCamera, float]:
-    """The Kannala-Brandt (``cv2.fisheye``) model closest to a camera over its image.
-
-    Fits ``r = f' theta (1 + k1 theta^2 + ... + k4 theta^8)`` to the camera's own image radius over the
-    angles its pixels see (reweighted linear least squares towards the smallest largest error), keeping
-    the principal point.
-
-    Returns:
-        ``(camera, max_error_px)``: the fitted model and its largest reprojection difference (px) over a
-        grid of the image.
-    """
-    if isinstance(camera, OpenCVFisheyeCamera):
-        return camera, 0.0
-    h, w = camera.height, camera.width
-    v, u = np.mgrid[0 : h : max(h // 48, 1), 0 : w : max(w // 64, 1)].astype(np.float64)
-    uv = np.stack([u.ravel(), v.ravel()], axis=-1)
-    uv = np.concatenate([uv, [[0.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0], [w - 1.0, 0.0]]])
-    rays = np.asarray(camera.unproject(uv))
-    theta = np.arccos(np.clip(rays[:, 2], -1.0, 1.0))
-    m = (uv - np.asarray(camera.principal_point)) / np.asarray(camera.focal)
-    radius = np.linalg.norm(m, axis=1)
-    basis = np.stack([theta ** (2 * i + 1) for i in range(5)], axis=1)
-    # Lawson's reweighting turns least squares into (nearly) the minimax fit: 0.95 -> 0.17 px at 170°.
-    weight = np.ones_like(radius)
-    for _ in range(20):
-        coef, *_ = np.linalg.lstsq(basis * weight[:, None], radius * weight, rcond=None)
-        err = np.abs(basis @ coef - radius)
-        weight = weight * np.sqrt(err / max(err.max(), 1e-15) + 1e-3)
-        weight /= weight.mean()
-    fitted = OpenCVFisheyeCamera(
-        width=w, height=h, focal=np.asarray(camera.focal) * coef[0], principal_point=np.asarray(camera.principal_point),
-        distortion=coef[1:] / coef[0],
-    )
-    back, ok = fitted.project(rays)
-    err = np.linalg.norm(np.asarray(back) - uv, axis=1)
-    return fitted, float(np.max(np.where(np.asarray(ok), err, np.inf)))
 
 
 def _write_opencv_yaml(path: Path, camera: CameraModel) -> None:
