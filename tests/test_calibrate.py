@@ -58,6 +58,7 @@ def test_parse_board_forms_and_errors():
             parse_board(bad)
 
 
+@pytest.mark.slow
 def test_real_circle_grid_detected_and_calibrated(real_views):
     """FOV (our LM) and Kannala–Brandt (cv2.fisheye) on 4 real images: every board found, sub-pixel RMS, and a
     lens close to the set's own calibration near the centre of the image."""
@@ -110,6 +111,7 @@ def test_select_views_spreads_over_the_sensor():
     assert set(range(20, 25)) <= set(chosen.tolist()) and len(chosen) == 6
 
 
+@pytest.mark.slow
 def test_too_few_and_degenerate_views():
     camera = fov_camera_for(640, 360)
     views = _synthetic(camera, 4)

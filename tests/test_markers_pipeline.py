@@ -70,6 +70,7 @@ def test_pipeline_on_an_array_fills_gaps_and_recovers_the_middle_rod():
     assert result.skeleton.joint_types[0].name == "FREE" and all(t.name == "BALL" for t in result.skeleton.joint_types[1:])
 
 
+@pytest.mark.slow
 def test_a_joint_not_exercised_is_reported():
     sim = linkage_capture(seed=7, frozen_second_joint=True,
                           noise=MarkerNoise(sigma_m=0.0005, spike_probability=0.0, gap_rate_hz=0.0, label_break_rate_hz=0.0))

@@ -263,6 +263,28 @@ def root_height(window, weight):
 '''
 
 
+def test_refinement_rounds_refine_the_model_in_the_solve_stage(simulated_run, tmp_path):
+    """``solver.refine_rounds = 1``: after the windowed solve the skeleton and mounts are refined with the
+    motion on the same problem and the motion solved again; the refined model is saved in ``solve/`` (the
+    estimate in ``model/`` stays), reported, and used by the outputs; a rerun without refinement drops it."""
+    import shutil
+
+    out, _, _, _, _, fake, config = simulated_run
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    refined_config = RunConfig.from_dict({**config.to_dict(), "solver": {**config.to_dict()["solver"], "refine_rounds": 1}})
+    lines = []
+    run_pipeline(fake, copy, refined_config, log=lines.append)
+    assert any("refinement round 1 of 1" in line for line in lines)
+    (report,) = json.loads((copy / "solve" / "reports.json").read_text())["refinements"]
+    assert report["num_parameters"] > 0 and report["final_cost"] < report["initial_cost"]
+    estimate, refined = load_model(copy), load_model(copy, "solve")
+    assert np.abs(np.asarray(estimate[0].offsets) - np.asarray(refined[0].offsets)).max() > 1e-5
+    np.testing.assert_array_equal(np.asarray(load_model(out)[0].offsets), np.asarray(estimate[0].offsets))
+    run_pipeline(fake, copy, config, log=lines.append)
+    assert not (copy / "solve" / "skeleton.json").exists()
+
+
 def test_a_user_term_named_in_the_config_reaches_the_solve(simulated_run, tmp_path, monkeypatch):
     """``[[solver.user_terms]]`` names a factory by import path; bcmocap run imports it before any stage, calls
     it for every window with the window's frames, times and the capture's trial folder, and solves with its

@@ -115,6 +115,7 @@ def test_windows_agree_with_whole_sequence(setup):
     assert err["joint_position_error_cm"]["mean"] < 1.0
 
 
+@pytest.mark.slow
 def test_recovers_truth_with_outliers(setup):
     """With 15 % outliers a Cauchy loss still recovers the motion."""
     skeleton, rig, truth, points, _, init = setup
@@ -195,6 +196,7 @@ def test_motion_from_tangent_roundtrip(setup):
     assert evaluate_motion(skeleton, back, truth)["joint_position_error_cm"]["max"] < 1e-6
 
 
+@pytest.mark.slow
 def test_a_window_stopped_at_max_steps_reports_it(setup):
     """A window cut short by max_steps is reported as not converged, with its step count, and the cost it
     reached; given the steps it needs, the same window converges."""

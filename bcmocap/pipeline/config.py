@@ -34,6 +34,8 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     loss = "cauchy"           # none | huber | cauchy
     loss_scale = 8.0          # px
     terms = ["reprojection", "homography", "smoothness"]
+    refine_rounds = 0         # after the solve, refine bone offsets, mounts and hinge axes with the motion on
+                              # the same terms (user terms included), then solve again; 0 to 5 rounds
 
     [[solver.user_terms]]     # a user's terms, any number of these tables (see bcmocap.solver.objective)
     factory = "mypackage.terms:imu_terms"   # 'module:name' importable from PYTHONPATH, called per window
@@ -98,6 +100,7 @@ class SolverConfig:
     loss: str = "cauchy"
     loss_scale: float = 8.0
     terms: tuple[str, ...] = TERMS
+    refine_rounds: int = 0
     user_terms: tuple[UserTermConfig, ...] = ()
 
 
@@ -139,6 +142,8 @@ class RunConfig:
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)
         _check(2 <= s.window <= MAX_WINDOW, "solver.window", f"must be in [2, {MAX_WINDOW}]", s.window)
         _check(0 <= s.overlap < s.window, "solver.overlap", "must be in [0, window)", s.overlap)
+        _check(isinstance(s.refine_rounds, int) and 0 <= s.refine_rounds <= 5, "solver.refine_rounds", "must be an integer in [0, 5]",
+               s.refine_rounds)
         for name in ("root_smoothness", "joint_smoothness", "homography", "loss_scale"):
             _check(getattr(s, name) >= 0, f"solver.{name}", "must be ≥ 0", getattr(s, name))
         _check(s.loss in LOSSES, "solver.loss", f"must be one of {LOSSES}", s.loss)

@@ -59,7 +59,7 @@ def write_outputs(ctx) -> dict:
     from .run import _world, load_model, load_motion
 
     out = ctx.out
-    skeleton, rig = load_model(out)
+    skeleton, rig = load_model(out, "solve")  # refined in the solve, if it was
     motion = load_motion(out / "solve" / "motion.npz")
     initial = load_motion(out / "solve" / "initial.npz")
     corr = CorrespondenceStore.open(out / "solve" / "correspondences")

@@ -346,12 +346,16 @@ def _stage_skeleton(ctx: RunContext) -> dict:
     return {"segments": len(est.skeleton.names), "cameras": len(est.rig.names)}
 
 
-def load_model(out: Path | str):
-    """The skeleton and rig a run estimated (``DIR/model/``): ``(Skeleton, Rig)``."""
+def load_model(out: Path | str, stage: str = "model"):
+    """The skeleton and rig a run estimated (``DIR/model/``), or refined in its solve (``stage="solve"``:
+    ``DIR/solve/`` holds them after ``solver.refine_rounds``; else the estimate): ``(Skeleton, Rig)``."""
     from ..io.model_json import rig_from_dict, skeleton_from_dict
 
     out = Path(out)
-    sk_path, rig_path = out / "model" / "skeleton.json", out / "model" / "rig.json"
+    folder = out / stage
+    if stage == "solve" and not (folder / "skeleton.json").is_file():
+        folder = out / "model"
+    sk_path, rig_path = folder / "skeleton.json", folder / "rig.json"
     skeleton = skeleton_from_dict(_read_json(sk_path), str(sk_path))
     return skeleton, rig_from_dict(_read_json(rig_path), skeleton, str(rig_path))
 
@@ -405,7 +409,8 @@ def _stage_solve(ctx: RunContext) -> dict:
     """The sliding-window solve; each window's measurements are read from the metric store on disk
     (:class:`~bcmocap.solver.objective.StoredProblem`), so memory does not grow with the trial."""
     from ..correspondence_store import CorrespondenceStore
-    from ..solver import SolverOptions, solve
+    from ..io.model_json import rig_to_dict, skeleton_to_dict
+    from ..solver import SolverOptions, refine_model, solve
     from ..solver.objective import StoredProblem
     from ..solver.solve import window_starts
 
@@ -432,9 +437,23 @@ def _stage_solve(ctx: RunContext) -> dict:
         write_json_atomic(reports_path, {"fingerprint": fingerprints(ctx.config)["solve"], "reports": reports})
 
     solution = solve(problem, initial, options, progress=True, skip_windows=skip, checkpoint=save)
+    refinements = []
+    for k in range(1, s.refine_rounds + 1):  # the model refined on the same problem, then solved again
+        ctx.log(f"solve: refinement round {k} of {s.refine_rounds} (bone offsets, mounts, hinge axes, with the motion)")
+        refinement = refine_model(problem, solution.motion, prior=(skeleton, rig))
+        refinements.append(dataclasses.asdict(refinement.report))
+        ctx.log(f"solve: refinement moved offsets ≤ {1e3 * refinement.report.offset_change_m:.2f} mm, mounts ≤ "
+                f"{1e3 * refinement.report.mount_translation_change_m:.2f} mm / {refinement.report.mount_rotation_change_deg:.3f}°")
+        problem = dataclasses.replace(problem, skeleton=refinement.skeleton, rig=refinement.rig)
+        solution = solve(problem, refinement.motion, options, progress=True)
+    for name in ("skeleton.json", "rig.json"):  # a refined model lives in solve/ (a rerun without refinement drops it)
+        ctx.path("solve", name).unlink(missing_ok=True)
+    if refinements:
+        write_json_atomic(ctx.path("solve", "skeleton.json"), skeleton_to_dict(problem.skeleton))
+        write_json_atomic(ctx.path("solve", "rig.json"), rig_to_dict(problem.rig, problem.skeleton))
     save_motion(ctx.path("solve", "motion.npz"), solution.motion)
-    write_json_atomic(ctx.path("solve", "reports.json"), {"windows": reports})
-    return {"windows": len(reports), "converged": all(r["converged"] for r in reports)}
+    write_json_atomic(ctx.path("solve", "reports.json"), {"windows": reports, "refinements": refinements})
+    return {"windows": len(reports), "converged": all(r["converged"] for r in reports), "refinement_rounds": len(refinements)}
 
 
 def _stage_outputs(ctx: RunContext) -> dict:

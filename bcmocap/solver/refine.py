@@ -56,7 +56,7 @@ from ..precision import require_float64
 from .block_banded import solve_block_banded
 from .model_parameters import MODEL, ModelParameters, parameter_changes, parameter_difference, parameter_layout
 from .objective import ObjectiveWeights, TermFactory, paper_problem, paper_terms
-from .solve import Solution, SolverOptions, solve
+from .solve import SequenceProblem, Solution, SolverOptions, solve
 from .window import make_window_problem, normal_equations, window_history
 
 
@@ -113,7 +113,8 @@ class RefineReport:
 
     Attributes:
         initial_cost, final_cost: the objective ``½ Σ λρ`` of all terms plus the prior, before and after.
-        initial_reprojection_cost, final_reprojection_cost: the reprojection part alone.
+        initial_reprojection_cost, final_reprojection_cost: the reprojection part alone (None from
+            :func:`refine_model`).
         num_steps, num_accepted_steps, converged: from the solver's
             :class:`~bcmocap.solver.Convergence` (converged: stopped by the tolerances, not by ``max_steps``).
         offset_change_m: largest change of an offset vector (norm, m) against the input.
@@ -126,8 +127,8 @@ class RefineReport:
 
     initial_cost: float
     final_cost: float
-    initial_reprojection_cost: float
-    final_reprojection_cost: float
+    initial_reprojection_cost: float | None
+    final_reprojection_cost: float | None
     num_steps: int
     num_accepted_steps: int
     converged: bool
@@ -252,10 +253,35 @@ def refine_skeleton_and_rig(
         ValueError: measurements, motion or prior that do not fit the model; unknown ``root_origin``.
     """
     require_float64("bcmocap.solver.refine_skeleton_and_rig")
-    start_time = time.perf_counter()
     _check_inputs(correspondences, skeleton, rig, motion, prior)
-    parameters = model_parameters(skeleton, rig, options, prior=prior)
-    problem = paper_problem(correspondences, skeleton, rig, weights, extra_terms=extra_terms)
+    refinement = refine_model(paper_problem(correspondences, skeleton, rig, weights, extra_terms=extra_terms), motion,
+                              options, prior=prior)
+    report = dataclasses.replace(
+        refinement.report,
+        initial_reprojection_cost=reprojection_cost(correspondences, skeleton, rig, motion, weights=weights),
+        final_reprojection_cost=reprojection_cost(correspondences, refinement.skeleton, refinement.rig, refinement.motion,
+                                                  weights=weights),
+    )
+    return dataclasses.replace(refinement, report=report)
+
+
+def refine_model(problem: SequenceProblem, motion: Motion, options: RefineOptions = RefineOptions(), *,
+                 prior: tuple[Skeleton, Rig] | None = None) -> Refinement:
+    """Refine the model of any problem (its ``skeleton`` and ``rig``, e.g. a
+    :class:`~bcmocap.solver.objective.StoredProblem` of ``bcmocap run``) with the motion, on its own terms.
+
+    As :func:`refine_skeleton_and_rig`, whose measurements are in memory; here the report's reprojection
+    costs are None (the problem's terms may not include a reprojection term one could single out).
+
+    Raises:
+        ValueError: a motion of another length or skeleton than the problem's; unknown ``root_origin``.
+    """
+    require_float64("bcmocap.solver.refine_model")
+    start_time = time.perf_counter()
+    motion.check(problem.skeleton, "refine: motion")
+    if motion.num_frames != problem.num_frames:
+        raise ValueError(f"refine: the motion has {motion.num_frames} frames, the problem {problem.num_frames}")
+    parameters = model_parameters(problem.skeleton, problem.rig, options, prior=prior)
     solver = SolverOptions(window=motion.num_frames, overlap=0, max_steps=options.max_steps, rtol=options.ftol,
                            atol=options.xtol, damping_scale=options.damping_scale)
     solution = solve(problem, motion, solver, model_parameters=parameters)
@@ -264,11 +290,9 @@ def refine_skeleton_and_rig(
     lm = solution.reports[0]
     theta_in, theta = np.asarray(parameters.theta), np.asarray(parameters.full(values))
     report = RefineReport(
-        lm.initial_cost, lm.final_cost, reprojection_cost(correspondences, skeleton, rig, motion, weights=weights),
-        reprojection_cost(correspondences, new_skeleton, new_rig, solution.motion, weights=weights),
-        lm.num_steps, lm.num_accepted_steps, lm.converged, *parameter_changes(parameters.layout, theta_in, theta),
-        _prior_directions(problem, solution.motion, parameters, values), parameters.size, motion.num_frames,
-        time.perf_counter() - start_time,
+        lm.initial_cost, lm.final_cost, None, None, lm.num_steps, lm.num_accepted_steps, lm.converged,
+        *parameter_changes(parameters.layout, theta_in, theta), _prior_directions(problem, solution.motion, parameters, values),
+        parameters.size, motion.num_frames, time.perf_counter() - start_time,
     )
     return Refinement(new_skeleton, new_rig, solution.motion, report)
 
