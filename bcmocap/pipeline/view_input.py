@@ -49,8 +49,11 @@ def load_view_input(run_dir: str | Path, capture: str | Path | None = None, *,
 
     run_dir = Path(run_dir)
     log = check_run_folder(run_dir)
-    skeleton, rig = load_model(run_dir)
+    skeleton, rig = load_model(run_dir, "solve")  # the model the motion was solved with
     notes = []
+    if (run_dir / "solve" / "skeleton.json").is_file():
+        notes.append("Showing the model refined in the solve (solver.refine_rounds); a saved edit becomes a new "
+                     "version of model/.")
     motions = {}
     for label, name in (("solved", "motion.npz"), ("solver checkpoint", "checkpoint.npz"), ("initial", "initial.npz")):
         path = run_dir / "solve" / name
