@@ -8,6 +8,7 @@ from .levenberg_marquardt import (
     StructuredLevenbergMarquardt,
     levenberg_marquardt,
 )
+from .model_parameters import ModelParameters
 from .refine import (
     RefineOptions,
     RefineReport,
@@ -32,6 +33,7 @@ from .solve import (
 from .window import WindowProblem, cost, normal_equations, residuals
 
 __all__ = [
+    "ModelParameters",
     "Convergence",
     "NormalEquations",
     "Problem",
