@@ -95,6 +95,7 @@ def test_recovers_a_simulated_fov_lens():
     assert np.allclose(params_of("fov", fitted.camera), params_of("fov", truth), rtol=2e-3, atol=0.2)
 
 
+@pytest.mark.slow
 def test_equidistant_model_has_no_distortion(real_views):
     eq = calibrate(real_views, "equidistant")
     assert np.allclose(np.asarray(eq.camera.distortion), 0.0) and eq.rms_px < 3.0

@@ -139,6 +139,7 @@ class JointLimit(FrameTerm):
         return jnp.maximum(angle - 0.1, 0.0)[None, None], jnp.ones(1, bool)
 
 
+@pytest.mark.slow
 def test_custom_frame_term_is_honoured(setup):
     skeleton, rig, truth, points, (ids, pix, w), init = setup
     problem = Problem(skeleton, rig, [
@@ -218,6 +219,7 @@ class _BrokenPrior(FrameTerm):
         return jnp.log(data - 2.5 + state.motion.root_position[0] * 0.0)[None, None], jnp.ones(1, bool)
 
 
+@pytest.mark.slow
 def test_a_non_finite_window_is_rejected_naming_the_window_and_term(setup):
     skeleton, rig, truth, points, (ids, pix, w), init = setup
     problem = Problem(skeleton, rig, [
