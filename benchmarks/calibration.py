@@ -13,7 +13,7 @@ one) seen on 30 board views placed over the whole sensor (``bcmocap.sim.board_vi
 0.1 px Gaussian detection noise, not rendered pixels), calibrated with the FOV model; difference from
 the true lens over the whole image (goal ≤ 0.3 px).
 
-    python benchmarks/calibration.py [--data /work/shared/data] [--json FILE]
+    python benchmarks/calibration.py [--data DIR (default: ../shared/data beside the repository)] [--json FILE]
 """
 
 from __future__ import annotations

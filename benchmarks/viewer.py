@@ -7,7 +7,7 @@
    draws (requestAnimationFrame callbacks per second: WebGL in software, SwiftShader, on this CPU) and the
    rate at which distinct motion frames reach the page's frame field (the playback frames the user sees).
 
-    python benchmarks/viewer.py /work/ct/bench/paper --json benchmarks/results/viewer.json
+    python benchmarks/viewer.py RUN_DIR --json benchmarks/results/viewer.json   # RUN_DIR: a bcmocap run of the 10 s walk
 
 RUN_DIR is a `bcmocap run` folder (the paper's 10 s walk: 315 frames, 15 joints, 18 cameras). The viewer
 is started with --read-only, so the folder is not written.
