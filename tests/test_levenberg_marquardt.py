@@ -21,7 +21,7 @@ def _curve_residual(y, data):
 def _dense_system(data, y):
     jac = jax.jacfwd(_curve_residual)(y, data)[:, 0]
     r = _curve_residual(y, data)
-    return NormalEquations((jac.T @ jac)[None], (), (jac.T @ r)[None], jnp.zeros((1, 3, 0)), jnp.zeros((0, 0)), jnp.zeros(0))
+    return NormalEquations.dense(jac.T @ jac, jac.T @ r)
 
 
 def _curve_data(seed):

@@ -13,7 +13,7 @@ import pytest
 
 from bcmocap.geometry import matrix_from_quat, quat_exp, quat_multiply
 from bcmocap.viewer import CameraFrame, EditableModel, GroundTruth, Posing
-from conftest import make_skeleton, random_motion
+from conftest import make_rig, make_skeleton, random_motion
 from viewer_run import make_run_folder
 
 
@@ -51,18 +51,15 @@ def test_posing_matches_forward_kinematics_and_camera_poses(run):
 
 
 # ---- edits ----------------------------------------------------------------------------------------
-def _rig_on(skeleton):
-    from conftest import make_rig
-
-    return make_rig(skeleton)
+def _posed_model(frames: int, seed: int):
+    """The test skeleton, a random motion of ``frames`` frames posed on it, and the editable model with its rig."""
+    skeleton = make_skeleton()
+    motion = random_motion(skeleton, frames, np.random.default_rng(seed))
+    return skeleton, Posing(skeleton.parents, motion.root_position, motion.rotations), EditableModel.of(skeleton, make_rig(skeleton))
 
 
 def test_moving_a_joint_keeps_children_and_cameras_in_place():
-    skeleton = make_skeleton()
-    rig = _rig_on(skeleton)
-    motion = random_motion(skeleton, 4, np.random.default_rng(3))
-    posing = Posing(skeleton.parents, motion.root_position, motion.rotations)
-    model = EditableModel.of(skeleton, rig)
+    skeleton, posing, model = _posed_model(4, 3)
     before = posing.joint_positions(model.offsets)
     cams_before = posing.camera_poses(before, model.camera_segments, model.mounts)
     j, t, delta = skeleton.index("thigh"), 2, np.array([0.01, -0.02, 0.015])
@@ -81,11 +78,7 @@ def test_moving_a_joint_keeps_children_and_cameras_in_place():
 
 
 def test_moving_a_camera_gives_it_that_world_pose_relative_to_its_segment():
-    skeleton = make_skeleton()
-    rig = _rig_on(skeleton)
-    motion = random_motion(skeleton, 3, np.random.default_rng(4))
-    posing = Posing(skeleton.parents, motion.root_position, motion.rotations)
-    model = EditableModel.of(skeleton, rig)
+    skeleton, posing, model = _posed_model(3, 4)
     joints = posing.joint_positions(model.offsets)
     c, t = 1, 1
     s = model.camera_segments[c]
@@ -101,9 +94,7 @@ def test_moving_a_camera_gives_it_that_world_pose_relative_to_its_segment():
 
 
 def test_checks_refuse_a_zero_length_bone_and_a_camera_on_the_wrong_side():
-    skeleton = make_skeleton()
-    rig = _rig_on(skeleton)
-    model = EditableModel.of(skeleton, rig)
+    skeleton, _, model = _posed_model(1, 0)
     j = skeleton.index("shin")
     collapsed = model.with_joint_moved(j, -np.asarray(skeleton.offsets)[j], np.eye(3), np.eye(3))
     problems = collapsed.problems_after_editing(joint=j, before=model)

@@ -36,7 +36,7 @@ import numpy as np
 from ..cameras import CameraModel, FOVCamera, OpenCVFisheyeCamera
 from ..geometry import SO3
 from ..precision import require_float64
-from ..solver.levenberg_marquardt import NormalEquations, levenberg_marquardt
+from ..solver.levenberg_marquardt import NormalEquations, levenberg_marquardt, static_schur_complement
 from .views import BoardViews
 
 __all__ = ["MODELS", "Calibration", "calibrate", "camera_from_params", "params_of"]
@@ -261,8 +261,7 @@ def _lm(views: BoardViews, model: str, params: np.ndarray, rotations: np.ndarray
 def _std(system: NormalEquations, residuals: np.ndarray, views: BoardViews) -> np.ndarray:
     """Standard deviations of the intrinsics: ``sqrt(diag(σ² S⁻¹))``, ``S`` the Schur complement of the poses
     (inf where ``S`` is singular)."""
-    diag, coupling = np.asarray(system.diag), np.asarray(system.coupling)
-    schur = np.asarray(system.static_matrix) - np.einsum("vis,vij,vju->su", coupling, np.linalg.pinv(diag), coupling)
+    schur = np.asarray(static_schur_complement(system))
     count = 2 * int(views.seen.sum())
     unknowns = 6 * views.num_views + schur.shape[0]
     sigma2 = float((residuals**2).sum()) / max(count - unknowns, 1)

@@ -121,8 +121,7 @@ def _frame_system(frame, y):
     """One frame's dense ``D × D`` Gauss–Newton system (a block-banded system of one frame, no bands)."""
     jac = jax.jacfwd(_frame_residual)(y, frame)[:, 0]  # (R, D)
     r = _frame_residual(y, frame)
-    hess, grad = jac.T @ jac, jac.T @ r
-    return NormalEquations(hess[None], (), grad[None], jnp.zeros((1, len(grad), 0)), jnp.zeros((0, 0)), jnp.zeros(0))
+    return NormalEquations.dense(jac.T @ jac, jac.T @ r)
 
 
 def _lm_frame(skeleton, start, observed, seen, segs, offsets, prior, max_steps):

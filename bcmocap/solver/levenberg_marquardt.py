@@ -56,6 +56,22 @@ class NormalEquations(eqx.Module):
         """``(W-1, D, D)``: ``H[t, t+1]``."""
         return self.bands[0]
 
+    @classmethod
+    def dense(cls, hessian: jax.Array, grad: jax.Array) -> NormalEquations:
+        """One dense block of ``D`` variables (``hessian`` ``(D, D)``, ``grad`` ``(D,)``): one frame, no static variables."""
+        d = grad.shape[0]
+        return cls(hessian[None], (), grad[None], jnp.zeros((1, d, 0)), jnp.zeros((0, 0)), jnp.zeros(0))
+
+
+def static_schur_complement(system: NormalEquations, relative_ridge: float = 1e-9) -> jax.Array:
+    """``(S, S)`` ``C − Bᵀ A⁻¹ B``: what the system says about the static variables once every frame's variables
+    re-fit (their information matrix). A ridge of ``relative_ridge`` times each block's mean diagonal (plus
+    1e-12) keeps variables that no term sees in a frame out of it."""
+    d = system.diag.shape[-1]
+    ridge = (relative_ridge * jnp.trace(system.diag, axis1=1, axis2=2) / d + 1e-12)[:, None, None] * jnp.eye(d)
+    gain = solve_block_banded(system.diag + ridge, system.bands, system.coupling)
+    return system.static_matrix - jnp.einsum("tdp,tdq->pq", system.coupling, gain)
+
 
 class BlockBandedOperator(lx.AbstractLinearOperator):
     """Symmetric block-banded ``(W·D) × (W·D)`` operator on ``(W, D)`` arrays, bordered by ``S`` static

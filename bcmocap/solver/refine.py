@@ -53,10 +53,10 @@ from ..kinematics.rig import Rig, camera_poses
 from ..kinematics.skeleton import Motion, Skeleton
 from ..residuals import Reprojection
 from ..precision import require_float64
-from .block_banded import solve_block_banded
+from .levenberg_marquardt import static_schur_complement
 from .model_parameters import MODEL, ModelParameters, parameter_changes, parameter_difference, parameter_layout
-from .objective import ObjectiveWeights, TermFactory, paper_problem, paper_terms
-from .solve import SequenceProblem, Solution, SolverOptions, solve
+from .objective import ObjectiveWeights, TermFactory, paper_problem
+from .solve import Problem, SequenceProblem, Solution, SolverOptions, solve
 from .window import make_window_problem, normal_equations, window_history
 
 
@@ -191,13 +191,11 @@ class RefinedSolution:
 # ---- linearisation -------------------------------------------------------------------------------
 
 
-def _reprojection_term(correspondences: Correspondences, skeleton: Skeleton, weights: ObjectiveWeights) -> Reprojection:
-    terms = paper_terms(correspondences, skeleton, weights, include_homography=False)
-    return next(t for t in terms if isinstance(t, Reprojection))
-
-
-def _check_inputs(correspondences: Correspondences, skeleton: Skeleton, rig: Rig, motion: Motion, prior) -> None:
-    paper_problem(correspondences, skeleton, rig)  # shapes of the measurements against the rig
+def _checked_problem(correspondences: Correspondences, skeleton: Skeleton, rig: Rig, motion: Motion, prior,
+                     weights: ObjectiveWeights, extra_terms: Sequence[TermFactory] = ()) -> Problem:
+    """The objective of :func:`paper_problem` (which checks the measurements against the rig), after checking
+    the motion and the prior model against it."""
+    problem = paper_problem(correspondences, skeleton, rig, weights, extra_terms=extra_terms)
     motion.check(skeleton, "refine_skeleton_and_rig: motion")
     if motion.num_frames != correspondences.num_frames:
         raise ValueError(
@@ -208,6 +206,11 @@ def _check_inputs(correspondences: Correspondences, skeleton: Skeleton, rig: Rig
         same = p_skel.names == skeleton.names and p_skel.parents == skeleton.parents
         if not (same and p_rig.names == rig.names and p_rig.segments == rig.segments):
             raise ValueError("refine_skeleton_and_rig: the prior model has other segments or cameras than the skeleton and rig")
+    return problem
+
+
+def _reprojection(problem: Problem) -> Reprojection:
+    return next(t for t in problem.terms if isinstance(t, Reprojection))
 
 
 def model_parameters(skeleton: Skeleton, rig: Rig, options: RefineOptions = RefineOptions(), *,
@@ -253,14 +256,13 @@ def refine_skeleton_and_rig(
         ValueError: measurements, motion or prior that do not fit the model; unknown ``root_origin``.
     """
     require_float64("bcmocap.solver.refine_skeleton_and_rig")
-    _check_inputs(correspondences, skeleton, rig, motion, prior)
-    refinement = refine_model(paper_problem(correspondences, skeleton, rig, weights, extra_terms=extra_terms), motion,
-                              options, prior=prior)
+    problem = _checked_problem(correspondences, skeleton, rig, motion, prior, weights, extra_terms)
+    refinement = refine_model(problem, motion, options, prior=prior)
+    term = _reprojection(problem)
     report = dataclasses.replace(
         refinement.report,
-        initial_reprojection_cost=reprojection_cost(correspondences, skeleton, rig, motion, weights=weights),
-        final_reprojection_cost=reprojection_cost(correspondences, refinement.skeleton, refinement.rig, refinement.motion,
-                                                  weights=weights),
+        initial_reprojection_cost=_reprojection_cost(term, skeleton, rig, motion),
+        final_reprojection_cost=_reprojection_cost(term, refinement.skeleton, refinement.rig, refinement.motion),
     )
     return dataclasses.replace(refinement, report=report)
 
@@ -300,11 +302,10 @@ def refine_model(problem: SequenceProblem, motion: Motion, options: RefineOption
 def _prior_directions(problem, motion: Motion, parameters: ModelParameters, values: jax.Array) -> int:
     """Directions of θ the prior decides: eigenvalues below 1 of the prior-whitened data matrix with the
     motion eliminated, ``C − Bᵀ A⁻¹ B`` at the solution (the held means, zero by construction, not counted)."""
-    history = window_history(problem.window(0, motion.num_frames))
-    reference = Motion(*(np.concatenate([np.asarray(a)[np.zeros(history, int)], np.asarray(a)])
-                         for a in (motion.root_position, motion.rotations)))
-    wp = make_window_problem(problem.skeleton, problem.rig, problem.window(0, motion.num_frames), reference, 0,
-                             {MODEL: values}, parameters)
+    terms = tuple(problem.window(0, motion.num_frames))
+    before = np.zeros(window_history(terms), int)
+    reference = Motion(*(np.concatenate([np.asarray(a)[before], np.asarray(a)]) for a in (motion.root_position, motion.rotations)))
+    wp = make_window_problem(problem.skeleton, problem.rig, terms, reference, 0, {MODEL: values}, parameters)
     data = _data_matrix(wp, parameters)
     whitened = np.asarray(data) / np.outer(parameters.sqrt_precision, parameters.sqrt_precision)
     count = int(np.sum(np.linalg.eigvalsh(0.5 * (whitened + whitened.T)) < 1.0))
@@ -316,21 +317,21 @@ def _prior_directions(problem, motion: Motion, parameters: ModelParameters, valu
 
 @eqx.filter_jit
 def _data_matrix(wp, parameters: ModelParameters) -> jax.Array:
-    ne = normal_equations(wp, jnp.zeros((wp.num_frames, wp.skeleton.num_dofs)))
-    block = slice(ne.static_matrix.shape[0] - parameters.size, None)
-    diag = ne.diag + 1e-9 * jnp.trace(ne.diag, axis1=1, axis2=2)[:, None, None] / ne.diag.shape[-1] * jnp.eye(ne.diag.shape[-1])
-    diag = diag + 1e-12 * jnp.eye(ne.diag.shape[-1])  # DOFs no term sees in a frame
-    gain = solve_block_banded(diag, ne.bands, ne.coupling[..., block])
-    schur = ne.static_matrix[block, block] - jnp.einsum("tdp,tdq->pq", ne.coupling[..., block], gain)
-    return schur - jnp.diag(parameters.sqrt_precision**2)
+    """The model's block of the static Schur complement at the window's reference, without the prior."""
+    block = slice(wp.num_statics - parameters.size, None)
+    schur = static_schur_complement(normal_equations(wp, jnp.zeros((wp.num_frames, wp.skeleton.num_dofs))))
+    return schur[block, block] - jnp.diag(parameters.sqrt_precision**2)
 
 
 def reprojection_cost(
     correspondences: Correspondences, skeleton: Skeleton, rig: Rig, motion: Motion, *, weights: ObjectiveWeights = ObjectiveWeights()
 ) -> float:
     """Robust reprojection cost ``½ Σ λρ(‖r‖²)`` of a motion over all frames (as in :func:`paper_problem`)."""
-    _check_inputs(correspondences, skeleton, rig, motion, None)
-    term = _reprojection_term(correspondences, skeleton, weights)
+    return _reprojection_cost(_reprojection(_checked_problem(correspondences, skeleton, rig, motion, None, weights)),
+                              skeleton, rig, motion)
+
+
+def _reprojection_cost(term: Reprojection, skeleton: Skeleton, rig: Rig, motion: Motion) -> float:
     total, chunk = 0.0, 64
     for start in range(0, motion.num_frames, chunk):
         window = term.window(start, min(start + chunk, motion.num_frames))

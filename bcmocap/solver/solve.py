@@ -25,7 +25,7 @@ from ..residuals.base import CameraPairTerm, CameraTerm, Term
 from ..precision import require_float64
 from .levenberg_marquardt import Convergence, levenberg_marquardt
 from .model_parameters import MODEL, ModelParameters, reaxis
-from .window import WindowProblem, make_window_problem, model_state, normal_equations, residuals, static_values, window_history
+from .window import WindowProblem, make_window_problem, model_motion, normal_equations, residuals, static_values, window_history
 
 
 class SequenceProblem(Protocol):
@@ -166,7 +166,7 @@ def _solve_window(problem: WindowProblem, options: SolverOptions):
                                         atol=options.atol, damping_scale=options.damping_scale, max_steps=options.max_steps)
     y, z = value if n_static else (value, None)
     statics = static_values(problem, z)
-    motion = model_state(problem, problem.reference[problem.history :], y, statics).motion
+    motion = model_motion(problem, problem.reference[problem.history :], y, statics)
     return motion, statics, report
 
 

@@ -125,15 +125,27 @@ def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.A
     return FrameState(motion, world_from_segment, world_from_camera, statics)
 
 
-def model_state(problem: WindowProblem, reference: Motion, y: jax.Array, statics: dict) -> FrameState:
-    """:func:`frame_state` of the window's model: with variable model parameters, the skeleton and rig at
-    ``statics["model"]``, and the reference's hinge angles kept about the axes that moved."""
+def _model_at(problem: WindowProblem, reference: Motion, statics: dict) -> tuple[Skeleton, Rig | None, Motion]:
+    """The skeleton, rig and reference motion at the static values: with variable model parameters, the model
+    at ``statics["model"]`` and the reference's hinge angles kept about the axes that moved."""
     if problem.model_parameters is None:
-        return frame_state(problem.skeleton, problem.rig, reference, y, statics)
+        return problem.skeleton, problem.rig, reference
     parameters = problem.model_parameters
     skeleton, rig = parameters.model(statics[MODEL])
     start_axes = parameters.model(problem.statics[MODEL])[0].hinge_axes  # the reference motion's axes
-    return frame_state(skeleton, rig, reaxis(parameters.layout, reference, start_axes, skeleton.hinge_axes), y, statics)
+    return skeleton, rig, reaxis(parameters.layout, reference, start_axes, skeleton.hinge_axes)
+
+
+def model_state(problem: WindowProblem, reference: Motion, y: jax.Array, statics: dict) -> FrameState:
+    """:func:`frame_state` of the window's model at the static values (see :func:`_model_at`)."""
+    skeleton, rig, reference = _model_at(problem, reference, statics)
+    return frame_state(skeleton, rig, reference, y, statics)
+
+
+def model_motion(problem: WindowProblem, reference: Motion, y: jax.Array, statics: dict) -> Motion:
+    """The motion at tangent offsets ``y`` ``(..., D)`` in the window's model at the static values."""
+    skeleton, _, reference = _model_at(problem, reference, statics)
+    return skeleton.retract(reference, y)
 
 
 def _extended(problem: WindowProblem, y: jax.Array) -> jax.Array:
