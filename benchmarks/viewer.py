@@ -20,7 +20,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -33,13 +32,7 @@ from _common import write_json  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bcmocap.viewer.app import BONE  # noqa: E402
-from bcmocap.viewer.browser import Browser, colour_pixels, find_chromium  # noqa: E402
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from bcmocap.viewer.browser import Browser, colour_pixels, find_chromium, free_port  # noqa: E402
 
 
 def _command(run_dir: str, port: int) -> list[str]:
@@ -74,7 +67,7 @@ _CLICK_PLAY = ("(() => { const b = Array.from(document.querySelectorAll('button'
 
 def measure(args) -> dict:
     """One measurement: a new `bcmocap view` process and a fresh Chromium profile (nothing cached)."""
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}/"
     with Browser(args.width, args.height, timeout=120) as browser:
         start = time.perf_counter()

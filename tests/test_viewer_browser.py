@@ -9,23 +9,16 @@ import argparse
 import json
 import os
 import shutil
-import socket
 import threading
 import time
 
 import numpy as np
 import pytest
 
-from bcmocap.viewer.browser import Browser, colour_pixels, find_chromium
+from bcmocap.viewer.browser import Browser, colour_pixels, find_chromium, free_port
 from viewer_run import make_run_folder
 
 pytestmark = pytest.mark.slow  # about 40 s on 2 cores, most of it Chromium drawing WebGL in software
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _wait(condition, timeout: float, what: str):
@@ -47,7 +40,7 @@ def test_view_in_headless_chromium(tmp_path):
     run = tmp_path / "run"
     truth_skeleton, _, _, true_joints = make_run_folder(run)
     original_model = (run / "model" / "skeleton.json").read_text()
-    port = _free_port()
+    port = free_port()
     parser = argparse.ArgumentParser(prog="bcmocap")
     add_view_command(parser.add_subparsers())
     args = parser.parse_args(["view", str(run), "--port", str(port)])
