@@ -11,6 +11,7 @@ from .atomic import write_json_atomic
 from .calibrate.command import add_calibrate_command
 from .compilation_cache import enable_compilation_cache
 from .frontend.command import add_frontend_command
+from .frontend.init_command import add_init_command
 from .io.output_folder import output_folder
 from .kcs.command import add_kcs_command
 from .markers.command import add_markers_command
@@ -162,6 +163,7 @@ COMMANDS = [
     add_run_command,
     add_view_command,
     add_calibrate_command,
+    add_init_command,
 ]
 
 

@@ -5,6 +5,14 @@ The layout is the one :mod:`bcmocap.sim.studio` writes (and a real shoot is arra
     capture.json, rig.json, intrinsics/<camera>.yml|.json, reference/photo_*.jpg, reference/camera.json|.yml,
     trials/<trial>/<camera>.mp4, trials/<trial>/<camera>.wav
 
+A camera's entry in ``rig.json`` may say where its videos are instead (what ``bcmocap init`` writes for
+a shoot whose cameras recorded several trials in one file): ``"video": {trial: "path"}`` or
+``{trial: {"file": "path", "first_frame": F, "num_frames": N}}``, a stretch of a longer file that the
+trial's frame 0 starts, and ``"audio": {trial: "path"}`` for its WAV (paths relative to the capture,
+staying inside it). A trial's soundtrack is the WAV when it exists (cut to the stretch), else the audio
+track inside the video itself (read with PyAV, :func:`bcmocap.io.media.read_audio_track`); sample 0 is
+the time of the trial's first video frame either way.
+
 :func:`read_capture` checks that every file the frontend needs exists and parses the small ones; the
 videos are only opened when :meth:`Capture.frames` is iterated, one camera at a time, so a long capture
 never has to fit in memory. Errors are ``ValueError`` naming the file and what was expected.
@@ -26,7 +34,7 @@ from ..io.colmap import from_pycolmap
 from ..io.names import checked_name, checked_relative_path
 from ..io.opencv_calibration import read_opencv_fisheye_calibration
 
-__all__ = ["Capture", "CaptureCamera", "VideoInfo", "read_capture", "read_camera_json"]
+__all__ = ["Capture", "CaptureCamera", "TrialVideo", "VideoInfo", "read_capture", "read_camera_json"]
 
 CAPTURE_FORMAT = "bcmocap-capture"
 MAX_FPS = 10_000.0  # Hz; a faster video is a corrupt header, not a camera
@@ -84,6 +92,18 @@ class VideoInfo:
 
 
 @dataclasses.dataclass(frozen=True)
+class TrialVideo:
+    """Where one camera's video of one trial is: ``file``, from its frame ``first_frame`` on, for
+    ``num_frames`` frames (None: to the end of the file), and its WAV soundtrack ``audio`` if it has one
+    beside it (None: the default ``trials/<trial>/<camera>.wav``, else the video's own audio track)."""
+
+    file: Path
+    first_frame: int = 0
+    num_frames: int | None = None
+    audio: Path | None = None
+
+
+@dataclasses.dataclass(frozen=True)
 class CaptureCamera:
     """One body camera: its name, the body segment it is strapped to, and its intrinsics."""
 
@@ -106,6 +126,8 @@ class Capture:
         trials: trial names (e.g. ``("rom", "capture")``).
         reference_photos: paths of the reference photos (sorted); reference_camera their intrinsics
             (``None`` without ``reference/camera.json``; the pinhole ``.yml`` beside it is not read).
+        videos: ``{(trial, camera): TrialVideo}`` where ``rig.json`` places a video elsewhere than
+            ``trials/<trial>/<camera>.mp4`` or gives only a stretch of it.
     """
 
     path: Path
@@ -117,6 +139,7 @@ class Capture:
     trials: tuple[str, ...]
     reference_photos: tuple[Path, ...]
     reference_camera: CameraModel | None
+    videos: dict = dataclasses.field(default_factory=dict)
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -137,11 +160,47 @@ class Capture:
             raise ValueError(f"{self.path}: no trial {trial!r}; trials are {list(self.trials)}")
         return trial
 
+    def trial_video(self, trial: str, camera: str | int) -> TrialVideo:
+        """Where the camera's video of the trial is (the file, the stretch of it, the WAV beside it)."""
+        name = self.cameras[self.camera_index(camera)].name
+        default = self.path / "trials" / self._trial(trial) / f"{name}.mp4"
+        return self.videos.get((trial, name), TrialVideo(default))
+
     def video_path(self, trial: str, camera: str | int) -> Path:
-        return self.path / "trials" / self._trial(trial) / f"{self.cameras[self.camera_index(camera)].name}.mp4"
+        return self.trial_video(trial, camera).file
 
     def audio_path(self, trial: str, camera: str | int) -> Path:
-        return self.path / "trials" / self._trial(trial) / f"{self.cameras[self.camera_index(camera)].name}.wav"
+        """The trial's WAV soundtrack, which need not exist (the video's own audio track is used then)."""
+        source = self.trial_video(trial, camera)
+        if source.audio is not None:
+            return source.audio
+        return self.path / "trials" / trial / f"{self.cameras[self.camera_index(camera)].name}.wav"
+
+    def soundtrack(self, trial: str, camera: str | int) -> tuple[np.ndarray, int]:
+        """The camera's audio of the trial: ``(samples (N,) float64 in [-1, 1], rate)``, sample 0 at the trial's
+        first video frame. The WAV beside the video when there is one, else the video's own audio track.
+
+        Raises:
+            ValueError: naming the files when there is neither, or the one there is cannot be read.
+        """
+        from ..io.media import read_audio_track
+        from ..io.wav import read_wav
+
+        source = self.trial_video(trial, camera)
+        wav = self.audio_path(trial, camera)
+        if wav.is_file():
+            samples, rate = read_wav(wav)
+            lo = int(round(source.first_frame * rate / self.fps))
+            hi = None if source.num_frames is None else int(round((source.first_frame + source.num_frames) * rate / self.fps))
+            return samples[lo:hi], rate
+        if not source.file.is_file():
+            raise ValueError(f"{wav}: soundtrack missing, and so is the video {source.file}")
+        start = source.first_frame / self.fps
+        stop = None if source.num_frames is None else (source.first_frame + source.num_frames) / self.fps
+        try:
+            return read_audio_track(source.file, start, stop)
+        except ValueError as err:
+            raise ValueError(f"{wav}: soundtrack missing, and the video's own audio cannot be used ({err})") from None
 
     def _open(self, trial: str, camera: str | int):
         import cv2
@@ -155,11 +214,15 @@ class Capture:
         return path, video
 
     def video_info(self, trial: str, camera: str | int) -> VideoInfo:
+        """The trial's video: its frame count (of the stretch ``rig.json`` gives, if it gives one), size and rate."""
         import cv2
 
+        source = self.trial_video(trial, camera)
         _, video = self._open(trial, camera)
         try:
-            return VideoInfo(int(video.get(cv2.CAP_PROP_FRAME_COUNT)), int(video.get(cv2.CAP_PROP_FRAME_WIDTH)),
+            count = int(video.get(cv2.CAP_PROP_FRAME_COUNT))
+            count = max(count - source.first_frame, 0) if source.num_frames is None else source.num_frames
+            return VideoInfo(count, int(video.get(cv2.CAP_PROP_FRAME_WIDTH)),
                              int(video.get(cv2.CAP_PROP_FRAME_HEIGHT)), float(video.get(cv2.CAP_PROP_FPS)))
         finally:
             video.release()
@@ -170,7 +233,8 @@ class Capture:
         before ``stop`` (BGR ``uint8 (H, W, 3)``, or ``(H, W)`` with ``gray``).
 
         Frames in between are grabbed without being decoded to images. The video is opened when
-        iteration begins and closed when it ends.
+        iteration begins and closed when it ends. Indices count from the trial's first frame (frame
+        ``first_frame`` of the file when the trial is a stretch of a longer video, reached by grabbing).
 
         Raises:
             ValueError: naming the video if it is missing or unreadable, or if it ends before its first
@@ -180,8 +244,15 @@ class Capture:
 
         if stride < 1 or start < 0:
             raise ValueError(f"frames: stride must be >= 1 and start >= 0, got stride={stride}, start={start}")
+        source = self.trial_video(trial, camera)
+        if source.num_frames is not None:
+            stop = source.num_frames if stop is None else min(stop, source.num_frames)
         path, video = self._open(trial, camera)
         try:
+            for skipped in range(source.first_frame):  # exact: OpenCV's seeking may land near, not on, a frame
+                if not video.grab():
+                    raise ValueError(f"{path}: ends after {skipped} frames, before the trial's first frame "
+                                     f"{source.first_frame} (rig.json)")
             index = 0
             while stop is None or index < stop:
                 wanted = index >= start and (index - start) % stride == 0
@@ -248,10 +319,12 @@ def read_capture(path: str | os.PathLike, *, check_files: bool = True) -> Captur
     if not isinstance(entries, list) or not entries:
         raise ValueError(f"{rig_path}: field 'cameras' must be a non-empty list")
     cameras = []
+    videos: dict[tuple[str, str], TrialVideo] = {}
     for i, entry in enumerate(entries):
         if not isinstance(entry, dict) or "name" not in entry or "segment" not in entry:
             raise ValueError(f"{rig_path}: cameras[{i}] needs fields 'name' and 'segment'")
         name = checked_name(entry["name"], f"cameras[{i}].name", rig_path)
+        videos.update(_trial_videos(folder, entry, i, name, trials, rig_path))
         segment = entry["segment"]
         if not isinstance(segment, str) or not segment:
             raise ValueError(f"{rig_path}: cameras[{i}].segment must be a segment name, got {segment!r}")
@@ -273,13 +346,17 @@ def read_capture(path: str | os.PathLike, *, check_files: bool = True) -> Captur
             raise ValueError(f"{rig_path}: cameras {names} differ from those in {manifest_path}: {listed!r}")
 
     if check_files:
+        from ..io.media import probe_media
+
         for trial in trials:
             for name in names:
-                for ext in ("mp4", "wav"):
-                    f = folder / "trials" / trial / f"{name}.{ext}"
-                    if not f.is_file():
-                        raise ValueError(f"{f}: missing ({'video' if ext == 'mp4' else 'soundtrack'} of camera "
-                                         f"{name!r} in trial {trial!r})")
+                source = videos.get((trial, name), TrialVideo(folder / "trials" / trial / f"{name}.mp4"))
+                if not source.file.is_file():
+                    raise ValueError(f"{source.file}: missing (video of camera {name!r} in trial {trial!r})")
+                wav = source.audio or folder / "trials" / trial / f"{name}.wav"
+                if not wav.is_file() and not probe_media(source.file).has_audio:
+                    raise ValueError(f"{wav}: missing (soundtrack of camera {name!r} in trial {trial!r}), and the "
+                                     f"video {source.file.name} has no audio track of its own")
 
     ref = folder / "reference"
     photos = tuple(sorted(p for p in ref.glob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png"))) if ref.is_dir() else ()
@@ -291,4 +368,36 @@ def read_capture(path: str | os.PathLike, *, check_files: bool = True) -> Captur
     if not isinstance(segments, list) or not all(isinstance(s, str) for s in segments):
         raise ValueError(f"{rig_path}: field 'segments' must be a list of names, got {segments!r}")
     return Capture(folder, manifest, float(fps), audio_rate, tuple(cameras), tuple(segments), tuple(trials), photos,
-                   ref_camera)
+                   ref_camera, videos)
+
+
+def _trial_videos(folder: Path, entry: dict, i: int, name: str, trials: list[str],
+                  rig_path: Path) -> dict[tuple[str, str], TrialVideo]:
+    """The ``video`` and ``audio`` fields of camera ``i``'s entry in ``rig.json`` (module docstring)."""
+    where = f"cameras[{i}]"
+    found = {}
+    video, audio = entry.get("video", {}), entry.get("audio", {})
+    for field, value in (("video", video), ("audio", audio)):
+        if not isinstance(value, dict):
+            raise ValueError(f"{rig_path}: {where}.{field} must map trial names to files, got {value!r}")
+        unknown = sorted(set(value) - set(trials))
+        if unknown:
+            raise ValueError(f"{rig_path}: {where}.{field} names trials {unknown} that capture.json does not list")
+    for trial in trials:
+        spec = video.get(trial, f"trials/{trial}/{name}.mp4")
+        first, count = 0, None
+        if isinstance(spec, dict):
+            first, count = spec.get("first_frame", 0), spec.get("num_frames")
+            for key, value, least in (("first_frame", first, 0), ("num_frames", count, 1)):
+                if value is None and key == "num_frames":
+                    continue
+                if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                    raise ValueError(f"{rig_path}: {where}.video.{trial}.{key} must be a whole number >= {least}, "
+                                     f"got {value!r}")
+            spec = spec.get("file")
+        file = folder / checked_relative_path(spec, f"{where}.video.{trial}", rig_path)
+        wav = (folder / checked_relative_path(audio[trial], f"{where}.audio.{trial}", rig_path)
+               if trial in audio else None)
+        if trial in video or wav is not None:
+            found[(trial, name)] = TrialVideo(file, first, count, wav)
+    return found

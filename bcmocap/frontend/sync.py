@@ -10,6 +10,10 @@ tries every duration between two candidates of any camera, keeps the one most ca
 Convention: ``offsets[c]`` is the video frame of camera ``c`` in which the first clap happens, so video
 frame ``i`` of camera ``c`` shows the common time ``i - offsets[c]`` frames after the first clap, and
 ``offsets[c] - offsets[d]`` is how many frames camera ``c`` started before camera ``d``.
+
+A camera that recorded several trials in one file has two claps per trial in its track;
+:func:`common_claps` finds them all (the candidates of every camera aligned by one shift per camera,
+so a bang only some cameras heard is outvoted), which is how ``bcmocap init`` cuts such files into trials.
 """
 
 from __future__ import annotations
@@ -19,10 +23,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..io.wav import read_wav
 from .capture import Capture
 
-__all__ = ["SyncResult", "clap_candidates", "given_offsets", "synchronize", "synchronize_tracks"]
+__all__ = ["SyncResult", "clap_candidates", "common_claps", "given_offsets", "synchronize", "synchronize_tracks"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,14 +152,77 @@ def synchronize_tracks(tracks: Sequence[np.ndarray], rate: int, fps: float, *, c
     return SyncResult(names, offsets, samples, duration, int(best_key[0]))
 
 
+def common_claps(candidates: Sequence[tuple[np.ndarray, np.ndarray]], rate: int, count: int, *,
+                 cameras: Sequence[str] | None = None, tolerance_s: float = 0.05) -> np.ndarray:
+    """The ``count`` claps most cameras heard, in each camera's track: ``(C, count)`` first samples, sorted in time.
+
+    Each camera's candidates (``clap_candidates(track, rate, max_count=count + 8)``, one track at a time so
+    that long recordings need not be in memory together) are aligned with a
+    reference camera's by the one shift (its start time) that matches most of them within ``tolerance_s``
+    (loose enough for the clocks of two cameras to drift apart over a long recording). A reference
+    candidate matched in more than half of the cameras is a clap; with every camera as the reference in
+    turn, the one whose claps most cameras agree on wins, and the ``count`` best supported (then loudest)
+    claps are kept. A camera that missed a clap gets it at the reference's time plus its shift.
+
+    Args:
+        candidates: ``(onsets, levels)`` per camera (:func:`clap_candidates` of its track, which starts at
+            its first video frame).
+        rate: sample rate (Hz); count: the number of claps to find (two per trial).
+        cameras: names for the error message (default ``"0", "1", …``).
+
+    Raises:
+        ValueError: fewer than ``count`` claps are heard by more than half of the cameras.
+    """
+    cands = [(np.asarray(o, np.int64), np.asarray(v, np.float64)) for o, v in candidates]
+    names = tuple(cameras) if cameras is not None else tuple(str(i) for i in range(len(cands)))
+    if not cands or len(names) != len(cands) or count < 1:
+        raise ValueError(f"common_claps: {len(cands)} cameras' candidates for {len(names)} names, count {count}")
+    tol = tolerance_s * rate
+    best = None
+    for r, (ref, ref_levels) in enumerate(cands):
+        if not len(ref):
+            continue
+        matched = np.full((len(cands), len(ref)), -1, np.int64)  # each camera's candidate for each reference one
+        shifts = np.zeros(len(cands), np.int64)
+        for c, (onsets, _) in enumerate(cands):
+            if not len(onsets):
+                continue
+            pair_shifts = (onsets[:, None] - ref[None, :]).ravel()  # (S,): every pairing's start-time shift
+            error = np.abs(onsets[None, :, None] - pair_shifts[:, None, None] - ref[None, None, :]).min(axis=1)  # (S, J)
+            hits = (error <= tol).sum(axis=1) - 1e-9 * np.where(error <= tol, error, 0).sum(axis=1)
+            shifts[c] = pair_shifts[int(np.argmax(hits))]
+            close = np.abs(onsets[:, None] - shifts[c] - ref[None, :])
+            nearest = np.argmin(close, axis=0)
+            ok = close[nearest, np.arange(len(ref))] <= tol
+            matched[c, ok] = onsets[nearest[ok]]
+        support = (matched >= 0).sum(axis=0)
+        claps = np.flatnonzero(2 * support > len(cands))
+        order = np.lexsort((-ref_levels[claps], -support[claps]))[:count]
+        keep = np.sort(claps[order])
+        key = (len(keep) >= count, int(support[keep].sum()), float(ref_levels[keep].sum()))
+        if best is None or key > best[0]:
+            samples = np.where(matched[:, keep] >= 0, matched[:, keep], ref[keep][None, :] + shifts[:, None])
+            deaf = [names[c] for c in range(len(cands)) if not (matched[c, keep] >= 0).any()]
+            best = (key, samples, len(keep), deaf)
+    if best is None or not best[0][0]:
+        found = 0 if best is None else best[2]
+        raise ValueError(f"found {found} claps heard by more than half of the cameras {list(names)}, expected {count} "
+                         "(two per trial); give the trials' times instead")
+    if best[3]:  # their start times cannot be told from the others'
+        raise ValueError(f"cameras {best[3]} heard none of the {count} claps the other cameras agree on; give the "
+                         "trials' times instead")
+    return best[1]
+
+
 def synchronize(capture: Capture, trial: str, **options) -> SyncResult:
-    """Frame offsets of one trial of a capture from its soundtracks (``trials/<trial>/<camera>.wav``)."""
+    """Frame offsets of one trial of a capture from its soundtracks (:meth:`~.capture.Capture.soundtrack`: the
+    WAV beside each video, ``trials/<trial>/<camera>.wav``, else the video's own audio track)."""
     tracks, rate = [], None
     for name in capture.camera_names:
+        samples, r = capture.soundtrack(trial, name)
         path = capture.audio_path(trial, name)
         if not path.is_file():
-            raise ValueError(f"{path}: soundtrack missing")
-        samples, r = read_wav(path)
+            path = capture.video_path(trial, name)
         if not len(samples):
             raise ValueError(f"{path}: the soundtrack holds no samples")
         if rate is not None and r != rate:

@@ -24,8 +24,11 @@ Folder layout (``CAPTURE_DIR``)::
                                   loop around the capture area (JPEG quality 95)
     reference/camera.json, .yml   their pinhole intrinsics (same conventions; .yml with
                                   camera_matrix and 5 zero distortion_coefficients)
-    trials/<trial>/<camera>.mp4   one video per body camera (MPEG-4 part 2, "mp4v", via OpenCV)
-    trials/<trial>/<camera>.wav   that camera's soundtrack (mono 16-bit PCM), same start as the video
+    trials/<trial>/<camera>.mp4   one video per body camera: MPEG-4 part 2 ("mp4v", via OpenCV) with the
+    trials/<trial>/<camera>.wav   camera's soundtrack (mono 16-bit PCM, same start as the video) beside it
+                                  (container "mp4v-wav", the default); or, with container "mp4-aac",
+                                  H.264 video and the soundtrack as an AAC track in the same file, as a
+                                  real action camera writes it (PyAV, bcmocap.io.media), and no WAV
     trials/<trial>/imu.npz        the IMU in every body camera (gyro, accelerometer, their mounts) and
     trials/<trial>/contacts.npz   foot-contact flags, from the first clap to the second on the claps'
                                   clock (formats: bcmocap.io.sensors; simulation: bcmocap.sim.sensors,
@@ -54,10 +57,14 @@ claps at trial frames ``clap_frames = (-lead, T - 1 + lead)``, i.e. at sample
 recording at random whole frames apart (up to 0.5 s), so synchronising by the claps recovers frame
 offsets exactly. World frame Z up, metres; rotations as wxyz quaternions; camera frames as OpenCV.
 
-Why a WAV beside each MP4: OpenCV's VideoWriter writes video streams only, and muxing audio into the MP4
-would need an ffmpeg binary (a system install, or a pip wheel that ships one, such as imageio-ffmpeg): a
-new binary dependency for one feature. Readers that want one file can mux with
-``ffmpeg -i c.mp4 -i c.wav -c:v copy -c:a aac out.mp4``.
+Containers: OpenCV's VideoWriter writes video streams only, so the default ("mp4v-wav") keeps a WAV beside
+each mp4v video; every figure in the README was measured on such captures. "mp4-aac" writes what a camera
+writes, H.264 + AAC in one file, through PyAV (FFmpeg's libraries in its wheels), so that a studio folder
+and a real shoot assembled by ``bcmocap init`` look alike; the frontend reads both (the soundtrack is the
+WAV beside the video when there is one, else the video's own audio track). It is not the default because
+it changes every rendered pixel the frontend sees (H.264 at CRF 16 instead of mp4v) and so every figure
+measured on a default capture, and it encodes more slowly than mp4v (x264 on one thread, so that the
+same settings still write the same bytes).
 
 Resuming: videos and tracks are written under temporary names and renamed when complete; running again
 with the same settings skips every complete camera. A non-empty folder that is not a capture, or a
@@ -110,6 +117,7 @@ __all__ = [
 CAPTURE_FORMAT = "bcmocap-capture"
 CAPTURE_VERSION = 1
 TRIALS = ("rom", "capture")
+CONTAINERS = ("mp4v-wav", "mp4-aac")
 _BATCH = 4  # frames rendered per call (one compilation per camera size)
 _LEAD_S = 0.25  # clap before the first / after the last trial frame
 _ROLL_S = 0.1  # recording before the first clap / after the last one, plus the random offsets
@@ -137,6 +145,8 @@ class StudioSettings:
         motion_blur, rolling_shutter: rendering effects (:class:`~bcmocap.sim.render.RenderOptions`).
         audio_rate: sample rate of the soundtracks (Hz).
         markers_per_segment: Vicon-style markers on each body capsule.
+        container: "mp4v-wav" (mp4v video and a WAV beside it) or "mp4-aac" (H.264 video with the
+            soundtrack as an AAC track in the same MP4; width and height even).
     """
 
     motion: str = "walk"
@@ -155,12 +165,18 @@ class StudioSettings:
     rolling_shutter: bool = False
     audio_rate: int = 48000
     markers_per_segment: int = 3
+    container: str = "mp4v-wav"
 
     def __post_init__(self):
         if self.motion not in CMU_TRIALS:
             raise ValueError(f"StudioSettings.motion must be one of {sorted(CMU_TRIALS)}, got {self.motion!r}")
         if self.lens not in ("fov", "opencv_fisheye"):
             raise ValueError(f"StudioSettings.lens must be 'fov' or 'opencv_fisheye', got {self.lens!r}")
+        if self.container not in CONTAINERS:
+            raise ValueError(f"StudioSettings.container must be one of {CONTAINERS}, got {self.container!r}")
+        if self.container == "mp4-aac" and (int(self.width) % 2 or int(self.height) % 2):
+            raise ValueError(f"StudioSettings: H.264 (container 'mp4-aac') needs an even width and height, got "
+                             f"{self.width} x {self.height}")
         for name, most in (("seconds", MAX_SECONDS), ("rom_seconds", MAX_SECONDS), ("fps", MAX_FPS)):
             if not 0 < getattr(self, name) <= most:  # also refuses NaN
                 raise ValueError(f"StudioSettings.{name} must be in (0, {most:g}], got {getattr(self, name)}")
@@ -500,7 +516,10 @@ def _check_folder(path: Path, settings: StudioSettings) -> bool:
             f"{path} is not empty and is not a bcmocap capture (no valid capture.json): refusing to write into it; "
             "choose an empty or new folder"
         )
-    if data.get("version") != CAPTURE_VERSION or data.get("settings") != json.loads(json.dumps(settings.to_dict())):
+    stored = data.get("settings")
+    if isinstance(stored, dict):  # a capture written before a setting existed was written with its default
+        stored = {"container": "mp4v-wav", **stored}
+    if data.get("version") != CAPTURE_VERSION or stored != json.loads(json.dumps(settings.to_dict())):
         raise FileExistsError(
             f"{path} holds a capture written with other settings ({data.get('settings')}); refusing to mix "
             "captures: choose another folder or repeat the same settings to resume"
@@ -525,31 +544,48 @@ def capsule_ends(skeleton: Skeleton, motion: Motion) -> tuple[np.ndarray, np.nda
 
 
 class _VideoSink:
-    """An mp4v video written under a temporary name and renamed when closed (calls run on one writer thread)."""
+    """A video written under a temporary name and renamed when closed (calls run on one writer thread): mp4v
+    through OpenCV, or with a soundtrack H.264 + AAC in one file through PyAV."""
 
-    def __init__(self, path: Path, fps: float, size: tuple[int, int]):
-        import cv2
-
+    def __init__(self, path: Path, fps: float, size: tuple[int, int], audio: tuple[np.ndarray, int] | None = None):
         self.path = path
         self.tmp = path.with_name(f".{path.stem}.partial.mp4")
+        if audio is not None:
+            from ..io.media import MediaWriter
+
+            samples, rate = audio
+            self.media = MediaWriter(self.tmp, fps, size, rate)
+            self.media.write_audio(samples)
+            return
+        import cv2
+
+        self.media = None
         self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), size)
         if not self.writer.isOpened():
             raise RuntimeError(f"{self.tmp}: OpenCV cannot open an mp4v video writer")
 
     def write(self, frames_rgb: list[np.ndarray]) -> None:
+        if self.media is not None:
+            self.media.write(frames_rgb)
+            return
         for frame in frames_rgb:
             self.writer.write(np.ascontiguousarray(frame[..., ::-1]))
 
     def close(self) -> None:
-        self.writer.release()
+        if self.media is not None:
+            self.media.close()
+        else:
+            self.writer.release()
         os.replace(self.tmp, self.path)
 
 
 def _render_camera_trial(plan: _Plan, renderer: Renderer, trial_index: int, trial: str, camera: int,
                          poses: np.ndarray, capsules: tuple, folder: Path, pool: concurrent.futures.Executor,
-                         advance: Callable[[int], None]) -> concurrent.futures.Future:
+                         advance: Callable[[int], None],
+                         audio: tuple[np.ndarray, int] | None = None) -> concurrent.futures.Future:
     """Render one camera's trial batch by batch while a writer thread encodes the previous batches.
 
+    ``audio`` ``(samples, rate)``: the soundtrack, written into the video file as its audio track (container "mp4-aac").
     Returns the future of the video's completion (rename to its final name).
     """
     s = plan.settings
@@ -558,7 +594,8 @@ def _render_camera_trial(plan: _Plan, renderer: Renderer, trial_index: int, tria
     head = int(timeline["video_start_frame"][camera])  # copies of frame 0 before the trial starts
     tail = int(timeline["num_video_frames"][camera]) - head - n  # copies of frame n-1 after it ends
     ends, radii, colors = capsules
-    sink = pool.submit(_VideoSink, folder / f"{plan.rig.names[camera]}.mp4", s.fps, (s.width, s.height)).result()
+    sink = pool.submit(_VideoSink, folder / f"{plan.rig.names[camera]}.mp4", s.fps, (s.width, s.height),
+                       audio).result()
     writes: list[concurrent.futures.Future] = []
     for first in range(0, n, _BATCH):
         frames = np.minimum(np.arange(first, first + _BATCH), n - 1)
@@ -622,9 +659,11 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
         (folder / sub).mkdir(parents=True, exist_ok=True)
     _write_static_files(folder, plan)
 
+    embedded = s.container == "mp4-aac"
+
     def written(trial: str, camera: int) -> bool:
         base = folder / "trials" / trial / rig.names[camera]
-        return base.with_suffix(".mp4").exists() and base.with_suffix(".wav").exists()
+        return base.with_suffix(".mp4").exists() and (embedded or base.with_suffix(".wav").exists())
 
     todo = [(ti, t, c) for ti, t in enumerate(TRIALS) for c in range(rig.num_cameras) if not written(t, c)]
     photos = [i for i in range(len(plan.reference_poses)) if not (folder / "reference" / f"photo_{i:03d}.jpg").exists()]
@@ -656,9 +695,12 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
             if key not in renderers:
                 renderers[key] = Renderer(plan.scene, cam, options)
             out = folder / "trials" / trial
-            _write_soundtrack(out, plan, trial_index, trial, camera)
+            track = _soundtrack(plan, trial_index, trial, camera)
+            if not embedded:
+                write_wav(out / f"{rig.names[camera]}.wav", track, s.audio_rate)
             closing.append(_render_camera_trial(plan, renderers[key], trial_index, trial, camera, poses[:, camera],
-                                                capsules, out, pool, bar.update))
+                                                capsules, out, pool, bar.update,
+                                                (track, s.audio_rate) if embedded else None))
             timings[f"frames:{trial}"] += plan.trials[trial].num_frames
         for done in closing:
             done.result()
@@ -674,15 +716,15 @@ def _clap_samples(timeline: dict[str, np.ndarray], settings: StudioSettings) -> 
     return np.round(frames * settings.audio_rate / settings.fps).astype(np.int64)
 
 
-def _write_soundtrack(folder: Path, plan: _Plan, trial_index: int, trial: str, camera: int) -> None:
+def _soundtrack(plan: _Plan, trial_index: int, trial: str, camera: int) -> np.ndarray:
+    """One camera's soundtrack of one trial (samples in [-1, 1] at ``audio_rate``, sample 0 at video frame 0)."""
     s = plan.settings
     tl = plan.timelines[trial]
     per_frame = s.audio_rate / s.fps
     num_samples = int(round(int(tl["num_video_frames"][camera]) * per_frame))
     claps = _clap_samples(tl, s)[camera].tolist()
-    track = soundtrack(num_samples, claps, s.audio_rate, _rng(s.seed, 2, trial_index, camera),
-                       gain=float(tl["audio_gain"][camera]))
-    write_wav(folder / f"{plan.rig.names[camera]}.wav", track, s.audio_rate)
+    return soundtrack(num_samples, claps, s.audio_rate, _rng(s.seed, 2, trial_index, camera),
+                      gain=float(tl["audio_gain"][camera]))
 
 
 def _write_reference_photos(folder: Path, plan: _Plan, todo: list[int], advance: Callable[[int], None]) -> None:
@@ -717,9 +759,11 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
         fitted, err = fit_opencv_fisheye(cam)
         _write_opencv_yaml(folder / "intrinsics" / f"{name}.yml", fitted)
         _write_json(folder / "intrinsics" / f"{name}.json", {**camera_to_dict(cam), "opencv_fisheye_fit_max_error_px": err})
-        cameras.append({"name": name, "segment": skeleton.names[rig.segments[c]], "intrinsics": f"intrinsics/{name}.yml",
-                        "lens": f"intrinsics/{name}.json", "video": {t: f"trials/{t}/{name}.mp4" for t in TRIALS},
-                        "audio": {t: f"trials/{t}/{name}.wav" for t in TRIALS}})
+        entry = {"name": name, "segment": skeleton.names[rig.segments[c]], "intrinsics": f"intrinsics/{name}.yml",
+                 "lens": f"intrinsics/{name}.json", "video": {t: f"trials/{t}/{name}.mp4" for t in TRIALS}}
+        if s.container == "mp4v-wav":  # with "mp4-aac" the soundtrack is the video's own audio track
+            entry["audio"] = {t: f"trials/{t}/{name}.wav" for t in TRIALS}
+        cameras.append(entry)
     _write_json(folder / "rig.json", {"cameras": cameras, "segments": list(skeleton.names)})
     _write_json(folder / "reference" / "camera.json", camera_to_dict(plan.reference_camera))
     _write_opencv_yaml(folder / "reference" / "camera.yml", plan.reference_camera)

@@ -15,9 +15,10 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
         "simulate",
         help="render a synthetic capture folder (fisheye videos with audio, reference photos, intrinsics, rig) and its ground truth",
         description="Render the standard 18-camera capture of a CMU motion in a textured room: one MP4 and one WAV "
-        "(clapper-board claps, random start per camera) per body camera for a range-of-motion trial and the capture "
-        "trial, hand-held reference photos, calibration files, the rig, and ground truth beside it "
-        "(layout: bcmocap.sim.studio). The same arguments write the same files; running again resumes.",
+        "(clapper-board claps, random start per camera; --container mp4-aac: one MP4 with the audio inside) per "
+        "body camera for a range-of-motion trial and the capture trial, hand-held reference photos, calibration "
+        "files, the rig, and ground truth beside it (layout: bcmocap.sim.studio). The same arguments write the "
+        "same files; running again resumes.",
     )
     cmd.add_argument("capture_dir", metavar="CAPTURE_DIR", help="new or empty folder, or an unfinished capture to resume")
     cmd.add_argument("--motion", default="walk", choices=["walk", "run", "jump"], help="bundled CMU trial (default walk)")
@@ -34,6 +35,9 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--reference-size", default="1024x768", metavar="WxH", help="reference photo size (default 1024x768)")
     cmd.add_argument("--motion-blur", action="store_true", help="render motion blur (4 sub-exposures, half-frame shutter)")
     cmd.add_argument("--rolling-shutter", action="store_true", help="expose rows one after another (0.8 frame readout)")
+    cmd.add_argument("--container", default="mp4v-wav", choices=["mp4v-wav", "mp4-aac"],
+                     help="mp4v-wav (default): an mp4v video and a WAV soundtrack beside it; mp4-aac: H.264 video with "
+                          "the soundtrack as an AAC track in the same MP4, as a real camera writes it (through PyAV)")
     cmd.add_argument("--no-progress", action="store_true", help="no progress bar")
     cmd.add_argument("--sensors-only", action="store_true",
                      help="only add trials/<trial>/imu.npz and contacts.npz to the existing capture CAPTURE_DIR from its "
@@ -70,7 +74,7 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
                 motion=args.motion, seconds=args.seconds, rom_seconds=args.rom_seconds, seed=args.seed, fps=args.fps,
                 width=args.width, height=args.height, lens=args.lens, reference_photos=args.reference_photos,
                 reference_width=ref_w, reference_height=ref_h,
-                motion_blur=args.motion_blur, rolling_shutter=args.rolling_shutter,
+                motion_blur=args.motion_blur, rolling_shutter=args.rolling_shutter, container=args.container,
             )
         except ValueError as err:
             cmd.error(str(err))
