@@ -91,3 +91,36 @@ def test_config_user_terms(tmp_path):
         path.write_text(text)
         with pytest.raises(ValueError, match=message):
             load_config(path)
+
+
+def test_camera_effects_choose_the_reprojection_and_add_their_priors():
+    """Rolling shutter, self-calibration and mount compliance (the run config's solver keys) become the terms that
+    model them, with priors on what they estimate; the paper's terms are the default."""
+    from bcmocap.pipeline.run import camera_effects
+    from bcmocap.residuals import Reprojection
+    from bcmocap.residuals.rolling_shutter import READOUT, RollingShutterReprojection
+    from bcmocap.residuals.self_calibration import INTRINSICS_CORRECTION, SelfCalibratingReprojection
+    from bcmocap.residuals.variables import CAMERA_OFFSETS
+    from bcmocap.sim import standard_capture
+    from bcmocap.solver.objective import paper_terms
+
+    capture = standard_capture("walk", seconds=0.1, fps=30.0)
+    corr = capture.correspondences()
+    kinds = lambda terms: [type(t).__name__ for t in terms]  # noqa: E731
+    assert kinds(paper_terms(corr, capture.skeleton))[0] == Reprojection.__name__
+    config = RunConfig.from_dict({"solver": {"rolling_shutter_readout": 0.02, "estimate_readout": True,
+                                             "self_calibration": True, "mount_compliance": [0.003, 2.0]}})
+    terms = paper_terms(corr, capture.skeleton, effects=camera_effects(config.solver))
+    shutter = terms[0]
+    assert isinstance(shutter, RollingShutterReprojection) and shutter.calibrate and shutter.estimate_readout
+    assert float(shutter.readout) == pytest.approx(0.02 * corr.fps)
+    declared = {name for t in terms for name in t.static_variables()}
+    assert declared == {READOUT, INTRINSICS_CORRECTION}
+    assert {name for t in terms for name in t.frame_variables()} == {CAMERA_OFFSETS}
+    assert {"readout prior", "intrinsics prior", "mount compliance", "mount smoothness"} <= {t.label for t in terms}
+    only_calibration = paper_terms(corr, capture.skeleton,
+                                   effects=camera_effects(RunConfig.from_dict({"solver": {"self_calibration": True}}).solver))
+    assert isinstance(only_calibration[0], SelfCalibratingReprojection)
+    for bad in ({"mount_compliance": [0.003, 0.0]}, {"rolling_shutter_readout": 2.0}):
+        with pytest.raises(ValueError, match="solver\\.(mount_compliance|rolling_shutter_readout)"):
+            RunConfig.from_dict({"solver": bad})

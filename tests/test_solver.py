@@ -1,5 +1,6 @@
 """The windowed structured LM solver: reference solves, seams, recovery and bad input."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,9 +9,10 @@ import scipy.optimize
 
 from bcmocap.correspondences import Correspondences
 from bcmocap.eval import evaluate_motion
-from bcmocap.geometry import SE3, transform_points
+from bcmocap.geometry import SE3, SO3, transform_points
 from bcmocap.kinematics import Motion, camera_poses
 from bcmocap.residuals import CauchyLoss, FrameTerm, JointSmoothness, MultiFrameTerm, Reprojection, RootSmoothness, pair_mask
+from bcmocap.residuals.variables import CAMERA_OFFSETS, Euclidean, PerCamera, Rotation
 from bcmocap.solver import Problem, SolverOptions, motion_from_tangent, solve, whole_sequence_residual_function, window_starts
 from bcmocap.solver.objective import ObjectiveWeights, paper_problem
 
@@ -26,8 +28,12 @@ def smooth_motion(skeleton, rng):
     return skeleton.retract(jax.tree.map(lambda a: jnp.broadcast_to(a, (T, *a.shape)), base), jnp.cumsum(steps, axis=0))
 
 
-def observe(skeleton, rig, motion, points, rng, sigma=0.5, outliers=0.0):
-    cam_from_world = camera_poses(skeleton, rig, motion).inverse()
+def observe(skeleton, rig, motion, points, rng, sigma=0.5, outliers=0.0, camera_offsets=None):
+    """Noisy pixels of ``points`` in every camera; ``camera_offsets`` ``(T, C, 6)`` move the cameras on their mounts."""
+    world_from_camera = camera_poses(skeleton, rig, motion)
+    if camera_offsets is not None:
+        world_from_camera = world_from_camera @ SE3.exp(jnp.asarray(camera_offsets))
+    cam_from_world = world_from_camera.inverse()
     n = len(points)
     ids = np.full((T, rig.num_cameras, n), -1, np.int32)
     pix = np.zeros((T, rig.num_cameras, n, 2))
@@ -303,12 +309,137 @@ def test_static_variables_reach_scipys_minimum_and_are_recovered(setup):
     np.testing.assert_allclose(windowed.statics["centre_offset"], offset, atol=5e-3)
 
 
-def scipy_minimum_with_statics(problem, init, num_statics):
-    """scipy's minimum over the motion offsets and ``num_statics`` static variables together."""
+def scipy_minimum_with_statics(problem, init, num_statics, frame_size=None):
+    """scipy's minimum over each frame's ``frame_size`` variables (default: the motion's D) and ``num_statics``
+    static variables together."""
     fn = whole_sequence_residual_function(problem, init)
     jac = jax.jit(jax.jacfwd(fn))
     ref = scipy.optimize.least_squares(
-        lambda y: np.asarray(fn(y)), np.zeros(T * problem.skeleton.num_dofs + num_statics), jac=lambda y: np.asarray(jac(y)),
-        method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=200,
+        lambda y: np.asarray(fn(y)), np.zeros(T * (frame_size or problem.skeleton.num_dofs) + num_statics),
+        jac=lambda y: np.asarray(jac(y)), method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=200,
     )
     return fn, ref
+
+
+class MountCompliance(FrameTerm):
+    """Each camera may move on its mount by a per-frame offset (``CAMERA_OFFSETS``), with a prior of ``data``
+    ``(T, 6)`` standard deviations (m, rad)."""
+
+    num_cameras: int = eqx.field(static=True, kw_only=True)
+
+    def frame_variables(self):
+        return {CAMERA_OFFSETS: PerCamera(Euclidean(6), self.num_cameras)}
+
+    def residual(self, state, data):
+        return state.variables[CAMERA_OFFSETS] / data, jnp.ones(self.num_cameras, bool)
+
+
+class HeadingOfCentres(FrameTerm):
+    """Camera centres measured in a frame turned by one unknown rotation about the root (a :class:`Rotation` static,
+    as a compass's misalignment)."""
+
+    def static_variables(self):
+        return {"misalignment": Rotation()}
+
+    def residual(self, state, data):
+        centres = state.world_from_camera.translation()  # (C, 3)
+        turned = jax.vmap(SO3(state.statics["misalignment"]).apply)(centres)
+        return turned - data, jnp.ones(data.shape[0], bool)
+
+
+@pytest.mark.slow
+def test_per_frame_camera_offsets_and_rotation_statics_reach_scipys_minimum_and_resume(setup):
+    """Cameras wobbling on their mounts (per-frame offsets with a prior) and a rotation static: one window reaches
+    scipy's minimum over motion, offsets and rotation together, and a windowed solve resumed from its checkpoint
+    (motion, statics and per-frame values) equals the uninterrupted one. (With one camera per segment a camera's
+    turn is nearly that of its segment, so the prior, not the data, splits the wobble between them.)"""
+    skeleton, rig, truth, points, _, init = setup
+    rng = np.random.default_rng(21)
+    c = rig.num_cameras
+    phase = rng.uniform(0, 6, size=(1, c, 6))
+    wobble = np.array([0.002] * 3 + [0.03] * 3) * np.sin(np.arange(T)[:, None, None] + phase)  # 2 mm, 1.7°
+    ids, pix, w = observe(skeleton, rig, truth, points, rng, sigma=0.2, camera_offsets=wobble)
+    turn = np.asarray(SO3.exp(jnp.array([0.0, 0.0, 0.05])).wxyz)
+    centres = np.asarray((camera_poses(skeleton, rig, truth) @ SE3.exp(jnp.asarray(wobble))).translation())
+    seen = np.asarray(jax.vmap(jax.vmap(SO3(jnp.asarray(turn)).apply))(jnp.asarray(centres)))
+    terms = [Reprojection({"point_ids": ids, "pixels": pix, "weights": w}, points=points, name="reprojection"),
+             RootSmoothness(pair_mask(T), weight=10.0), JointSmoothness(pair_mask(T), skeleton=skeleton, weight=1.0),
+             MountCompliance(np.broadcast_to([0.01] * 3 + [0.05] * 3, (T, c, 6)), name="mount compliance", num_cameras=c),
+             HeadingOfCentres(seen + 0.002 * rng.normal(size=seen.shape), weight=1e4, name="heading")]
+    problem = Problem(skeleton, rig, terms)
+    frame_size = skeleton.num_dofs + 6 * c
+    fn, ref = scipy_minimum_with_statics(problem, init, 3, frame_size)
+    whole = solve(problem, init, SolverOptions(window=T, overlap=0, rtol=1e-10, atol=1e-12, max_steps=60))
+    assert whole.converged and abs(whole.reports[0].final_cost - ref.cost) <= 1e-6 * ref.cost
+    y = ref.x[: T * frame_size].reshape(T, frame_size)
+    np.testing.assert_allclose(whole.frame_variables[CAMERA_OFFSETS], y[:, skeleton.num_dofs :].reshape(T, c, 6), atol=1e-6)
+    np.testing.assert_allclose(whole.statics["misalignment"], np.asarray(SO3.exp(jnp.asarray(ref.x[-3:])).wxyz), atol=1e-6)
+    assert np.asarray(SO3(whole.statics["misalignment"]).log())[2] == pytest.approx(0.05, abs=2e-3)
+    assert np.abs(whole.frame_variables[CAMERA_OFFSETS]).max() > 1e-3  # the offsets moved
+
+    saved = {}
+    options = SolverOptions(window=4, overlap=2, rtol=1e-10, atol=1e-12, max_steps=60)
+    windowed = solve(problem, init, options, checkpoint=lambda i, report, so_far: saved.setdefault(i, so_far))
+    first = saved[0]
+    assert first.frame_variables[CAMERA_OFFSETS].shape == (T, c, 6) and set(first.statics) == {"misalignment"}
+    resumed = solve(problem, first.motion, options, skip_windows=1, initial_statics=first.statics,
+                    initial_frame_variables=first.frame_variables)
+    np.testing.assert_allclose(np.asarray(resumed.motion.rotations), np.asarray(windowed.motion.rotations), atol=1e-12)
+    np.testing.assert_allclose(resumed.frame_variables[CAMERA_OFFSETS], windowed.frame_variables[CAMERA_OFFSETS], atol=1e-12)
+    np.testing.assert_allclose(resumed.statics["misalignment"], windowed.statics["misalignment"], atol=1e-12)
+
+
+def rolling_shutter_observations(skeleton, rig, motion, points, readout, sigma, rng):
+    """Pixels ``(T, C, P, 2)`` of a rolling shutter: row ``r`` of ``H`` seen at ``(r/(H−1) − ½)·readout`` frames from
+    the frame's time, the body moving linearly in its tangent space between frames (not the term's model of a
+    camera at constant velocity)."""
+    num = motion.num_frames
+    forward = np.array(skeleton.difference(motion[np.arange(num)], motion[np.minimum(np.arange(num) + 1, num - 1)]))
+    backward = np.array(skeleton.difference(motion[np.maximum(np.arange(num) - 1, 0)], motion[np.arange(num)]))
+    forward[-1], backward[0] = backward[-1], forward[0]  # extrapolate at the ends
+
+    def pixels_at(s):  # s: (T, C, P) frame offsets → pixels, valid
+        step = np.where(s[..., None] >= 0, forward[:, None, None], backward[:, None, None]) * s[..., None]
+        moved = skeleton.retract(jax.tree.map(lambda a: a[:, None, None], motion), jnp.asarray(step))
+        poses = camera_poses(skeleton, rig, moved).inverse().wxyz_xyz  # (T, C, P, C, 7): every camera
+        index = np.arange(rig.num_cameras)
+        own = SE3(poses[:, index, :, index].transpose(1, 0, 2, 3))  # (T, C, P, 7): camera c of slot c
+        cam = transform_points(own, jnp.asarray(points)[None, None])
+        return jax.vmap(jax.vmap(lambda k, p: k.project(p), in_axes=(None, 0)), in_axes=(0, 1), out_axes=1)(rig.intrinsics, cam)
+
+    s = np.zeros((num, rig.num_cameras, len(points)))
+    for _ in range(12):  # a pixel's row sets its time, which sets the pixel
+        uv, valid = pixels_at(s)
+        rows = np.asarray(uv)[..., 1] / (rig.intrinsics.height - 1) - 0.5
+        s = np.clip(rows, -0.5, 0.5) * readout
+    valid = np.asarray(valid) & np.asarray(jax.vmap(lambda k, p: k.in_image(p), in_axes=(0, 1), out_axes=1)(rig.intrinsics, uv))
+    pix = np.asarray(uv) + sigma * rng.normal(size=np.shape(uv))
+    ids = np.where(valid, np.arange(len(points)), -1).astype(np.int32)
+    return ids, np.where(valid[..., None], pix, 0.0), valid / sigma**2
+
+
+@pytest.mark.slow
+def test_rolling_shutter_term_recovers_what_a_global_shutter_bends(setup):
+    """Pixels from a rolling shutter (a full frame period of readout) bend the motion a global-shutter
+    reprojection finds; the rolling-shutter term at the true readout finds it much closer to the truth (its
+    camera moves at the velocity of the previous frame interval, the body here changes speed every frame), and
+    estimating the readout from zero recovers it."""
+    from bcmocap.residuals.rolling_shutter import READOUT, RollingShutterReprojection
+    from bcmocap.residuals.self_calibration import StaticPrior
+
+    skeleton, rig, truth, points, _, init = setup
+    rng = np.random.default_rng(31)
+    ids, pix, w = rolling_shutter_observations(skeleton, rig, truth, points, 1.0, 0.05, rng)
+    data = {"point_ids": ids, "pixels": pix, "weights": w}
+    smooth = [RootSmoothness(pair_mask(T), weight=1.0), JointSmoothness(pair_mask(T), skeleton=skeleton, weight=0.1)]
+    options = SolverOptions(window=T, overlap=0, rtol=1e-10, atol=1e-12, max_steps=60)
+    frames = slice(1, None)  # the first frame has no previous one: the rolling-shutter term drops it
+    error = lambda solution: evaluate_motion(skeleton, solution.motion[frames], truth[frames])["joint_angle_error_deg"]["mean"]  # noqa: E731
+    global_shutter = solve(Problem(skeleton, rig, [Reprojection(data, points=points), *smooth]), init, options)
+    rolling = solve(Problem(skeleton, rig, [RollingShutterReprojection(data, points=points, readout=1.0), *smooth]), init, options)
+    assert error(rolling) < 0.6 * error(global_shutter), (error(rolling), error(global_shutter))
+    estimated = solve(Problem(skeleton, rig, [
+        RollingShutterReprojection(data, points=points, readout=0.0, estimate_readout=True),
+        StaticPrior(np.full(T, 1.0 / T), block=READOUT, variable=Euclidean(1), sigma=10.0), *smooth]), init, options)
+    readout = float(estimated.statics[READOUT][0])
+    assert abs(readout - 1.0) < 0.3 and error(estimated) < 0.8 * error(global_shutter), (readout, error(estimated))

@@ -36,6 +36,10 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     terms = ["reprojection", "homography", "smoothness"]
     refine_rounds = 0         # after the solve, refine bone offsets, mounts and hinge axes with the motion on
                               # the same terms (user terms included), then solve again; 0 to 5 rounds
+    rolling_shutter_readout = 0.0   # s from the first image row to the last (0: global shutter), 0 to 1
+    estimate_readout = false  # also solve for a correction to the readout (prior σ 10 ms)
+    self_calibration = false  # solve for each camera's focal length and centre (prior σ 1 %, 5 px)
+    mount_compliance = [0.0, 0.0]   # σ of each camera's per-frame offset on its mount [m, deg]; [0, 0]: rigid
 
     [[solver.user_terms]]     # a user's terms, any number of these tables (see bcmocap.solver.objective)
     factory = "mypackage.terms:imu_terms"   # 'module:name' importable from PYTHONPATH, called per window
@@ -101,6 +105,10 @@ class SolverConfig:
     loss_scale: float = 8.0
     terms: tuple[str, ...] = TERMS
     refine_rounds: int = 0
+    rolling_shutter_readout: float = 0.0
+    estimate_readout: bool = False
+    self_calibration: bool = False
+    mount_compliance: tuple[float, ...] = (0.0, 0.0)
     user_terms: tuple[UserTermConfig, ...] = ()
 
 
@@ -146,6 +154,11 @@ class RunConfig:
                s.refine_rounds)
         for name in ("root_smoothness", "joint_smoothness", "homography", "loss_scale"):
             _check(getattr(s, name) >= 0, f"solver.{name}", "must be ≥ 0", getattr(s, name))
+        _check(0.0 <= s.rolling_shutter_readout <= 1.0, "solver.rolling_shutter_readout", "must be in [0, 1] s",
+               s.rolling_shutter_readout)
+        _check(len(s.mount_compliance) == 2 and all(0.0 <= v <= 1.0 for v in s.mount_compliance[:1])
+               and all(0.0 <= v <= 30.0 for v in s.mount_compliance[1:]) and (all(s.mount_compliance) or not any(s.mount_compliance)),
+               "solver.mount_compliance", "must be [m, deg], both 0 or both > 0 (at most 1 m, 30 deg)", list(s.mount_compliance))
         _check(s.loss in LOSSES, "solver.loss", f"must be one of {LOSSES}", s.loss)
         bad = [t for t in s.terms if t not in TERMS]
         _check(not bad, "solver.terms", f"must be a subset of {TERMS}", list(s.terms))

@@ -27,6 +27,7 @@ import dataclasses
 import datetime
 import hashlib
 import json
+import math
 import os
 import time
 from collections.abc import Callable
@@ -364,15 +365,36 @@ def save_motion(path: Path, motion, **extra) -> None:
     _write_npz(path, root_position=np.asarray(motion.root_position), rotations=np.asarray(motion.rotations), **extra)
 
 
+def _solved_variables(solution) -> dict:
+    """The user terms' static and per-frame variables of a :class:`~bcmocap.solver.Solution`, as npz entries."""
+    return {**{f"static:{k}": v for k, v in solution.statics.items()},
+            **{f"frame:{k}": v for k, v in solution.frame_variables.items()}}
+
+
+def _load_solved_variables(path: Path) -> tuple[dict, dict]:
+    """``(statics, frame_variables)`` saved beside a motion by :func:`_solved_variables`."""
+    try:
+        with np.load(path) as data:
+            pick = lambda prefix: {k[len(prefix):]: data[k] for k in data.files if k.startswith(prefix)}  # noqa: E731
+            return pick("static:"), pick("frame:")
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a saved motion ({exc})") from None
+
+
 def load_motion(path: Path | str):
     """A motion saved by a run (``DIR/solve/motion.npz``, ``DIR/initial/motion.npz``, ``DIR/motion.npz``)."""
     from ..kinematics.skeleton import Motion
 
     try:
         with np.load(path) as data:
-            return Motion(data["root_position"], data["rotations"])
+            arrays = {name: data[name] for name in ("root_position", "rotations")}
     except (OSError, KeyError, ValueError) as exc:
         raise ValueError(f"{path}: not a saved motion ({exc})") from None
+    for name, a in arrays.items():  # a damaged checkpoint must not carry NaN into the solve or motion.bvh
+        if a.dtype.kind != "f" or not np.all(np.isfinite(a)):
+            where = f" at frame {np.argwhere(~np.isfinite(a))[0][0]}" if a.dtype.kind == "f" else f" (dtype {a.dtype})"
+            raise ValueError(f"{path}: {name} holds NaN or inf{where}" if a.dtype.kind == "f" else f"{path}: {name}{where}")
+    return Motion(arrays["root_position"], arrays["rotations"])
 
 
 def _stage_initial(ctx: RunContext) -> dict:
@@ -398,6 +420,15 @@ def objective_weights(s):
                             homography=s.homography, loss=s.loss, loss_scale=s.loss_scale)
 
 
+def camera_effects(s):
+    """The :class:`~bcmocap.solver.objective.CameraEffects` of a run's ``solver`` settings."""
+    from ..solver.objective import CameraEffects
+
+    return CameraEffects(readout_seconds=s.rolling_shutter_readout, estimate_readout=s.estimate_readout,
+                         self_calibration=s.self_calibration,
+                         mount_sigma=(s.mount_compliance[0], math.radians(s.mount_compliance[1])))
+
+
 def _user_terms(ctx: RunContext) -> list:
     """The ``[[solver.user_terms]]`` of the settings as :class:`~bcmocap.solver.objective.UserTerms`."""
     from ..solver.objective import UserTerms, import_term_factory
@@ -418,25 +449,28 @@ def _stage_solve(ctx: RunContext) -> dict:
     corr = CorrespondenceStore.open(ctx.path("solve", "correspondences"))
     skeleton, rig = load_model(ctx.out)
     problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None,
-                            extra_terms=_user_terms(ctx), trial_folder=ctx.capture.path / "trials" / "capture")
+                            extra_terms=_user_terms(ctx), trial_folder=ctx.capture.path / "trials" / "capture",
+                            effects=camera_effects(s))
     options = SolverOptions(window=s.window, overlap=s.overlap)
     initial = load_motion(ctx.path("solve", "initial.npz"))
     checkpoint_path, reports_path = ctx.path("solve", "checkpoint.npz"), ctx.path("solve", "checkpoint.json")
-    skip, reports = 0, []
+    skip, reports, statics, frame_variables = 0, [], {}, {}
     if checkpoint_path.exists() and reports_path.exists():
         saved = _read_json(reports_path)
         if saved.get("fingerprint") == fingerprints(ctx.config)["solve"]:
             initial = load_motion(checkpoint_path)
+            statics, frame_variables = _load_solved_variables(checkpoint_path)
             reports = saved["reports"]
             skip = len(reports)
             ctx.log(f"solve: resuming after window {skip} of {len(window_starts(corr.num_frames, min(s.window, corr.num_frames), s.overlap))}")
 
-    def save(index, report, motion):
+    def save(index, report, so_far):
         reports.append(dataclasses.asdict(report))
-        save_motion(checkpoint_path, motion)
+        save_motion(checkpoint_path, so_far.motion, **_solved_variables(so_far))
         write_json_atomic(reports_path, {"fingerprint": fingerprints(ctx.config)["solve"], "reports": reports})
 
-    solution = solve(problem, initial, options, progress=True, skip_windows=skip, checkpoint=save)
+    solution = solve(problem, initial, options, progress=True, skip_windows=skip, checkpoint=save,
+                     initial_statics=statics, initial_frame_variables=frame_variables)
     refinements = []
     for k in range(1, s.refine_rounds + 1):  # the model refined on the same problem, then solved again
         ctx.log(f"solve: refinement round {k} of {s.refine_rounds} (bone offsets, mounts, hinge axes, with the motion)")
@@ -451,7 +485,7 @@ def _stage_solve(ctx: RunContext) -> dict:
     if refinements:
         write_json_atomic(ctx.path("solve", "skeleton.json"), skeleton_to_dict(problem.skeleton))
         write_json_atomic(ctx.path("solve", "rig.json"), rig_to_dict(problem.rig, problem.skeleton))
-    save_motion(ctx.path("solve", "motion.npz"), solution.motion)
+    save_motion(ctx.path("solve", "motion.npz"), solution.motion, **_solved_variables(solution))
     write_json_atomic(ctx.path("solve", "reports.json"), {"windows": reports, "refinements": refinements})
     return {"windows": len(reports), "converged": all(r["converged"] for r in reports), "refinement_rounds": len(refinements)}
 

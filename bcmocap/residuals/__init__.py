@@ -5,11 +5,14 @@ from .homography import HomographyTransfer
 from .losses import CauchyLoss, HuberLoss, RobustLoss, TrivialLoss, loss_from_name
 from .reprojection import Reprojection
 from .smoothness import JointSmoothness, RootSmoothness, pair_mask
+from .variables import CAMERA_OFFSETS, Euclidean, PerCamera, Rotation, Variable
 
 __all__ = [
+    "CAMERA_OFFSETS",
     "CameraPairTerm",
     "CameraTerm",
     "CauchyLoss",
+    "Euclidean",
     "FrameState",
     "FrameTerm",
     "HomographyTransfer",
@@ -17,11 +20,14 @@ __all__ = [
     "JointSmoothness",
     "MultiFrameTerm",
     "PairTerm",
+    "PerCamera",
     "Reprojection",
     "RobustLoss",
     "RootSmoothness",
+    "Rotation",
     "Term",
     "TrivialLoss",
+    "Variable",
     "camera_slot_count",
     "camera_slots",
     "loss_from_name",

@@ -20,9 +20,14 @@ and multiplies by ``sqrt(weight)`` (the λ of Eq. 1), so a term's contribution t
 ``weight · ½ Σ ρ(‖r‖²)`` over valid blocks. Per-measurement weights or square-root information
 matrices belong in the data and are applied inside the residual function (whitening).
 
-Camera terms are differentiated with respect to the 6-DOF camera pose only; the solver chains that
-with the Jacobian of the camera pose with respect to the frame's root pose and joint angles. That is
-exact and much cheaper than differentiating every measurement with respect to every joint.
+Camera terms are differentiated with respect to the 6-DOF camera pose only (plus the static variables
+they declare); the solver chains that with the Jacobian of the camera pose with respect to the frame's
+root pose, joint angles and per-frame variables. That is exact and much cheaper than differentiating
+every measurement with respect to every joint.
+
+Besides the motion, a term may declare variable blocks of its own (:mod:`.variables`): static ones, one
+value per window (:meth:`Term.static_variables`: a bias, a readout time, a lens correction), and
+per-frame ones (:meth:`Term.frame_variables`: a camera's wobble on its mount), each with its manifold.
 
 Camera slots: when only a few cameras per frame have data for a camera term (homography pairs exist
 only where a camera could not register), its data may be a dict with the reserved key ``"camera"``:
@@ -45,6 +50,7 @@ from ..cameras import CameraModel
 from ..geometry import SE3
 from ..kinematics.skeleton import Motion
 from .losses import RobustLoss, TrivialLoss
+from .variables import Variable
 
 
 class FrameState(eqx.Module):
@@ -54,14 +60,17 @@ class FrameState(eqx.Module):
         motion: the frame's root position and rotations (batch shape ``()``).
         world_from_segment: SE3 with batch shape ``(J,)``.
         world_from_camera: SE3 with batch shape ``(C,)`` (empty if the problem has no rig).
-        statics: the window's static variables by name (``(n,)`` each, the same at every frame): what terms
-            declare in :meth:`Term.static_variables`, e.g. an accelerometer bias or a mount correction.
+        statics: the window's static variables by name (each of its block's value shape, the same at every
+            frame): what terms declare in :meth:`Term.static_variables`, e.g. an accelerometer bias.
+        variables: the frame's own variables by name (per-frame blocks, :meth:`Term.frame_variables`).
+            ``world_from_camera`` already includes :data:`~.variables.CAMERA_OFFSETS` when a term declares it.
     """
 
     motion: Motion
     world_from_segment: SE3
     world_from_camera: SE3
     statics: dict = eqx.field(default_factory=dict)
+    variables: dict = eqx.field(default_factory=dict)
 
 
 class Term(eqx.Module):
@@ -127,14 +136,30 @@ class Term(eqx.Module):
                 idx = tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])
                 raise ValueError(f"{self.label}: data{jax.tree_util.keystr(path)} has NaN/inf at index {idx}")
 
-    def static_variables(self) -> dict[str, int]:
-        """Static variable blocks this term reads from ``state.statics``: ``{name: size}``.
+    def static_variables(self) -> dict[str, int | Variable]:
+        """Static variable blocks this term reads: ``{name: size or Variable}`` (a size is ``Euclidean``).
 
-        Static variables are vectors (Euclidean) shared by every frame of a window — a sensor bias, a
-        calibration correction — solved with the motion: the solver eliminates them by a Schur complement
-        (so they cost ``O(size)`` extra banded solves per step), starts them at 0 in the first window and
-        carries each window's estimate into the next. Terms that name the same variable share it. Only
-        frame, pair and multi-frame terms can read them (camera terms see camera poses only).
+        Static variables are shared by every frame of a window — a sensor bias, a readout time, a lens
+        correction (:class:`~.variables.PerCamera`), a sensor-to-camera rotation (:class:`~.variables.Rotation`)
+        — and solved with the motion: the solver eliminates them by a Schur complement (``O(size)`` extra
+        banded solves per step), starts them at the block's start value (0, identity) in the first window and
+        carries each window's estimate into the next. Terms that name the same block share it.
+
+        Frame, pair and multi-frame terms read them from ``state.statics``. A camera term that declares any
+        receives them as one more argument of ``residual`` (``residual(cam_from_world, camera, data, statics)``;
+        pair: ``residual(prev, curr, camera, data, statics)``), a :class:`~.variables.PerCamera` block reduced
+        to its own camera's value.
+        """
+        return {}
+
+    def frame_variables(self) -> dict[str, int | Variable]:
+        """Per-frame variable blocks this term reads from ``state.variables``: ``{name: size or Variable}``.
+
+        They join each frame's variables (the block-banded system's blocks grow by their size), start at the
+        block's start value, and ``Solution.frame_variables`` holds them for every frame. Terms that name the
+        same block share it; one term must give each block a prior, or nothing determines it.
+        :data:`~.variables.CAMERA_OFFSETS` moves the cameras on their mounts, so camera terms see it through
+        the camera poses; camera terms cannot declare per-frame blocks themselves.
         """
         return {}
 
@@ -250,7 +275,8 @@ class CameraTerm(Term):
 
     @abc.abstractmethod
     def residual(self, cam_from_world: SE3, camera: CameraModel, data: Any) -> tuple[jax.Array, jax.Array]:
-        """Args: one camera's pose (batch ``()``), its intrinsics and data slice ``data[t, c]``."""
+        """Args: one camera's pose (batch ``()``), its intrinsics and data slice ``data[t, c]`` (and the term's
+        static variables, when it declares any: see :meth:`Term.static_variables`)."""
 
     def world_points(self, data: Any) -> jax.Array | None:
         """``(n, 3)`` world points whose camera-frame positions alone determine the residuals, or None."""

@@ -27,6 +27,10 @@ from ..correspondences import Correspondences
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Skeleton
 from ..residuals import HomographyTransfer, camera_slot_count, camera_slots, JointSmoothness, Reprojection, RootSmoothness, Term, loss_from_name, pair_mask
+from ..residuals.mount_compliance import MountCompliance, MountSmoothness
+from ..residuals.rolling_shutter import READOUT, RollingShutterReprojection
+from ..residuals.self_calibration import INTRINSICS_CORRECTION, SelfCalibratingReprojection, StaticPrior, intrinsics_correction
+from ..residuals.variables import Euclidean
 from .solve import Problem
 
 
@@ -50,6 +54,61 @@ class ObjectiveWeights:
     loss_scale: float = 8.0
 
 
+@dataclasses.dataclass(frozen=True)
+class CameraEffects:
+    """What the objective models beyond the paper's rigid, global-shutter, exactly calibrated cameras.
+
+    Attributes:
+        readout_seconds: rolling-shutter readout, first row to last (0: global shutter). With it (or
+            ``estimate_readout``) the reprojection is :class:`~bcmocap.residuals.rolling_shutter.RollingShutterReprojection`.
+        estimate_readout: also solve for a correction to the readout (a static variable, prior σ
+            ``readout_sigma_seconds``).
+        self_calibration: solve for each camera's focal scale and principal point with the motion (static
+            variables with a prior σ ``intrinsics_sigma``: log focal scale, px).
+        mount_sigma: ``(m, rad)`` σ of each camera's per-frame offset from its mount
+            (:class:`~bcmocap.residuals.mount_compliance.MountCompliance`; (0, 0): rigid mounts); offsets change
+            between frames with σ half as large.
+    """
+
+    readout_seconds: float = 0.0
+    estimate_readout: bool = False
+    readout_sigma_seconds: float = 0.01
+    self_calibration: bool = False
+    intrinsics_sigma: tuple[float, float] = (0.01, 5.0)
+    mount_sigma: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def rolling_shutter(self) -> bool:
+        return self.readout_seconds > 0 or self.estimate_readout
+
+
+def _camera_terms(c: Correspondences, effects: CameraEffects, loss, mask: np.ndarray) -> list[Term]:
+    """The reprojection term of ``effects`` (global or rolling shutter, fixed or self-calibrated intrinsics), the
+    priors of the static variables it estimates, and the mount compliance terms."""
+    data = {"point_ids": c.point_ids, "pixels": c.pixels, "weights": c.weights}
+    share = np.full(c.num_frames, 1.0 / c.num_frames)  # a static prior counts once over these frames
+    if effects.rolling_shutter:
+        terms: list[Term] = [RollingShutterReprojection(
+            data, points=c.points, readout=effects.readout_seconds * c.fps, estimate_readout=effects.estimate_readout,
+            calibrate=effects.self_calibration, num_cameras=c.num_cameras, loss=loss, name="reprojection")]
+        if effects.estimate_readout:
+            terms.append(StaticPrior(share, block=READOUT, variable=Euclidean(1),
+                                     sigma=effects.readout_sigma_seconds * c.fps, name="readout prior"))
+    elif effects.self_calibration:
+        terms = [SelfCalibratingReprojection(data, points=c.points, num_cameras=c.num_cameras, loss=loss, name="reprojection")]
+    else:
+        terms = [Reprojection(data, points=c.points, loss=loss, name="reprojection")]
+    if effects.self_calibration:
+        scale, centre = effects.intrinsics_sigma
+        terms.append(StaticPrior(share, block=INTRINSICS_CORRECTION, variable=intrinsics_correction(c.num_cameras),
+                                 sigma=np.array([scale, centre, centre]), name="intrinsics prior"))
+    if any(effects.mount_sigma):
+        sigma = np.repeat(np.asarray(effects.mount_sigma, float), 3)
+        terms += [MountCompliance(np.ones(c.num_frames), num_cameras=c.num_cameras, sigma=sigma, name="mount compliance"),
+                  MountSmoothness(mask, num_cameras=c.num_cameras, sigma=0.5 * sigma, name="mount smoothness")]
+    return terms
+
+
 def paper_terms(
     correspondences: Correspondences,
     skeleton: Skeleton,
@@ -58,6 +117,7 @@ def paper_terms(
     first_frame_has_previous: bool = False,
     include_homography: bool | None = None,
     homography_cameras: int | None = None,
+    effects: CameraEffects = CameraEffects(),
 ) -> list[Term]:
     """The residual terms of Eq. (1) for a capture's correspondences.
 
@@ -71,15 +131,14 @@ def paper_terms(
             some camera-frame has matches. Windows of one sequence should agree (one compilation).
         homography_cameras: camera slots of the homography term (see :func:`camera_slots`'s
             ``count``); by default from these frames' matches.
+        effects: rolling shutter, self-calibration and mount compliance (:class:`CameraEffects`; none by default,
+            as in the paper). Static priors count once over the given frames (once per window in a
+            :class:`StoredProblem`).
     """
     c = correspondences
     loss = loss_from_name(weights.loss, weights.loss_scale)
-    terms: list[Term] = [
-        Reprojection(
-            {"point_ids": c.point_ids, "pixels": c.pixels, "weights": c.weights},
-            points=c.points, loss=loss, name="reprojection",
-        ),
-    ]
+    mask = np.ones(c.num_frames) if first_frame_has_previous else pair_mask(c.num_frames)
+    terms = _camera_terms(c, effects, loss, mask)
     if include_homography is None:
         include_homography = bool((c.homography_weights > 0).any())
     if include_homography:
@@ -89,7 +148,6 @@ def paper_terms(
             camera_slots(homography, count=homography_cameras),
             weight=weights.homography, loss=loss, name="homography",
         ))
-    mask = np.ones(c.num_frames) if first_frame_has_previous else pair_mask(c.num_frames)
     if weights.root_smoothness > 0:
         terms.append(RootSmoothness(mask, weight=weights.root_smoothness, name="root smoothness"))
     if weights.joint_smoothness > 0:
@@ -196,15 +254,15 @@ def import_term_factory(path: str) -> Callable[..., Any]:
 
 def paper_problem(
     correspondences: Correspondences, skeleton: Skeleton, rig: Rig, weights: ObjectiveWeights = ObjectiveWeights(),
-    *, extra_terms: Sequence[TermFactory] = (), trial_folder: Path | None = None,
+    *, extra_terms: Sequence[TermFactory] = (), trial_folder: Path | None = None, effects: CameraEffects = CameraEffects(),
 ) -> Problem:
-    """A :class:`Problem` for Eq. (1) plus the terms of ``extra_terms`` (factories given the whole
-    sequence as one :class:`TermWindow`), checking the correspondences against the rig."""
+    """A :class:`Problem` for Eq. (1) (with the camera ``effects`` modelled) plus the terms of ``extra_terms``
+    (factories given the whole sequence as one :class:`TermWindow`), checking the correspondences against the rig."""
     if correspondences.num_cameras != rig.num_cameras:
         raise ValueError(f"correspondences have {correspondences.num_cameras} cameras, the rig has {rig.num_cameras}")
     window = TermWindow(0, correspondences.num_frames, correspondences.fps, skeleton, rig, correspondences, trial_folder)
     extra = [term for factory in extra_terms for term in factory(window)]
-    return Problem(skeleton, rig, [*paper_terms(correspondences, skeleton, weights), *extra])
+    return Problem(skeleton, rig, [*paper_terms(correspondences, skeleton, weights, effects=effects), *extra])
 
 
 @dataclasses.dataclass
@@ -221,6 +279,7 @@ class StoredProblem:
         extra_terms: term factories (see the module docstring) called for every window, e.g.
             :class:`UserTerms`.
         trial_folder: the capture's trial folder handed to the factories.
+        effects: rolling shutter, self-calibration and mount compliance (:class:`CameraEffects`).
     """
 
     store: CorrespondenceStore
@@ -230,6 +289,7 @@ class StoredProblem:
     include_homography: bool | None = None
     extra_terms: Sequence[TermFactory] = ()
     trial_folder: Path | None = None
+    effects: CameraEffects = CameraEffects()
 
     def __post_init__(self):
         if self.store.num_cameras != self.rig.num_cameras:
@@ -246,7 +306,8 @@ class StoredProblem:
     def window(self, start: int, stop: int) -> tuple[Term, ...]:
         corr = self.store.frames(start, stop)
         terms = paper_terms(corr, self.skeleton, self.weights, first_frame_has_previous=start > 0,
-                            include_homography=self.include_homography, homography_cameras=self._homography_cameras)
+                            include_homography=self.include_homography, homography_cameras=self._homography_cameras,
+                            effects=self.effects)
         window = TermWindow(start, stop, self.store.fps, self.skeleton, self.rig, corr, self.trial_folder)
         terms += [term for factory in self.extra_terms for term in factory(window)]
         return tuple(t.window(0, stop - start) for t in terms)

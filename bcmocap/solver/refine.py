@@ -319,7 +319,7 @@ def _prior_directions(problem, motion: Motion, parameters: ModelParameters, valu
 def _data_matrix(wp, parameters: ModelParameters) -> jax.Array:
     """The model's block of the static Schur complement at the window's reference, without the prior."""
     block = slice(wp.num_statics - parameters.size, None)
-    schur = static_schur_complement(normal_equations(wp, jnp.zeros((wp.num_frames, wp.skeleton.num_dofs))))
+    schur = static_schur_complement(normal_equations(wp, jnp.zeros((wp.num_frames, wp.frame_size))))
     return schur[block, block] - jnp.diag(parameters.sqrt_precision**2)
 
 

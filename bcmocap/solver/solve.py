@@ -23,9 +23,10 @@ from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
 from ..residuals.base import CameraPairTerm, CameraTerm, Term
 from ..precision import require_float64
-from .levenberg_marquardt import Convergence, levenberg_marquardt
+from .levenberg_marquardt import NON_FINITE_START, NON_FINITE_SYSTEM, Convergence, levenberg_marquardt
 from .model_parameters import MODEL, ModelParameters, reaxis
-from .window import WindowProblem, make_window_problem, model_motion, normal_equations, residuals, static_values, window_history
+from .window import (WindowProblem, frame_layout, make_window_problem, model_motion, normal_equations, residuals,
+                     static_values, window_history)
 
 
 class SequenceProblem(Protocol):
@@ -130,12 +131,14 @@ class WindowReport:
 
 @dataclasses.dataclass
 class Solution:
-    """Result of :func:`solve`: the motion over all frames, one report per window, and the static variables
-    the terms declared (``{name: (n,)}``, the last window's estimate; empty without any)."""
+    """Result of :func:`solve`: the motion over all frames, one report per window, the static variables the
+    terms declared (``{name: value}``, the last window's estimate) and their per-frame variables
+    (``{name: (T, …)}``); both empty without any."""
 
     motion: Motion
     reports: list[WindowReport]
     statics: dict = dataclasses.field(default_factory=dict)
+    frame_variables: dict = dataclasses.field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -159,21 +162,22 @@ def _system(problem: WindowProblem, v) -> jax.Array:
 
 @eqx.filter_jit
 def _solve_window(problem: WindowProblem, options: SolverOptions):
-    w, d, n_static = problem.num_frames, problem.skeleton.num_dofs, problem.num_statics
+    w, d, n_static = problem.num_frames, problem.frame_size, problem.num_statics
     fn = lambda v, args: residuals(args, *v) if isinstance(v, tuple) else residuals(args, v)
     v0 = (jnp.zeros((w, d)), jnp.zeros(n_static)) if n_static else jnp.zeros((w, d))
     value, report = levenberg_marquardt(fn, eqx.Partial(_system, problem), v0, problem, rtol=options.rtol,
-                                        atol=options.atol, damping_scale=options.damping_scale, max_steps=options.max_steps)
+                                        atol=options.atol, damping_scale=options.damping_scale, max_steps=options.max_steps,
+                                        check_finite=True)
     y, z = value if n_static else (value, None)
     statics = static_values(problem, z)
-    motion = model_motion(problem, problem.reference[problem.history :], y, statics)
-    return motion, statics, report
+    motion, frame_values = model_motion(problem, y, statics)
+    return motion, statics, frame_values, report
 
 
-def _non_finite_window(wp: WindowProblem, start: int, stop: int, num_dofs: int) -> str:
+def _non_finite_window(wp: WindowProblem, start: int, stop: int) -> str:
     """Why window ``[start, stop)`` went non-finite: the terms whose residuals are already non-finite at its
     initial motion, or else the steps."""
-    blocks = residuals(wp, jnp.zeros((stop - start, num_dofs)))
+    blocks = residuals(wp, jnp.zeros((stop - start, wp.frame_size)))
     bad = [t.label for t, b in zip(wp.terms, blocks) if not np.all(np.isfinite(np.asarray(b)))]
     why = (f"term(s) {', '.join(repr(b) for b in bad)} are non-finite at its initial motion" if bad
            else "its terms are finite at its initial motion, so the Levenberg–Marquardt steps diverged")
@@ -187,8 +191,10 @@ def solve(
     *,
     progress: bool | Callable[[WindowReport], None] = False,
     skip_windows: int = 0,
-    checkpoint: Callable[[int, WindowReport, Motion], None] | None = None,
+    checkpoint: Callable[[int, WindowReport, Solution], None] | None = None,
     model_parameters: ModelParameters | None = None,
+    initial_statics: dict | None = None,
+    initial_frame_variables: dict | None = None,
 ) -> Solution:
     """Minimise Eq. (1) over a whole sequence with overlapping windows.
 
@@ -199,15 +205,20 @@ def solve(
         options: window length, overlap, iteration limits.
         progress: True for a progress bar, or a callable receiving each :class:`WindowReport`.
         skip_windows: resume: the first ``skip_windows`` windows are taken as solved already (their
-            frames in ``initial_motion`` hold a previous run's solution; the next window starts from
-            them exactly as the uninterrupted run did).
-        checkpoint: called after each window with its index, its report and the whole motion so far
-            (solved frames up to the window's end, ``initial_motion`` after), e.g. to save it.
+            frames in ``initial_motion`` and ``initial_frame_variables``, and ``initial_statics``, hold a
+            previous run's :class:`Solution` so far; the next window starts from them exactly as the
+            uninterrupted run did).
+        checkpoint: called after each window with its index, its report and the :class:`Solution` so far
+            (solved frames up to the window's end, the initial values after), e.g. to save it.
         model_parameters: also solve for the skeleton and rig (static variables ``"model"``, with their
             prior; ``problem.skeleton`` and ``rig`` and ``initial_motion`` must be the model at
             ``model_parameters.start()``). Each window starts from the previous window's estimate, so
             the estimate uses all frames only with one window over the sequence
             (:func:`bcmocap.solver.refine_skeleton_and_rig`). ``Solution.statics["model"]`` holds it.
+        initial_statics: ``{name: value}`` the static variables the first window starts from (missing: the
+            blocks' start values, 0 or identity).
+        initial_frame_variables: ``{name: (T, …)}`` the per-frame variables' starting values (missing: start
+            values).
 
     Returns:
         The solved motion and per-window reports.
@@ -215,7 +226,8 @@ def solve(
     Raises:
         ValueError: mismatched shapes, NaN/inf, or a window without any usable observation.
         FloatingPointError: a window's cost or motion became non-finite (naming the window and the terms that
-            are non-finite at its initial motion).
+            are non-finite at its initial motion), or its Gauss–Newton system did at a point of finite cost
+            (found inside the compiled solve, ``levenberg_marquardt(check_finite=True)``).
     """
     require_float64("bcmocap.solve")
     skeleton, rig, num_frames = problem.skeleton, problem.rig, problem.num_frames
@@ -227,7 +239,8 @@ def solve(
     root = np.array(initial_motion.root_position, dtype=np.float64)
     rotations = np.array(initial_motion.rotations, dtype=np.float64)
     reports: list[WindowReport] = []
-    statics: dict[str, np.ndarray] = {}  # static variables (if the terms declare any): 0 in the first window
+    statics = {k: np.asarray(v, np.float64) for k, v in (initial_statics or {}).items()}  # carried window to window
+    frame_values = {k: np.array(v, np.float64) for k, v in (initial_frame_variables or {}).items()}  # (T, …) each
     bar = None
     if progress is True:
         from tqdm.auto import tqdm
@@ -245,18 +258,28 @@ def solve(
         _check_window_has_observations(terms, start, stop)
         history = window_history(terms)
         before = np.maximum(np.arange(start - history, start), 0)  # the fixed frames (repeats of 0 at the start)
-        reference = Motion(
-            np.concatenate([root[before], root[start:stop]]),
-            np.concatenate([rotations[before], rotations[start:stop]]),
-        )
-        wp = make_window_problem(skeleton, rig, terms, reference, min(start, history), statics, model_parameters)
-        motion, new_statics, lm = _solve_window(wp, options)
+        extended = np.concatenate([before, np.arange(start, stop)])
+        reference = Motion(root[extended], rotations[extended])
+        if not frame_values:  # the blocks the terms declare, at their start values
+            frame_values = {name: np.array(np.broadcast_to(variable.start(), (num_frames, *variable.value_shape)))
+                            for name, variable in frame_layout(terms)}
+        wp = make_window_problem(skeleton, rig, terms, reference, min(start, history), statics, model_parameters,
+                                 {name: value[extended] for name, value in frame_values.items()})
+        try:
+            motion, new_statics, new_frame_values, lm = _solve_window(wp, options)
+        except eqx.EquinoxRuntimeError as exc:  # checked inside the compiled solve (check_finite)
+            why = next((m for m in (NON_FINITE_START, NON_FINITE_SYSTEM) if m in str(exc)), str(exc))
+            raise FloatingPointError(f"solve: window of frames [{start}, {stop}): {why}; nothing was kept") from None
         new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
         new_statics = {k: np.asarray(v) for k, v in new_statics.items()}
-        finite = [new_root, new_rot, np.asarray(lm.initial_cost), np.asarray(lm.final_cost), *new_statics.values()]
+        new_frame_values = {k: np.asarray(v) for k, v in new_frame_values.items()}
+        finite = [new_root, new_rot, np.asarray(lm.initial_cost), np.asarray(lm.final_cost), *new_statics.values(),
+                  *new_frame_values.values()]
         if not all(np.all(np.isfinite(a)) for a in finite):
-            raise FloatingPointError(_non_finite_window(wp, start, stop, skeleton.num_dofs))
+            raise FloatingPointError(_non_finite_window(wp, start, stop))
         root[start:stop], rotations[start:stop] = new_root, new_rot
+        for name, value in new_frame_values.items():
+            frame_values[name][start:stop] = value
         if model_parameters is not None:  # later frames keep their hinge angles about the moved axes
             old_axes = model_parameters.model(wp.statics[MODEL])[0].hinge_axes
             new_axes = model_parameters.model(jnp.asarray(new_statics[MODEL]))[0].hinge_axes
@@ -271,11 +294,12 @@ def solve(
         elif callable(progress):
             progress(report)
         if checkpoint is not None:
-            checkpoint(index, report, Motion(root.copy(), rotations.copy()))
+            checkpoint(index, report, Solution(Motion(root.copy(), rotations.copy()), list(reports), dict(statics),
+                                               {k: v.copy() for k, v in frame_values.items()}))
         done = stop
     if bar is not None:
         bar.close()
-    return Solution(Motion(root, rotations), reports, statics)
+    return Solution(Motion(root, rotations), reports, statics, frame_values)
 
 
 def _check_window_has_observations(terms: Sequence[Term], start: int, stop: int) -> None:
@@ -292,11 +316,12 @@ def _check_window_has_observations(terms: Sequence[Term], start: int, stop: int)
 
 
 def whole_sequence_residual_function(problem: SequenceProblem, initial_motion: Motion) -> Callable[[np.ndarray], np.ndarray]:
-    """The residual vector of the whole sequence as one window, ``y (T·D + S,) ↦ r``, for reference solvers.
+    """The residual vector of the whole sequence as one window, ``y (T·(D + E) + S,) ↦ r``, for reference solvers.
 
-    ``y`` is the tangent offset from ``initial_motion`` (so ``y = 0`` is the initial guess) followed by the
-    ``S`` static variables the terms declare (starting at 0; none for the paper's terms); the residuals are
-    exactly those the windowed solver minimises.
+    ``y`` holds each frame's tangent offset from ``initial_motion`` and from the start values of the ``E``
+    per-frame variables (so ``y = 0`` is the initial guess), followed by the tangents of the ``S`` static
+    variables the terms declare at their start values (none of either for the paper's terms); the residuals
+    are exactly those the windowed solver minimises.
     """
     skeleton = problem.skeleton
     n = problem.num_frames
@@ -307,17 +332,20 @@ def whole_sequence_residual_function(problem: SequenceProblem, initial_motion: M
         np.concatenate([np.asarray(initial_motion.rotations)[before], np.asarray(initial_motion.rotations)]),
     )
     wp = make_window_problem(skeleton, problem.rig, terms, reference, 0)
-    size = n * skeleton.num_dofs
+    d = wp.frame_size
+    size = n * d
 
     @jax.jit
     def fn(y_flat):
-        r = residuals(wp, y_flat[:size].reshape(n, skeleton.num_dofs), y_flat[size:] if wp.num_statics else None)
+        r = residuals(wp, y_flat[:size].reshape(n, d), y_flat[size:] if wp.num_statics else None)
         return jnp.concatenate([a.reshape(-1) for a in r])
 
     return fn
 
 
 def motion_from_tangent(problem: SequenceProblem, initial_motion: Motion, y_flat: np.ndarray) -> Motion:
-    """The motion at tangent offset ``y`` ``(T·D,)`` from ``initial_motion`` (inverse of the above's variables)."""
-    d = problem.skeleton.num_dofs
-    return problem.skeleton.retract(initial_motion, jnp.asarray(y_flat)[: initial_motion.num_frames * d].reshape(-1, d))
+    """The motion at the variables ``y`` of :func:`whole_sequence_residual_function` (inverse of its variables)."""
+    n, d = initial_motion.num_frames, problem.skeleton.num_dofs
+    frame_size = d + sum(v.size for _, v in frame_layout(problem.window(0, n)))
+    y = jnp.asarray(y_flat)[: n * frame_size].reshape(n, frame_size)[:, :d]
+    return problem.skeleton.retract(initial_motion, y)

@@ -3,13 +3,16 @@
 A window holds ``W`` frames of variables plus, first in its reference motion, the ``H`` frames just
 before it (solved by the previous window and held fixed) so that terms over several frames connect
 across the seam: ``H = 1`` for the paper's pair terms, ``span − 1`` for a :class:`MultiFrameTerm`.
-Variables are tangent vectors ``y`` ``(W, D)`` relative to the reference motion (see
-:meth:`Skeleton.retract`), so the solver always steps in the tangent space of the current pose.
-Indices below called *extended* count those ``H`` fixed frames first.
+Variables are tangent vectors ``y`` ``(W, D + E)`` relative to the reference motion (see
+:meth:`Skeleton.retract`) and to the reference values of the ``E`` per-frame variables the terms declare,
+so the solver always steps in the tangent space of the current pose; static variables ``z`` ``(S,)`` are
+tangents at their blocks' values likewise. Indices below called *extended* count those ``H`` fixed frames
+first.
 """
 
 from __future__ import annotations
 
+import math
 from math import prod
 from typing import Sequence
 
@@ -24,6 +27,7 @@ from ..kinematics.skeleton import Motion, Skeleton
 from .levenberg_marquardt import NormalEquations
 from .model_parameters import MODEL, ModelParameters, reaxis
 from ..residuals.base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, MultiFrameTerm, PairTerm, Term, slot_cameras
+from ..residuals.variables import CAMERA_OFFSETS, Euclidean, PerCamera, Variable, as_variable, retract_blocks
 
 
 class WindowProblem(eqx.Module):
@@ -36,10 +40,12 @@ class WindowProblem(eqx.Module):
             (:func:`window_history`), then the window's frames.
         num_previous: scalar int, how many of those ``H`` frames exist (fewer at the start of a
             sequence; terms reaching further back are dropped at the window's first frames).
-        statics: the static variables' values the window starts from, ``{name: (n,)}`` for every block of
-            :func:`problem_static_layout` (the solver's variables ``z`` are offsets from them).
+        statics: the static variables' values the window starts from, ``{name: value}`` for every block of
+            :func:`problem_static_layout` (the solver's variables ``z`` are tangents at them).
         model_parameters: the skeleton and rig as static variables (block ``"model"``), or None: every
             term sees the model at those variables, and their prior joins the objective.
+        frame_values: the per-frame variables' reference values, ``{name: (H + W, *value_shape)}`` for every
+            block of :func:`frame_layout` (the last ``E`` entries of each row of ``y`` are tangents at them).
     """
 
     skeleton: Skeleton
@@ -49,6 +55,7 @@ class WindowProblem(eqx.Module):
     num_previous: jax.Array = eqx.field(converter=lambda n: jnp.asarray(n, jnp.int32))
     statics: dict = eqx.field(default_factory=dict)
     model_parameters: ModelParameters | None = None
+    frame_values: dict = eqx.field(default_factory=dict)
 
     @property
     def history(self) -> int:
@@ -57,11 +64,20 @@ class WindowProblem(eqx.Module):
     @property
     def num_statics(self) -> int:
         """``S``: the length of the static variables' vector ``z``."""
-        return sum(size for _, size in problem_static_layout(self))
+        return sum(variable.size for _, variable in problem_static_layout(self))
 
     @property
     def num_frames(self) -> int:
         return self.reference.root_position.shape[0] - self.history
+
+    @property
+    def frame_size(self) -> int:
+        """``D + E``: the variables of one frame (the motion's tangent, then the per-frame blocks')."""
+        return self.skeleton.num_dofs + sum(v.size for _, v in frame_layout(self.terms))
+
+    def extended_reference(self) -> tuple[Motion, dict]:
+        """``(motion, frame_values)`` of the ``H + W`` extended frames, indexed together."""
+        return self.reference, self.frame_values
 
 
 def window_history(terms: Sequence[Term]) -> int:
@@ -72,57 +88,90 @@ def window_history(terms: Sequence[Term]) -> int:
     return max([2, *(t.span for t in terms if isinstance(t, MultiFrameTerm))]) - 1
 
 
-def static_layout(terms: Sequence[Term]) -> tuple[tuple[str, int], ...]:
-    """The static variable blocks the terms declare, ``((name, size), …)`` sorted by name; ``z`` stacks them.
+def _declared_layout(terms: Sequence[Term], declared, kind: str) -> tuple[tuple[str, Variable], ...]:
+    """``((name, Variable), …)`` sorted by name, of the blocks ``declared(term)`` gives for every term.
 
     Raises:
-        ValueError: two terms give one name different sizes.
+        ValueError: two terms declare one name differently.
     """
-    sizes: dict[str, tuple[int, str]] = {}
+    blocks: dict[str, tuple[Variable, str]] = {}
     for term in terms:
-        for name, size in term.static_variables().items():
-            if isinstance(term, (CameraTerm, CameraPairTerm)):
-                raise ValueError(f"{term.label}: camera terms cannot read static variables ({name!r})")
-            if name in sizes and sizes[name][0] != int(size):
-                raise ValueError(f"static variable {name!r}: {sizes[name][1]} gives size {sizes[name][0]}, "
-                                 f"{term.label} {int(size)}")
-            sizes[name] = (int(size), term.label)
-    return tuple((name, sizes[name][0]) for name in sorted(sizes))
+        for name, value in declared(term).items():
+            variable = as_variable(value, f"{term.label}: {kind} variable {name!r}")
+            if name in blocks and blocks[name][0] != variable:
+                raise ValueError(f"{kind} variable {name!r}: {blocks[name][1]} declares {blocks[name][0]}, "
+                                 f"{term.label} declares {variable}")
+            blocks[name] = (variable, term.label)
+    return tuple((name, blocks[name][0]) for name in sorted(blocks))
 
 
-def problem_static_layout(problem: WindowProblem) -> tuple[tuple[str, int], ...]:
+def static_layout(terms: Sequence[Term]) -> tuple[tuple[str, Variable], ...]:
+    """The static variable blocks the terms declare, ``((name, Variable), …)`` sorted by name; ``z`` stacks their
+    tangents.
+
+    Raises:
+        ValueError: two terms declare one name differently.
+    """
+    return _declared_layout(terms, lambda t: t.static_variables(), "static")
+
+
+def frame_layout(terms: Sequence[Term]) -> tuple[tuple[str, Variable], ...]:
+    """The per-frame variable blocks the terms declare, ``((name, Variable), …)`` sorted by name; each frame's
+    variables are its motion tangent followed by their tangents.
+
+    Raises:
+        ValueError: two terms declare one name differently, or a camera term declares any.
+    """
+    for term in terms:
+        if isinstance(term, (CameraTerm, CameraPairTerm)) and term.frame_variables():
+            raise ValueError(f"{term.label}: camera terms cannot declare per-frame variables; they see "
+                             f"{CAMERA_OFFSETS!r} through the camera poses")
+    return _declared_layout(terms, lambda t: t.frame_variables(), "per-frame")
+
+
+def problem_static_layout(problem: WindowProblem) -> tuple[tuple[str, Variable], ...]:
     """The terms' static blocks (:func:`static_layout`), then the model's (``"model"``) if it is variable."""
     blocks = static_layout(problem.terms)
-    return blocks if problem.model_parameters is None else (*blocks, (MODEL, problem.model_parameters.size))
+    if problem.model_parameters is None:
+        return blocks
+    return (*blocks, (MODEL, Euclidean(problem.model_parameters.size)))
+
+
+def _static_offsets(problem: WindowProblem) -> dict[str, int]:
+    """Where each static block's tangent starts in ``z``."""
+    offsets, at = {}, 0
+    for name, variable in problem_static_layout(problem):
+        offsets[name], at = at, at + variable.size
+    return offsets
 
 
 def _model_block(problem: WindowProblem) -> slice:
     """Where the model's variables sit in ``z``."""
-    start = sum(size for name, size in static_layout(problem.terms))
+    start = _static_offsets(problem)[MODEL]
     return slice(start, start + problem.model_parameters.size)
 
 
 def static_values(problem: WindowProblem, z: jax.Array | None) -> dict:
-    """``{name: (n,)}``: the window's static variables at offset ``z`` ``(S,)`` (None: at the start)."""
-    out, at = {}, 0
-    for name, size in problem_static_layout(problem):
-        value = problem.statics[name]
-        out[name] = value if z is None else value + z[at : at + size]
-        at += size
-    return out
+    """``{name: value}``: the window's static variables moved by tangents ``z`` ``(S,)`` (None: at the start)."""
+    return retract_blocks(problem_static_layout(problem), problem.statics, z)
 
 
-def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.Array, statics: dict | None = None) -> FrameState:
-    """State of frames with batch shape ``S`` from tangent vectors ``(*S, D)`` (static variables repeated)."""
+def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.Array, statics: dict | None = None,
+                variables: dict | None = None) -> FrameState:
+    """State of frames with batch shape ``S`` from motion tangents ``(*S, D)``, static variables (repeated) and
+    the frames' own ``variables`` (``{name: (*S, …)}``; :data:`CAMERA_OFFSETS` moves the cameras)."""
     motion = skeleton.retract(reference, y)
     world_from_segment = forward_kinematics(skeleton, motion)
+    variables = dict(variables or {})
     if rig is None:
         world_from_camera = SE3.identity(batch_axes=(*y.shape[:-1], 0))
     else:
         world_from_camera = rig.world_from_camera(world_from_segment)
+        if CAMERA_OFFSETS in variables:  # each camera moved on its mount: world_from_camera · exp(offset)
+            world_from_camera = world_from_camera @ SE3.exp(variables[CAMERA_OFFSETS])
     batch = y.shape[:-1]
     statics = {k: jnp.broadcast_to(v, (*batch, *jnp.shape(v))) for k, v in (statics or {}).items()}
-    return FrameState(motion, world_from_segment, world_from_camera, statics)
+    return FrameState(motion, world_from_segment, world_from_camera, statics, variables)
 
 
 def _model_at(problem: WindowProblem, reference: Motion, statics: dict) -> tuple[Skeleton, Rig | None, Motion]:
@@ -136,16 +185,24 @@ def _model_at(problem: WindowProblem, reference: Motion, statics: dict) -> tuple
     return skeleton, rig, reaxis(parameters.layout, reference, start_axes, skeleton.hinge_axes)
 
 
-def model_state(problem: WindowProblem, reference: Motion, y: jax.Array, statics: dict) -> FrameState:
-    """:func:`frame_state` of the window's model at the static values (see :func:`_model_at`)."""
-    skeleton, rig, reference = _model_at(problem, reference, statics)
-    return frame_state(skeleton, rig, reference, y, statics)
+def model_state(problem: WindowProblem, reference: tuple[Motion, dict], y: jax.Array, statics: dict) -> FrameState:
+    """:func:`frame_state` of the window's model at the static values (see :func:`_model_at`), at frame variables
+    ``y`` ``(..., D + E)`` from ``reference`` = (motion, per-frame values) with the same batch shape."""
+    motion, values = reference
+    skeleton, rig, motion = _model_at(problem, motion, statics)
+    d = skeleton.num_dofs
+    variables = retract_blocks(frame_layout(problem.terms), values, y[..., d:])
+    return frame_state(skeleton, rig, motion, y[..., :d], statics, variables)
 
 
-def model_motion(problem: WindowProblem, reference: Motion, y: jax.Array, statics: dict) -> Motion:
-    """The motion at tangent offsets ``y`` ``(..., D)`` in the window's model at the static values."""
-    skeleton, _, reference = _model_at(problem, reference, statics)
-    return skeleton.retract(reference, y)
+def model_motion(problem: WindowProblem, y: jax.Array, statics: dict) -> tuple[Motion, dict]:
+    """The window's motion and per-frame values ``{name: (W, …)}`` at frame variables ``y`` ``(W, D + E)``, in the
+    model at the static values."""
+    h = problem.history
+    skeleton, _, reference = _model_at(problem, problem.reference[h:], statics)
+    d = skeleton.num_dofs
+    values = {k: v[h:] for k, v in problem.frame_values.items()}
+    return skeleton.retract(reference, y[:, :d]), retract_blocks(frame_layout(problem.terms), values, y[:, d:])
 
 
 def _extended(problem: WindowProblem, y: jax.Array) -> jax.Array:
@@ -184,12 +241,65 @@ def _slot_intrinsics(term: Term, rig: Rig):
     return jax.tree.map(lambda a: a[index], rig.intrinsics), 0
 
 
+def _camera_indices(problem: WindowProblem, term: Term) -> jax.Array:
+    """``(W, K)``: the camera of each data slot of a camera term (``K = C`` without slots)."""
+    index = slot_cameras(term.data)
+    if index is None:
+        return jnp.broadcast_to(jnp.arange(problem.rig.num_cameras), (problem.num_frames, problem.rig.num_cameras))
+    return index
+
+
+class _CameraTermStatics(eqx.Module):
+    """The static blocks a camera term reads, per frame and data slot: its own blocks ``((name, Variable), …)``
+    (a :class:`PerCamera` block's per-camera block), their start values ``{name: (W, K, …)}`` (the slot's
+    camera's copy) and the columns of ``z`` their tangents are, ``(W, K, k)``."""
+
+    layout: tuple = eqx.field(static=True)
+    values: dict
+    columns: jax.Array
+
+    @property
+    def size(self) -> int:
+        return sum(variable.size for _, variable in self.layout)
+
+    def at(self, values: dict, z_own: jax.Array) -> dict:
+        """One camera-frame's static values at its own tangents ``z_own`` ``(k,)`` (``values`` sliced to it)."""
+        return retract_blocks(self.layout, values, z_own)
+
+
+def _camera_term_statics(problem: WindowProblem, term: Term) -> _CameraTermStatics | None:
+    """What a camera term reads of the static variables (None if it declares none)."""
+    if not term.static_variables():
+        return None
+    layout, offsets = dict(problem_static_layout(problem)), _static_offsets(problem)
+    cameras = _camera_indices(problem, term)
+    own, values, columns = [], {}, []
+    for name in sorted(term.static_variables()):
+        variable, value = layout[name], problem.statics[name]
+        if isinstance(variable, PerCamera):
+            size = variable.block.size
+            own.append((name, variable.block))
+            values[name] = value[cameras]
+            columns.append(offsets[name] + cameras[..., None] * size + jnp.arange(size))
+        else:
+            own.append((name, variable))
+            values[name] = jnp.broadcast_to(value, (*cameras.shape, *jnp.shape(value)))
+            columns.append(jnp.broadcast_to(offsets[name] + jnp.arange(variable.size), (*cameras.shape, variable.size)))
+    return _CameraTermStatics(tuple(own), values, jnp.concatenate(columns, axis=-1))
+
+
+def _camera_statics_args(own: _CameraTermStatics | None, z: jax.Array) -> tuple:
+    """Per frame and slot: the start values and own tangents ``z[columns]`` of a camera term's statics (or Nones)."""
+    return (None, None) if own is None else (own.values, z[own.columns])
+
+
 def residuals(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) -> tuple[jax.Array, ...]:
-    """All finished residual blocks of the window, one array per term (shapes ``(W, ..., k)``), at motion
-    offsets ``y`` ``(W, D)`` and static-variable offsets ``z`` ``(S,)`` (None: 0)."""
+    """All finished residual blocks of the window, one array per term (shapes ``(W, ..., k)``), at frame
+    variables ``y`` ``(W, D + E)`` and static-variable tangents ``z`` ``(S,)`` (None: 0)."""
     h = problem.history
     at = static_values(problem, z)
-    states = model_state(problem, problem.reference, _extended(problem, y), at)
+    z = jnp.zeros(problem.num_statics) if z is None else z
+    states = model_state(problem, problem.extended_reference(), _extended(problem, y), at)
     prev_states = jax.tree.map(lambda a: a[h - 1 : -1], states)
     curr_states = jax.tree.map(lambda a: a[h:], states)
     out = []
@@ -205,17 +315,21 @@ def residuals(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) 
             r, v = jax.vmap(term.residual)(spans, term.data)
             v = v & _span_ok(problem, term.span).reshape(-1, *([1] * (v.ndim - 1)))
         elif isinstance(term, CameraTerm):
-            fn = lambda pose, cam, data, term=term: term.residual(SE3(pose), cam, data)
+            own = _camera_term_statics(problem, term)
+            fn = lambda pose, cam, data, values, z_own, term=term, own=own: term.residual(
+                SE3(pose), cam, data, *_statics_arg(own, values, z_own))
             cams, cam_axis = _slot_intrinsics(term, problem.rig)
-            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0)), in_axes=(0, cam_axis, 0))(
-                _slot_gather(term, cam_from_world.wxyz_xyz[h:]), cams, term.data
+            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0, 0)), in_axes=(0, cam_axis, 0, 0, 0))(
+                _slot_gather(term, cam_from_world.wxyz_xyz[h:]), cams, term.data, *_camera_statics_args(own, z)
             )
         elif isinstance(term, CameraPairTerm):
-            fn = lambda prev, pose, cam, data, term=term: term.residual(SE3(prev), SE3(pose), cam, data)
+            own = _camera_term_statics(problem, term)
+            fn = lambda prev, pose, cam, data, values, z_own, term=term, own=own: term.residual(
+                SE3(prev), SE3(pose), cam, data, *_statics_arg(own, values, z_own))
             cams, cam_axis = _slot_intrinsics(term, problem.rig)
-            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0)), in_axes=(0, 0, cam_axis, 0))(
+            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0, 0, 0)), in_axes=(0, 0, cam_axis, 0, 0, 0))(
                 _slot_gather(term, cam_from_world.wxyz_xyz[h - 1 : -1]), _slot_gather(term, cam_from_world.wxyz_xyz[h:]),
-                cams, term.data,
+                cams, term.data, *_camera_statics_args(own, z),
             )
             v = _pair_valid(problem, v)
         else:
@@ -224,6 +338,11 @@ def residuals(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) 
     if problem.model_parameters is not None:  # the prior on the skeleton and rig
         out.append(problem.model_parameters.prior_residual(at[MODEL]))
     return tuple(out)
+
+
+def _statics_arg(own: _CameraTermStatics | None, values: dict | None, z_own: jax.Array | None) -> tuple:
+    """The extra argument of a camera term's residual: its static values, if it declares any."""
+    return () if own is None else (own.at(values, z_own),)
 
 
 def cost(problem: WindowProblem, y: jax.Array) -> jax.Array:
@@ -244,15 +363,15 @@ def _log_near_identity(matrix: jax.Array) -> jax.Array:
 
 
 def _camera_pose_jacobians(problem: WindowProblem, y_ext: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``cam_from_world`` ``(H+W, C, 7)`` and its Jacobian ``(H+W, C, 6, D)`` w.r.t. each frame's variables,
-    ``(H+W, C, 6, D + S)`` w.r.t. them and the static variables ``z`` when the model is variable.
+    """``cam_from_world`` ``(H+W, C, 7)`` and its Jacobian ``(H+W, C, 6, D + E)`` w.r.t. each frame's variables,
+    ``(H+W, C, 6, D + E + S)`` w.r.t. them and the static variables ``z`` when the model is variable.
 
     The camera tangent is a left perturbation: ``cam_from_world(y') = exp(ξ) · cam_from_world(y)``.
     """
     d = y_ext.shape[1]
     with_model = problem.model_parameters is not None
 
-    def per_frame(reference: Motion, y_t: jax.Array):
+    def per_frame(reference: tuple[Motion, dict], y_t: jax.Array):
         def pose(v):
             at = static_values(problem, v[d:] if with_model else z)
             return model_state(problem, reference, v[:d], at).world_from_camera.inverse()
@@ -262,34 +381,39 @@ def _camera_pose_jacobians(problem: WindowProblem, y_ext: jax.Array, z: jax.Arra
         tangent = lambda v: _log_near_identity((pose(v) @ current.inverse()).as_matrix())
         return current.wxyz_xyz, jax.jacfwd(tangent)(v0)
 
-    return jax.vmap(per_frame)(problem.reference, y_ext)
+    return jax.vmap(per_frame)(problem.extended_reference(), y_ext)
 
 
-def _camera_measurement_jacobians(residual_fn, poses: tuple[jax.Array, ...], rotation_only: bool = False):
-    """Residual blocks ``(n, k)`` and their Jacobian ``(n, k, 6·len(poses))`` w.r.t. left pose perturbations.
+def _camera_measurement_jacobians(residual_fn, poses: tuple[jax.Array, ...], rotation_only: bool = False,
+                                  static_size: int = 0):
+    """Residual blocks ``(n, k)`` and their Jacobian ``(n, k, 6·len(poses) + static_size)`` w.r.t. left pose
+    perturbations (and, with ``static_size``, the tangent of the term's static blocks, ``residual_fn``'s last
+    argument).
 
     With ``rotation_only`` the residual is declared independent of the translations: only the rotation
     tangents are differentiated and the translation columns are zero.
     """
-    per_pose = 3 if rotation_only else 6
+    per_pose, num = (3 if rotation_only else 6), len(poses)
 
     def perturbed(xi):
-        tangents = [xi[per_pose * i : per_pose * (i + 1)] for i in range(len(poses))]
+        tangents = [xi[per_pose * i : per_pose * (i + 1)] for i in range(num)]
         if rotation_only:
             tangents = [jnp.concatenate([jnp.zeros(3), t]) for t in tangents]
-        return residual_fn(*[SE3.exp(t) @ SE3(p) for t, p in zip(tangents, poses)])
+        moved = [SE3.exp(t) @ SE3(p) for t, p in zip(tangents, poses)]
+        return residual_fn(*moved, xi[per_pose * num :]) if static_size else residual_fn(*moved)
 
-    zero = jnp.zeros(per_pose * len(poses))
+    zero = jnp.zeros(per_pose * num + static_size)
     r, jac = perturbed(zero), jax.jacfwd(perturbed)(zero)
     if rotation_only:  # back to (translation, rotation) blocks of 6 per pose
-        jac = jac.reshape(*jac.shape[:-1], len(poses), 3)
-        jac = jnp.concatenate([jnp.zeros_like(jac), jac], axis=-1).reshape(*jac.shape[:-2], 6 * len(poses))
+        pose_jac = jac[..., : per_pose * num].reshape(*jac.shape[:-1], num, 3)
+        pose_jac = jnp.concatenate([jnp.zeros_like(pose_jac), pose_jac], axis=-1).reshape(*jac.shape[:-1], 6 * num)
+        jac = jnp.concatenate([pose_jac, jac[..., per_pose * num :]], axis=-1)
     return r, jac
 
 
 def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) -> NormalEquations:
-    """Assemble the block-banded Gauss–Newton system of the window at ``y`` ``(W, D)`` and static-variable
-    offsets ``z`` ``(S,)`` (None: 0).
+    """Assemble the block-banded Gauss–Newton system of the window at frame variables ``y`` ``(W, D + E)`` and
+    static-variable tangents ``z`` ``(S,)`` (None: 0).
 
     ``grad`` is the exact gradient of the window's cost; ``diag``/``bands`` are the IRLS Gauss–Newton
     matrix ``Σ λ ρ'(s) JᵀJ`` (exactly ``JᵀJ`` of the residuals when no robust loss is used). The
@@ -300,6 +424,8 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
     n_static = problem.num_statics
     z = jnp.zeros(n_static) if z is None else z
     y_ext = _extended(problem, y)
+    reference = problem.extended_reference()
+    frames = lambda index: jax.tree.map(lambda a: a[index], reference)  # noqa: E731  (reference of some frames)
     diag = jnp.zeros((h + w, d, d))  # extended: the H fixed frames first (discarded)
     bands = [jnp.zeros((h + w, d, d)) for _ in range(h)]  # bands[k-1][u] couples extended frames u and u+k
     grad = jnp.zeros((h + w, d))
@@ -316,7 +442,7 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
             state = model_state(problem, ref_t, v[:d], static_values(problem, v[d:]))
             return tuple(t.masked(*t.residual(state, dt)) for t, dt in zip(frame_terms, data))
 
-        args = (with_z(y), problem.reference[h:], tuple(t.data for t in frame_terms))
+        args = (with_z(y), frames(slice(h, None)), tuple(t.data for t in frame_terms))
         rs, jacs = jax.vmap(frame_residuals)(*args), jax.vmap(_jacobian(frame_residuals, args))(*args)
         for term, r, jac in zip(frame_terms, rs, jacs):
             r, jac = _irls_rows(term, r, jac)  # jac: (W, m, D + S)
@@ -329,7 +455,7 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
             return tuple(t.masked(*_and_valid(t.residual(prev, curr, dt), ok)) for t, dt in zip(pair_terms, data))
 
         pairs = jnp.concatenate([y_ext[h - 1 : -1], y_ext[h:]], axis=1)  # (W, 2D)
-        args = (with_z(pairs), problem.reference[h - 1 : -1], problem.reference[h:], tuple(t.data for t in pair_terms),
+        args = (with_z(pairs), frames(slice(h - 1, -1)), frames(slice(h, None)), tuple(t.data for t in pair_terms),
                 _span_ok(problem, 2))
         rs, jacs = jax.vmap(pair_residuals)(*args), jax.vmap(_jacobian(pair_residuals, args))(*args)
         for term, r, jac in zip(pair_terms, rs, jacs):  # jac: (W, n, k, 2D + S)
@@ -347,15 +473,20 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
                 return term.masked(*_and_valid(term.residual(states, data), ok))
 
             index = _span_index(problem, span)
-            args = (with_z(y_ext[index].reshape(w, span * d)), jax.tree.map(lambda a: a[index], problem.reference),
-                    term.data, _span_ok(problem, span))
+            args = (with_z(y_ext[index].reshape(w, span * d)), frames(index), term.data, _span_ok(problem, span))
             r, jac = jax.vmap(span_residuals)(*args), jax.vmap(_jacobian(span_residuals, args))(*args)
             r, jac = _irls_rows(term, r, jac)  # jac: (W, n, k, span·D + S) → (W, m, span·D + S)
             jy = jac[..., : span * d].reshape(*jac.shape[:2], span, d)
             diag, bands, grad, statics = _add_span_blocks(diag, bands, grad, statics, r, jy, jac[..., span * d :], h)
         elif isinstance(term, CameraTerm):
-            def cam_blocks(pose, cam, data, term=term):
-                if term.world_points(data) is None:
+            own = _camera_term_statics(problem, term)
+            own_size = 0 if own is None else own.size
+
+            def cam_blocks(pose, cam, data, values, z_own, term=term, own=own):
+                if own is not None:
+                    fn = lambda p, delta: term.masked(*term.residual(p, cam, data, own.at(values, z_own + delta)))
+                    r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,), static_size=own.size))
+                elif term.world_points(data) is None:
                     fn = lambda p: term.masked(*term.residual(p, cam, data))
                     r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,)))
                 else:
@@ -363,40 +494,51 @@ def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None =
                 return jac.T @ jac, jac.T @ r
 
             cams, cam_axis = _slot_intrinsics(term, problem.rig)
-            hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0)), in_axes=(0, cam_axis, 0))(
-                _slot_gather(term, cam_poses[h:]), cams, term.data
-            )  # (W, C, 6, 6), (W, C, 6) (C: cameras or slots)
+            hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0, 0, 0)), in_axes=(0, cam_axis, 0, 0, 0))(
+                _slot_gather(term, cam_poses[h:]), cams, term.data, *_camera_statics_args(own, z)
+            )  # (W, C, 6 + k, 6 + k), (W, C, 6 + k) (C: cameras or slots; k: the term's own static tangents)
             jp = _slot_gather(term, pose_jac[h:])
             jy = jp[..., :d]
-            diag = diag.at[h:].add(jnp.einsum("tcai,tcab,tcbj->tij", jy, hess, jy))
-            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jy, g))
-            if jp.shape[-1] > d:  # the model is variable: the poses depend on z as well
-                statics = _add_camera_statics(statics, [(h, jy)], jp[..., d:], hess, g)
+            diag = diag.at[h:].add(jnp.einsum("tcai,tcab,tcbj->tij", jy, hess[..., :6, :6], jy))
+            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jy, g[..., :6]))
+            if jp.shape[-1] > d or own_size:  # the poses depend on z (variable model), or the term reads z itself
+                jz = _camera_static_jacobian(jp[..., d:], own, n_static)
+                statics = _add_camera_statics(statics, [(h, _with_zero_rows(jy, own_size))], jz, hess, g)
         elif isinstance(term, CameraPairTerm):
-            def cam_pair_blocks(prev, pose, cam, data, ok, term=term):
-                fn = lambda p0, p1: term.masked(*_and_valid(term.residual(p0, p1, cam, data), ok))
-                r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (prev, pose), term.rotation_only))
+            own = _camera_term_statics(problem, term)
+            own_size = 0 if own is None else own.size
+
+            def cam_pair_blocks(prev, pose, cam, data, values, z_own, ok, term=term, own=own, own_size=own_size):
+                if own is not None:
+                    fn = lambda p0, p1, delta: term.masked(*_and_valid(
+                        term.residual(p0, p1, cam, data, own.at(values, z_own + delta)), ok))
+                else:
+                    fn = lambda p0, p1: term.masked(*_and_valid(term.residual(p0, p1, cam, data), ok))
+                r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (prev, pose), term.rotation_only, own_size))
                 return jac.T @ jac, jac.T @ r
 
             cams, cam_axis = _slot_intrinsics(term, problem.rig)
-            hess, g = jax.vmap(jax.vmap(cam_pair_blocks, in_axes=(0, 0, 0, 0, None)), in_axes=(0, 0, cam_axis, 0, 0))(
+            hess, g = jax.vmap(jax.vmap(cam_pair_blocks, in_axes=(0, 0, 0, 0, 0, 0, None)),
+                               in_axes=(0, 0, cam_axis, 0, 0, 0, 0))(
                 _slot_gather(term, cam_poses[h - 1 : -1]), _slot_gather(term, cam_poses[h:]), cams, term.data,
-                _span_ok(problem, 2),
-            )  # (W, C, 12, 12), (W, C, 12) (C: cameras or slots)
+                *_camera_statics_args(own, z), _span_ok(problem, 2),
+            )  # (W, C, 12 + k, 12 + k), (W, C, 12 + k) (C: cameras or slots)
             jp_prev, jp_curr = _slot_gather(term, pose_jac[h - 1 : -1]), _slot_gather(term, pose_jac[h:])
-            if jp_curr.shape[-1] > d:  # the model is variable: the poses depend on z as well
-                jz = jnp.concatenate([jp_prev[..., d:], jp_curr[..., d:]], axis=2)  # (W, C, 12, S)
-                blocks = [(h - 1, jnp.concatenate([jp_prev[..., :d], jnp.zeros_like(jp_curr[..., :d])], axis=2)),
-                          (h, jnp.concatenate([jnp.zeros_like(jp_prev[..., :d]), jp_curr[..., :d]], axis=2))]
+            if jp_curr.shape[-1] > d or own_size:  # the poses depend on z (variable model), or the term reads z itself
+                jz = _camera_static_jacobian(jnp.concatenate([jp_prev[..., d:], jp_curr[..., d:]], axis=2), own,
+                                             n_static)  # (W, C, 12 + k, S)
+                zero = jnp.zeros_like(jp_curr[..., :d])
+                blocks = [(h - 1, _with_zero_rows(jnp.concatenate([jp_prev[..., :d], zero], axis=2), own_size)),
+                          (h, _with_zero_rows(jnp.concatenate([zero, jp_curr[..., :d]], axis=2), own_size))]
                 statics = _add_camera_statics(statics, blocks, jz, hess, g)
                 jp_prev, jp_curr = jp_prev[..., :d], jp_curr[..., :d]
             h00 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, :6], jp_prev)
-            h11 = jnp.einsum("tcai,tcab,tcbj->tij", jp_curr, hess[:, :, 6:, 6:], jp_curr)
-            h01 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, 6:], jp_curr)
+            h11 = jnp.einsum("tcai,tcab,tcbj->tij", jp_curr, hess[:, :, 6:12, 6:12], jp_curr)
+            h01 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, 6:12], jp_curr)
             diag = diag.at[h - 1 : -1].add(h00).at[h:].add(h11)
             bands[0] = bands[0].at[h - 1 : -1].add(h01)
             grad = grad.at[h - 1 : -1].add(jnp.einsum("tcai,tca->ti", jp_prev, g[:, :, :6]))
-            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jp_curr, g[:, :, 6:]))
+            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jp_curr, g[:, :, 6:12]))
         else:
             raise TypeError(f"{term.label}: {_KINDS}")
     if problem.model_parameters is not None:  # the prior ½ Σ (θ/σ)² on the model's variables
@@ -469,6 +611,22 @@ def _add_camera_statics(statics: _StaticBlocks, frames, jz, hess, g) -> _StaticB
                          statics.grad + jnp.einsum("tcas,tca->s", jz, g))
 
 
+def _camera_static_jacobian(pose_z: jax.Array, own: _CameraTermStatics | None, num_static: int) -> jax.Array:
+    """``(W, C, P + k, S)``: how a camera term's ``P`` pose tangents (``pose_z`` ``(W, C, P, S')``, ``S' = S`` with a
+    variable model, else 0) and its own ``k`` static tangents (columns ``own.columns`` of ``z``) move with ``z``."""
+    w, c, p = pose_z.shape[:3]
+    if pose_z.shape[-1] != num_static:
+        pose_z = jnp.zeros((w, c, p, num_static))
+    if own is None:
+        return pose_z
+    return jnp.concatenate([pose_z, jax.nn.one_hot(own.columns, num_static, dtype=pose_z.dtype)], axis=2)
+
+
+def _with_zero_rows(jac: jax.Array, rows: int) -> jax.Array:
+    """``(W, C, P, D)`` → ``(W, C, P + rows, D)``: a camera term's own static tangents do not move the frames."""
+    return jnp.concatenate([jac, jnp.zeros((*jac.shape[:2], rows, jac.shape[3]), jac.dtype)], axis=2) if rows else jac
+
+
 def _and_valid(result, ok):
     r, v = result
     return r, v & ok
@@ -506,22 +664,46 @@ def make_window_problem(
     num_previous: int | bool,
     statics: dict | None = None,
     model_parameters: ModelParameters | None = None,
+    frame_values: dict | None = None,
 ) -> WindowProblem:
     """A :class:`WindowProblem`; ``reference`` holds :func:`window_history` fixed frames first, of which
     ``num_previous`` exist (a bool for the paper's terms: whether the frame before the window exists);
-    ``statics`` the static variables' starting values (missing blocks start at 0; the model's at
-    ``model_parameters.start()``), the reference motion being expressed in the model at those values.
+    ``statics`` the static variables' starting values (missing blocks start at their start value; the
+    model's at ``model_parameters.start()``), the reference motion being expressed in the model at those
+    values; ``frame_values`` the per-frame variables' values ``{name: (H + W, …)}`` (missing: start values).
 
     Raises:
-        ValueError: a term declares a static variable named ``"model"`` while the model is variable.
+        ValueError: a term declares a static variable named ``"model"`` while the model is variable, a
+            :class:`PerCamera` block's camera count is not the rig's, or a given value has the wrong shape.
     """
-    statics = dict(statics or {})
+    num_cameras = rig.num_cameras if rig is not None else 0
     layout = static_layout(terms)
+    frames = frame_layout(terms)
+    for name, variable in (*layout, *frames):
+        if isinstance(variable, PerCamera) and variable.num_cameras != num_cameras:
+            raise ValueError(f"variable {name!r} is declared for {variable.num_cameras} cameras; the rig has {num_cameras}")
+    if CAMERA_OFFSETS in dict(frames) and dict(frames)[CAMERA_OFFSETS] != PerCamera(Euclidean(6), num_cameras):
+        raise ValueError(f"{CAMERA_OFFSETS!r} must be declared as PerCamera(Euclidean(6), {num_cameras})")
+    statics = dict(statics or {})
     if model_parameters is not None:
         if MODEL in dict(layout):
             raise ValueError(f"static variable {MODEL!r} is the model's; a term may not declare it")
-        layout = (*layout, (MODEL, model_parameters.size))
+        layout = (*layout, (MODEL, Euclidean(model_parameters.size)))
         statics.setdefault(MODEL, model_parameters.start())
-    for name, size in layout:
-        statics[name] = jnp.asarray(statics.get(name, jnp.zeros(size)), jnp.float64).reshape(size)
-    return WindowProblem(skeleton, rig, tuple(terms), reference, int(num_previous), statics, model_parameters)
+    statics = {name: _block_value(statics.get(name), variable, (), f"static variable {name!r}") for name, variable in layout}
+    length = reference.root_position.shape[0]
+    given = dict(frame_values or {})
+    values = {name: _block_value(given.get(name), variable, (length,), f"per-frame variable {name!r}")
+              for name, variable in frames}
+    return WindowProblem(skeleton, rig, tuple(terms), reference, int(num_previous), statics, model_parameters, values)
+
+
+def _block_value(value, variable: Variable, batch: tuple[int, ...], what: str) -> jax.Array:
+    """``value`` (None: the block's start) as float64 of shape ``(*batch, *variable.value_shape)``."""
+    shape = (*batch, *variable.value_shape)
+    if value is None:
+        return jnp.broadcast_to(jnp.asarray(variable.start(), jnp.float64), shape)
+    value = jnp.asarray(value, jnp.float64)
+    if value.size != math.prod(shape):
+        raise ValueError(f"{what}: value of shape {value.shape}; expected {shape}")
+    return value.reshape(shape)

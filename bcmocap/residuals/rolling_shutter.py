@@ -1,0 +1,80 @@
+"""Rolling-shutter reprojection (beyond the paper).
+
+A rolling-shutter sensor exposes its rows one after another: row ``r`` of ``H`` at
+``(r / (H − 1) − ½) · readout`` frame periods from the frame's timestamp (``readout``: the time from the
+first row to the last, in frame periods; the studio's convention, centred on the timestamp). A fast-turning
+camera sees the top and the bottom of its image from different poses, and a global-shutter projection
+bends the motion to explain it. :class:`RollingShutterReprojection` projects each measurement with the
+camera's pose at its row's time, moved from frame ``t`` at the camera's velocity between frames ``t − 1``
+and ``t``: ``exp(s · log(T_t T_{t−1}⁻¹)) · T_t`` for ``s`` frame periods (both poses are in the window), so it
+is a camera *pair* term; the first frame of a sequence has no previous frame and its measurements drop out.
+The readout may be estimated with the motion (the static block :data:`READOUT`, frame periods, added to
+the given value), and the intrinsics corrected as by :mod:`.self_calibration`.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..cameras import CameraModel
+from ..geometry import SE3
+from .base import CameraPairTerm
+from .reprojection import check_measurements, window_data
+from .self_calibration import INTRINSICS_CORRECTION, corrected_camera, intrinsics_correction
+from .variables import Euclidean
+
+#: Static block: the correction to the readout time, in frame periods (one value shared by all cameras).
+READOUT = "readout"
+
+
+class RollingShutterReprojection(CameraPairTerm):
+    """‖π_c(T_c(t + s_row) · X_p) − x‖² per observation of frame ``t``, in pixels.
+
+    Data as :class:`~.reprojection.Reprojection` (``point_ids``, ``pixels``, ``weights`` ``(T, C, N, …)`` and
+    ``points``); row ``t`` holds frame ``t``'s measurements (the pair ``(t − 1, t)`` gives the velocity).
+
+    Attributes:
+        points: ``(P, 3)`` world points (m).
+        readout: time from the first row to the last, in frame periods of the solver's frames (readout
+            seconds × frames per second).
+        estimate_readout: also solve for a correction to ``readout`` (static block :data:`READOUT`).
+        num_cameras: the rig's camera count, when ``calibrate``.
+        calibrate: project through corrected intrinsics (static block ``INTRINSICS_CORRECTION``).
+    """
+
+    points: jax.Array = None
+    readout: jax.Array = eqx.field(default=0.0, kw_only=True, converter=jnp.asarray)
+    estimate_readout: bool = eqx.field(default=False, static=True, kw_only=True)
+    calibrate: bool = eqx.field(default=False, static=True, kw_only=True)
+    num_cameras: int = eqx.field(default=0, static=True, kw_only=True)
+
+    def static_variables(self):
+        blocks = {READOUT: Euclidean(1)} if self.estimate_readout else {}
+        if self.calibrate:
+            blocks[INTRINSICS_CORRECTION] = intrinsics_correction(self.num_cameras)
+        return blocks
+
+    def window(self, start: int, stop: int) -> RollingShutterReprojection:
+        return RollingShutterReprojection(
+            window_data(self.data, self.points, start, stop), points=jnp.zeros((0, 3)), readout=self.readout,
+            estimate_readout=self.estimate_readout, calibrate=self.calibrate, num_cameras=self.num_cameras,
+            weight=self.weight, loss=self.loss, name=self.name)
+
+    def check(self, num_frames: int, num_cameras: int) -> None:
+        check_measurements(self.label, self.data, self.points, num_frames, num_cameras)
+        if self.calibrate and self.num_cameras != num_cameras:
+            raise ValueError(f"{self.label}: num_cameras is {self.num_cameras}, the rig has {num_cameras}")
+
+    def residual(self, prev: SE3, curr: SE3, camera: CameraModel, data, statics=None):
+        statics = statics or {}
+        readout = self.readout + (statics[READOUT][0] if self.estimate_readout else 0.0)
+        if self.calibrate:
+            camera = corrected_camera(camera, statics[INTRINSICS_CORRECTION])
+        rows = data["pixels"][:, 1] / max(camera.height - 1, 1) - 0.5  # (N,) in [-½, ½] over the image
+        velocity = (curr @ prev.inverse()).log()  # (6,) left increment per frame period
+        at_row = SE3.exp((rows * readout)[:, None] * velocity) @ SE3(jnp.broadcast_to(curr.wxyz_xyz, (rows.shape[0], 7)))
+        predicted, valid = camera.project(at_row.apply(data["points"]))
+        r = (predicted - data["pixels"]) * jnp.sqrt(data["weights"])[:, None]
+        return r, valid & (data["weights"] > 0)
