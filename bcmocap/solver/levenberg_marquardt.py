@@ -164,7 +164,7 @@ class StructuredDampedNewtonDescent(optx.AbstractDescent):
             schur = damped_c - jnp.einsum("tis,tiu->su", hessian.coupling, a_inv_b)
             delta_z = -jnp.linalg.solve(schur, g_z - jnp.einsum("tis,ti->s", hessian.coupling, a_inv_g))
             delta = (-(a_inv_g + jnp.einsum("tis,s->ti", a_inv_b, delta_z)), delta_z)
-        ok = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(delta)]))
+        ok = _all_finite(delta)
         delta = jax.tree.map(lambda x: jnp.where(ok, x, 0.0), delta)
         result = optx.RESULTS.where(ok, optx.RESULTS.successful, optx.RESULTS.singular)
         return delta, result
@@ -195,6 +195,15 @@ def _predicted_reduction(f_info: optx.FunctionInfo.EvalGradHessian, delta) -> ja
     return -(dot(f_info.grad, delta) + 0.5 * dot(delta, f_info.hessian.mv(delta)))
 
 
+NON_FINITE_START = "levenberg_marquardt: the starting point holds NaN or inf"
+NON_FINITE_SYSTEM = ("levenberg_marquardt: the Gauss–Newton system is NaN or inf at a point of finite cost "
+                     "(a term's Jacobian is not finite there)")
+
+
+def _all_finite(tree) -> jax.Array:
+    return jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
 class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     """Levenberg–Marquardt for a window: structured normal equations, optimistix trust region and loop.
 
@@ -205,6 +214,9 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
 
     Attributes:
         build: ``y ↦ NormalEquations`` (an ``eqx.Partial`` closing over the window problem).
+        check_finite: raise (``eqx.error_if``, inside the compiled loop) when the normal equations at an
+            accepted point of finite cost hold NaN or inf. Without it such a point ends the solve quietly
+            (the step is not finite: ``RESULTS.singular``, reported as not converged).
     """
 
     rtol: float
@@ -213,6 +225,7 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     build: Callable
     descent: StructuredDampedNewtonDescent
     search: optx.ClassicalTrustRegion
+    check_finite: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -221,6 +234,7 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         atol: float = 1e-4,
         norm: Callable = optx.rms_norm,
         damping_scale: float = 1e-3,
+        check_finite: bool = False,
     ):
         self.rtol = rtol
         self.atol = atol
@@ -228,6 +242,7 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         self.build = build
         self.descent = StructuredDampedNewtonDescent(damping_scale)
         self.search = optx.ClassicalTrustRegion()
+        self.check_finite = check_finite
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, args, options, f_struct, tags
@@ -274,6 +289,8 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
                 lambda yy: self.build(yy),
                 state.y_eval,
             )
+            if self.check_finite:
+                system = eqx.error_if(system, jnp.isfinite(cost_eval) & ~_all_finite(system), NON_FINITE_SYSTEM)
             return state.y_eval, _model(cost_eval, system), aux_eval, terminate
 
         def rejected(_):
@@ -334,6 +351,7 @@ def levenberg_marquardt(
     damping_scale: float = 1e-3,
     max_steps: int = 100,
     norm: Callable = optx.rms_norm,
+    check_finite: bool = False,
 ):
     """Minimise ``½ Σ r(y)²`` from ``y0``: the one Levenberg–Marquardt of bcmocap (jit- and vmap-able).
 
@@ -348,11 +366,17 @@ def levenberg_marquardt(
         y0: ``(W, D)`` array, or ``((W, D), (S,))`` when the system has ``S`` static variables.
         rtol, atol, norm, damping_scale: see :class:`StructuredLevenbergMarquardt`.
         max_steps: iterations at most (accepted or rejected).
+        check_finite: check inside the compiled solve (``eqx.error_if``: an ``eqx.EquinoxRuntimeError``
+            under ``eqx.filter_jit``) that ``y0`` is finite (:data:`NON_FINITE_START`) and that the normal
+            equations are wherever the cost is (:data:`NON_FINITE_SYSTEM`); a non-finite cost is left to the
+            caller, who can say which term it comes from.
 
     Returns:
         ``(y, Convergence)``: the last accepted point and how the solve went.
     """
-    solver = StructuredLevenbergMarquardt(build, rtol, atol, norm, damping_scale)
+    if check_finite:
+        y0 = eqx.error_if(y0, ~_all_finite(y0), NON_FINITE_START)
+    solver = StructuredLevenbergMarquardt(build, rtol, atol, norm, damping_scale, check_finite)
     sol = optx.least_squares(residual_fn, solver, y0, args=args, max_steps=max_steps, throw=False)
     report = Convergence(
         sol.state.initial_cost,
