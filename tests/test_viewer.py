@@ -1,5 +1,6 @@
 """bcmocap view without a browser: posing, edits and their checks, the overlay, the run folder reader, saving
-an edited model as a new version, the app driven through viser's Python API, and the command's errors."""
+an edited model as a new version, the app driven through viser's Python API, the folders of bcmocap markers
+and bcmocap kcs, and the command's errors."""
 
 import argparse
 import json
@@ -305,9 +306,37 @@ def viewer(run):
     data.truth = GroundTruth(true_joints, tuple(truth_skeleton.parents), tuple(truth_skeleton.names))
     server = start_server("127.0.0.1", 0)
     app = Viewer(data, server)
+    assert app.ready.wait(60)  # the pictures are read in the background
     yield app
     app.close()
     server.stop()
+
+
+def test_the_first_frame_waits_for_nothing_but_the_model_and_motions(run):
+    """`bcmocap view` reads the scene points, the ground truth and the videos after the first frame is up."""
+    from bcmocap.pipeline.view_input import load_view_input
+    from bcmocap.viewer.app import Viewer, start_server
+
+    data = load_view_input(run[0], editable=False, defer=True)
+    assert data.later is not None and data.scene_points is None and data.camera_frame is None
+    gate, read = threading.Event(), data.later
+    data.later = lambda: (gate.wait(60), read())[1]  # hold the background reading here
+    server = start_server("127.0.0.1", 0)
+    app = Viewer(data, server)
+    try:
+        assert app.joint_meshes.batched_positions.shape == (15, 3) and app.frames_drawn == 1
+        assert app.points_handle is None and app.show_points.disabled and not app.show_points.value
+        assert "reading the videos" in app.camera_text.content and not app.ready.is_set()
+        app.camera_menu.value = "chest"  # asked for before the videos are read: drawn once they are
+        gate.set()
+        assert app.ready.wait(60)
+        assert data.later is None and len(data.scene_points) > 50
+        assert server.scene.get_handle_by_name("/scene/points").points.shape == data.scene_points.shape
+        assert app.show_points.value and not app.show_points.disabled
+        assert "median residual" in app.camera_text.content and app.camera_image.visible
+    finally:
+        app.close()
+        server.stop()
 
 
 def test_scene_holds_joints_cameras_truth_and_points(viewer, run):
@@ -439,7 +468,10 @@ def test_view_errors_are_one_line(run, tmp_path, capsys):
     code, err = _view([str(tmp_path / "missing")], capsys)
     assert code == 2 and err.count("\n") == 1 and "no such folder" in err and "Traceback" not in err
     code, err = _view([str(tmp_path)], capsys)
-    assert code == 2 and err.count("\n") == 1 and "not a bcmocap run folder" in err
+    assert code == 2 and err.count("\n") == 1 and "not an output folder of `bcmocap run` (run.json), `bcmocap " \
+        "markers` (poses.npz, skeleton.json) or `bcmocap kcs` (result.npz)" in err
+    code, err = _view([str(run[0] / "solve" / "correspondences")], capsys)  # a store has a poses.npz too
+    assert code == 2 and err.count("\n") == 1 and "correspondences: not an output folder" in err
     code, err = _view([str(run[0]), "--port", "70000"], capsys)
     assert code == 2 and err.count("\n") == 1 and "--port" in err
     with socket.socket() as taken:
@@ -468,3 +500,232 @@ def test_view_serves_until_stopped(run):
     stop.set()
     thread.join(10)
     assert not thread.is_alive()
+
+
+# ---- bcmocap markers and bcmocap kcs folders -------------------------------------------------------
+MARKERS_PER_SEGMENT = (3, 2, 2, 3, 2, 2)  # on the 6 segments of the test skeleton: 14 markers, 5 joints
+
+
+def write_markers_folder(folder, frames: int = 12, seed: int = 0) -> dict:
+    """A ``bcmocap markers`` output folder as :meth:`MarkerSkeleton.save` documents it (skeleton.json,
+    poses.npz, report.txt), for the test skeleton moving randomly with markers fixed on its segments."""
+    rng = np.random.default_rng(seed)
+    skeleton = make_skeleton()
+    motion = random_motion(skeleton, frames, rng)
+    posing = Posing(skeleton.parents, motion.root_position, motion.rotations)
+    joints = posing.joint_positions(np.asarray(skeleton.offsets))
+    names, parents = list(skeleton.names), list(skeleton.parents)
+    labels, segment = [], []
+    for s, count in enumerate(MARKERS_PER_SEGMENT):
+        labels += [f"{names[s][:3].upper()}{k}" for k in range(count)]
+        segment += [s] * count
+    segment = np.array(segment)
+    offsets = rng.normal(0, 0.06, (len(labels), 3))
+    markers = joints[:, segment] + np.einsum("tmij,mj->tmi", posing.world_matrices[:, segment], offsets)
+    folder.mkdir(parents=True)
+    (folder / "skeleton.json").write_text(json.dumps({
+        "frames": frames, "fps": 120.0,
+        "segments": [{"name": n, "parent": None if p < 0 else names[p],
+                      "offset_m": np.asarray(skeleton.offsets[k]).tolist(),
+                      "markers": [m for m, s in zip(labels, segment) if s == k]}
+                     for k, (n, p) in enumerate(zip(names, parents))],
+        "markers": {m: {"segment": names[s], "offset_m": o.tolist()} for m, s, o in zip(labels, segment, offsets)}}))
+    np.savez_compressed(folder / "poses.npz", root_position=np.asarray(motion.root_position),
+                        rotations=np.asarray(motion.rotations), joint_positions=joints, marker_positions=markers,
+                        marker_labels=np.array(labels), segment_names=np.array(names))
+    (folder / "report.txt").write_text(f"{frames} frames at 120 Hz\n")
+    return {"labels": labels, "segment": segment, "markers": markers, "joints": joints, "parents": parents}
+
+
+@pytest.fixture(scope="module")
+def markers_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("view-markers") / "out"
+    return folder, write_markers_folder(folder)
+
+
+@pytest.fixture(scope="module")
+def kcs_folder(tmp_path_factory):
+    """The real ``bcmocap kcs`` on a small quadruped seen by a near-static camera, with one extra rigid link
+    (between the front hooves): ``(folder, true joints)``."""
+    from test_kcs import NAMES, PARENTS, camera_rotations, images, quadruped
+
+    from bcmocap.cli import main
+
+    _, joints, rest = quadruped(front_in_phase=True)
+    uv = images(joints, camera_rotations(len(joints), np.random.default_rng(11)))
+    folder = tmp_path_factory.mktemp("view-kcs")
+    np.savez(folder / "input.npz", joints_2d=uv, names=np.array(NAMES), parents=np.array(PARENTS), rest=rest,
+             links=np.array([["lfhoof", "rfhoof"]]), fps=25.0)
+    assert main(["kcs", str(folder / "input.npz"), "--out", str(folder / "out")]) == 0
+    return folder / "out", joints
+
+
+@pytest.fixture
+def track_viewer():
+    """``open(folder) → TrackViewer`` on a fresh server; the servers are stopped afterwards."""
+    from bcmocap.pipeline.view_tracks import load_track_folder
+    from bcmocap.viewer.app import start_server
+    from bcmocap.viewer.tracks import TrackViewer
+
+    opened = []
+
+    def open_folder(folder):
+        server = start_server("127.0.0.1", 0)
+        opened.append((TrackViewer(load_track_folder(folder), server), server))
+        return opened[-1][0]
+
+    yield open_folder
+    for viewer, server in opened:
+        viewer.close()
+        server.stop()
+
+
+def test_a_markers_folder_shows_markers_by_segment_joints_and_skeleton(markers_folder, track_viewer):
+    from bcmocap.pipeline.view_tracks import folder_kind
+
+    folder, made = markers_folder
+    assert folder_kind(folder) == "markers"
+    viewer = track_viewer(folder)
+    scene = viewer.server.scene
+    markers, joints = len(made["labels"]), len(made["parents"]) - 1
+    assert (markers, joints) == (14, 5)
+    assert scene.get_handle_by_name("/markers").points.shape == (markers, 3)
+    assert scene.get_handle_by_name("/joints").points.shape == (joints, 3)
+    assert scene.get_handle_by_name("/skeleton").points.shape == (joints, 2, 3)
+    assert scene.get_handle_by_name("/segments").points.shape == (markers, 2, 3)
+    colours = scene.get_handle_by_name("/markers").colors
+    by_segment = {s: {tuple(c) for c in colours[made["segment"] == s]} for s in range(6)}
+    assert all(len(c) == 1 for c in by_segment.values())  # one colour per segment
+    assert len(set().union(*by_segment.values())) == 6  # and a different one for each
+    viewer.slider.value = 7
+    np.testing.assert_allclose(scene.get_handle_by_name("/markers").points, made["markers"][7], atol=1e-6)
+    np.testing.assert_allclose(scene.get_handle_by_name("/joints").points, made["joints"][7, 1:], atol=1e-6)
+    bones = scene.get_handle_by_name("/skeleton").points  # each joint to its parent's origin
+    np.testing.assert_allclose(bones[:, 0], made["joints"][7, made["parents"][1:]], atol=1e-6)
+    assert "t = 0.06 s · frame 7 of 11 · 120 fps" == viewer.time_text.content
+    assert "14 markers on 6 segments, 5 joints" in viewer.data.notes[0] and "frames at 120 Hz" in viewer.data.report
+    assert [text.split(":")[0] for text, _ in viewer.data.legend] == list(make_skeleton().names)
+    viewer.boxes["markers"].value = False
+    assert not scene.get_handle_by_name("/markers").visible
+    viewer.boxes["markers"].value = True
+    assert scene.get_handle_by_name("/markers").visible
+
+
+def test_a_marker_not_seen_in_a_frame_is_left_out_of_it(markers_folder, tmp_path, track_viewer):
+    import shutil
+
+    folder = tmp_path / "gap"
+    shutil.copytree(markers_folder[0], folder)
+    with np.load(folder / "poses.npz") as data:
+        arrays = dict(data)
+    arrays["marker_positions"][3, 2] = np.nan
+    np.savez(folder / "poses.npz", **arrays)
+    viewer = track_viewer(folder)
+    viewer.show_frame(3)
+    assert viewer.handles["markers"].points.shape == (13, 3) and viewer.handles["segments"].points.shape == (13, 2, 3)
+    assert len(viewer.handles["markers"].colors) == 13
+    viewer.show_frame(4)
+    assert viewer.handles["markers"].points.shape == (14, 3)
+
+
+def test_a_kcs_folder_shows_the_chain_and_its_extra_link(kcs_folder, track_viewer):
+    from bcmocap.pipeline.view_tracks import folder_kind
+
+    folder, true_joints = kcs_folder
+    assert folder_kind(folder) == "kcs"
+    viewer = track_viewer(folder)
+    scene = viewer.server.scene
+    frames, joints = true_joints.shape[:2]
+    assert (viewer.num_frames, joints, viewer.fps) == (frames, 18, 25.0)
+    assert scene.get_handle_by_name("/joints").points.shape == (joints, 3)
+    assert scene.get_handle_by_name("/bones").points.shape == (joints - 1, 2, 3)
+    assert scene.get_handle_by_name("/links").points.shape == (1, 2, 3)
+    result = np.load(folder / "result.npz")
+    viewer.show_frame(frames - 1)
+    np.testing.assert_allclose(scene.get_handle_by_name("/joints").points, result["joints"][-1], atol=1e-6)
+    names = list(result["names"])
+    link = scene.get_handle_by_name("/links").points[0]
+    np.testing.assert_allclose(link, result["joints"][-1, [names.index("lfhoof"), names.index("rfhoof")]], atol=1e-6)
+    assert "iterations" in viewer.data.report and "| root->chest |" in viewer.data.report
+
+
+def test_view_opens_markers_and_kcs_folders(markers_folder, kcs_folder, capsys):
+    from bcmocap.pipeline.view_command import add_view_command, serve
+
+    parser = argparse.ArgumentParser()
+    add_view_command(parser.add_subparsers())
+    for folder, counts in ((markers_folder[0], "12 frames, 14 markers, 5 joints"),
+                           (kcs_folder[0], "40 frames, 18 joints")):
+        stop, seen = threading.Event(), []
+        args = parser.parse_args(["view", str(folder), "--port", "0"])
+        assert serve(args, lambda v: (seen.append(type(v).__name__), stop.set()), stop) == 0
+        assert seen == ["TrackViewer"]
+        assert counts in capsys.readouterr().out
+
+
+def _damage(folder, name, content):
+    path = folder / name
+    if content is None:
+        path.unlink()
+    elif isinstance(content, dict):
+        np.savez(path, **content)
+    else:
+        path.write_text(content)
+
+
+@pytest.mark.parametrize("kind,name,content,culprit", [
+    ("markers", "poses.npz", None, "poses.npz: missing"),
+    ("markers", "poses.npz", "not a zip file", "poses.npz: cannot read"),
+    ("markers", "poses.npz", {"joint_positions": np.zeros((3, 6, 3))}, "poses.npz: cannot read (no marker_positions"),
+    ("markers", "poses.npz", {"joint_positions": np.zeros((3, 4, 3)), "marker_positions": np.zeros((3, 14, 3)),
+                              "marker_labels": np.array(["a"] * 14), "segment_names": np.array(["x"] * 4)},
+     "poses.npz: joint_positions has shape (3, 4, 3), expected (F, 6, 3)"),
+    ("markers", "skeleton.json", "{not json", "skeleton.json: cannot read"),
+    ("markers", "skeleton.json", json.dumps({"fps": 120, "segments": "pelvis"}), "skeleton.json: 'segments'"),
+    ("markers", "skeleton.json", json.dumps({"fps": -1}), "skeleton.json: 'fps' must be a positive frame rate"),
+    ("kcs", "result.npz", None, "result.npz: missing"),
+    ("kcs", "result.npz", {"joints": np.zeros((2, 3, 3)), "names": np.array(["a", "b", "c"]),
+                           "parents": np.array([-1, 2, 1])}, "result.npz: the parents of 'b' form a cycle"),
+    ("kcs", "result.npz", {"joints": np.zeros((2, 3, 3)), "names": np.array(["a", "b", "c"]),
+                           "parents": np.array([-1, 0, 0]), "bone_names": np.array(["a->b", "a->c", "b->z"])},
+     "result.npz: bone_names entry 'b->z'"),
+    ("kcs", "report.json", json.dumps({"fps": "fast"}), "report.json: 'fps' must be a positive frame rate"),
+])
+def test_a_damaged_folder_is_refused_in_one_line(markers_folder, kcs_folder, tmp_path, capsys, kind, name, content,
+                                                 culprit):
+    import shutil
+
+    folder = tmp_path / kind
+    shutil.copytree(markers_folder[0] if kind == "markers" else kcs_folder[0], folder)
+    _damage(folder, name, content)
+    code, err = _view([str(folder), "--port", "0"], capsys)
+    assert code == 2 and err.startswith("bcmocap view: ") and err.count("\n") == 1 and culprit in err, err
+    assert str(folder / name) in err and "Traceback" not in err
+
+
+def test_capture_is_refused_for_a_markers_folder(markers_folder, capsys):
+    code, err = _view([str(markers_folder[0]), "--capture", "/somewhere", "--port", "0"], capsys)
+    assert code == 2 and err.count("\n") == 1 and "--capture is for a `bcmocap run` folder" in err
+
+
+@pytest.mark.slow
+def test_the_real_bcmocap_markers_output_opens(tmp_path, track_viewer):
+    """`bcmocap markers` itself (about a minute, most of it compiling) on a 2 s, three-rod linkage: what it
+    writes is what the viewer reads."""
+    from test_io_c3d import write_c3d
+    from test_markers_pipeline import linkage_capture
+
+    from bcmocap.cli import main
+    from bcmocap.sim.markers import MarkerNoise
+
+    sim = linkage_capture(seconds=2.0, noise=MarkerNoise(sigma_m=0.0005, spike_probability=0.0, gap_rate_hz=0.0,
+                                                          gap_seconds=(0.05, 0.2), relabel_after_gap=0.0,
+                                                          label_break_rate_hz=0.0))
+    path = write_c3d(tmp_path / "linkage.c3d", sim.positions, sim.labels, rate=60.0, units="mm")
+    assert main(["markers", str(path), "--out", str(tmp_path / "out"), "--groups", "3"]) == 0
+    viewer = track_viewer(tmp_path / "out")
+    assert viewer.handles["markers"].points.shape == (9, 3) and viewer.handles["joints"].points.shape == (2, 3)
+    assert viewer.handles["skeleton"].points.shape == (2, 2, 3) and len(viewer.data.legend) == 3
+    poses = np.load(tmp_path / "out" / "poses.npz")
+    viewer.show_frame(30)
+    np.testing.assert_allclose(viewer.handles["markers"].points, poses["marker_positions"][30], atol=1e-6)

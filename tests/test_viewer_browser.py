@@ -74,7 +74,8 @@ def test_view_in_headless_chromium(tmp_path):
                                                     ".map(i => i.value).join(' ')") or "").split(), 30,
                   "the browser's frame field to show 20")
 
-            # the camera view and a screenshot of the whole app
+            # the camera view (read in the background once the page has the first frame) and a screenshot
+            assert viewer.ready.wait(60), "the videos, scene points and pictures were not read"
             viewer.camera_menu.value = "chest"
             assert "median residual" in viewer.camera_text.content
             viewer.edit_menu.value = "joint: left_shin"

@@ -9,6 +9,11 @@ given): the ground truth when it has one (mapped into the run's world by the §5
 ``metrics.json``) and the capture trial's videos (each camera's frame ``first clap + stride × frame``,
 from ``frontend/capture/registration.json``). Saving an edited model goes through
 :func:`~bcmocap.pipeline.model_edit.save_model_version`.
+
+``bcmocap view`` reads only what the first frame needs before it draws (the model, the motions, the
+store's index and poses: a few tenths of a second) and defers the rest (``defer=True``): the scene points
+(every block of the store), the ground truth (its motion, resampled with JAX) and the videos, about two
+seconds for the 10 s walk, are read by the viewer in the background.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ def _inside(root: Path, path: Path) -> bool:
 
 
 def load_view_input(run_dir: str | Path, capture: str | Path | None = None, *,
-                    max_points: int = MAX_SCENE_POINTS, editable: bool = True):
+                    max_points: int = MAX_SCENE_POINTS, editable: bool = True, defer: bool = False):
     """Read a run folder for the viewer.
 
     Args:
@@ -40,9 +45,13 @@ def load_view_input(run_dir: str | Path, capture: str | Path | None = None, *,
             shown when it has them.
         max_points: scene points sent to the browser at most.
         editable: whether "save" may write the edited model into ``run_dir``.
+        defer: leave what the first frame does without (the scene points, which take reading every block
+            of the store; the ground truth; the capture's videos) to ``ViewerInput.later``, which the
+            viewer reads in the background; False reads everything now.
 
     Raises:
-        ValueError: one line naming the missing or unreadable file.
+        ValueError: one line naming the missing or unreadable file (the deferred part raises it from
+            ``ViewerInput.complete``).
     """
     from ..correspondence_store import CorrespondenceStore
     from ..viewer.inputs import ViewerInput
@@ -77,34 +86,44 @@ def load_view_input(run_dir: str | Path, capture: str | Path | None = None, *,
         raise ValueError(f"{store_path}: {store.num_frames} frames of {store.num_cameras} cameras, the motion has "
                          f"{num_frames} frames and the rig {rig.num_cameras} cameras")
     fps = store.fps if store is not None else _fps_of(run_dir)
-    scene_points = registered = None
+    registered = None
     if store is not None:
-        used = store.used_points()
-        step = max(1, -(-len(used) // max_points))
-        scene_points = np.asarray(store.points[used[::step]]) if len(used) else None
         registered = np.where(store.registered[..., None], store.world_from_camera, np.nan)
-        if step > 1:
-            notes.append(f"Scene: every {step}th of the {len(used)} points the solver used.")
     capture_dir = Path(capture) if capture is not None else Path(log.get("capture", ""))
-    truth = None
-    if store is not None and (capture is not None or log.get("capture")):
-        truth = _truth(capture_dir, store, notes)
+    has_capture = capture is not None or bool(log.get("capture"))
     metrics = None
     if (run_dir / "metrics.json").is_file():
         metrics = _read_json(run_dir / "metrics.json")
     pictures = []
     if (run_dir / "pictures").is_dir():
         pictures = [p for p in sorted((run_dir / "pictures").glob("*.png")) if p.is_file() and _inside(run_dir, p)]
-    camera_frame = _camera_frames(run_dir, capture_dir, store, rig, notes) if store is not None else None
     save = None
     if editable:
         from .model_edit import save_model_version
 
         save = functools.partial(save_model_version, run_dir)
-    return ViewerInput(title=run_dir.resolve().name, skeleton=skeleton, rig=rig, motions=motions, fps=fps,
-                       scene_points=scene_points, registered=registered, truth=truth, pictures=pictures,
-                       metrics=metrics if isinstance(metrics, dict) else None, camera_frame=camera_frame,
-                       save_model=save, notes=notes)
+    later = None
+    if store is not None:
+        later = functools.partial(_store_extras, run_dir, store, rig, capture_dir, has_capture, max_points)
+    data = ViewerInput(title=run_dir.resolve().name, skeleton=skeleton, rig=rig, motions=motions, fps=fps,
+                       registered=registered, pictures=pictures, metrics=metrics if isinstance(metrics, dict) else None,
+                       save_model=save, notes=notes, later=later)
+    if not defer:
+        data.complete()
+    return data
+
+
+def _store_extras(run_dir: Path, store, rig, capture_dir: Path, with_truth: bool, max_points: int) -> dict:
+    """What the first frame does without: the scene points the solver used (every n-th, at most
+    ``max_points``), the capture's ground truth (when ``with_truth``: a capture folder is known) and videos."""
+    notes: list[str] = []
+    used = store.used_points()
+    step = max(1, -(-len(used) // max_points))
+    if step > 1:
+        notes.append(f"Scene: every {step}th of the {len(used)} points the solver used.")
+    return {"scene_points": np.asarray(store.points[used[::step]]) if len(used) else None,
+            "truth": _truth(capture_dir, store, notes) if with_truth else None,
+            "camera_frame": _camera_frames(run_dir, capture_dir, store, rig, notes), "notes": notes}
 
 
 def check_run_folder(run_dir: str | Path) -> dict:
@@ -171,6 +190,8 @@ def _camera_frames(run_dir: Path, capture_dir: Path, store, rig, notes: list[str
         if "capture" not in capture.trials:
             raise ValueError(f"{capture_dir}: no 'capture' trial")
         paths = [capture.video_path("capture", name) for name in cameras]
+        # A trial that is a stretch of a longer take (bcmocap init) starts at that frame of the file.
+        firsts = [capture.trial_video("capture", name).first_frame for name in cameras]
     except (ValueError, KeyError, TypeError, OSError) as exc:
         notes.append(f"Camera videos not shown: {' '.join(str(exc).split())}")
         return None
@@ -187,7 +208,7 @@ def _camera_frames(run_dir: Path, capture_dir: Path, store, rig, notes: list[str
 
     def camera_frame(c: int, frame: int):
         with lock:
-            image = videos[c].frame(int(starts[c]) + stride * frame)
+            image = videos[c].frame(firsts[c] + int(starts[c]) + stride * frame)
             if image is None:
                 return None
             block, data = block_of(frame)

@@ -1,20 +1,25 @@
 """``bcmocap view``: a run in the browser (viser), with the paper's interactive correction of joint centres
-and camera mounts (000 §4.2). The only package that imports viser.
+and camera mounts (000 §4.2); and the outputs of ``bcmocap markers`` and ``bcmocap kcs`` on the same time
+slider. The only package that imports viser.
 
-- :mod:`.inputs`: what the viewer shows (plain arrays and callbacks);
+- :mod:`.inputs`: what the viewers show (plain arrays and callbacks);
 - :mod:`.posing`: a motion posed on an editable model in numpy (edits redraw at once);
 - :mod:`.edits`: joint-centre and camera-mount edits and their checks;
 - :mod:`.overlay`: a video frame with measurements, reprojections and residual lines;
 - :mod:`.video`: random access to video frames;
-- :mod:`.app`: the viser app;
+- :mod:`.session`: what every viewer shares (the stage, the time slider, play/pause and speed);
+- :mod:`.app`: the viser app of a run;
+- :mod:`.tracks`: the viser app of points and lines over time (markers, joints, kinematic chains);
 - :mod:`.browser`: headless Chromium over the DevTools protocol (tests, benchmark, screenshots).
 
 Reading a run folder and saving an edited model are the pipeline's (:mod:`bcmocap.pipeline.view_input`,
-:mod:`bcmocap.pipeline.model_edit`).
+:mod:`bcmocap.pipeline.model_edit`), and so is reading a ``bcmocap markers`` or ``bcmocap kcs`` folder
+(:mod:`bcmocap.pipeline.view_tracks`).
 """
 
 from .edits import EditableModel
-from .inputs import CameraFrame, GroundTruth, ViewerInput
+from .inputs import CameraFrame, GroundTruth, LineTracks, PointTracks, TrackInput, ViewerInput
 from .posing import Posing
 
-__all__ = ["CameraFrame", "EditableModel", "GroundTruth", "Posing", "ViewerInput"]
+__all__ = ["CameraFrame", "EditableModel", "GroundTruth", "LineTracks", "PointTracks", "Posing", "TrackInput",
+           "ViewerInput"]

@@ -8,11 +8,16 @@ C boxes, C × 8 lines), ``/registered/frusta`` (the frontend's registered poses,
 ``/scene/points``, ``/root_path`` and ``/edit/gizmo`` (the transform gizmo of the selected joint centre or
 camera mount). Batched nodes keep a playback frame to a handful of messages, which the browser can follow.
 
-Panel: playback (frame slider, play/pause, speed, motion), what to show, the selected camera's video
-frame with measurements and reprojections (:mod:`.overlay`), model editing (select, drag, save, revert;
-:mod:`.edits`), ``metrics.json`` and the run's pictures. Everything the panel does is also a method
-(:meth:`Viewer.show_frame`, :meth:`Viewer.select`, :meth:`Viewer.drag_to`, :meth:`Viewer.save`), which is
-how the tests drive it.
+Panel: playback (frame slider, play/pause, speed, motion; :mod:`.session`), what to show, the selected
+camera's video frame with measurements and reprojections (:mod:`.overlay`), model editing (select, drag,
+save, revert; :mod:`.edits`), ``metrics.json`` and the run's pictures. Everything the panel does is also a
+method (:meth:`Viewer.show_frame`, :meth:`Viewer.select`, :meth:`Viewer.drag_to`, :meth:`Viewer.save`),
+which is how the tests drive it.
+
+The first frame needs only the model and the motions: the scene points, the ground truth and the camera
+videos that :attr:`ViewerInput.later <bcmocap.viewer.inputs.ViewerInput.later>` defers are read in a
+background thread, and added to the scene and panel with the pictures once a browser has that frame
+(:attr:`Viewer.ready` is set then).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from ..geometry import matrix_from_quat
 from .edits import EditableModel
 from .inputs import ViewerInput
 from .posing import Posing
+from .session import MAX_PLAYBACK_RATE, Session
 
 #: Joint error (cm) drawn fully red; 0 cm is green.
 ERROR_RED_CM = 5.0
@@ -36,9 +42,11 @@ ERROR_RED_CM = 5.0
 BONE, TRUTH, CAMERA, REGISTERED, SELECTED, POINTS, JOINT = ((40, 110, 230), (255, 140, 0), (35, 35, 35),
                                                             (150, 150, 150), (250, 190, 0), (120, 140, 160),
                                                             (40, 110, 230))
-#: Playback sends at most this many frames per second: a browser drawing WebGL in software falls behind a
-#: faster stream of updates and then draws far fewer (``benchmarks/viewer.py``).
-MAX_PLAYBACK_RATE = 15.0
+#: ``bcmocap view`` reads the deferred scene points, ground truth, videos and pictures while the page starts
+#: up, and sends them this long (s) after a browser has reported its view (it does once it is connected and
+#: has the first frame's messages), or after :data:`FIRST_VIEW_WAIT_S` without a browser: sent before, a
+#: megabyte or more would stand between the page and its first frame.
+FIRST_VIEW_SETTLE_S, FIRST_VIEW_WAIT_S = 1.0, 10.0
 _NOTHING = "(nothing)"
 _NO_CAMERA = "(none)"
 
@@ -128,25 +136,29 @@ def start_server(host: str, port: int):
     return server
 
 
-class Viewer:
+class Viewer(Session):
     """One viewer session on ``server`` (a ``viser.ViserServer``) showing ``data``; playback sends at most
-    ``max_rate`` frames per second.
+    ``max_rate`` frames per second. What the first frame does without (:attr:`ViewerInput.later
+    <bcmocap.viewer.inputs.ViewerInput.later>`) is read in the background at once, and added to the scene
+    and panel (with the pictures) once a browser has the first frame, or after ``browser_wait_s`` without
+    one (0: at once; ``bcmocap view`` waits up to :data:`FIRST_VIEW_WAIT_S`).
 
     Attributes:
-        frame: the frame shown; playing: whether playback runs; speed: playback speed (× real time);
-            max_rate: the most frames per second playback sends.
+        frame, playing, speed, max_rate, frames_drawn: playback (:class:`~bcmocap.viewer.session.Session`).
         model: the model being viewed (:class:`~bcmocap.viewer.edits.EditableModel`); edited: joints and
             cameras an edit touched since the last save.
         joints: ``(T, J, 3)`` joint centres under :attr:`model`; cameras ``(T, C, 7)`` world_from_camera.
-        frames_drawn: frames sent to the browser so far (for frame-rate measurements).
         status: the last message of the editing panel.
+        ready: set once what the first frame does without (deferred inputs, pictures) is in the scene and panel.
     """
 
-    def __init__(self, data: ViewerInput, server, max_rate: float = MAX_PLAYBACK_RATE):
+    def __init__(self, data: ViewerInput, server, max_rate: float = MAX_PLAYBACK_RATE, browser_wait_s: float = 0.0):
         self.data, self.server = data, server
         self.lock = threading.RLock()
-        self.frame, self.playing, self.speed, self.max_rate = 0, False, 1.0, max_rate
-        self.frames_drawn, self.status = 0, ""
+        self._init_playback(max_rate)
+        self._browser_wait_s = browser_wait_s
+        self.status = ""
+        self.ready = threading.Event()
         self.loaded_model = EditableModel.of(data.skeleton, data.rig)
         self.model = self.loaded_model
         self.edited_joints: set[int] = set()
@@ -158,23 +170,19 @@ class Viewer:
                           for name, m in data.motions.items()}
         self.motion = next(iter(data.motions))
         self._dragging = False
-        self._stop = threading.Event()
         self._colour_key = None
         self._recompute()
         self._build_scene()
         self._build_panel()
         self.show_frame(0)
-        self._player = threading.Thread(target=self._play_loop, name="bcmocap-view-playback", daemon=True)
-        self._player.start()
+        self._start_player()
+        self._extras = threading.Thread(target=self._add_extras, name="bcmocap-view-extras", daemon=True)
+        self._extras.start()
 
     # ---- model → arrays ---------------------------------------------------------------------------
     @property
     def posing(self) -> Posing:
         return self._postures[self.motion]
-
-    @property
-    def num_frames(self) -> int:
-        return self.data.num_frames
 
     def _recompute(self) -> None:
         self.joints = self.posing.joint_positions(self.model.offsets)
@@ -202,17 +210,9 @@ class Viewer:
 
     def _build_scene(self) -> None:
         scene, data = self.server.scene, self.data
-        centre = self.joints[0, 0]
-        self.server.initial_camera.position = tuple(centre + np.array([1.7, -1.7, 0.6]))
-        self.server.initial_camera.look_at = tuple(centre + np.array([0.0, 0.0, -0.15]))
-        scene.configure_default_lights(cast_shadow=False)  # shadows cost a software renderer most of its time
-        scene.configure_environment_map(None)
-        self.grid = scene.add_grid("/grid", width=40.0, height=40.0, plane="xy", cell_size=0.5, section_size=2.0,
-                                   shadow_opacity=0.0, position=(float(centre[0]), float(centre[1]), 0.0))
-        self.points_handle = None
-        if data.scene_points is not None and len(data.scene_points):
-            self.points_handle = scene.add_point_cloud("/scene/points", np.asarray(data.scene_points, np.float32),
-                                                       POINTS, point_size=0.012, precision="float32")
+        self.grid = self._set_stage(self.joints[0, 0], 0.0)
+        self.points_handle = self.truth_bones = self.truth_joints = None
+        self._add_scene_points()
         root = self.joints[:, 0]
         path = np.stack([root[:-1], root[1:]], axis=1) if len(root) > 1 else np.zeros((0, 2, 3))
         self.root_path = scene.add_line_segments("/root_path", path, (200, 60, 200), thickness=0.006)
@@ -224,13 +224,7 @@ class Viewer:
             self.joints[0], batched_colors=np.tile(JOINT, (len(parents), 1)).astype(np.uint8), lod="off",
             cast_shadow=False, receive_shadow=False)
         self.joint_meshes.on_click(lambda event: self._clicked("joint", event))
-        self.truth_bones = self.truth_joints = None
-        if data.truth is not None:
-            t0 = np.nan_to_num(data.truth.joints[0])
-            self.truth_bones = scene.add_line_segments("/truth/bones", self._bones(t0, data.truth.parents), TRUTH,
-                                                       thickness=0.01)
-            self.truth_joints = scene.add_point_cloud("/truth/joints", t0.astype(np.float32), TRUTH,
-                                                      point_size=0.035, point_shape="circle", precision="float32")
+        self._add_truth()
         self.camera_meshes = self.frusta = self.registered_frusta = None
         cameras = len(self.model.camera_names)
         if cameras:
@@ -250,47 +244,95 @@ class Viewer:
         self.gizmo = scene.add_transform_controls("/edit/gizmo", scale=0.25, visible=False, depth_test=False)
         self.gizmo.on_update(self._on_gizmo)
 
+    def _add_scene_points(self) -> None:
+        points = self.data.scene_points
+        if self.points_handle is None and points is not None and len(points):
+            self.points_handle = self.server.scene.add_point_cloud(
+                "/scene/points", np.asarray(points, np.float32), POINTS, point_size=0.012, precision="float32")
+
+    def _add_truth(self) -> None:
+        truth = self.data.truth
+        if self.truth_joints is None and truth is not None:
+            t0 = np.nan_to_num(truth.joints[self.frame])
+            self.truth_bones = self.server.scene.add_line_segments("/truth/bones", self._bones(t0, truth.parents),
+                                                                   TRUTH, thickness=0.01)
+            self.truth_joints = self.server.scene.add_point_cloud("/truth/joints", t0.astype(np.float32), TRUTH,
+                                                                  point_size=0.035, point_shape="circle",
+                                                                  precision="float32")
+
+    def _wait_for_a_browser(self, timeout: float) -> None:
+        """Until :data:`FIRST_VIEW_SETTLE_S` after a browser reported its view, or ``timeout`` s without one."""
+        if timeout <= 0:
+            return
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not self._stop.is_set():
+            if any(c.camera.update_timestamp > 0 for c in self.server.get_clients().values()):
+                self._stop.wait(FIRST_VIEW_SETTLE_S)
+                return
+            self._stop.wait(0.05)
+
+    def _add_extras(self) -> None:
+        """In the background: read what :attr:`ViewerInput.later` defers, and once a browser has the first
+        frame add it to the scene and the panel, then the pictures."""
+        data = self.data
+        try:
+            try:
+                data.complete()
+            except (ValueError, OSError) as exc:
+                data.notes.append(f"Not everything could be read: {' '.join(str(exc).split())}")
+            self._wait_for_a_browser(self._browser_wait_s)
+            with self.lock:
+                self._add_scene_points()
+                self._add_truth()
+                self._recompute()
+                self._show_boxes()
+                self.notes_text.content = "\n\n".join(data.notes)
+                self.notes_text.visible = bool(data.notes)
+                if self.camera_text is not None and self.camera_view is None:
+                    self.camera_text.content = self._camera_legend()
+                if self.camera_view is not None:
+                    self._draw_camera_view()
+                self.show_frame(self.frame)
+            for path in data.pictures:
+                image = _read_picture(path)
+                if image is not None:
+                    with self.pictures_folder:
+                        self.server.gui.add_image(image, label=path.stem.replace("_", " "))
+        finally:
+            self.ready.set()
+
     # ---- panel ------------------------------------------------------------------------------------
     def _build_panel(self) -> None:
         gui, data = self.server.gui, self.data
         gui.configure_theme(control_width="large")
         gui.set_panel_label(f"bcmocap view · {data.title}")
-        if data.notes:
-            gui.add_markdown("\n\n".join(data.notes))
+        self.notes_text = gui.add_markdown("\n\n".join(data.notes), visible=bool(data.notes))
         with gui.add_folder("Playback"):
-            self.slider = gui.add_slider("frame", 0, max(self.num_frames - 1, 1), 1, 0)
-            self.slider.on_update(lambda event: self.show_frame(int(self.slider.value)))
-            self.time_text = gui.add_markdown("")
-            self.play_button = gui.add_button("Play", icon=None)
-            self.play_button.on_click(lambda event: self.set_playing(not self.playing))
-            self.speed_slider = gui.add_slider("speed ×", 0.1, 4.0, 0.1, 1.0)
-            self.speed_slider.on_update(lambda event: setattr(self, "speed", float(self.speed_slider.value)))
+            self._add_playback(gui)
             if len(data.motions) > 1:
                 self.motion_menu = gui.add_dropdown("motion", tuple(data.motions), initial_value=self.motion)
                 self.motion_menu.on_update(lambda event: self.set_motion(self.motion_menu.value))
         with gui.add_folder("Show"):
-            self.show_truth = gui.add_checkbox("ground truth", data.truth is not None, disabled=data.truth is None)
+            self.show_truth = gui.add_checkbox("ground truth", False, disabled=True)
             self.show_registered = gui.add_checkbox("registered poses (frontend)", False,
                                                     disabled=data.registered is None)
-            self.show_points = gui.add_checkbox("scene points", self.points_handle is not None,
-                                                disabled=self.points_handle is None)
-            self.follow = gui.add_checkbox("follow the subject", True,
-                                           hint="move the view with the root, so the subject stays in sight")
+            self.show_points = gui.add_checkbox("scene points", False, disabled=True)
+            self._add_follow(gui)
+            self.truth_legend = gui.add_markdown(f"Joint colour: position error, green 0 cm → red ≥ "
+                                                 f"{ERROR_RED_CM:g} cm; orange: the ground truth.", visible=False)
+            self._show_boxes()
             for box in (self.show_truth, self.show_registered, self.show_points):
                 box.on_update(lambda event: self._apply_visibility())
-            if data.truth is not None:
-                gui.add_markdown(f"Joint colour: position error, green 0 cm → red ≥ {ERROR_RED_CM:g} cm; orange: "
-                                 "the ground truth.")
+        self.camera_text = None
         if self.model.camera_names:
-            with gui.add_folder("Camera view", expand_by_default=data.camera_frame is not None):
+            videos = data.camera_frame is not None or data.later is not None
+            with gui.add_folder("Camera view", expand_by_default=videos):
                 self.camera_menu = gui.add_dropdown("camera", (_NO_CAMERA, *self.model.camera_names),
                                                     initial_value=_NO_CAMERA)
                 self.camera_menu.on_update(lambda event: self.set_camera_view(
                     None if self.camera_menu.value == _NO_CAMERA
                     else self.model.camera_names.index(self.camera_menu.value)))
-                self.camera_text = gui.add_markdown(
-                    "green: measured · red: reprojected · yellow: residual" if data.camera_frame is not None
-                    else "no videos or measurements for this run (capture folder not found)")
+                self.camera_text = gui.add_markdown(self._camera_legend())
                 self.camera_image = gui.add_image(np.zeros((9, 16, 3), np.uint8), visible=False)
         with gui.add_folder("Edit model"):
             choices = [_NOTHING] + [f"joint: {n}" for n in self.model.names[1:]] + \
@@ -309,12 +351,22 @@ class Viewer:
         if data.metrics:
             with gui.add_folder("Metrics", expand_by_default=False):
                 gui.add_markdown(metrics_markdown(data.metrics))
-        if data.pictures:
-            with gui.add_folder("Pictures", expand_by_default=False):
-                for path in data.pictures:
-                    image = _read_picture(path)
-                    if image is not None:
-                        gui.add_image(image, label=path.stem.replace("_", " "))
+        self.pictures_folder = gui.add_folder("Pictures", expand_by_default=False, visible=bool(data.pictures))
+
+    def _show_boxes(self) -> None:
+        """Enable (and tick) the ground-truth and scene-point boxes once those are in the scene."""
+        for box, handle in ((self.show_truth, self.truth_joints), (self.show_points, self.points_handle)):
+            if handle is not None and box.disabled:
+                box.disabled = False
+                box.value = True
+        self.truth_legend.visible = self.truth_joints is not None
+
+    def _camera_legend(self) -> str:
+        if self.data.camera_frame is not None:
+            return "green: measured · red: reprojected · yellow: residual"
+        if self.data.later is not None:
+            return "reading the videos and measurements ..."
+        return "no videos or measurements for this run (capture folder not found)"
 
     def _clicked(self, kind: str, event) -> None:
         index = getattr(event, "instance_index", None)
@@ -345,100 +397,52 @@ class Viewer:
         self.show_frame(self.frame)
 
     # ---- time -------------------------------------------------------------------------------------
-    def show_frame(self, frame: int) -> None:
-        """Draw ``frame`` (clamped to the motion)."""
-        with self.lock:
-            frame = int(np.clip(frame, 0, self.num_frames - 1))
-            self.frame = frame
-            if int(self.slider.value) != frame:
-                self.slider.value = frame  # calls back into show_frame (re-entrant lock), which draws
-                return
-            joints, errors = self.joints[frame], self.error_at(frame)
-            colours = error_colours(errors) if errors is not None else None
-            with self.server.atomic():
-                self.bones.points = self._bones(joints, self.model.parents)
-                self.joint_meshes.batched_positions = joints
-                key = (colours.tobytes() if colours is not None else None, self.selection)
-                if key != self._colour_key:
-                    self.joint_meshes.batched_colors = self._joint_colours(colours)
-                    self._colour_key = key
-                if self.camera_meshes is not None:
-                    self.camera_meshes.batched_wxyzs = self.cameras[frame, :, :4]
-                    self.camera_meshes.batched_positions = self.cameras[frame, :, 4:]
-                    self.frusta.points = frustum_lines(self.cameras[frame], self._aspect)
-                if self.data.truth is not None and self.show_truth.value:
-                    t = self.data.truth.joints[frame]
-                    ok = bool(np.isfinite(t).all())
-                    self.truth_bones.visible = self.truth_joints.visible = ok
-                    if ok:
-                        self.truth_bones.points = self._bones(t, self.data.truth.parents)
-                        self.truth_joints.points = t.astype(np.float32)
-                if self.registered_frusta is not None and self.show_registered.value:
-                    pose = self.data.registered[frame]
-                    missing = ~np.isfinite(pose).all(axis=-1)  # unregistered: drawn as nothing (a point at the
-                    pose = np.where(missing[:, None], self.cameras[frame], pose)  # solved camera centre)
-                    lines = frustum_lines(pose, self._aspect).reshape(-1, 8, 2, 3)
-                    lines[missing] = pose[missing, None, None, 4:]
-                    self.registered_frusta.points = lines.reshape(-1, 2, 3)
-                if self.selection is not None and not self._dragging:
-                    self._place_gizmo()
-            self._follow(joints[0])
-            self.time_text.content = self._time_line(frame, errors)
-            self.frames_drawn += 1
-            if self.camera_view is not None and (not self.playing or time.perf_counter() - self._camera_drawn_at > 0.5):
-                self._draw_camera_view()  # while playing, twice a second: a video frame is a large message
-
-    def _follow(self, root: np.ndarray) -> None:
-        """Shift every browser's view by the root's move since the last frame drawn (when asked)."""
-        previous, self._followed = getattr(self, "_followed", None), root
-        if previous is None or not self.follow.value:
-            return
-        delta = root - previous
-        if not np.any(delta):
-            return
-        for client in self.server.get_clients().values():
-            camera = client.camera
-            if camera.update_timestamp == 0.0:  # the browser has not reported its view yet
-                continue
-            with client.atomic():
-                camera.look_at = camera.look_at + delta
-                camera.position = camera.position + delta
+    def _draw(self, frame: int) -> None:
+        joints, errors = self.joints[frame], self.error_at(frame)
+        colours = error_colours(errors) if errors is not None else None
+        with self.server.atomic():
+            self.bones.points = self._bones(joints, self.model.parents)
+            self.joint_meshes.batched_positions = joints
+            key = (colours.tobytes() if colours is not None else None, self.selection)
+            if key != self._colour_key:
+                self.joint_meshes.batched_colors = self._joint_colours(colours)
+                self._colour_key = key
+            if self.camera_meshes is not None:
+                self.camera_meshes.batched_wxyzs = self.cameras[frame, :, :4]
+                self.camera_meshes.batched_positions = self.cameras[frame, :, 4:]
+                self.frusta.points = frustum_lines(self.cameras[frame], self._aspect)
+            if self.truth_joints is not None and self.show_truth.value:
+                t = self.data.truth.joints[frame]
+                ok = bool(np.isfinite(t).all())
+                self.truth_bones.visible = self.truth_joints.visible = ok
+                if ok:
+                    self.truth_bones.points = self._bones(t, self.data.truth.parents)
+                    self.truth_joints.points = t.astype(np.float32)
+            if self.registered_frusta is not None and self.show_registered.value:
+                pose = self.data.registered[frame]
+                missing = ~np.isfinite(pose).all(axis=-1)  # unregistered: drawn as nothing (a point at the
+                pose = np.where(missing[:, None], self.cameras[frame], pose)  # solved camera centre)
+                lines = frustum_lines(pose, self._aspect).reshape(-1, 8, 2, 3)
+                lines[missing] = pose[missing, None, None, 4:]
+                self.registered_frusta.points = lines.reshape(-1, 2, 3)
+            if self.selection is not None and not self._dragging:
+                self._place_gizmo()
+        self._follow(joints[0])
+        self.time_text.content = self._time_line(frame, errors)
+        if self.camera_view is not None and (not self.playing or time.perf_counter() - self._camera_drawn_at > 0.5):
+            self._draw_camera_view()  # while playing, twice a second: a video frame is a large message
 
     def _time_line(self, frame: int, errors) -> str:
-        line = f"t = {frame / self.data.fps:.2f} s · frame {frame} of {self.num_frames - 1} · {self.data.fps:g} fps"
+        line = self.time_line(frame)
         if errors is not None and np.isfinite(errors).any():
             line += f" · joint error mean {np.nanmean(errors):.2f} cm, max {np.nanmax(errors):.2f} cm"
         return line
-
-    def set_playing(self, playing: bool) -> None:
-        self.playing = bool(playing)
-        self.play_button.label = "Pause" if self.playing else "Play"
 
     def set_motion(self, name: str) -> None:
         with self.lock:
             self.motion = name
             self._recompute()
             self.show_frame(self.frame)
-
-    def _play_loop(self) -> None:
-        last, position = time.perf_counter(), None
-        while not self._stop.is_set():
-            time.sleep(1 / self.max_rate)
-            now = time.perf_counter()
-            if not self.playing:
-                last, position = now, None
-                continue
-            if position is None:
-                position = float(self.frame)
-            position = (position + (now - last) * self.speed * self.data.fps) % self.num_frames
-            last = now
-            if int(position) == self.frame:
-                continue
-            try:
-                self.show_frame(int(position))
-            except Exception as exc:  # noqa: BLE001 - playback stops; the viewer stays up
-                self.set_playing(False)
-                self.set_status(f"**Playback stopped:** {type(exc).__name__}: {exc}")
 
     # ---- camera view ------------------------------------------------------------------------------
     def set_camera_view(self, camera: int | None) -> None:
@@ -458,6 +462,7 @@ class Viewer:
 
         c, frame = self.camera_view, self.frame
         if self.data.camera_frame is None:
+            self.camera_text.content = self._camera_legend()
             return
         try:
             shot = self.data.camera_frame(c, frame)
@@ -620,9 +625,9 @@ class Viewer:
             return True
 
     def close(self) -> None:
-        """Stop playback (the server is the caller's to stop)."""
-        self._stop.set()
-        self._player.join(timeout=2)
+        """Stop playback and wait briefly for the background reading (the server is the caller's to stop)."""
+        super().close()
+        self._extras.join(timeout=10)
 
 
 def metrics_markdown(metrics: dict) -> str:
