@@ -101,16 +101,19 @@ def test_camera_effects_choose_the_reprojection_and_add_their_priors():
     from bcmocap.residuals.rolling_shutter import READOUT, RollingShutterReprojection
     from bcmocap.residuals.self_calibration import INTRINSICS_CORRECTION, SelfCalibratingReprojection
     from bcmocap.residuals.variables import CAMERA_OFFSETS
-    from bcmocap.sim import standard_capture
+    from bcmocap.correspondences import Correspondences
     from bcmocap.solver.objective import paper_terms
 
-    capture = standard_capture("walk", seconds=0.1, fps=30.0)
-    corr = capture.correspondences()
-    kinds = lambda terms: [type(t).__name__ for t in terms]  # noqa: E731
-    assert kinds(paper_terms(corr, capture.skeleton))[0] == Reprojection.__name__
+    t, c, n, m = 4, 3, 5, 2
+    corr = Correspondences(np.zeros((n, 3)), np.zeros((t, c, n), np.int32), np.zeros((t, c, n, 2)), np.ones((t, c, n)),
+                           np.zeros((t, c, m, 2)), np.zeros((t, c, m, 2)), np.zeros((t, c, m)),
+                           np.tile([1.0, 0, 0, 0, 0, 0, 0], (t, c, 1)), np.ones((t, c), bool), 30.0)
+    skeleton = make_skeleton()
+    kinds = lambda terms: [type(term).__name__ for term in terms]  # noqa: E731
+    assert kinds(paper_terms(corr, skeleton))[0] == Reprojection.__name__
     config = RunConfig.from_dict({"solver": {"rolling_shutter_readout": 0.02, "estimate_readout": True,
                                              "self_calibration": True, "mount_compliance": [0.003, 2.0]}})
-    terms = paper_terms(corr, capture.skeleton, effects=camera_effects(config.solver))
+    terms = paper_terms(corr, skeleton, effects=camera_effects(config.solver))
     shutter = terms[0]
     assert isinstance(shutter, RollingShutterReprojection) and shutter.calibrate and shutter.estimate_readout
     assert float(shutter.readout) == pytest.approx(0.02 * corr.fps)
@@ -118,7 +121,7 @@ def test_camera_effects_choose_the_reprojection_and_add_their_priors():
     assert declared == {READOUT, INTRINSICS_CORRECTION}
     assert {name for t in terms for name in t.frame_variables()} == {CAMERA_OFFSETS}
     assert {"readout prior", "intrinsics prior", "mount compliance", "mount smoothness"} <= {t.label for t in terms}
-    only_calibration = paper_terms(corr, capture.skeleton,
+    only_calibration = paper_terms(corr, skeleton,
                                    effects=camera_effects(RunConfig.from_dict({"solver": {"self_calibration": True}}).solver))
     assert isinstance(only_calibration[0], SelfCalibratingReprojection)
     for bad in ({"mount_compliance": [0.003, 0.0]}, {"rolling_shutter_readout": 2.0}):
