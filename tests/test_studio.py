@@ -33,6 +33,11 @@ SETTINGS = StudioSettings(seconds=0.1, rom_seconds=0.1, width=64, height=36, ref
                           reference_height=48, seed=3)
 
 
+OLD_SETTINGS = ("motion", "seconds", "rom_seconds", "seed", "fps", "width", "height", "lens", "reference_photos",
+                "reference_width", "reference_height", "reference_fov_deg", "motion_blur", "rolling_shutter",
+                "audio_rate", "markers_per_segment")  # a capture.json of the first studio (before "container")
+
+
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("studio") / "capture"
@@ -121,7 +126,9 @@ def test_resume_renders_missing_parts_byte_for_byte(capture, tmp_path):
         (copy / rel).unlink()
     (copy / "trials/capture/.head.partial.mp4").write_bytes(b"left by an interrupted run")
     manifest = json.loads((copy / "capture.json").read_text())
-    (copy / "capture.json").write_text(json.dumps({**manifest, "complete": False}))
+    # Written before the degradations of issue 20 existed: the settings lack them, and mean their defaults.
+    old_settings = {k: v for k, v in manifest["settings"].items() if k in OLD_SETTINGS}
+    (copy / "capture.json").write_text(json.dumps({**manifest, "settings": old_settings, "complete": False}))
     kept = copy / "trials/capture/chest.mp4"
     stamp = kept.stat().st_mtime_ns
     write_capture(copy, SETTINGS, progress=False)

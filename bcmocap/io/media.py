@@ -192,23 +192,36 @@ class MediaWriter:
         fps: frame rate (Hz).
         size: ``(width, height)`` in px, both even (4:2:0 chroma).
         audio_rate: soundtrack sample rate (Hz), or None for no audio track.
-        crf: x264 constant rate factor (lower is better; 16 is visually lossless on rendered frames).
+        crf: x264 constant rate factor (lower is better; 16 is visually lossless on rendered frames); used
+            when ``bitrate`` is None.
         preset: x264 speed preset.
         audio_bitrate: AAC bit rate (bit/s).
+        bitrate: video bit rate (bit/s) instead of a quality: x264's one-pass average bit rate with a VBV
+            buffer of one second at twice the rate, as a camera's encoder holds a bit rate; None: ``crf``.
+        keyframe_interval: frames between keyframes (None: x264's default of 250).
     """
 
     def __init__(self, path: str | os.PathLike, fps: float, size: tuple[int, int], audio_rate: int | None = None, *,
-                 crf: int = 16, preset: str = "fast", audio_bitrate: int = 192_000):
+                 crf: int = 16, preset: str = "fast", audio_bitrate: int = 192_000, bitrate: int | None = None,
+                 keyframe_interval: int | None = None):
         width, height = (int(s) for s in size)
         if width % 2 or height % 2 or width < 2 or height < 2:
             raise ValueError(f"{path}: H.264 (4:2:0) needs an even frame size, got {width} x {height}")
+        if bitrate is not None and not bitrate > 0:
+            raise ValueError(f"{path}: the video bit rate must be positive, got {bitrate}")
         self.path = Path(path)
         self._container = _open(self.path, "w")
         rate = Fraction(fps).limit_denominator(1001)
         self._video = self._container.add_stream("libx264", rate=rate)
         self._video.width, self._video.height, self._video.pix_fmt = width, height, "yuv420p"
         self._video.thread_count = 1  # x264's output depends on its thread count: one thread, the same bytes anywhere
-        self._video.options = {"crf": str(crf), "preset": preset}
+        if bitrate is None:
+            self._video.options = {"crf": str(crf), "preset": preset}
+        else:
+            self._video.bit_rate = int(bitrate)
+            self._video.options = {"preset": preset, "maxrate": str(2 * int(bitrate)), "bufsize": str(2 * int(bitrate))}
+        if keyframe_interval is not None:
+            self._video.options = {**self._video.options, "g": str(int(keyframe_interval))}
         self._audio = None
         if audio_rate is not None:
             self._audio = self._container.add_stream("aac", rate=int(audio_rate))

@@ -2,13 +2,14 @@
 
 from .capture import LazyProblem, SyntheticCapture, standard_capture
 from .markers import MarkerNoise, MarkerSpec, SimulatedMarkers, calibration_motion, full_body_markers, simulate_markers  # noqa: F401
-from .motions import BODY_SEGMENTS, CMU_TRIALS, BodySegment, back_and_forth, load_body_motion, reduce_motion, resample
+from .motions import (BODY_SEGMENTS, CMU_TRIALS, BodySegment, back_and_forth, load_body_motion, load_motion_file,
+                      reduce_motion, resample)
 from .observe import NoiseModel, ObservationSimulator, body_capsules
 from .rig import fov_camera_for, standard_rig
 from .render import RenderOptions, Renderer, camera_rays
 from .rom import RangeOfMotionTrial, range_of_motion, range_of_motion_trial, skeleton_errors
 from .scene import TexturedScene, TextureParams, make_textured_scene
-from .studio import GroundTruth, StudioSettings, load_ground_truth, write_capture
+from .studio import GroundTruth, StudioSettings, load_ground_truth, preset_settings, write_capture
 from .world import World, make_world
 
 __all__ = [
@@ -33,8 +34,10 @@ __all__ = [
     "fov_camera_for",
     "load_body_motion",
     "load_ground_truth",
+    "load_motion_file",
     "make_textured_scene",
     "make_world",
+    "preset_settings",
     "range_of_motion",
     "range_of_motion_trial",
     "reduce_motion",

@@ -5,18 +5,24 @@ The paper uses a predefined kinematic structure with one or more cameras per lin
 truth is therefore the CMU motion *reduced* to the camera skeleton: each kept segment takes the world
 orientation of one CMU bone and its joint sits where a CMU joint sits at rest. The result is an exactly
 representable, rigid "Vicon-style" ground truth with real human joint trajectories.
+
+Besides the bundled trials, :func:`load_motion_file` reduces any BVH file or ASF/AMC pair of a human
+skeleton whose bones carry one of the usual names (CMU's ASF bones, CMU's BVH conversions, Mixamo,
+Unity-like rigs: :data:`BONE_ALIASES`); knees and elbows given as 3-DOF joints become hinges about the
+axis they mostly turn about (:func:`reduce_motion` with ``fit_hinges``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 from importlib import resources
 from pathlib import Path
 
 
 import numpy as np
 
-from ..geometry import SO3, slerp
+from ..geometry import SE3, SO3, slerp
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 
@@ -84,14 +90,26 @@ def _sorted_segments(segments):
     return order
 
 
+def _fitted_hinge_axis(relative_wxyz: np.ndarray) -> np.ndarray:
+    """Unit axis (child frame) about which rotations ``(T, 4)`` mostly turn: the principal direction of their
+    rotation vectors, signed so that the mean angle about it is positive (flexion positive)."""
+    rotvec = np.asarray(SO3(relative_wxyz).log())
+    _, _, vt = np.linalg.svd(rotvec, full_matrices=False)
+    axis = vt[0]
+    return axis if np.mean(rotvec @ axis) >= 0 else -axis
+
+
 def reduce_motion(
-    skeleton: Skeleton, motion: Motion, segments: tuple[BodySegment, ...] = BODY_SEGMENTS
+    skeleton: Skeleton, motion: Motion, segments: tuple[BodySegment, ...] = BODY_SEGMENTS, *, fit_hinges: bool = False
 ) -> tuple[Skeleton, Motion]:
     """Reduce a full (e.g. CMU) skeleton and motion to a coarser skeleton.
 
     Args:
         skeleton, motion: the full skeleton and a ``(T, J_full)`` motion of it.
         segments: the reduced segments (any order; parents are placed first).
+        fit_hinges: a HINGE segment whose bone is not a hinge (a BVH knee with three rotation channels)
+            turns about the principal axis of its rotations relative to its parent over the motion;
+            without it such a segment is refused.
 
     Returns:
         The reduced skeleton and its ``(T, J)`` motion. Hinge rotations are projected on their axis.
@@ -114,9 +132,14 @@ def reduce_motion(
             offsets.append(rest[j_bone] - rest[parent_joint])
         types.append(seg.joint_type)
         if seg.joint_type == JointType.HINGE:
-            if skeleton.joint_types[o_bone] != JointType.HINGE:
+            if skeleton.joint_types[o_bone] == JointType.HINGE:
+                axes.append(np.asarray(skeleton.hinge_axes[o_bone]))
+            elif fit_hinges and parent >= 0:
+                parent_bone = orient[parent]
+                axes.append(_fitted_hinge_axis(np.asarray(
+                    (SO3(world_rot[:, parent_bone]).inverse() @ SO3(world_rot[:, o_bone])).wxyz)))
+            else:
                 raise ValueError(f"reduce_motion: '{seg.name}' is a hinge but bone '{seg.orientation_bone}' is not")
-            axes.append(np.asarray(skeleton.hinge_axes[o_bone]))
         else:
             axes.append(np.zeros(3))
         orient.append(o_bone)
@@ -197,3 +220,141 @@ def load_body_motion(
     return skeleton, motion
 
 
+
+
+#: Names a motion file may give each CMU ASF bone that :data:`BODY_SEGMENTS` uses, first match wins; matched
+#: without case, namespace (``mixamorig:``) or punctuation; ``{side}`` is ``left``/``l`` or ``right``/``r``, as a
+#: prefix or a suffix (``LeftArm``, ``larm``, ``upperarm_l``). The root bone is always the file's first segment.
+#: CMU's BVH conversions name bones by the joint they start at (``LeftHip`` is the thigh, ``LeftShoulder`` the
+#: upper arm); Mixamo's ``LeftShoulder`` is the clavicle, so ``arm`` names are tried before ``shoulder``.
+BONE_ALIASES: dict[str, tuple[str, ...]] = {
+    "thorax": ("thorax", "chest2", "spine2", "upperchest", "spine1", "chest", "spine"),
+    "lowerback": ("lowerback", "spine", "abdomen", "chest"),
+    "head": ("head",),
+    "lowerneck": ("lowerneck", "neck", "neck1"),
+    "{s}humerus": ("{s}humerus", "{side}arm", "{side}upperarm", "{side}shoulder"),
+    "{s}radius": ("{s}radius", "{side}forearm", "{side}lowerarm", "{side}elbow"),
+    "{s}hand": ("{s}hand", "{side}hand"),
+    "{s}wrist": ("{s}wrist", "{side}wrist", "{side}hand"),
+    "{s}femur": ("{s}femur", "{side}upleg", "{side}upperleg", "{side}thigh", "{side}hip"),
+    "{s}tibia": ("{s}tibia", "{side}leg", "{side}lowerleg", "{side}shin", "{side}knee"),
+    "{s}foot": ("{s}foot", "{side}foot", "{side}ankle"),
+}
+#: Length units a BVH file may be written in (m per unit): metres, centimetres, millimetres, inches, CMU's 1/0.45 inch.
+BVH_UNITS_M = (1.0, 0.01, 0.001, 0.0254, 0.0254 / 0.45)
+_SUBJECT_HEIGHT_M = 1.7  # the unit guessed for a BVH file makes its rest pose closest to this height
+_SIDES = {"l": ("left", "l"), "r": ("right", "r")}
+
+
+def _normalised(name: str) -> str:
+    return "".join(ch for ch in name.rsplit(":", 1)[-1].rsplit("|", 1)[-1].lower() if ch.isalnum())
+
+
+def _find_bone(skeleton: Skeleton, cmu_bone: str, where: str) -> str:
+    """The name in ``skeleton`` of the bone CMU's ASF calls ``cmu_bone`` (see :data:`BONE_ALIASES`)."""
+    if cmu_bone == "root":
+        return skeleton.names[0]
+    lookup = {_normalised(n): n for n in reversed(skeleton.names)}  # the first segment of a name wins
+    s = cmu_bone[0] if cmu_bone[0] in _SIDES and cmu_bone[1:] and f"{{s}}{cmu_bone[1:]}" in BONE_ALIASES else ""
+    template = f"{{s}}{cmu_bone[1:]}" if s else cmu_bone
+    for pattern in BONE_ALIASES[template]:
+        if "{side}" in pattern:
+            base = pattern.replace("{side}", "")
+            names = [f"{side}{base}" for side in _SIDES[s]] + [f"{base}{side}" for side in _SIDES[s]]
+        else:
+            names = [pattern.replace("{s}", s)]
+        for candidate in names:
+            if candidate in lookup:
+                return lookup[candidate]
+    tried = ", ".join(p.replace("{s}", s).replace("{side}", _SIDES[s][0] if s else "") for p in BONE_ALIASES[template])
+    raise ValueError(f"{where}: no bone for the body's '{cmu_bone}' (tried {tried}); bones: {list(skeleton.names)}")
+
+
+def _body_segments_for(skeleton: Skeleton, where: str) -> tuple[BodySegment, ...]:
+    """:data:`BODY_SEGMENTS` with the bone names of ``skeleton``."""
+    return tuple(dataclasses.replace(seg, orientation_bone=_find_bone(skeleton, seg.orientation_bone, where),
+                                     joint_bone=_find_bone(skeleton, seg.joint_bone, where))
+                 for seg in BODY_SEGMENTS)
+
+
+def _on_the_floor(skeleton: Skeleton, motion: Motion) -> Motion:
+    """``motion`` moved up or down so that the lowest point of the body's capsules over it touches z = 0."""
+    from .observe import body_capsules
+
+    caps = body_capsules(skeleton)
+    world = np.asarray(forward_kinematics(skeleton, motion).wxyz_xyz)  # (T, J, 7)
+    low = np.inf
+    for cap in caps:
+        ends = np.asarray(SE3(world[:, cap.segment]) @ np.array([cap.a, cap.b], np.float64)[:, None])  # (2, T, 3)
+        low = min(low, float(ends[..., 2].min()) - cap.radius)
+    root = np.asarray(motion.root_position) - np.array([0.0, 0.0, low])
+    return Motion(root, np.asarray(motion.rotations))
+
+
+def _read_motion_source(paths: tuple[str, ...], source_fps: float, unit_m: float) -> tuple[Skeleton, Motion, float]:
+    """``(full skeleton, full motion, its frame rate)`` of a BVH file or an ASF/AMC pair."""
+    if len(paths) == 1:
+        from ..io.bvh import read_bvh
+
+        path = Path(paths[0])
+        if not path.is_file():
+            raise ValueError(f"{path}: missing (expected a BVH motion file)")
+        if unit_m <= 0:
+            probe = read_bvh(path, length_unit_m=1.0)
+            rest = np.asarray(forward_kinematics(probe.skeleton, probe.skeleton.rest_motion()).translation())
+            height = float(np.ptp(rest[:, 2]))
+            if not height > 0:
+                raise ValueError(f"{path}: the rest pose has no height (is the file Y up?)")
+            unit_m = min(BVH_UNITS_M, key=lambda u: abs(np.log(height * u / _SUBJECT_HEIGHT_M)))
+        data = read_bvh(path, length_unit_m=unit_m)
+        return data.skeleton, data.motion, source_fps if source_fps > 0 else 1.0 / data.frame_time_s
+    from ..io.asf import read_amc, read_asf
+
+    for path in paths:
+        if not Path(path).is_file():
+            raise ValueError(f"{path}: missing (expected the {Path(path).suffix[1:].upper()} file of an ASF/AMC pair)")
+    fps = source_fps if source_fps > 0 else CMU_FPS
+    asf = read_asf(paths[0], length_unit_m=unit_m if unit_m > 0 else None)
+    return asf.skeleton, read_amc(paths[1], asf, fps=fps), fps
+
+
+def load_motion_file(
+    paths: str | os.PathLike | tuple, *, fps: float = 60.0, seconds: float | None = None, repeat: bool = False,
+    source_fps: float = 0.0, unit_m: float = 0.0,
+) -> tuple[Skeleton, Motion]:
+    """A human motion from a BVH file or an ASF/AMC pair, reduced to the camera skeleton and resampled.
+
+    Bones are found by name (:data:`BONE_ALIASES`); 3-DOF knees and elbows become hinges about their
+    principal axis (:func:`reduce_motion` with ``fit_hinges``). The motion is moved vertically so that the
+    lowest point of the body over the motion touches the floor (z = 0), where the studio's room has it.
+
+    Args:
+        paths: a ``.bvh`` path, or the ``(.asf, .amc)`` paths of an Acclaim pair.
+        fps: output frame rate (Hz).
+        seconds: length to keep from the start (None: all); repeat: extend a shorter motion with
+            :func:`back_and_forth`.
+        source_fps: the file's frame rate (Hz); 0: a BVH file's ``Frame Time``, or CMU's 120 Hz for an AMC file.
+        unit_m: metres per length unit of a BVH file; 0 guesses among :data:`BVH_UNITS_M` the one that makes
+            the rest pose about 1.7 m tall. An ASF file states its unit (``:units length``); a positive
+            ``unit_m`` replaces it.
+
+    Raises:
+        ValueError: naming the file when it is missing or malformed, or the body bone it has no name for.
+    """
+    paths = (str(paths),) if isinstance(paths, (str, os.PathLike)) else tuple(str(p) for p in paths)
+    if len(paths) not in (1, 2):
+        raise ValueError(f"load_motion_file: expected a BVH path or an (ASF, AMC) pair, got {paths!r}")
+    full_skeleton, full_motion, source = _read_motion_source(paths, source_fps, unit_m)
+    if full_motion.num_frames < 2:
+        raise ValueError(f"{paths[-1]}: the motion has {full_motion.num_frames} frame(s); at least 2 are needed")
+    last = full_motion.num_frames if seconds is None else min(full_motion.num_frames, int(round(seconds * source)) + 1)
+    segments = _body_segments_for(full_skeleton, paths[0])
+    skeleton, motion = reduce_motion(full_skeleton, full_motion[:last], segments, fit_hinges=True)
+    rest = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
+    if rest[skeleton.index("head"), 2] <= rest[0, 2]:
+        raise ValueError(f"{paths[0]}: the head is not above the pelvis at rest; the file must be Y up")
+    motion = _on_the_floor(skeleton, resample(motion, source, fps))
+    if seconds is not None:
+        wanted = int(round(seconds * fps))
+        motion = back_and_forth(motion, wanted) if repeat and wanted > motion.num_frames else motion[:wanted]
+    return skeleton, motion

@@ -21,6 +21,13 @@ Time. A frame's pose is the pose at its timestamp. With ``motion_blur`` the imag
 periods from the timestamp (the middle row at the timestamp), its camera pose interpolated between
 frames (slerp and linear). The body's capsules follow the blur sub-samples but not the rows.
 
+Sensor. A pixel's value (8-bit levels, linear in light) is the rendered radiance times ``vignetting``'s
+fall-off (``1 − vignetting · (θ / θ_max)²`` with θ the ray's angle off the optical axis and θ_max the
+largest in the image), times the frame's per-channel ``gains`` (exposure and white balance, see
+:mod:`bcmocap.sim.exposure`), plus noise of standard deviation ``sqrt(noise_dn² + value · 255 /
+full_scale_electrons)`` levels: read noise and photon shot noise of a sensor that collects
+``full_scale_electrons`` electrons at level 255; then rounded and clipped to [0, 255].
+
 Conventions: camera frame as OpenCV (x right, y down, z forward), world Z up, metres; images are
 ``(H, W, 3)`` uint8 RGB with pixel ``(u, v)`` at ``image[v, u]`` (centre of the top-left pixel at (0, 0)).
 """
@@ -47,6 +54,7 @@ __all__ = [
     "camera_rays",
     "capsule_colors",
     "interpolate_poses",
+    "vignette_map",
 ]
 
 _F32 = jnp.float32
@@ -68,7 +76,10 @@ class RenderOptions:
         exposure_frames: shutter time as a fraction of the frame period (motion blur only).
         rolling_shutter: expose rows at successive times (see the module docstring).
         readout_frames: time from the first to the last row, in frame periods.
-        noise_dn: standard deviation of the sensor noise in 8-bit levels (hash-based, deterministic).
+        noise_dn: standard deviation of the read noise in 8-bit levels (hash-based, deterministic).
+        full_scale_electrons: electrons a pixel collects at level 255; > 0 adds photon shot noise (variance
+            ``value · 255 / full_scale_electrons`` levels²); 0: none.
+        vignetting: share of light lost at the image's most oblique ray (0: none; see the module docstring).
         light: direction towards the light (world frame), normalised; ambient: its complement's share.
     """
 
@@ -79,6 +90,8 @@ class RenderOptions:
     rolling_shutter: bool = False
     readout_frames: float = 0.8
     noise_dn: float = 1.0
+    full_scale_electrons: float = 0.0
+    vignetting: float = 0.0
     light: tuple[float, float, float] = (0.35, 0.25, 0.9)
     ambient: float = 0.55
 
@@ -89,6 +102,11 @@ class RenderOptions:
             raise ValueError(f"RenderOptions.blur_samples must be >= 1, got {self.blur_samples}")
         if not 0.0 <= self.exposure_frames <= 1.0 or not 0.0 <= self.readout_frames <= 1.0:
             raise ValueError("RenderOptions.exposure_frames and readout_frames must lie in [0, 1] (frame periods)")
+        if not self.noise_dn >= 0 or not self.full_scale_electrons >= 0:  # also refuses NaN
+            raise ValueError(f"RenderOptions.noise_dn and full_scale_electrons must be >= 0, got {self.noise_dn} and "
+                             f"{self.full_scale_electrons}")
+        if not 0.0 <= self.vignetting < 1.0:
+            raise ValueError(f"RenderOptions.vignetting must lie in [0, 1), got {self.vignetting}")
 
     @property
     def num_time_samples(self) -> int:
@@ -401,12 +419,16 @@ def _band_flags(scene, cone, rotations, origins, capsules, radii):
     return boxes.any(axis=0), capsules_seen.any(axis=0)
 
 
-def _render_rows(scene, texture, light, ambient, noise_dn, one, width, rays, pixel_angle, valid, row0, box_active,
-                 capsule_active, rotations, origins, capsules, radii, cap_colors, key):
+def _render_rows(scene, texture, light, ambient, noise_dn, shot_scale, one, width, photometric, shot, rays, pixel_angle,
+                 valid, vignette, row0, box_active, capsule_active, rotations, origins, capsules, radii, cap_colors, key,
+                 gains):
     """A band of rows of one frame → uint8 ``(h, W, 3)``.
 
     Args:
-        rays: ``(N, 3, h, W)`` camera rays of the band; pixel_angle, valid ``(h, W)``; row0 its first row.
+        photometric, shot: static: apply ``vignette`` and ``gains``; add shot noise (``shot_scale`` = 255 /
+            full-scale electrons). Without them the code is the plain render's (the same bytes as before).
+        rays: ``(N, 3, h, W)`` camera rays of the band; pixel_angle, valid, vignette ``(h, W)``; row0 its first row.
+        gains: ``(3,)`` the frame's per-channel gains.
         box_active, capsule_active: ``(B,)``, ``(K,)`` boxes and capsules to test (see :func:`_band_flags`).
         rotations: ``(S, r, 3, 3)``, origins ``(S, r, 3)`` with ``r`` = 1 (all rows) or ``h`` (per row).
         capsules: ``(S, K, 2, 3)``.
@@ -426,12 +448,15 @@ def _render_rows(scene, texture, light, ambient, noise_dn, one, width, rays, pix
     packed = jnp.zeros(pixel_angle.shape, jnp.uint32)
     for c in range(3):
         value = acc[c] * scale
+        if photometric:
+            value = value * (vignette * gains[c])
         # Sensor noise: noise_dn is traced (one compilation for any level); zero adds exactly 0.
         row = jnp.arange(h, dtype=jnp.uint32)[:, None] + row0.astype(jnp.uint32)
         idx = (row * jnp.uint32(width) + jnp.arange(width, dtype=jnp.uint32)[None, :]) * jnp.uint32(3) + jnp.uint32(c)
         n1 = _hash_uniform(idx, key)
         n2 = _hash_uniform(idx, key ^ jnp.uint32(0x68E31DA4))
-        value = value + (n1 + n2 - 1.0) * (noise_dn * math.sqrt(6.0))
+        sigma = jnp.sqrt(noise_dn * noise_dn + jnp.maximum(value, 0.0) * shot_scale) if shot else noise_dn
+        value = value + (n1 + n2 - 1.0) * (sigma * math.sqrt(6.0))
         value = jnp.where(valid, jnp.clip(jnp.round(value), 0.0, 255.0), 0.0)
         packed = packed | (value.astype(jnp.uint32) << jnp.uint32(8 * c))
     return jax.lax.bitcast_convert_type(packed, jnp.uint8)[..., :3]
@@ -447,9 +472,9 @@ def _hash_uniform(idx: jax.Array, key: jax.Array) -> jax.Array:
     return (h >> 8).astype(_F32) * _F32(1.0 / (1 << 24))
 
 
-@functools.partial(jax.jit, static_argnames=("texture", "light", "ambient", "rows"))
+@functools.partial(jax.jit, static_argnames=("texture", "light", "ambient", "rows", "photometric", "shot"))
 def _render_batch(scene, rays, pixel_angle, valid, cones, rotations, origins, capsules, radii, cap_colors, keys, one,
-                  noise_dn, *, texture, light, ambient, rows):
+                  noise_dn, vignette, gains, shot_scale, *, texture, light, ambient, rows, photometric=False, shot=False):
     """Frames ``(F, Hp, W, 3)`` uint8 from rays padded to ``Hp`` rows, a multiple of ``rows``.
 
     The image is rendered band by band of ``rows`` rows (``lax.map``), all frames of the batch at once
@@ -464,6 +489,7 @@ def _render_batch(scene, rays, pixel_angle, valid, cones, rotations, origins, ca
     band_rays = rays.reshape(n, 3, bands, rows, w).transpose(2, 0, 1, 3, 4)
     band_angle = pixel_angle.reshape(bands, rows, w)
     band_valid = valid.reshape(bands, rows, w)
+    band_vignette = vignette.reshape(bands, rows, w)
     row0 = jnp.arange(bands, dtype=jnp.int32) * rows
     if per_row:
         f, s_ = rotations.shape[:2]
@@ -472,15 +498,17 @@ def _render_batch(scene, rays, pixel_angle, valid, cones, rotations, origins, ca
     else:
         band_rot = jnp.broadcast_to(rotations, (bands, *rotations.shape))
         band_org = jnp.broadcast_to(origins, (bands, *origins.shape))
-    draw = functools.partial(_render_rows, scene, texture, light_arr, ambient, noise_dn, one, w)
+    draw = functools.partial(_render_rows, scene, texture, light_arr, ambient, noise_dn, shot_scale, one, w, photometric,
+                             shot)
 
     def band(args):
-        b_rays, b_angle, b_valid, b_row0, cone, rot, org = args
+        b_rays, b_angle, b_valid, b_vignette, b_row0, cone, rot, org = args
         box_active, capsule_active = _band_flags(scene, cone, rot, org, capsules, radii)
-        return jax.vmap(lambda r, o, c, k: draw(b_rays, b_angle, b_valid, b_row0, box_active, capsule_active, r, o, c,
-                                                radii, cap_colors, k))(rot, org, capsules, keys)
+        return jax.vmap(lambda r, o, c, k, g: draw(b_rays, b_angle, b_valid, b_vignette, b_row0, box_active,
+                                                   capsule_active, r, o, c, radii, cap_colors, k, g))(
+            rot, org, capsules, keys, gains)
 
-    out = jax.lax.map(band, (band_rays, band_angle, band_valid, row0, cones, band_rot, band_org))  # (bands, F, rows, W, 3)
+    out = jax.lax.map(band, (band_rays, band_angle, band_valid, band_vignette, row0, cones, band_rot, band_org))
     return out.transpose(1, 0, 2, 3, 4).reshape(-1, hp, w, 3)
 
 
@@ -550,6 +578,16 @@ def capsule_colors(capsules: tuple[Capsule, ...], names: tuple[str, ...]) -> np.
     return np.asarray(out, np.float64)
 
 
+def vignette_map(rays: CameraRays, vignetting: float) -> np.ndarray:
+    """``(H, W)`` float32 share of light reaching each pixel: ``1 − vignetting · (θ / θ_max)²`` (1 outside the image).
+
+    θ is the angle between the pixel's ray and the optical axis, θ_max the largest one in the image.
+    """
+    z = np.clip(np.asarray(rays.directions[0, 2], np.float64), -1.0, 1.0)
+    theta = np.arccos(z) / max(rays.max_angle, 1e-9)
+    return np.where(rays.valid, 1.0 - vignetting * np.minimum(theta, 1.0) ** 2, 1.0).astype(np.float32)
+
+
 def _band_cones(rays: CameraRays, rows: int) -> np.ndarray:
     """``(bands, 4)``: per band of ``rows`` rows, a cone (unit axis, half angle in rad) holding its rays."""
     dirs = np.asarray(rays.directions, np.float64)  # (N, 3, H, W)
@@ -590,6 +628,8 @@ class Renderer:
         self._dev_rays = jnp.asarray(np.pad(self.rays.directions, edge, mode="edge"))
         self._pixel_angle = jnp.asarray(np.pad(self.rays.pixel_angle, ((0, pad), (0, 0)), mode="edge"))
         self._valid = jnp.asarray(np.pad(self.rays.valid, ((0, pad), (0, 0))))
+        self.vignette = vignette_map(self.rays, options.vignetting)
+        self._vignette = jnp.asarray(np.pad(self.vignette, ((0, pad), (0, 0)), mode="edge"))
         self._dev_rays_first = jnp.asarray(self.rays.directions[0])
         self._pad = pad
         self._cones = jnp.asarray(_band_cones(self.rays, self._rows))
@@ -606,7 +646,8 @@ class Renderer:
         return _interpolate_points(np.asarray(capsule_ends, np.float64), times)
 
     def render(self, rotations: np.ndarray, origins: np.ndarray, capsules: np.ndarray | None = None,
-               radii: np.ndarray | None = None, colors: np.ndarray | None = None, keys: np.ndarray | None = None) -> np.ndarray:
+               radii: np.ndarray | None = None, colors: np.ndarray | None = None, keys: np.ndarray | None = None,
+               gains: np.ndarray | None = None) -> np.ndarray:
         """Render a batch of frames.
 
         Args:
@@ -615,6 +656,7 @@ class Renderer:
             capsules: ``(B, S, K, 2, 3)`` body capsule end points (m) or None for no body; radii ``(K,)`` m;
                 colors ``(K, 3)`` RGB in [0, 1].
             keys: ``(B,)`` integers seeding each frame's sensor noise (default: zeros).
+            gains: ``(B, 3)`` per-frame RGB gains (exposure times white balance; default: none).
 
         Returns:
             ``(B, H, W, 3)`` uint8 RGB images.
@@ -638,14 +680,20 @@ class Renderer:
             radii = np.asarray(radii, np.float32)
             colors = np.full((caps.shape[2], 3), 0.5, np.float32) if colors is None else np.asarray(colors, np.float32)
         keys = np.zeros(b, np.uint32) if keys is None else (np.asarray(keys, np.int64) & 0xFFFFFFFF).astype(np.uint32)
+        photometric = gains is not None or self.options.vignetting > 0
+        gains = np.ones((b, 3), np.float32) if gains is None else np.asarray(gains, np.float32)
+        if gains.shape != (b, 3):
+            raise ValueError(f"Renderer.render: gains must have shape ({b}, 3), got {gains.shape}")
         if rows > 1 and self._pad:
             rotations = np.pad(rotations, ((0, 0), (0, 0), (0, self._pad), (0, 0), (0, 0)), mode="edge")
             origins = np.pad(origins, ((0, 0), (0, 0), (0, self._pad), (0, 0)), mode="edge")
         opt = self.options
+        shot = opt.full_scale_electrons > 0
         out = _render_batch(self._scene, self._dev_rays, self._pixel_angle, self._valid, self._cones, rotations, origins, caps,
-                            radii, colors, keys, _ONE, np.float32(opt.noise_dn), texture=self.scene.texture,
+                            radii, colors, keys, _ONE, np.float32(opt.noise_dn), self._vignette, gains,
+                            np.float32(255.0 / opt.full_scale_electrons if shot else 0.0), texture=self.scene.texture,
                             light=tuple(float(x) for x in np.asarray(opt.light) / np.linalg.norm(opt.light)),
-                            ambient=float(opt.ambient), rows=self._rows)
+                            ambient=float(opt.ambient), rows=self._rows, photometric=photometric, shot=shot)
         return np.asarray(out)[:, : self.rays.height]
 
     def depth(self, rotation: np.ndarray, origin: np.ndarray, capsules: np.ndarray | None = None,

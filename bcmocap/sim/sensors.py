@@ -270,7 +270,8 @@ def imu_mounts(num_cameras: int, seed: int = 0, *, max_rotation_deg: float = MOU
 def simulate_imu(skeleton: Skeleton, rig: Rig, motion: Motion, fps: float, clap_frames, *, rate: float | None = None,
                  seed: int = 0, trial_index: int = 0, camera_from_imu: np.ndarray | None = None,
                  gyro_noise: float = GYRO_NOISE, gyro_bias: float = GYRO_BIAS, accel_noise: float = ACCEL_NOISE,
-                 accel_bias: float = ACCEL_BIAS, gravity: float = GRAVITY) -> ImuRecording:
+                 accel_bias: float = ACCEL_BIAS, gravity: float = GRAVITY,
+                 world_from_camera: np.ndarray | None = None) -> ImuRecording:
     """The IMU in every camera of a rig over one trial, from the first clap to the second.
 
     Args:
@@ -284,6 +285,8 @@ def simulate_imu(skeleton: Skeleton, rig: Rig, motion: Motion, fps: float, clap_
         gyro_noise, accel_noise: white-noise σ per sample (rad/s, m/s²); gyro_bias, accel_bias: largest
             constant bias per axis (rad/s, m/s², uniform within ±). 0 gives exact data.
         gravity: m/s² along world −Z.
+        world_from_camera: ``(T, C, 7)`` the cameras' true poses when they move on their mounts (the IMU is
+            in the camera); None: rigidly mounted, from the motion and the rig.
 
     Returns:
         ``ImuRecording`` with ``N`` samples and ``S = C`` sensors, named by the rig's cameras.
@@ -297,7 +300,13 @@ def simulate_imu(skeleton: Skeleton, rig: Rig, motion: Motion, fps: float, clap_
     mounts = imu_mounts(rig.num_cameras, seed) if camera_from_imu is None else np.asarray(camera_from_imu, np.float64)
     if mounts.shape != (rig.num_cameras, 7):
         raise ValueError(f"simulate_imu: camera_from_imu must have shape ({rig.num_cameras}, 7), got {mounts.shape}")
-    cams = np.asarray(rig.world_from_camera(forward_kinematics(skeleton, motion)).wxyz_xyz, np.float64)  # (T, C, 7)
+    if world_from_camera is None:
+        cams = np.asarray(rig.world_from_camera(forward_kinematics(skeleton, motion)).wxyz_xyz, np.float64)  # (T, C, 7)
+    else:
+        cams = np.asarray(world_from_camera, np.float64)
+        if cams.shape != (motion.num_frames, rig.num_cameras, 7):
+            raise ValueError(f"simulate_imu: world_from_camera must have shape ({motion.num_frames}, {rig.num_cameras}, 7), "
+                             f"got {cams.shape}")
     knots = cams[_knot_frames(len(cams), clap_frames)]
     cam_rot = knots[..., :4]
     imu_rot = quat_multiply(cam_rot, mounts[:, :4])
@@ -419,6 +428,9 @@ def write_sensor_data(capture_path: str | os.PathLike, *, seed: int | None = Non
         try:
             motion = Motion(data["root_position"], data["rotations"])
             fps, clap_frames = float(data["fps"]), np.asarray(data["clap_frames"])
+            # cameras that move on their mounts (studio mount wobble): the IMU follows the true camera poses
+            moving = "camera_offsets" in data and np.any(data["camera_offsets"] != 0)
+            cameras = np.asarray(data["world_from_camera"]) if moving else None
         except KeyError as err:
             raise ValueError(f"{where}: missing array {err}") from None
         if not (np.isfinite(fps) and fps > 0):
@@ -428,16 +440,18 @@ def write_sensor_data(capture_path: str | os.PathLike, *, seed: int | None = Non
         written[name] = write_trial_sensors(
             folder / "trials" / name, skeleton, rig, motion, fps, clap_frames, seed=seed, trial_index=trial_index,
             rate=rate, gyro_noise=gyro_noise, gyro_bias=gyro_bias, accel_noise=accel_noise, accel_bias=accel_bias,
-            contact_segments=contact_segments)
+            contact_segments=contact_segments, world_from_camera=cameras)
     return written
 
 
 def write_trial_sensors(folder: str | os.PathLike, skeleton: Skeleton, rig: Rig, motion: Motion, fps: float, clap_frames,
                         *, seed: int, trial_index: int, rate: float | None = None, contact_segments=FOOT_SEGMENTS,
-                        **noise) -> tuple[Path, Path]:
-    """Simulate and write one trial's ``imu.npz`` and ``contacts.npz`` into ``folder`` (returns their paths)."""
+                        world_from_camera: np.ndarray | None = None, **noise) -> tuple[Path, Path]:
+    """Simulate and write one trial's ``imu.npz`` and ``contacts.npz`` into ``folder`` (returns their paths);
+    ``world_from_camera`` as :func:`simulate_imu`."""
     folder = Path(folder)
-    imu = simulate_imu(skeleton, rig, motion, fps, clap_frames, rate=rate, seed=seed, trial_index=trial_index, **noise)
+    imu = simulate_imu(skeleton, rig, motion, fps, clap_frames, rate=rate, seed=seed, trial_index=trial_index,
+                       world_from_camera=world_from_camera, **noise)
     segments = [name for name in contact_segments if name in skeleton.names]
     contacts = simulate_contacts(skeleton, motion, fps, clap_frames, rate=imu.rate, segments=segments)
     return write_imu(folder / IMU_FILE, imu), write_contacts(folder / CONTACTS_FILE, contacts)

@@ -39,8 +39,13 @@ Folder layout (``CAPTURE_DIR``)::
     ground_truth/world_points.npz points (N, 3) m on the textured surfaces and their materials (N,)
     ground_truth/reference.npz    names (N,) and world_from_camera (N, 7) of the reference photos
     ground_truth/<trial>.npz      per trial frame: root_position (T, 3), rotations (T, J, 4) (Motion),
-                                  joint_positions (T, J, 3), world_rotations (T, J, 4),
-                                  world_from_camera (T, C, 7); per camera: video_start_frame (C,),
+                                  joint_positions (T, J, 3), world_rotations (T, J, 4) (the bones' poses),
+                                  world_from_camera (T, C, 7) (the true, rendered camera poses),
+                                  world_from_mount (T, C, 7) (where each camera would be rigidly on its
+                                  bone: world_from_segment · segment_from_camera), camera_offsets (T, C, 6)
+                                  (translation m, rotation rad, camera frame) with world_from_camera =
+                                  world_from_mount · SE3.exp(camera_offsets) (zero without mount wobble;
+                                  absent from captures written before: read as zero); per camera: video_start_frame (C,),
                                   num_video_frames (C,), clap_samples (C, 2), audio_gain (C,);
                                   clap_frames (2,); fps, audio_rate; Vicon-style markers:
                                   marker_names (M,), marker_segments (M,), marker_offsets (M, 3) m in
@@ -66,9 +71,20 @@ it changes every rendered pixel the frontend sees (H.264 at CRF 16 instead of mp
 measured on a default capture, and it encodes more slowly than mp4v (x264 on one thread, so that the
 same settings still write the same bytes).
 
+Degradations of a real shoot (all off by default, so the defaults write the same bytes as before them; the
+``realistic`` preset of :func:`preset_settings` turns them on, :data:`REALISTIC` says where each value comes
+from): mount wobble (:mod:`bcmocap.sim.wobble`; the true camera poses are rendered and the IMU follows them),
+rolling shutter and motion blur at given readout and exposure times, auto exposure and white balance
+(:mod:`bcmocap.sim.exposure`), vignetting and photon shot noise (:mod:`bcmocap.sim.render`), H.264 at a bit rate
+(container "mp4-aac"), and calibration error: ``intrinsics/`` then holds each camera's lens with its focal
+length and centre off (seeded), while ``ground_truth/rig.json`` keeps the rendered lens. ``motion`` may also be a
+BVH file or an ASF/AMC pair (:func:`~bcmocap.sim.motions.load_motion_file`); the manifest then lists the files
+and their SHA-256 (``motion_files``).
+
 Resuming: videos and tracks are written under temporary names and renamed when complete; running again
 with the same settings skips every complete camera. A non-empty folder that is not a capture, or a
-capture written with other settings, is refused (nothing in it is touched).
+capture written with other settings, is refused (nothing in it is touched). A capture written before a
+setting existed was written with its default, and resumes as such.
 """
 
 from __future__ import annotations
@@ -83,6 +99,7 @@ import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -96,21 +113,26 @@ from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 from .audio import soundtrack
-from .motions import CMU_TRIALS, load_body_motion
+from .exposure import ExposureControl
+from .motions import CMU_TRIALS, load_body_motion, load_motion_file
 from .observe import body_capsules
 from .render import Renderer, RenderOptions, capsule_colors
 from .rig import standard_rig
 from .scene import TexturedScene, make_textured_scene
 from .sensors import write_trial_sensors
+from .wobble import mount_wobble
 
 __all__ = [
     "CAPTURE_FORMAT",
     "GroundTruth",
     "MarkerTrajectories",
+    "PRESETS",
+    "REALISTIC",
     "StudioSettings",
     "TrialTruth",
     "capsule_ends",
     "load_ground_truth",
+    "preset_settings",
     "write_capture",
 ]
 
@@ -130,9 +152,17 @@ MAX_FPS = 240.0  # highest frame rate (Hz)
 class StudioSettings:
     """What :func:`write_capture` renders (all of it goes into ``capture.json``).
 
+    Every degradation of a real shoot is off by default (the clean studio every README figure was measured
+    in); :func:`preset_settings` ``("realistic", ...)`` turns them all on (:data:`REALISTIC` says where each
+    value comes from).
+
     Attributes:
-        motion: bundled CMU trial for the capture ("walk", "run", "jump").
-        seconds: length of the capture trial (s, at most ``MAX_SECONDS``); longer than the CMU trial plays it
+        motion: the capture's motion: a bundled CMU trial ("walk", "run", "jump"), a ``.bvh`` file, or an
+            ``(.asf, .amc)`` pair of paths (:func:`~bcmocap.sim.motions.load_motion_file`; paths are
+            stored as given, so give absolute ones to resume from elsewhere).
+        motion_fps: frame rate of a motion file (Hz); 0: a BVH file's own ``Frame Time``, 120 Hz for AMC.
+        motion_unit_m: metres per length unit of a motion file; 0: guessed for BVH, the ASF's ``:units``.
+        seconds: length of the capture trial (s, at most ``MAX_SECONDS``); longer than the motion plays it
             back and forth.
         rom_seconds: length of the range-of-motion trial (s, at most ``MAX_SECONDS``).
         seed: random seed (scene, camera offsets, audio, markers, sensor noise).
@@ -143,13 +173,32 @@ class StudioSettings:
         reference_photos: number of reference photos; reference_width, reference_height their size (px);
             reference_fov_deg their horizontal field of view (pinhole).
         motion_blur, rolling_shutter: rendering effects (:class:`~bcmocap.sim.render.RenderOptions`).
+        exposure_ms: shutter time with ``motion_blur`` (ms, at most a frame period); 0: half a frame period.
+        blur_samples: sub-exposures averaged per frame with ``motion_blur``.
+        readout_ms: rolling-shutter readout from the first row to the last (ms, at most a frame period);
+            0: 0.8 frame periods.
         audio_rate: sample rate of the soundtracks (Hz).
         markers_per_segment: Vicon-style markers on each body capsule.
         container: "mp4v-wav" (mp4v video and a WAV beside it) or "mp4-aac" (H.264 video with the
             soundtrack as an AAC track in the same MP4; width and height even).
+        mount_wobble_mm, mount_wobble_deg: RMS over the capture trial of each camera's translation and
+            rotation on its strap relative to its mount (:mod:`bcmocap.sim.wobble`; times a per-camera factor
+            in [0.5, 1.5]); 0: rigid mounts.
+        auto_exposure, white_balance: the cameras' exposure and grey-world white balance follow what they
+            see (:mod:`bcmocap.sim.exposure`); off: fixed.
+        vignetting: share of light lost at the most oblique ray of the image (quadratic in the ray's angle).
+        read_noise_dn: σ of the read noise (8-bit levels; 1 as the clean studio has always had).
+        full_scale_electrons: electrons collected at level 255 per rendered pixel; > 0 adds photon shot noise.
+        video_bitrate_mbps: H.264 bit rate (Mbit/s, container "mp4-aac" only); 0: constant quality (CRF 16).
+        focal_error_pct, centre_error_px: calibration error of the intrinsics given to the user
+            (``intrinsics/``): each camera's focal length off by a relative amount of magnitude uniform in
+            [0.3, 1] × ``focal_error_pct`` % (random sign), its centre by [0.3, 1] × ``centre_error_px`` px
+            (random direction); the ground truth keeps the rendered lens.
     """
 
-    motion: str = "walk"
+    motion: str | tuple[str, str] = "walk"
+    motion_fps: float = 0.0
+    motion_unit_m: float = 0.0
     seconds: float = 2.0
     rom_seconds: float = 2.0
     seed: int = 0
@@ -166,10 +215,32 @@ class StudioSettings:
     audio_rate: int = 48000
     markers_per_segment: int = 3
     container: str = "mp4v-wav"
+    exposure_ms: float = 0.0
+    blur_samples: int = 4
+    readout_ms: float = 0.0
+    mount_wobble_mm: float = 0.0
+    mount_wobble_deg: float = 0.0
+    auto_exposure: bool = False
+    white_balance: bool = False
+    vignetting: float = 0.0
+    read_noise_dn: float = 1.0
+    full_scale_electrons: float = 0.0
+    video_bitrate_mbps: float = 0.0
+    focal_error_pct: float = 0.0
+    centre_error_px: float = 0.0
 
     def __post_init__(self):
-        if self.motion not in CMU_TRIALS:
-            raise ValueError(f"StudioSettings.motion must be one of {sorted(CMU_TRIALS)}, got {self.motion!r}")
+        if isinstance(self.motion, list):  # from JSON
+            object.__setattr__(self, "motion", tuple(self.motion))
+        motion = self.motion
+        if isinstance(motion, tuple):
+            if (len(motion) != 2 or not all(isinstance(m, str) for m in motion)
+                    or not motion[0].lower().endswith(".asf") or not motion[1].lower().endswith(".amc")):
+                raise ValueError(f"StudioSettings.motion: a motion given by two files must be an (.asf, .amc) pair, "
+                                 f"got {motion!r}")
+        elif not isinstance(motion, str) or (motion not in CMU_TRIALS and not motion.lower().endswith(".bvh")):
+            raise ValueError(f"StudioSettings.motion must be one of {sorted(CMU_TRIALS)}, a .bvh file or an (.asf, .amc) "
+                             f"pair, got {motion!r}")
         if self.lens not in ("fov", "opencv_fisheye"):
             raise ValueError(f"StudioSettings.lens must be 'fov' or 'opencv_fisheye', got {self.lens!r}")
         if self.container not in CONTAINERS:
@@ -187,6 +258,46 @@ class StudioSettings:
             raise ValueError("StudioSettings.reference_photos and markers_per_segment must be >= 0")
         if round(self.seconds * self.fps) < 2 or round(self.rom_seconds * self.fps) < 2:
             raise ValueError("StudioSettings: each trial needs at least 2 frames (seconds * fps >= 2)")
+        frame_ms = 1000.0 / self.fps
+        for name in ("exposure_ms", "readout_ms"):
+            if not 0.0 <= getattr(self, name) <= frame_ms * (1 + 1e-9):
+                raise ValueError(f"StudioSettings.{name} must be in [0, {frame_ms:.4g}] ms (one frame period at "
+                                 f"{self.fps:g} fps), got {getattr(self, name)}")
+        for name in ("motion_fps", "motion_unit_m", "mount_wobble_mm", "mount_wobble_deg", "read_noise_dn",
+                     "full_scale_electrons", "video_bitrate_mbps", "focal_error_pct", "centre_error_px"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < math.inf:
+                raise ValueError(f"StudioSettings.{name} must be a finite number >= 0, got {value!r}")
+        if self.mount_wobble_mm > 50.0 or self.mount_wobble_deg > 20.0:
+            raise ValueError(f"StudioSettings.mount_wobble_mm and mount_wobble_deg must be at most 50 mm and 20 deg "
+                             f"(RMS), got {self.mount_wobble_mm} and {self.mount_wobble_deg}")
+        if self.focal_error_pct > 20.0:
+            raise ValueError(f"StudioSettings.focal_error_pct must be at most 20 (%), got {self.focal_error_pct}")
+        if not 0.0 <= self.vignetting < 1.0:
+            raise ValueError(f"StudioSettings.vignetting must be in [0, 1), got {self.vignetting!r}")
+        if isinstance(self.blur_samples, bool) or not isinstance(self.blur_samples, int) or not 1 <= self.blur_samples <= 64:
+            raise ValueError(f"StudioSettings.blur_samples must be a whole number in [1, 64], got {self.blur_samples!r}")
+        for name in ("auto_exposure", "white_balance", "motion_blur", "rolling_shutter"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"StudioSettings.{name} must be true or false, got {getattr(self, name)!r}")
+        if self.video_bitrate_mbps > 0 and self.container != "mp4-aac":
+            raise ValueError(f"StudioSettings.video_bitrate_mbps needs container 'mp4-aac' (H.264), got container "
+                             f"{self.container!r}")
+
+    @property
+    def motion_paths(self) -> tuple[str, ...]:
+        """The motion file(s), or ``()`` for a bundled trial."""
+        if isinstance(self.motion, tuple):
+            return self.motion
+        return () if self.motion in CMU_TRIALS else (self.motion,)
+
+    def render_options(self) -> RenderOptions:
+        """How the body cameras' frames are rendered."""
+        return RenderOptions(
+            motion_blur=self.motion_blur, rolling_shutter=self.rolling_shutter, blur_samples=self.blur_samples,
+            exposure_frames=self.exposure_ms * self.fps / 1000.0 if self.exposure_ms > 0 else 0.5,
+            readout_frames=min(self.readout_ms * self.fps / 1000.0, 1.0) if self.readout_ms > 0 else 0.8,
+            noise_dn=self.read_noise_dn, full_scale_electrons=self.full_scale_electrons, vignetting=self.vignetting)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -200,6 +311,85 @@ class StudioSettings:
         return cls(**data)
 
 
+#: The settings :func:`preset_settings` ``("realistic")`` changes, and where each value comes from. Values
+#: that depend on the frame rate or the image size are scaled to the capture's (``fps``, ``width``,
+#: ``height``); the sources' figures are for 1920×1080 at 60 fps.
+REALISTIC = {
+    # A GoPro indoors exposes for about 1/100 s (GoPro Labs' "maxshut" notes: indoors 1/96 s at ISO 1600),
+    # bounded by the frame period: 8 ms at 60 fps, at most half a frame period.
+    "motion_blur": "on",
+    "exposure_ms": "8 ms (at most half a frame period)",
+    # Rolling-shutter readout of action cameras at 1080p: 14.8 ms for a GoPro Hero3+ Black at 1080p60 (Kalibr's
+    # rolling-shutter table, measured by panning), 17 ms for a GoPro Hero 8 Black (OpenDroneMap's rolling-shutter
+    # database): 15 ms, at most 0.95 frame periods.
+    "rolling_shutter": "on",
+    "readout_ms": "15 ms (at most 0.95 frame periods)",
+    # Soft-tissue artefact of skin-mounted marker clusters: peaks of ~10-18 mm and 5-10 deg on the thigh, less
+    # on the shank (Leardini et al. 2005; Peters et al. 2010; bcmocap.sim.wobble): RMS 3 mm and 1.5 deg,
+    # times 0.5-1.5 per camera.
+    "mount_wobble_mm": "3 mm RMS",
+    "mount_wobble_deg": "1.5 deg RMS",
+    "auto_exposure": "on (bcmocap.sim.exposure: 0.3 s loop)",
+    "white_balance": "on (grey world, 1 s loop, starting off by up to 5 %)",
+    # Fisheye designs lose from a few tens of per cent to most of the light at the edge of a hemispherical
+    # field (Kumler & Bauer 2000, "Fisheye lens designs and their relative performance", SPIE 4093): 40 %.
+    "vignetting": "0.4",
+    # A 1/2.3" action-camera sensor: 1.55 um pixels, full well ~1,900 e-/um^2 x 2.4 um^2 ~ 4,500 e- (R. N. Clark's
+    # sensor performance summary: full well scales with pixel area), at ISO ~400 indoors (4x gain) 1,100 e- at
+    # full scale per 1080p pixel; a rendered pixel bins (1920 x 1080) / (W x H) of them.
+    "full_scale_electrons": "1,100 e- per 1080p pixel, times (1920 x 1080) / (W x H)",
+    "read_noise_dn": "1 (read noise of ~2.5 e- is far below 1 level at that gain: quantisation and the camera's "
+                     "processing keep the studio's 1 level)",
+    # Consumer action cameras record 1080p at roughly 45-60 Mbit/s (the issue's figure; GoPro's standard bit rates
+    # are of this order); x264 is a better encoder than a camera's hardware one, so the lower figure, scaled by
+    # pixels per second.
+    "container": "mp4-aac (H.264)",
+    "video_bitrate_mbps": "45 Mbit/s x (W x H x fps) / (1920 x 1080 x 60)",
+    # The issue's band for a field calibration: 0.3-1 % in focal length, a few px in the centre; 0.5 % of the
+    # width is 3.2 px at 640 px.
+    "focal_error_pct": "1 (errors of 0.3-1 %)",
+    "centre_error_px": "0.5 % of the width (errors of 0.15-0.5 %)",
+}
+PRESETS = ("realistic",)
+
+
+def preset_settings(name: str, **fields) -> StudioSettings:
+    """Settings of a named preset (``"realistic"``: every degradation of a real shoot on, :data:`REALISTIC`).
+
+    Args:
+        name: the preset.
+        fields: other settings (motion, length, seed, size, frame rate…); a degradation setting given here
+            replaces the preset's value.
+
+    Raises:
+        ValueError: an unknown preset or a bad setting.
+    """
+    if name not in PRESETS:
+        raise ValueError(f"unknown studio preset {name!r}; presets: {list(PRESETS)}")
+    base = StudioSettings(**{k: v for k, v in fields.items() if k not in REALISTIC})
+    frame_ms = 1000.0 / base.fps
+    pixels = base.width * base.height
+    values = {
+        "motion_blur": True,
+        "exposure_ms": round(min(8.0, 0.5 * frame_ms), 4),
+        "rolling_shutter": True,
+        "readout_ms": round(min(15.0, 0.95 * frame_ms), 4),
+        "mount_wobble_mm": 3.0,
+        "mount_wobble_deg": 1.5,
+        "auto_exposure": True,
+        "white_balance": True,
+        "vignetting": 0.4,
+        "full_scale_electrons": round(1100.0 * 1920 * 1080 / pixels, 1),
+        "read_noise_dn": 1.0,
+        "container": "mp4-aac",
+        "video_bitrate_mbps": round(45.0 * pixels * base.fps / (1920 * 1080 * 60), 4),
+        "focal_error_pct": 1.0,
+        "centre_error_px": round(0.005 * base.width, 3),
+    }
+    values.update({k: v for k, v in fields.items() if k in REALISTIC})
+    return dataclasses.replace(base, **values)
+
+
 # ---------------------------------------------------------------------------------------------
 # Small deterministic writers (temporary file + rename; fixed zip timestamps so bytes repeat).
 
@@ -211,6 +401,12 @@ def _atomic_bytes(path: Path, data: bytes) -> None:
 
 def _write_json(path: Path, payload: dict) -> None:
     _atomic_bytes(path, (json.dumps(payload, indent=1) + "\n").encode())
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _read_json(path: Path) -> dict:
@@ -465,6 +661,9 @@ class _Plan:
     reference_camera: PinholeCamera
     reference_poses: np.ndarray
     fit_error_px: float
+    mount_poses: dict[str, np.ndarray]  # per trial (T, C, 7) world_from_mount: the rigid camera poses
+    camera_offsets: dict[str, np.ndarray]  # per trial (T, C, 6) (translation m, rotation rad) on the mount
+    camera_poses: dict[str, np.ndarray]  # per trial (T, C, 7) world_from_camera: mount · exp(offset), rendered
 
 
 def _rng(seed: int, *stream: int) -> np.random.Generator:
@@ -472,14 +671,43 @@ def _rng(seed: int, *stream: int) -> np.random.Generator:
 
 
 @functools.lru_cache(maxsize=4)
-def _body_motion(name: str, fps: float, seconds: float) -> tuple[Skeleton, Motion]:
+def _body_motion(motion: str | tuple[str, str], fps: float, seconds: float, source_fps: float = 0.0,
+                 unit_m: float = 0.0) -> tuple[Skeleton, Motion]:
     # Parsing and reducing a CMU trial takes seconds; a resumed or repeated capture in one process reuses it.
-    return load_body_motion(name, fps=fps, seconds=seconds, repeat=True)
+    if isinstance(motion, str) and motion in CMU_TRIALS:
+        return load_body_motion(motion, fps=fps, seconds=seconds, repeat=True)
+    return load_motion_file(motion, fps=fps, seconds=seconds, repeat=True, source_fps=source_fps, unit_m=unit_m)
+
+
+def _given_intrinsics(camera: CameraModel, settings: StudioSettings, rng: np.random.Generator) -> CameraModel:
+    """The calibration a user is given for a camera: focal length and centre off by the settings' errors."""
+    if settings.focal_error_pct <= 0 and settings.centre_error_px <= 0:
+        return camera
+    relative = rng.uniform(0.3, 1.0) * settings.focal_error_pct / 100.0 * rng.choice([-1.0, 1.0])
+    angle = rng.uniform(0.0, 2 * np.pi)
+    shift = rng.uniform(0.3, 1.0) * settings.centre_error_px * np.array([np.cos(angle), np.sin(angle)])
+    return eqx.tree_at(lambda c: (c.focal, c.principal_point), camera,
+                       (np.asarray(camera.focal) * (1.0 + relative), np.asarray(camera.principal_point) + shift))
+
+
+def _camera_truth(settings: StudioSettings, skeleton: Skeleton, rig: Rig, trials: dict[str, Motion]):
+    """Per trial: rigid mount poses, offsets on the mounts (zero without wobble) and the true camera poses."""
+    s = settings
+    mounts = {t: np.asarray(rig.world_from_camera(forward_kinematics(skeleton, m)).wxyz_xyz) for t, m in trials.items()}
+    if s.mount_wobble_mm <= 0 and s.mount_wobble_deg <= 0:
+        offsets = {t: np.zeros(p.shape[:2] + (6,)) for t, p in mounts.items()}
+        return mounts, offsets, dict(mounts)
+    straps, first = mount_wobble(mounts["capture"], s.fps, s.mount_wobble_mm / 1000.0, math.radians(s.mount_wobble_deg),
+                                 _rng(s.seed, 7))
+    offsets = {t: first if t == "capture" else straps.offsets(mounts[t], s.fps, _rng(s.seed, 7, i))
+               for i, t in enumerate(trials)}
+    poses = {t: np.asarray((SE3(mounts[t]) @ SE3.exp(offsets[t])).wxyz_xyz) for t in trials}
+    return mounts, offsets, poses
 
 
 def _plan(settings: StudioSettings) -> _Plan:
     s = settings
-    skeleton, motion = _body_motion(s.motion, s.fps, s.seconds)
+    skeleton, motion = _body_motion(s.motion, s.fps, s.seconds, s.motion_fps, s.motion_unit_m)
     rig = standard_rig(skeleton, s.width, s.height)
     fitted, fit_error = fit_opencv_fisheye(camera_at(rig.intrinsics, 0))
     if s.lens == "opencv_fisheye":
@@ -497,7 +725,9 @@ def _plan(settings: StudioSettings) -> _Plan:
         principal_point=[(s.reference_width - 1) / 2, (s.reference_height - 1) / 2],
     )
     reference_poses = _reference_poses(scene, path_xy, s.reference_photos, _rng(s.seed, 4))
-    return _Plan(s, skeleton, rig, scene, trials, timelines, reference_camera, reference_poses, fit_error)
+    mounts, offsets, poses = _camera_truth(s, skeleton, rig, trials)
+    return _Plan(s, skeleton, rig, scene, trials, timelines, reference_camera, reference_poses, fit_error, mounts,
+                 offsets, poses)
 
 
 def _check_folder(path: Path, settings: StudioSettings) -> bool:
@@ -518,7 +748,8 @@ def _check_folder(path: Path, settings: StudioSettings) -> bool:
         )
     stored = data.get("settings")
     if isinstance(stored, dict):  # a capture written before a setting existed was written with its default
-        stored = {"container": "mp4v-wav", **stored}
+        defaults = {f.name: f.default for f in dataclasses.fields(StudioSettings)}
+        stored = {**json.loads(json.dumps(defaults)), **stored}
     if data.get("version") != CAPTURE_VERSION or stored != json.loads(json.dumps(settings.to_dict())):
         raise FileExistsError(
             f"{path} holds a capture written with other settings ({data.get('settings')}); refusing to mix "
@@ -547,14 +778,16 @@ class _VideoSink:
     """A video written under a temporary name and renamed when closed (calls run on one writer thread): mp4v
     through OpenCV, or with a soundtrack H.264 + AAC in one file through PyAV."""
 
-    def __init__(self, path: Path, fps: float, size: tuple[int, int], audio: tuple[np.ndarray, int] | None = None):
+    def __init__(self, path: Path, fps: float, size: tuple[int, int], audio: tuple[np.ndarray, int] | None = None,
+                 bitrate_mbps: float = 0.0):
         self.path = path
         self.tmp = path.with_name(f".{path.stem}.partial.mp4")
         if audio is not None:
             from ..io.media import MediaWriter
 
             samples, rate = audio
-            self.media = MediaWriter(self.tmp, fps, size, rate)
+            bitrate = int(round(bitrate_mbps * 1e6)) if bitrate_mbps > 0 else None
+            self.media = MediaWriter(self.tmp, fps, size, rate, bitrate=bitrate)
             self.media.write_audio(samples)
             return
         import cv2
@@ -595,13 +828,24 @@ def _render_camera_trial(plan: _Plan, renderer: Renderer, trial_index: int, tria
     tail = int(timeline["num_video_frames"][camera]) - head - n  # copies of frame n-1 after it ends
     ends, radii, colors = capsules
     sink = pool.submit(_VideoSink, folder / f"{plan.rig.names[camera]}.mp4", s.fps, (s.width, s.height),
-                       audio).result()
+                       audio, s.video_bitrate_mbps).result()
+    control = None
+    if s.auto_exposure or s.white_balance:
+        control = ExposureControl(s.fps, s.auto_exposure, s.white_balance, _rng(s.seed, 8, trial_index, camera),
+                                  renderer.rays.valid)
     writes: list[concurrent.futures.Future] = []
     for first in range(0, n, _BATCH):
         frames = np.minimum(np.arange(first, first + _BATCH), n - 1)
         rot, org = renderer.poses_at(poses, frames)
+        gains = None
+        if control is not None:
+            real = min(_BATCH, n - first)
+            gains = control.gains(real)
+            gains = np.concatenate([gains, np.repeat(gains[-1:], _BATCH - real, axis=0)])
         images = renderer.render(rot, org, renderer.capsules_at(ends, frames), radii, colors,
-                                 _frame_key(s.seed, trial_index, camera, frames))
+                                 _frame_key(s.seed, trial_index, camera, frames), gains)
+        if control is not None:
+            control.meter(images[real - 1], gains[real - 1])
         video = []
         for k, image in zip(range(first, min(first + _BATCH, n)), images):
             video.extend([image] * ((head if k == 0 else 0) + 1 + (tail if k == n - 1 else 0)))
@@ -652,6 +896,8 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
         "subject": subject_record(skeleton, plan.trials["rom"].num_frames, s.fps),
         "complete": False,
     }
+    if s.motion_paths:  # where a motion file came from (its bytes may change after the capture)
+        manifest["motion_files"] = [{"path": str(f), "sha256": _sha256(Path(f))} for f in s.motion_paths]
     folder.mkdir(parents=True, exist_ok=True)
     if not resume:  # the manifest first: an interrupted capture is always recognised as one
         _write_json(folder / "capture.json", manifest)
@@ -668,7 +914,7 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
     todo = [(ti, t, c) for ti, t in enumerate(TRIALS) for c in range(rig.num_cameras) if not written(t, c)]
     photos = [i for i in range(len(plan.reference_poses)) if not (folder / "reference" / f"photo_{i:03d}.jpg").exists()]
     total = sum(plan.trials[t].num_frames for _, t, _ in todo) + len(photos)
-    options = RenderOptions(motion_blur=s.motion_blur, rolling_shutter=s.rolling_shutter)
+    options = s.render_options()
     with tqdm(total=total, unit="frame", desc="bcmocap simulate", disable=not progress, smoothing=0.1) as bar, \
             concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
         timings["setup"] = time.perf_counter() - clock
@@ -687,8 +933,7 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
                 timings[f"frames:{trial}"] = 0
                 clock = time.perf_counter()
                 motion = plan.trials[trial]
-                poses = np.asarray(rig.world_from_camera(forward_kinematics(skeleton, motion)).wxyz_xyz)
-                trial_data[trial] = (poses, capsule_ends(skeleton, motion))
+                trial_data[trial] = (plan.camera_poses[trial], capsule_ends(skeleton, motion))
             poses, capsules = trial_data[trial]
             cam = camera_at(rig.intrinsics, camera)
             key = np.concatenate([np.ravel(np.asarray(leaf)) for leaf in jax.tree.leaves(cam)]).tobytes()
@@ -754,8 +999,9 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
 
     s, rig, skeleton = plan.settings, plan.rig, plan.skeleton
     cameras = []
+    calibration_rng = _rng(s.seed, 6)
     for c, name in enumerate(rig.names):
-        cam = camera_at(rig.intrinsics, c)
+        cam = _given_intrinsics(camera_at(rig.intrinsics, c), s, calibration_rng)  # the rendered lens by default
         fitted, err = fit_opencv_fisheye(cam)
         _write_opencv_yaml(folder / "intrinsics" / f"{name}.yml", fitted)
         _write_json(folder / "intrinsics" / f"{name}.json", {**camera_to_dict(cam), "opencv_fisheye_fit_max_error_px": err})
@@ -776,6 +1022,7 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
     write_npz_atomic(gt / "world_points.npz", {"points": points, "materials": materials})
     write_npz_atomic(gt / "reference.npz", {"names": np.array([f"photo_{i:03d}.jpg" for i in range(len(plan.reference_poses))]),
                                       "world_from_camera": plan.reference_poses})
+    wobble = s.mount_wobble_mm > 0 or s.mount_wobble_deg > 0
     for ti, (trial, motion) in enumerate(plan.trials.items()):
         fk = forward_kinematics(skeleton, motion)
         markers = _simulate_markers(skeleton, motion, s.fps, s.markers_per_segment, _rng(s.seed, 3, ti))
@@ -784,7 +1031,9 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
             "rotations": np.asarray(motion.rotations),
             "joint_positions": np.asarray(fk.translation()),
             "world_rotations": np.asarray(fk.rotation().wxyz),
-            "world_from_camera": np.asarray(rig.world_from_camera(fk).wxyz_xyz),
+            "world_from_camera": plan.camera_poses[trial],
+            "world_from_mount": plan.mount_poses[trial],
+            "camera_offsets": plan.camera_offsets[trial],
             **plan.timelines[trial],
             "clap_samples": _clap_samples(plan.timelines[trial], s),
             "fps": np.float64(s.fps),
@@ -796,7 +1045,7 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
         })
         write_bvh(gt / f"{trial}.bvh", skeleton, motion, 1.0 / s.fps)
         write_trial_sensors(folder / "trials" / trial, skeleton, rig, motion, s.fps, plan.timelines[trial]["clap_frames"],
-                            seed=s.seed, trial_index=ti)
+                            seed=s.seed, trial_index=ti, world_from_camera=plan.camera_poses[trial] if wobble else None)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -809,8 +1058,14 @@ class TrialTruth:
 
     Attributes:
         motion: the true motion (root position and joint rotations).
-        joint_positions: ``(T, J, 3)`` m; world_rotations ``(T, J, 4)`` segment orientations (wxyz).
-        world_from_camera: ``(T, C, 7)`` camera poses.
+        joint_positions: ``(T, J, 3)`` m; world_rotations ``(T, J, 4)`` segment orientations (wxyz): the
+            bones' poses.
+        world_from_camera: ``(T, C, 7)`` the true camera poses (what was rendered).
+        world_from_mount: ``(T, C, 7)`` where each camera would be if rigidly fixed to its bone
+            (``world_from_segment · segment_from_camera``, the rig's mounts).
+        camera_offsets: ``(T, C, 6)`` (translation m, rotation rad) of each camera on its mount, in its own
+            frame: ``world_from_camera = world_from_mount · SE3.exp(camera_offsets)`` (the convention of
+            :data:`bcmocap.residuals.variables.CAMERA_OFFSETS`); zero with rigid mounts.
         video_start_frame, num_video_frames: ``(C,)`` video frame showing trial frame 0; video length.
         clap_frames: ``(2,)`` trial frames of the claps; clap_samples ``(C, 2)`` their first audio sample
             in each camera's track; audio_gain ``(C,)``.
@@ -831,6 +1086,8 @@ class TrialTruth:
     markers: MarkerTrajectories
     fps: float
     audio_rate: int
+    world_from_mount: np.ndarray
+    camera_offsets: np.ndarray
 
 
 @dataclasses.dataclass(frozen=True)
@@ -896,6 +1153,9 @@ def load_ground_truth(path: str | os.PathLike) -> GroundTruth:
                                            d["marker_offsets"], d["markers"]),
                 fps=float(d["fps"]),
                 audio_rate=int(d["audio_rate"]),
+                # a capture written before mount wobble existed has rigid mounts
+                world_from_mount=d.get("world_from_mount", d["world_from_camera"]),
+                camera_offsets=d.get("camera_offsets", np.zeros(d["world_from_camera"].shape[:2] + (6,))),
             )
         except KeyError as err:
             raise ValueError(f"{gt / f'{name}.npz'}: missing array {err}") from None

@@ -8,6 +8,8 @@ import time
 
 from ..compilation_cache import enable_compilation_cache
 
+PRESETS = ("realistic",)  # bcmocap.sim.studio.PRESETS (not imported here: the CLI starts without JAX)
+
 
 def add_simulate_command(sub: argparse._SubParsersAction) -> None:
     """Add the ``simulate`` subcommand (heavy imports happen when it runs)."""
@@ -18,10 +20,20 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
         "(clapper-board claps, random start per camera; --container mp4-aac: one MP4 with the audio inside) per "
         "body camera for a range-of-motion trial and the capture trial, hand-held reference photos, calibration "
         "files, the rig, and ground truth beside it (layout: bcmocap.sim.studio). The same arguments write the "
-        "same files; running again resumes.",
+        "same files; running again resumes. Clean by default; --preset realistic adds what a real shoot has (mount "
+        "wobble, rolling shutter, motion blur, auto exposure and white balance, vignetting, shot noise, H.264 at an "
+        "action camera's bit rate, calibration error; sources in bcmocap.sim.studio.REALISTIC), and each "
+        "degradation has its own option (which overrides the preset's value).",
     )
-    cmd.add_argument("capture_dir", metavar="CAPTURE_DIR", help="new or empty folder, or an unfinished capture to resume")
-    cmd.add_argument("--motion", default="walk", choices=["walk", "run", "jump"], help="bundled CMU trial (default walk)")
+    cmd.add_argument("capture_dir", metavar="CAPTURE_DIR", nargs="?",
+                     help="new or empty folder, or an unfinished capture to resume")
+    cmd.add_argument("--motion", nargs="+", default=["walk"], metavar="MOTION",
+                     help="the capture's motion: a bundled CMU trial (walk, run, jump; default walk), a BVH file, or an "
+                          "ASF file and an AMC file (bones found by their usual names: bcmocap.sim.motions.BONE_ALIASES)")
+    cmd.add_argument("--motion-fps", type=float, default=0.0,
+                     help="frame rate of a motion file (Hz; default: a BVH file's Frame Time, 120 for AMC)")
+    cmd.add_argument("--motion-unit-m", type=float, default=0.0,
+                     help="metres per length unit of a motion file (default: guessed for BVH, the ASF's :units)")
     cmd.add_argument("--seconds", type=float, default=2.0, help="length of the capture trial (s, default 2, at most 600)")
     cmd.add_argument("--rom-seconds", type=float, default=2.0,
                      help="length of the range-of-motion trial (s, default 2, at most 600)")
@@ -33,18 +45,51 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
                      help="lens model rendered: the paper's FOV model or its cv2.fisheye fit (default fov)")
     cmd.add_argument("--reference-photos", type=int, default=24, help="number of reference photos (default 24)")
     cmd.add_argument("--reference-size", default="1024x768", metavar="WxH", help="reference photo size (default 1024x768)")
-    cmd.add_argument("--motion-blur", action="store_true", help="render motion blur (4 sub-exposures, half-frame shutter)")
-    cmd.add_argument("--rolling-shutter", action="store_true", help="expose rows one after another (0.8 frame readout)")
-    cmd.add_argument("--container", default="mp4v-wav", choices=["mp4v-wav", "mp4-aac"],
+    cmd.add_argument("--preset", choices=list(PRESETS),
+                     help="realistic: every degradation below on, at values from camera data sheets and the literature "
+                          "(bcmocap.sim.studio.REALISTIC)")
+    deg = cmd.add_argument_group("degradations (off unless given or set by --preset)")
+    deg.add_argument("--motion-blur", action=argparse.BooleanOptionalAction, default=None,
+                     help="render motion blur over the exposure (default: no blur)")
+    deg.add_argument("--exposure-ms", type=float, help="shutter time for motion blur (ms; default half a frame period)")
+    deg.add_argument("--blur-samples", type=int, help="sub-exposures averaged for motion blur (default 4)")
+    deg.add_argument("--rolling-shutter", action=argparse.BooleanOptionalAction, default=None,
+                     help="expose rows one after another (default: all at once)")
+    deg.add_argument("--readout-ms", type=float, help="rolling-shutter readout, first row to last (ms; default 0.8 frames)")
+    deg.add_argument("--mount-wobble-mm", type=float,
+                     help="RMS translation of each camera on its strap (mm, times 0.5-1.5 per camera; default 0)")
+    deg.add_argument("--mount-wobble-deg", type=float, help="RMS rotation of each camera on its strap (deg; default 0)")
+    deg.add_argument("--auto-exposure", action=argparse.BooleanOptionalAction, default=None,
+                     help="exposure follows the view (default: fixed)")
+    deg.add_argument("--white-balance", action=argparse.BooleanOptionalAction, default=None,
+                     help="grey-world auto white balance (default: fixed)")
+    deg.add_argument("--vignetting", type=float, help="share of light lost at the image's most oblique ray (default 0)")
+    deg.add_argument("--read-noise-dn", type=float, help="read noise σ in 8-bit levels (default 1)")
+    deg.add_argument("--full-scale-electrons", type=float,
+                     help="electrons per rendered pixel at level 255: photon shot noise (default 0: none)")
+    deg.add_argument("--container", choices=["mp4v-wav", "mp4-aac"],
                      help="mp4v-wav (default): an mp4v video and a WAV soundtrack beside it; mp4-aac: H.264 video with "
                           "the soundtrack as an AAC track in the same MP4, as a real camera writes it (through PyAV)")
+    deg.add_argument("--video-bitrate-mbps", type=float,
+                     help="H.264 bit rate (Mbit/s; needs --container mp4-aac; default: constant quality, CRF 16)")
+    deg.add_argument("--focal-error-pct", type=float,
+                     help="calibration given to the user: focal lengths off by 0.3-1 times this (%%; default 0)")
+    deg.add_argument("--centre-error-px", type=float,
+                     help="calibration given to the user: centres off by 0.3-1 times this (px; default 0)")
     cmd.add_argument("--no-progress", action="store_true", help="no progress bar")
     cmd.add_argument("--sensors-only", action="store_true",
                      help="only add trials/<trial>/imu.npz and contacts.npz to the existing capture CAPTURE_DIR from its "
                      "ground truth (nothing rendered; the other options are ignored)")
 
     def run(args: argparse.Namespace) -> int:
-        from .studio import MAX_FPS, MAX_SECONDS, StudioSettings, write_capture
+        from .studio import MAX_FPS, MAX_SECONDS, StudioSettings, preset_settings, write_capture
+
+        # "--motion run DIR": --motion takes one or two values, so it swallowed the folder; give it back.
+        if args.capture_dir is None and len(args.motion) > 1 and not args.motion[-1].lower().endswith(".amc"):
+            args.capture_dir = args.motion.pop()
+        if args.capture_dir is None:
+            print("bcmocap simulate: CAPTURE_DIR is required (the folder to write)", file=sys.stderr)
+            return 2
 
         if args.sensors_only:
             from .sensors import write_sensor_data
@@ -69,15 +114,21 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
             if not 0 < value <= most:  # also refuses NaN
                 print(f"bcmocap simulate: {flag} must be in (0, {most:g}], got {value}", file=sys.stderr)
                 return 2
+        motion = _motion_argument(args.motion)
+        if isinstance(motion, ValueError):
+            print(f"bcmocap simulate: {motion}", file=sys.stderr)
+            return 2
+        fields = dict(
+            motion=motion, motion_fps=args.motion_fps, motion_unit_m=args.motion_unit_m, seconds=args.seconds,
+            rom_seconds=args.rom_seconds, seed=args.seed, fps=args.fps, width=args.width, height=args.height,
+            lens=args.lens, reference_photos=args.reference_photos, reference_width=ref_w, reference_height=ref_h,
+        )
+        fields.update({name: getattr(args, name) for name in DEGRADATIONS if getattr(args, name) is not None})
         try:
-            settings = StudioSettings(
-                motion=args.motion, seconds=args.seconds, rom_seconds=args.rom_seconds, seed=args.seed, fps=args.fps,
-                width=args.width, height=args.height, lens=args.lens, reference_photos=args.reference_photos,
-                reference_width=ref_w, reference_height=ref_h,
-                motion_blur=args.motion_blur, rolling_shutter=args.rolling_shutter, container=args.container,
-            )
+            settings = preset_settings(args.preset, **fields) if args.preset else StudioSettings(**fields)
         except ValueError as err:
-            cmd.error(str(err))
+            print(f"bcmocap simulate: {_flag_names(str(err))}", file=sys.stderr)
+            return 2
         enable_compilation_cache()
         start = time.perf_counter()
         try:
@@ -90,3 +141,33 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
         return 0
 
     cmd.set_defaults(run=run)
+
+
+#: Settings with an option of the same name that --preset may set.
+DEGRADATIONS = ("motion_blur", "exposure_ms", "blur_samples", "rolling_shutter", "readout_ms", "mount_wobble_mm",
+                "mount_wobble_deg", "auto_exposure", "white_balance", "vignetting", "read_noise_dn",
+                "full_scale_electrons", "container", "video_bitrate_mbps", "focal_error_pct", "centre_error_px")
+
+
+def _motion_argument(values: list[str]) -> str | tuple[str, str] | ValueError:
+    """``--motion``'s value for the settings: a bundled name, a BVH path or an (ASF, AMC) pair (absolute paths, so
+    that the capture resumes from anywhere), or the error to print."""
+    from pathlib import Path
+
+    from .motions import CMU_TRIALS
+
+    if len(values) == 1 and values[0] in CMU_TRIALS:
+        return values[0]
+    if len(values) == 1 and values[0].lower().endswith(".bvh"):
+        return str(Path(values[0]).resolve())
+    if len(values) == 2 and values[0].lower().endswith(".asf") and values[1].lower().endswith(".amc"):
+        return tuple(str(Path(v).resolve()) for v in values)
+    return ValueError(f"--motion must be one of {sorted(CMU_TRIALS)}, a .bvh file, or an .asf file and an .amc file; "
+                      f"got {' '.join(values)!r}")
+
+
+def _flag_names(message: str) -> str:
+    """A settings error with each ``StudioSettings.<field>`` written as its option ``--<field>``."""
+    import re
+
+    return re.sub(r"StudioSettings\.(\w+)", lambda m: "--" + m.group(1).replace("_", "-"), message)
