@@ -7,13 +7,13 @@ which labels are the same physical marker (§4). :func:`fit_marker_skeleton` run
 is ``bcmocap markers FILE.c3d --out DIR``.
 """
 
-from .identities import IdentityMerge, label_distances, merge_identities
+from .identities import IdentityMerge, concurrent_labels, label_distances, merge_identities
 from .ik import IkResult, initial_motion, marker_model_positions, solve_ik
-from .joints import JointSolution, joint_cost_matrix, joint_objective, minimum_spanning_tree, solve_joints
+from .joints import JointSolution, informative_frames, joint_cost_matrix, joint_objective, minimum_spanning_tree, solve_joints
 from .pipeline import MarkerOptions, MarkerSkeleton, fit_marker_skeleton
 from .preprocess import MarkerTrajectories, PreprocessReport, preprocess, visible_runs
 from .rigid import RigidSkeleton, build_skeleton, procrustes
-from .segmentation import Segmentation, distance_std, jittered_samples, segment_markers, within_group_cost
+from .segmentation import PairStatistics, Segmentation, distance_std, jittered_samples, pair_statistics, segment_markers, within_group_cost
 from .spectral import eigengap, kmeans, spectral_clustering, spectral_embedding
 
 __all__ = [
@@ -23,13 +23,16 @@ __all__ = [
     "MarkerOptions",
     "MarkerSkeleton",
     "MarkerTrajectories",
+    "PairStatistics",
     "PreprocessReport",
     "RigidSkeleton",
     "Segmentation",
     "build_skeleton",
+    "concurrent_labels",
     "distance_std",
     "eigengap",
     "fit_marker_skeleton",
+    "informative_frames",
     "initial_motion",
     "jittered_samples",
     "joint_cost_matrix",
@@ -39,6 +42,7 @@ __all__ = [
     "marker_model_positions",
     "merge_identities",
     "minimum_spanning_tree",
+    "pair_statistics",
     "preprocess",
     "procrustes",
     "segment_markers",

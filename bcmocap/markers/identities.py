@@ -1,8 +1,12 @@
 """Marker identities (Kirk et al. §4): merge the labels a passive system produces into physical markers.
 
 A passive optical system gives a marker a new label whenever it loses and finds it again, so it reports
-many more labels than markers were worn. The number of physical markers ``n'`` is the largest number of
-labels seen in one frame; two labels seen in the same frame are different markers. For two labels ``i``
+many more labels than markers were worn. The paper takes the number of physical markers ``n'`` as the
+largest number of labels seen in one frame; with heavy occlusion no frame may see every marker, so here
+``n'`` is the largest number of labels whose spans (first to last frame seen) cover one frame
+(:func:`concurrent_labels`): the labels of one physical marker follow one another, so they never
+overlap, and a labelled capture (every label spanning the trial, gaps inside) needs no merging at all.
+Two labels seen in the same frame are different markers. For two labels ``i``
 and ``j`` never seen together, the paper's distance is
 
     D_ij = min over frames a (i seen), b (j seen) of ‖m_{i,a} − A_ab m_{j,b}‖
@@ -36,7 +40,7 @@ from ..geometry import rotation_from_covariance
 from .preprocess import MarkerTrajectories
 from .spectral import spectral_clustering
 
-__all__ = ["IdentityMerge", "label_distances", "merge_identities"]
+__all__ = ["IdentityMerge", "concurrent_labels", "label_distances", "merge_identities"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +63,23 @@ class IdentityMerge:
     conflicts_fixed: int
 
 
+def concurrent_labels(visible: np.ndarray) -> int:
+    """The largest number of labels whose spans (first to last frame seen) cover one frame (``visible`` ``(F, L)``).
+
+    The labels of one physical marker follow one another in time, so this is at most the number of
+    physical markers, and at least the largest number seen in one frame.
+    """
+    visible = np.asarray(visible, bool)
+    num_frames = visible.shape[0]
+    seen = visible.any(0)
+    first = np.argmax(visible, axis=0)[seen]
+    last = num_frames - 1 - np.argmax(visible[::-1], axis=0)[seen]
+    change = np.zeros(num_frames + 1, int)
+    np.add.at(change, first, 1)
+    np.add.at(change, last + 1, -1)
+    return int(np.cumsum(change)[:num_frames].max()) if seen.any() else 0
+
+
 def label_distances(
     positions: np.ndarray,
     frames: np.ndarray,
@@ -77,6 +98,7 @@ def label_distances(
     p = positions[frames]  # (S, L, 3)
     vis = np.isfinite(p[..., 0])
     p0 = np.where(vis[..., None], p, 0.0)
+    norm2 = np.sum(p0 * p0, -1)  # (S, L)
     num_labels = p.shape[1]
     out = np.full((num_labels, num_labels), np.inf)
     for i in range(num_labels):
@@ -93,14 +115,21 @@ def label_distances(
         tot = np.where(total > 0, total, 1.0)
         mu_a = np.einsum("abk,aki->abi", weights, p0[a_idx]) / tot[..., None]
         mu_b = np.einsum("abk,bki->abi", weights, p0) / tot[..., None]
-        h = np.einsum("abk,bki,akj->abij", weights, p0, p0[a_idx]) - total[..., None, None] * mu_b[..., :, None] * mu_a[..., None, :]
+        h = np.einsum("abk,bki,akj->abij", weights, p0, p0[a_idx], optimize=True) - total[..., None, None] * mu_b[..., :, None] * mu_a[..., None, :]
         rot = rotation_from_covariance(np.swapaxes(h, -1, -2))  # frame b → frame a
-        moved = np.einsum("abij,abkj->abki", rot, p0[None] - mu_b[:, :, None, :]) + mu_a[:, :, None, :]
         # How well the neighbourhood itself lines up: a poor alignment (a different local pose) can
-        # carry a wrong marker onto m_{i,a} by chance, so its misfit is added to the distance.
-        misfit = np.sum(weights * np.sum((moved - p0[a_idx][:, None]) ** 2, -1), -1) / tot
-        dist = np.linalg.norm(moved - centre[:, None, None, :], axis=-1)  # (A, S, L)
-        dist = np.sqrt(dist**2 + misfit[..., None])
+        # carry a wrong marker onto m_{i,a} by chance, so its misfit is added to the distance. Both from
+        # moments, without moving every label (|R x| = |x|): the weighted misfit is
+        # Σ w |x_a|² + Σ w |x_b|² − 2 tr(R hᵀ) for the centred points x, and a label k at frame b lands at
+        # squared distance |x_bk|² + |μ_a − m_{i,a}|² + 2 (Rᵀ (μ_a − m_{i,a}))·x_bk from m_{i,a}.
+        spread_a = np.einsum("abk,ak->ab", weights, norm2[a_idx]) - total * np.sum(mu_a**2, -1)
+        spread_b = np.einsum("abk,bk->ab", weights, norm2) - total * np.sum(mu_b**2, -1)
+        misfit = np.maximum(spread_a + spread_b - 2.0 * np.einsum("abij,abji->ab", rot, h), 0.0) / tot
+        offset = mu_a - centre[:, None, :]
+        v = np.einsum("abji,abj->abi", rot, offset)
+        dist2 = (norm2[None] + np.einsum("abi,bki->abk", 2.0 * (v - mu_b), p0)
+                 + (np.sum(mu_b**2, -1) + np.sum(offset**2, -1) - 2.0 * np.sum(v * mu_b, -1))[..., None])
+        dist = np.sqrt(np.maximum(dist2, 0.0) + misfit[..., None])  # (A, S, L)
         dist = np.where(vis[None] & enough[..., None], dist, np.inf)
         out[i] = dist.min(axis=(0, 1))
     out = np.minimum(out, out.T)
@@ -123,7 +152,7 @@ def merge_identities(
 
     Args:
         trajectories: labelled fragments ``(F, L, 3)``, preprocessed (no ghosts).
-        num_markers: ``n'``; None takes the largest number of labels seen in one frame.
+        num_markers: ``n'``; None takes :func:`concurrent_labels`.
         sample_interval_s: spacing of the sampled frames (widened to keep at most ``max_samples``).
         radius_m: locality of the alignments.
         scale_m: σ of the affinity ``exp(−D²/2σ²)`` (m); None: twice the median over labels of the
@@ -143,7 +172,7 @@ def merge_identities(
     vis = trajectories.visible
     num_labels = trajectories.num_markers
     most = int(vis.sum(1).max())
-    n = most if num_markers is None else int(num_markers)
+    n = concurrent_labels(vis) if num_markers is None else int(num_markers)
     if n < most:
         frame = int(np.argmax(vis.sum(1)))
         raise ValueError(f"merge_identities: {most} labels are seen together at frame {frame}, more than num_markers={n}")

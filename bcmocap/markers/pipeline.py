@@ -22,9 +22,9 @@ import numpy as np
 from ..kinematics.fk import joint_positions
 from ..kinematics.skeleton import Motion, Skeleton
 from ..precision import require_float64
-from .identities import IdentityMerge, merge_identities
+from .identities import IdentityMerge, concurrent_labels, merge_identities
 from .ik import IkResult, initial_motion, solve_ik
-from .joints import JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
+from .joints import MIN_COVERAGE, MIN_FRAMES, JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
 from .preprocess import MarkerTrajectories, PreprocessReport, preprocess
 from .rigid import RigidSkeleton, build_skeleton
 from .segmentation import Segmentation, least_rigid_pair, segment_markers
@@ -42,16 +42,22 @@ class MarkerOptions:
         trim_frames: frames trimmed at both ends of every visible stretch.
         min_run_seconds: markers never seen this long at a stretch are ignored.
         spike_threshold_m: jumps farther than this from the local median are removed (None: keep).
-        merge: marker identity merging: "auto" (when more labels than markers seen at once), "yes", "no".
-        num_markers: physical markers for merging (None: most labels seen in one frame).
+        merge: marker identity merging: "auto" (when more labels than the most whose spans, first to last
+            frame seen, overlap: a labelled capture with gaps is not merged), "yes", "no".
+        num_markers: physical markers for merging (None: the most labels whose spans overlap).
         merge_method: "linkage" or "spectral" (see :mod:`bcmocap.markers.identities`).
         num_samplings: jittered samplings for segmentation.
         segmentation_scale_m: σ of the segmentation affinity (None: from the data).
+        min_coverage: a pair of markers (segmentation) or of groups (topology) whose frames seen together
+            show less than this share of the motion around them is unknown (see
+            :func:`~.segmentation.pair_statistics` and :func:`~.joints.joint_cost_matrix`).
         alpha_topology: distance penalty of the all-pairs joint costs.
         dof_corrected_topology: the all-pairs costs corrected for the markers each pair has (see
             :func:`~.joints.joint_cost_matrix`); False is the paper's ``Q``.
         alpha_final: penalty stages of the final joint solve on all frames.
         topology_frames: frames (evenly spaced) used for the all-pairs joint costs.
+        joint_frames: frames (evenly spaced) on which the tree's joints are solved; each frame's joint is
+            then placed for the distances found.
         root: index of the marker group to make the root (None: the centre of the tree).
         rigid_tolerance_m: a segment whose two markers' distance varies more than this (standard
             deviation) spans a joint: the eigengap's count is raised until none does, and a given count
@@ -71,10 +77,12 @@ class MarkerOptions:
     merge_method: str = "linkage"
     num_samplings: int = 8
     segmentation_scale_m: float | None = None
+    min_coverage: float = MIN_COVERAGE
     alpha_topology: float = 1e-3
     dof_corrected_topology: bool = True
     alpha_final: tuple[float, ...] = (1e-2, 1e-4)
     topology_frames: int = 200
+    joint_frames: int = 400
     root: int | None = None
     rigid_tolerance_m: float = 0.015
     ik_chunk: int = 256
@@ -175,6 +183,11 @@ class MarkerSkeleton:
         seg = self.segmentation
         lines.append(f"{seg.num_groups} segments ({seg.chosen_by}; affinity σ {seg.scale_m * 1000:.1f} mm, "
                      f"within-group cost {seg.cost * 1000:.2f} mm)")
+        if seg.known is not None and not seg.known.all():
+            m = len(seg.known)
+            unknown = int((~seg.known[np.triu_indices(m, 1)]).sum())
+            lines.append(f"{unknown} of {m * (m - 1) // 2} marker pairs unknown (seen together too little, or only while "
+                         "the body around them was still): left out of the segmentation")
         lines.append("topology (root first):")
         lines += ["  " + x for x in self.tree_lines()]
         lines.append("joints (segment ← parent): cost Q, distance residual RMS, free directions")
@@ -283,6 +296,14 @@ def _non_rigid_segments(seg, labels, names, tolerance_m: float) -> list[str]:
     return out
 
 
+def _without(trajectories: MarkerTrajectories, seg: Segmentation, keep: np.ndarray) -> tuple[MarkerTrajectories, Segmentation]:
+    """The markers ``keep`` only, in the trajectories and the segmentation."""
+    sub = np.ix_(keep, keep)
+    return trajectories.select(keep), dataclasses.replace(
+        seg, groups=seg.groups[keep], distance_std=seg.distance_std[sub],
+        coverage=None if seg.coverage is None else seg.coverage[sub], known=None if seg.known is None else seg.known[sub])
+
+
 def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions = MarkerOptions()) -> MarkerSkeleton:
     """Estimate a skeleton and its motion from marker trajectories (Kirk, O'Brien & Forsyth 2005).
 
@@ -312,11 +333,10 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
         )
     for w in caught:
         note(str(w.message))
-    most = int(clean.visible.sum(1).max())
     identities = None
     if options.merge not in ("auto", "yes", "no"):
         raise ValueError(f"options.merge must be 'auto', 'yes' or 'no', got {options.merge!r}")
-    if options.merge == "yes" or (options.merge == "auto" and clean.num_markers > (options.num_markers or most)):
+    if options.merge == "yes" or (options.merge == "auto" and clean.num_markers > (options.num_markers or concurrent_labels(clean.visible))):
         clean, identities = merge_identities(clean, options.num_markers, method=options.merge_method, seed=options.seed)
     seconds["preprocess"] = time.perf_counter() - t0
 
@@ -328,8 +348,13 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
         scale_m=options.segmentation_scale_m,
         max_groups=options.max_groups,
         rigid_tolerance_m=options.rigid_tolerance_m,
+        min_coverage=options.min_coverage,
         seed=options.seed,
     )
+    if len(seg.left_out):
+        note(f"markers {[clean.labels[k] for k in seg.left_out]} are seen together with too few others (or only "
+             "while still) to place them on a segment; they are left out")
+        clean, seg = _without(clean, seg, np.flatnonzero(seg.groups >= 0))
     seconds["segmentation"] = time.perf_counter() - t0
     names = _segment_names(clean, seg.groups)
     for g in range(seg.num_groups):
@@ -343,15 +368,23 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        q, _ = joint_cost_matrix(clean, seg.groups, alpha=options.alpha_topology, max_frames=options.topology_frames,
-                                 dof_corrected=options.dof_corrected_topology)
+        q, pair_solutions = joint_cost_matrix(clean, seg.groups, alpha=options.alpha_topology, max_frames=options.topology_frames,
+                                              dof_corrected=options.dof_corrected_topology, min_coverage=options.min_coverage)
     for w in caught:
         note(str(w.message))
     edges = minimum_spanning_tree(q, names)
+    by_pair = {frozenset(s.groups): s for s in pair_solutions}
+    for a, b in edges:
+        s = by_pair[frozenset((a, b))]
+        if s.coverage < options.min_coverage or s.frames_used < MIN_FRAMES:
+            note(f"segments '{names[a]}' and '{names[b]}' are connected although they are seen together too little "
+                 f"({s.frames_used} frames, {s.coverage * 100:.0f} % of their relative motion): no better-seen pair "
+                 "connects them")
     seconds["topology"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    joints = solve_joints(clean, seg.groups, edges, alpha=options.alpha_final, max_iterations=400)
+    joints = solve_joints(clean, seg.groups, edges, alpha=options.alpha_final, max_iterations=100,
+                          max_solve_frames=options.joint_frames)
     for sol in joints:
         a, b = sol.groups
         if sol.null_dims >= 2:

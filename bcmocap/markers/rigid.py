@@ -133,6 +133,7 @@ def build_skeleton(
     root: int | None = None,
     names: Sequence[str] | None = None,
     reference_frame: int | None = None,
+    max_frames: int | None = 500,
 ) -> RigidSkeleton:
     """Fit rigid bodies to the groups and chain them into a :class:`Skeleton` (§3.3).
 
@@ -143,6 +144,8 @@ def build_skeleton(
         root: group to use as the root (None: the tree's centre).
         names: a name per group (None: ``seg<k>``).
         reference_frame: frame whose pose becomes the rest pose (None: the frame seeing most markers).
+        max_frames: fit each group's shape on at most this many evenly spaced frames (and the reference
+            frame): a shape is a constant, and every frame would only cost time. None: all frames.
 
     Raises:
         ValueError: a group cannot be fitted (its markers and joints are never seen together); the
@@ -157,6 +160,9 @@ def build_skeleton(
     if reference_frame is None:
         reference_frame = int(np.argmax(seen.sum(1)))
     joint_of = {frozenset(j.groups): j for j in joints}
+    frames = np.arange(len(positions))
+    if max_frames is not None and len(frames) > max_frames:
+        frames = np.unique(np.append(np.linspace(0, len(frames) - 1, max_frames).round().astype(int), reference_frame))
 
     shapes: dict[int, np.ndarray] = {}
     rest: dict[int, np.ndarray] = {}  # shape rotated into the world at the reference frame
@@ -165,8 +171,8 @@ def build_skeleton(
     for g in range(num):
         markers = np.flatnonzero(groups == g)
         nbrs = [h for (a, b) in (j.groups for j in joints) for h in ((b,) if a == g else (a,) if b == g else ())]
-        pts = [positions[:, m] for m in markers] + [joint_of[frozenset((g, h))].positions for h in nbrs]
-        pts = np.stack(pts, axis=1)  # (F, N, 3)
+        pts = [positions[frames, m] for m in markers] + [joint_of[frozenset((g, h))].positions[frames] for h in nbrs]
+        pts = np.stack(pts, axis=1)  # (frames, N, 3)
         try:
             shape, rot, trans, used = procrustes(pts, min_points=3)
         except ValueError as exc:
@@ -176,7 +182,7 @@ def build_skeleton(
         shape_rms[g] = float(np.sqrt(np.nanmean(err[used] ** 2)))
         # Orientation at the reference frame (or the nearest frame the group is fitted in).
         usable = np.flatnonzero(used)
-        f = int(usable[np.argmin(np.abs(usable - reference_frame))])
+        f = int(usable[np.argmin(np.abs(frames[usable] - reference_frame))])
         rest[g] = shape @ rot[f].T
         shapes[g] = shape
         point_index[g] = {("m", int(m)): k for k, m in enumerate(markers)}

@@ -15,22 +15,28 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import numpy as np
 
 from ..geometry import SO3, quat_from_matrix
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.skeleton import JointType, Motion, Skeleton
+from .observe import _segment_distance2, body_capsules
 
 __all__ = [
     "MarkerNoise",
     "MarkerSpec",
+    "Occlusion",
     "SimulatedMarkers",
+    "calibrate_occlusion",
     "calibration_motion",
+    "camera_ring",
     "full_body_markers",
     "linkage_markers",
     "linkage_motion",
     "linkage_skeleton",
     "marker_positions",
+    "occlusion_margins",
     "simulate_markers",
 ]
 
@@ -144,11 +150,14 @@ def simulate_markers(
     fps: float,
     noise: MarkerNoise = MarkerNoise(),
     seed: int = 0,
+    occlusion: Occlusion | None = None,
 ) -> SimulatedMarkers:
     """Reported marker trajectories for a motion: noise, jumps, gaps and label breaks.
 
     Gaps are placed at random (Poisson, ``gap_rate_hz`` per marker), never covering a marker's whole
-    trajectory; the first frame always sees every marker. A label ends at a gap with probability
+    trajectory; without ``occlusion`` the first frame sees every marker. With ``occlusion`` the body also
+    hides markers from a ring of cameras (:class:`Occlusion`): long gaps that follow the motion, where a
+    marker may be lost from the first frame on. A label ends at a gap with probability
     ``relabel_after_gap`` and at a random frame at ``label_break_rate_hz``; labels are then named ``*k``
     in order of appearance (as a passive system names unidentified trajectories).
 
@@ -158,6 +167,7 @@ def simulate_markers(
         fps: frame rate (Hz).
         noise: the measurement model.
         seed: random seed (the same seed gives the same data).
+        occlusion: the cameras and body occlusion (None: only ``noise``'s random gaps).
     """
     rng = np.random.default_rng(seed)
     truth = marker_positions(skeleton, motion, markers)
@@ -172,6 +182,8 @@ def simulate_markers(
             observed[f : f + length, m] += direction * rng.uniform(*noise.spike_size_m)
 
     visible = np.ones((num_frames, num_markers), bool)
+    if occlusion is not None:
+        visible = occlusion.margin_m <= occlusion_margins(skeleton, motion, markers, occlusion)
     breaks = np.zeros((num_frames, num_markers), bool)  # a new label starts at this frame
     duration = num_frames / fps
     for m in range(num_markers):
@@ -209,6 +221,149 @@ def simulate_markers(
     return SimulatedMarkers(positions, tuple(labels), label_marker, truth, tuple(markers), skeleton, motion, float(fps))
 
 
+# ---- occlusion by the body, seen by a ring of cameras ------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Occlusion:
+    """Which markers a ring of Vicon-like cameras sees past the body.
+
+    The cameras stand on a horizontal ring around the capture volume, all aimed at a point above its
+    centre. A marker is reported at a frame if at least ``min_cameras`` cameras (two rays triangulate a
+    marker) have it in their field of view and see it past the body: the straight line from the camera to
+    the marker passes no capsule around a body segment (:func:`bcmocap.sim.observe.body_capsules`, the
+    same capsules the body-camera simulator uses, each grown by ``margin_m``). A marker sits on the skin,
+    so no capsule is allowed to swallow it in the rest pose: for each marker and capsule the radius is
+    capped ``skin_m`` below the marker's distance from that capsule's axis at rest; a marker still ends up
+    inside a capsule when body parts press together (a thigh on the belly in a crouch). Gaps are then long
+    and follow the motion: a marker is lost while its own limb or another part of the body turns it away
+    from the cameras or stands in front of it.
+
+    ``margin_m`` is the knob that sets how much is lost (bigger capsules, grazing rays lost to the
+    silhouette); :func:`calibrate_occlusion` chooses it for a target missing fraction.
+
+    Attributes:
+        num_cameras: cameras on the ring.
+        ring_radius_m, camera_height_m: the ring (m).
+        aim_height_m: height of the point the cameras look at, above the ring's centre (m).
+        half_fov_deg: half the (conical) field of view of each camera.
+        min_cameras: cameras that must see a marker.
+        margin_m: growth of every capsule (m; negative shrinks them).
+        skin_m: clearance kept between a marker and each capsule at rest (m).
+        centre_xy: the ring's centre on the floor (m); None: the mean root position of the motion.
+    """
+
+    num_cameras: int = 10
+    ring_radius_m: float = 4.0
+    camera_height_m: float = 2.5
+    aim_height_m: float = 0.8
+    half_fov_deg: float = 35.0
+    min_cameras: int = 2
+    margin_m: float = 0.0
+    skin_m: float = 0.005
+    centre_xy: tuple[float, float] | None = None
+
+
+def camera_ring(occlusion: Occlusion, centre_xy) -> tuple[np.ndarray, np.ndarray]:
+    """``(N, 3)`` camera centres and ``(N, 3)`` unit viewing directions of the ring around ``centre_xy``."""
+    angle = 2.0 * np.pi * np.arange(occlusion.num_cameras) / occlusion.num_cameras
+    cx, cy = (float(x) for x in centre_xy)
+    centres = np.stack([cx + occlusion.ring_radius_m * np.cos(angle), cy + occlusion.ring_radius_m * np.sin(angle),
+                        np.full(len(angle), occlusion.camera_height_m)], -1)
+    look = np.array([cx, cy, occlusion.aim_height_m]) - centres
+    return centres, look / np.linalg.norm(look, axis=-1, keepdims=True)
+
+
+@jax.jit
+def _ray_capsule_distance2(points, cameras, ends):
+    """``(B, M, N, K)`` squared distances between the rays from ``N`` cameras to ``(B, M)`` markers and ``(B, K)`` capsule axes."""
+    return _segment_distance2(points[:, :, None, None], cameras[None, None, :, None],
+                              ends[:, None, None, :, 0], ends[:, None, None, :, 1])
+
+
+def occlusion_margins(
+    skeleton: Skeleton, motion: Motion, markers: tuple[MarkerSpec, ...], occlusion: Occlusion = Occlusion(), *, chunk: int = 32
+) -> np.ndarray:
+    """``(F, M)`` for each marker and frame, the capsule margin (m) above which the marker is hidden.
+
+    With capsules grown by ``μ``, the ray from camera ``c`` to marker ``m`` is blocked by capsule ``k`` if it
+    passes within ``min(r_k + μ, cap_mk)`` of the capsule's axis, i.e. for ``μ > D_mck − r_k`` when
+    ``D_mck < cap_mk``; the marker is hidden once fewer than ``min_cameras`` cameras (those in whose field of
+    view it lies) keep an unblocked ray. So the marker is seen at frame ``f`` exactly when
+    ``occlusion.margin_m ≤ margins[f, m]`` (``-inf``: never seen, ``+inf``: nothing on the body can hide it).
+    Vectorised over markers, cameras and capsules, in chunks of frames.
+    """
+    caps = body_capsules(skeleton)
+    seg = np.array([c.segment for c in caps])
+    ends = np.stack([np.array([c.a for c in caps]), np.array([c.b for c in caps])], 1)  # (K, 2, 3) in segment frames
+    radius = np.array([c.radius for c in caps])
+    # cap: the marker's distance from each capsule axis at rest, less the skin clearance
+    # at rest every segment frame is parallel to the world (see MarkerSpec)
+    rest = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
+    rest_marker = np.array([rest[skeleton.index(m.segment)] + np.asarray(m.offset) for m in markers])  # (M, 3)
+    rest_ends = ends + rest[seg][:, None]
+    rest_dist = np.sqrt(np.asarray(_segment_distance2(rest_marker[:, None], rest_marker[:, None],
+                                                      rest_ends[None, :, 0], rest_ends[None, :, 1])))
+    cap = rest_dist - occlusion.skin_m  # (M, K)
+    if occlusion.centre_xy is None:
+        centre = np.asarray(motion.root_position)[:, :2].mean(0)
+    else:
+        centre = np.asarray(occlusion.centre_xy, dtype=np.float64)
+    cams, look = camera_ring(occlusion, centre)
+    cos_fov = np.cos(np.deg2rad(occlusion.half_fov_deg))
+    poses = forward_kinematics(skeleton, motion)
+    rot = np.asarray(poses.rotation().as_matrix())[:, seg]  # (F, K, 3, 3)
+    trans = np.asarray(poses.translation())[:, seg]
+    world_ends = np.einsum("fkij,kej->fkei", rot, ends) + trans[:, :, None]  # (F, K, 2, 3)
+    points = marker_positions(skeleton, motion, markers)  # (F, M, 3)
+    num_frames, num_markers, _ = points.shape
+    need = occlusion.min_cameras
+    pad = (-num_frames) % chunk  # every chunk has the same shape: one compilation
+    points = np.concatenate([points, np.repeat(points[-1:], pad, 0)])
+    world_ends = np.concatenate([world_ends, np.repeat(world_ends[-1:], pad, 0)])
+    out = np.empty((num_frames + pad, num_markers))
+    for a in range(0, num_frames + pad, chunk):
+        p = points[a : a + chunk]  # (B, M, 3)
+        e = world_ends[a : a + chunk]
+        ray = p[:, :, None] - cams[None, None]  # (B, M, N, 3) camera → marker
+        in_view = np.einsum("bmni,ni->bmn", ray, look) > cos_fov * np.linalg.norm(ray, axis=-1)
+        d = np.sqrt(np.asarray(_ray_capsule_distance2(p, cams, e)))  # (B, M, N, K)
+        block = np.where(d < cap[None, :, None, :], d - radius, np.inf).min(-1)  # (B, M, N): blocked for μ above this
+        block = np.where(in_view, block, -np.inf)
+        if need > block.shape[-1]:
+            out[a : a + chunk] = -np.inf
+        else:
+            out[a : a + chunk] = -np.partition(-block, need - 1, axis=-1)[..., need - 1]  # need-th largest
+    return out[:num_frames]
+
+
+def calibrate_occlusion(
+    skeleton: Skeleton,
+    motion: Motion,
+    markers: tuple[MarkerSpec, ...],
+    missing_fraction: float,
+    occlusion: Occlusion = Occlusion(),
+    *,
+    margin_range_m: tuple[float, float] = (-0.03, 0.5),
+    margins: np.ndarray | None = None,
+) -> tuple[Occlusion, float]:
+    """The occlusion with ``margin_m`` chosen so that about ``missing_fraction`` of the marker-frames are hidden.
+
+    The hidden share grows with the margin (:func:`occlusion_margins`), so the margin is a quantile of
+    the per-sample margins, kept in ``margin_range_m``. Returns the occlusion and the share it hides
+    (the target cannot be met when even the smallest capsules hide more, e.g. with too few cameras).
+    ``margins``: :func:`occlusion_margins` of this motion and occlusion, if already computed.
+    """
+    if not 0.0 <= missing_fraction < 1.0:
+        raise ValueError(f"calibrate_occlusion: missing_fraction must be in [0, 1), got {missing_fraction}")
+    if margins is None:
+        margins = occlusion_margins(skeleton, motion, markers, occlusion)
+    h = np.sort(np.asarray(margins).ravel())
+    k = min(int(round(missing_fraction * len(h))), len(h) - 1)
+    margin = float(np.clip(h[k], *margin_range_m)) if np.isfinite(h[k]) else margin_range_m[h[k] > 0]
+    return dataclasses.replace(occlusion, margin_m=margin), float(np.mean(h < margin))
+
+
 # ---- the full-body marker set --------------------------------------------------------------------------
 
 
@@ -223,14 +378,19 @@ def _around(axis: np.ndarray, angle_deg: float) -> np.ndarray:
     return np.cos(a) * e1 + np.sin(a) * e2
 
 
-def full_body_markers(skeleton: Skeleton, *, jitter_m: float = 0.0, seed: int = 0) -> tuple[MarkerSpec, ...]:
-    """A 45-marker full-body set for the camera skeleton (segment names of ``BODY_SEGMENTS``).
+def full_body_markers(skeleton: Skeleton, *, jitter_m: float = 0.0, seed: int = 0, count: int = 45) -> tuple[MarkerSpec, ...]:
+    """A 45- or 68-marker full-body set for the camera skeleton (segment names of ``BODY_SEGMENTS``).
 
     Like a clinical "cluster" set: four on the pelvis (ASIS, PSIS), four on the trunk (C7, T10, clavicle,
     sternum), three on the head, three around each upper arm, forearm, thigh and shank, two on each hand
-    and three on each foot (heel, toe, fifth metatarsal), 3–8 cm off the bone. ``jitter_m`` moves each
-    marker by a random offset of that size (a different subject or placement per seed).
+    and three on each foot (heel, toe, fifth metatarsal), 3–8 cm off the bone. ``count=68`` is a denser
+    set like the ones labs use for floor work: five around each limb segment, three on each hand, four on
+    each foot (first metatarsal too), six on the trunk (two on the upper back) and four on the head.
+    ``jitter_m`` moves each marker by a random offset of that size (a different subject or placement per seed).
     """
+    if count not in (45, 68):
+        raise ValueError(f"full_body_markers: count must be 45 or 68, got {count}")
+    dense = count == 68
     names = set(skeleton.names)
     needed = {"pelvis", "torso", "head"} | {f"{s}_{p}" for s in ("left", "right")
                                              for p in ("upper_arm", "forearm", "hand", "thigh", "shin", "foot")}
@@ -251,9 +411,17 @@ def full_body_markers(skeleton: Skeleton, *, jitter_m: float = 0.0, seed: int = 
     add("T10", "torso", (0.0, 0.12, 0.15))
     add("CLAV", "torso", (0.0, -0.08, 0.30))
     add("STRN", "torso", (-0.02, -0.12, 0.17))
+    if dense:
+        add("LBAK", "torso", (0.09, 0.11, 0.26))
+        add("RBAK", "torso", (-0.09, 0.11, 0.26))
     add("LFHD", "head", (0.06, -0.08, 0.14))
     add("RFHD", "head", (-0.06, -0.08, 0.14))
-    add("BHD", "head", (0.0, 0.10, 0.16))
+    if dense:
+        add("LBHD", "head", (0.06, 0.09, 0.15))
+        add("RBHD", "head", (-0.06, 0.09, 0.15))
+    else:
+        add("BHD", "head", (0.0, 0.10, 0.16))
+    per_limb = (((0.2, 0.35, 0.5, 0.65, 0.8), (20.0, 92.0, 164.0, 236.0, 308.0)) if dense else None)
     for side, s in (("left", "L"), ("right", "R")):
         for part, code, child, radius, fractions in (
             ("upper_arm", "UA", "forearm", 0.05, (0.3, 0.55, 0.8)),
@@ -262,17 +430,21 @@ def full_body_markers(skeleton: Skeleton, *, jitter_m: float = 0.0, seed: int = 
             ("shin", "SH", "foot", 0.055, (0.25, 0.5, 0.8)),
         ):
             a, b = joint[f"{side}_{part}"], joint[f"{side}_{child}"]
-            for k, (t, angle) in enumerate(zip(fractions, (20.0, 140.0, 260.0))):
+            places = zip(*per_limb) if dense else zip(fractions, (20.0, 140.0, 260.0))
+            for k, (t, angle) in enumerate(places):
                 pos = a + t * (b - a) + radius * _around(b - a, angle)
                 specs.append((f"{s}{code}{k + 1}", f"{side}_{part}", pos))
         wrist, elbow = joint[f"{side}_hand"], joint[f"{side}_forearm"]
         along = (wrist - elbow) / np.linalg.norm(wrist - elbow)
-        for k, (t, angle) in enumerate(((0.05, 90.0), (0.08, 270.0))):
+        hand = ((0.05, 90.0), (0.08, 270.0)) + (((0.10, 0.0),) if dense else ())
+        for k, (t, angle) in enumerate(hand):
             specs.append((f"{s}HA{k + 1}", f"{side}_hand", wrist + t * along + 0.03 * _around(along, angle)))
         lateral = 1.0 if side == "left" else -1.0
         add(f"{s}HEE", f"{side}_foot", (0.0, 0.06, -0.05))
         add(f"{s}TOE", f"{side}_foot", (0.0, -0.14, -0.06))
         add(f"{s}MT5", f"{side}_foot", (0.045 * lateral, -0.08, -0.05))
+        if dense:
+            add(f"{s}MT1", f"{side}_foot", (-0.035 * lateral, -0.09, -0.05))
     rng = np.random.default_rng(seed)
     out = []
     for name, segment, pos in specs:
