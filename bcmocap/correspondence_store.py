@@ -110,7 +110,18 @@ class CorrespondenceStore:
         if world_from_camera.shape != (t, c, 7) or registered.shape != (t, c):
             raise ValueError(f"{path / 'poses.npz'}: world_from_camera {world_from_camera.shape} and registered "
                              f"{registered.shape}, expected ({t}, {c}, 7) and ({t}, {c})")
+        if not np.issubdtype(world_from_camera.dtype, np.floating):
+            raise ValueError(f"{path / 'poses.npz'}: world_from_camera has dtype {world_from_camera.dtype}")
+        bad = registered & ~np.all(np.isfinite(world_from_camera), axis=-1)
+        if bad.any():
+            ti, ci = np.argwhere(bad)[0]
+            raise ValueError(f"{path / 'poses.npz'}: world_from_camera has NaN or inf at registered frame {ti}, "
+                             f"camera {ci}")
         store = cls(path, index, world_from_camera, registered)
+        for k, piece in enumerate(store.iter_points()):
+            bad = ~np.all(np.isfinite(piece), axis=1)
+            if bad.any():
+                raise ValueError(f"{points_file}: point {k * (1 << 20) + int(np.argmax(bad))} has NaN or inf")
         edges = [b.start for b in store.blocks] + [store.num_frames]
         if store.blocks and (edges[0] != 0 or any(b.stop != e for b, e in zip(store.blocks, edges[1:]))):
             raise ValueError(f"{path / 'index.json'}: blocks do not cover frames [0, {t}) in order")
@@ -137,6 +148,16 @@ class CorrespondenceStore:
         ids = data["point_ids"]
         if ids.size and (ids.min() < -1 or ids.max() >= self.num_points):
             raise ValueError(f"{file}: point_ids outside [-1, {self.num_points}) (block of {self.path})")
+        for name, weights in (("weights", "weights"), ("homography_weights", "homography_weights"),
+                              ("pixels", "weights"), ("homography_pixels", "homography_weights"),
+                              ("homography_pixels_prev", "homography_weights")):
+            a, w = data[name], data[weights]  # a weight must be finite; a measurement where it is used
+            bad = ~np.isfinite(a) | (a < 0) if name == weights else (w > 0) & ~np.all(np.isfinite(a), axis=-1)
+            if bad.any():
+                ti, ci, k = np.argwhere(bad)[0]
+                what = "NaN, inf or a negative value" if name == weights else "NaN or inf"
+                raise ValueError(f"{file}: {name} has {what} at frame {b.start + ti}, camera {ci}, slot {k} "
+                                 f"(block of {self.path})")
         return data
 
     def frames(self, start: int, stop: int) -> Correspondences:

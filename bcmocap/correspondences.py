@@ -83,7 +83,8 @@ class Correspondences:
             if got != shape:
                 raise ValueError(f"{source}: {name} has shape {got}, expected {shape}")
         if not np.all(np.isfinite(self.points)):
-            raise ValueError(f"{source}: points contain NaN/inf")
+            raise ValueError(f"{source}: points contain NaN/inf (first: point "
+                             f"{int(np.argmax(~np.all(np.isfinite(self.points), axis=1)))})")
         if self.point_ids.max(initial=-1) >= len(self.points):
             raise ValueError(f"{source}: point_ids reach {self.point_ids.max()} but there are {len(self.points)} points")
         for name in ("weights", "homography_weights"):
@@ -101,6 +102,8 @@ class Correspondences:
             raise ValueError(f"{source}: world_from_camera has NaN/inf at registered frame {ti}, camera {ci}")
         if not self.fps > 0:
             raise ValueError(f"{source}: fps must be positive, got {self.fps}")
+        if not np.isfinite(self.fps):
+            raise ValueError(f"{source}: fps must be finite, got {self.fps}")
 
     def frames(self, start: int, stop: int) -> Correspondences:
         """The frames ``[start, stop)`` (homography rows stay tied to their frame)."""

@@ -5,17 +5,29 @@
 1. **fuzz** — every reader of ``benchmarks/_fuzz.py`` on ``--fuzz-examples`` mutated and truncated copies of
    each of its files (hypothesis, seeded): cases and escapes (another exception type, a message not naming
    the file, a hang past ``--fuzz-timeout`` s, a crash, a write).
-2. **kill -9** — ``bcmocap simulate`` on a tiny capture, and the stages after the frontend of ``bcmocap run``
-   (world, skeleton, initial, solve, outputs: ``run_pipeline`` in a subprocess on a simulated capture whose
-   frontend output is given, as in tests/test_pipeline_run.py), killed at ``--kill-points`` seeded random
-   times each and resumed; after every kill each output under its final name must load, and the final
-   outputs must equal those of an uninterrupted run (arrays within ``--tolerance``, other files byte for byte).
-3. **determinism** — the uninterrupted command run twice: files bitwise equal, and the largest difference of
+2. **kill -9** — each command killed at seeded points and resumed; after every kill each output under its
+   final name must load, and the final outputs must equal those of an uninterrupted run (arrays within
+   ``--tolerance``, other files byte for byte):
+
+   - ``bcmocap simulate`` on a tiny capture, at ``--kill-points`` seeded random times;
+   - the stages after the frontend of ``bcmocap run`` (world, skeleton, initial, solve, outputs:
+     ``run_pipeline`` in a subprocess on a simulated capture whose frontend output is given, as in
+     tests/test_pipeline_run.py);
+   - on pixels: ``bcmocap frontend`` (global registration, 6 frames per trial) and ``bcmocap run`` (tracking
+     registration, every stage) on a small rendered capture (``PIXELS_SIMULATE``: 18 cameras, 3 s of range
+     of motion and 0.5 s of walk at 8 fps, 640×360, 20 reference photos).
+
+   The staged commands are killed ``--points-per-stage`` times in every stage (half as often, at least once, for
+   ``bcmocap run`` on pixels, which has ten): the stages' start lines
+   and lengths come from an uninterrupted run, and each kill waits for its stage's line in the (resumed)
+   run (a stage of ``bcmocap run`` the resumed run had finished is first forgotten in its ``run.json``, as a
+   settings change would), then a seeded fraction of the stage's length. ``--atomic-points`` more kills each fall inside an
+   atomic write: the command is killed as soon as a seeded how-many-th temporary file (``.name.*``, the
+   temporaries of :mod:`bcmocap.atomic` and of the feature cache) appears in its output folder.
+3. **determinism** — each uninterrupted command run twice: files bitwise equal, and the largest difference of
    those that are not.
 4. **concurrent runs** — ``bcmocap run`` on an ``--out`` a running pipeline holds must be refused.
 5. **path escapes** — tests/test_path_safety.py's hostile captures (failures counted).
-
-The frontend on pixels is not killed here (minutes per run on 2 cores); see the README.
 """
 
 from __future__ import annotations
@@ -43,6 +55,34 @@ SIMULATE = ["--seconds", "0.5", "--rom-seconds", "0.5", "--fps", "20", "--width"
             "--reference-photos", "4", "--reference-size", "320x240", "--no-progress"]
 FPS = 20.0
 VOLATILE = {"log.txt", "run.json", "run.lock"}  # times and pids
+# The small rendered capture of the pixel commands, and their settings (a few minutes per run on 2 cores).
+PIXELS_SIMULATE = ["--seconds", "0.5", "--rom-seconds", "3", "--fps", "8", "--width", "640", "--height", "360",
+                   "--reference-photos", "20", "--reference-size", "640x480", "--seed", "1", "--no-progress"]
+PIXELS_FRONTEND = ["--max-features", "2000", "--frames", "6"]  # global registration (the default)
+PIXELS_RUN_CONFIG = """[frontend]
+stride = 1
+rom_stride = 1
+max_features = 2000
+registration = "tracking"
+max_measurements = 400
+
+[skeleton]
+max_centre_std_cm = 30.0  # about 25 range-of-motion frames: a loose skeleton is enough here
+
+[solver]
+window = 10
+overlap = 3
+"""
+# Stages of the staged commands: (name, pattern of the line that starts it).
+RUN_STAGES = [(name, rf"\[{k}/6\] {name} \.\.\.") for k, name in enumerate(
+    ("frontend", "world", "skeleton", "initial", "solve", "outputs"), start=1)]
+FRONTEND_STAGES = [("reference", r"^reference: \d+ photos \.\.\."), ("rom features", r"^rom: first clap"),
+                   ("rom registration", r"^  rom (absolute|new points|relative)"),
+                   ("capture features", r"^capture: first clap"),
+                   ("capture registration", r"^  capture (absolute|new points|relative)")]
+PIXEL_RUN_STAGES = [("reference", r"^reference: \d+ photos \.\.\."), ("rom tracking", r"^rom: first clap"),
+                    ("rom registration", r"^rom: tracking registered"), ("capture tracking", r"^capture: first clap"),
+                    ("capture registration", r"^capture: tracking registered")] + RUN_STAGES[1:]
 
 
 # ---- the run driver (a subprocess: the stages after the frontend on a simulated capture) ------------------
@@ -234,7 +274,7 @@ def _timed(command: list[str], log: Path) -> float:
 
 
 def _stage_of(out: Path) -> str:
-    """The stage a run was in, from its log (``[k/6] stage ...``) and solver window lines."""
+    """The stage a run was in, from its log (``[k/6] stage ...``)."""
     log = out / "log.txt"
     if not log.is_file():
         return "start"
@@ -243,11 +283,36 @@ def _stage_of(out: Path) -> str:
     return stage
 
 
+def _rewind_run(out: Path, stage: str) -> None:
+    """Forget ``stage`` and the stages after it in a run's ``run.json`` (as a settings change would), so a
+    kill aimed at a stage the resumed run already finished finds it again; other stages are left alone."""
+    from bcmocap.pipeline.run import STAGES
+
+    log = out / "run.json"
+    if stage in STAGES and log.is_file():
+        data = json.loads(log.read_text())
+        if stage not in data.get("stages", {}):
+            return  # not done yet: the resumed run comes to it
+        data["stages"] = {k: v for k, v in data["stages"].items() if STAGES.index(k) < STAGES.index(stage)}
+        log.write_text(json.dumps(data, indent=2) + "\n")
+        if STAGES.index(stage) <= STAGES.index("solve"):  # the solve would resume after its last window
+            for name in ("checkpoint.npz", "checkpoint.json"):
+                (out / "solve" / name).unlink(missing_ok=True)
+
+
+def _restart_if_finished(out: Path) -> None:
+    """A run that finished before its kill starts its stages again, so later kills still find them."""
+    if (out / "run.json").is_file() and "outputs" in json.loads((out / "run.json").read_text()).get("stages", {}):
+        for p in (out / "run.json", out / "motion.bvh"):
+            p.unlink(missing_ok=True)
+
+
 def kill_resume(command: list[str], out: Path, reference: Path, points: int, duration: float, rng,
-                tolerance: float, log: Path, stage=_stage_of) -> dict:
+                tolerance: float, log: Path, stage=_stage_of, restart=_restart_if_finished) -> dict:
     """Kill ``command`` at ``points`` seeded times, checking for partial files after each kill, then let it
     finish and compare with ``reference``. Times are drawn from [0.05, 1] of ``duration`` (a warm run) after
-    each (re)start; an attempt that finishes first is not counted."""
+    each (re)start; an attempt that finishes first is not counted, and ``restart(out)`` gives the next one
+    work to do."""
     kills, partial, attempts = [], [], 0
     with open(log, "ab") as fh:
         while len(kills) < points and attempts < 3 * points:
@@ -256,19 +321,165 @@ def kill_resume(command: list[str], out: Path, reference: Path, points: int, dur
             process = subprocess.Popen(command, stdout=fh, stderr=subprocess.STDOUT, cwd=REPO, start_new_session=True)
             try:
                 process.wait(delay)
+                restart(out)
                 continue  # finished before the kill: not a kill point (the outputs are compared at the end)
             except subprocess.TimeoutExpired:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
             kills.append({"after_s": round(delay, 2), "stage": stage(out)})
             partial += partial_files(out)
-            if (out / "run.json").is_file() and "outputs" in json.loads((out / "run.json").read_text()).get("stages", {}):
-                for p in (out / "run.json", out / "motion.bvh"):  # start the stages again: kills spread over all
-                    p.unlink(missing_ok=True)
+    return _finish(command, out, reference, tolerance, log, kills, partial)
+
+
+def _restart_simulate(out: Path) -> None:
+    """A finished capture loses every other video and is marked unfinished, so the next attempt renders again."""
+    manifest = out / "capture.json"
+    if manifest.is_file() and json.loads(manifest.read_text()).get("complete"):
+        for video in sorted(out.glob("trials/*/*.mp4"))[::2]:
+            video.unlink()
+        manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "complete": False}, indent=1))
+
+
+def _finish(command, out: Path, reference: Path, tolerance: float, log: Path, kills: list, partial: list) -> dict:
+    """Run ``command`` to the end after its kills and compare its outputs with ``reference``'s."""
     _timed(command, log)
     result = compare(reference, out, tolerance)
     return {"points": len(kills), "kills": kills, "partial_files": partial, **result,
             "mismatches": len(result["mismatches"]) + len(partial), "mismatch_list": result["mismatches"]}
+
+
+# ---- staged commands: stage lines, kills inside each stage and inside atomic writes ----------------------
+
+ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
+
+
+class _Watched:
+    """A command whose output lines are timed (and appended to the log) as they come; ``stage`` is the index
+    of the last stage whose start line was seen (−1 before the first)."""
+
+    def __init__(self, command: list[str], log, stages: list[tuple[str, str]]):
+        import threading
+
+        self.patterns = [re.compile(p) for _, p in stages]
+        self.start = time.perf_counter()
+        self.lines: list[tuple[float, str]] = []
+        self.stage = -1
+        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=REPO, env=ENV,
+                                        start_new_session=True, text=True, errors="replace")
+        self.log = log
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            now = time.perf_counter() - self.start
+            self.lines.append((now, line.rstrip("\n")))
+            self.log.write(line)
+            for k, pattern in enumerate(self.patterns):
+                if k > self.stage and pattern.search(line):
+                    self.stage = k
+        self.log.flush()
+
+    def kill(self) -> float:
+        t = time.perf_counter() - self.start
+        try:
+            os.killpg(self.process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        self.wait()
+        return t
+
+    def wait(self) -> int:
+        code = self.process.wait()
+        self.thread.join()
+        return code
+
+
+def timeline(command: list[str], log: Path, stages: list[tuple[str, str]]) -> tuple[float, dict]:
+    """Run ``command`` uninterrupted: ``(seconds, {stage: (start_s, length_s)})`` from its stage lines."""
+    with open(log, "a") as fh:
+        watched = _Watched(command, fh, stages)
+        if watched.wait() != 0:
+            raise RuntimeError(f"{' '.join(command)} failed; see {log}")
+    total = time.perf_counter() - watched.start
+    starts = {}
+    for t, line in watched.lines:
+        for name, pattern in stages:
+            if name not in starts and re.search(pattern, line):
+                starts[name] = t
+    names = [n for n, _ in stages if n in starts]
+    ends = [starts[n] for n in names[1:]] + [total]
+    return total, {n: (round(starts[n], 2), round(e - starts[n], 2)) for n, e in zip(names, ends)}
+
+
+def _temporaries(out: Path) -> set[str]:
+    """Temporary files and folders of atomic writes under ``out`` (their names start with a dot)."""
+    found = set()
+    for folder, dirs, files in os.walk(out):
+        for name in dirs + files:
+            if name.startswith("."):
+                found.add(os.path.relpath(os.path.join(folder, name), out))
+        dirs[:] = [d for d in dirs if not d.startswith(".")]
+    return found
+
+
+def staged_kill_resume(command: list[str], out: Path, reference: Path, stages: list[tuple[str, str]], lengths: dict,
+                       per_stage: int, atomic: int, rng, tolerance: float, log: Path, restart=None,
+                       rewind=None) -> dict:
+    """Kill ``command`` ``per_stage`` times in each stage of ``lengths`` (``{stage: (start_s, length_s)}`` of an
+    uninterrupted run; each kill waits for the stage's line, then a seeded fraction of its length) and
+    ``atomic`` times inside an atomic write, resuming after each; then compare with ``reference``.
+    ``restart(out)`` starts a finished command's work again (so later kills still find their stage);
+    ``rewind(out, stage)``, before a kill aimed at ``stage``, makes the resumed command do it again if it was
+    done."""
+    names = [n for n, _ in stages]
+    plan = [("stage", names.index(n), float(rng.uniform(0.02, 0.9))) for n in lengths for _ in range(per_stage)]
+    for _ in range(atomic):  # at seeded places among the stage kills, so they fall in different stages
+        plan.insert(int(rng.integers(0, len(plan) + 1)), ("atomic", None, int(rng.integers(0, 8))))
+    kills, partial, missed = [], [], []
+    plan = [(*item, True) for item in plan]  # True: may be tried again once if the command ends first
+    with open(log, "a") as fh:
+        while plan:
+            kind, target, draw, again = plan.pop(0)
+            before = _temporaries(out) if out.exists() else set()
+            if kind == "stage" and rewind is not None:
+                rewind(out, names[target])
+            watched = _Watched(command, fh, stages)
+            if kind == "stage":
+                while watched.stage < target and watched.process.poll() is None:
+                    time.sleep(0.02)
+                deadline = time.perf_counter() + draw * lengths[names[target]][1]
+                while time.perf_counter() < deadline and watched.process.poll() is None:
+                    time.sleep(0.01)
+            else:
+                seen: set[str] = set()
+                while watched.process.poll() is None:
+                    new = (_temporaries(out) if out.exists() else set()) - before - seen
+                    seen |= new
+                    if len(seen) > draw:
+                        break
+                    time.sleep(0.001)
+            if watched.process.poll() is not None:
+                watched.wait()
+                missed.append({"kind": kind, "target": names[target] if target is not None else "atomic write"})
+                if restart is not None:
+                    restart(out)
+                if again:
+                    plan.append((kind, target, draw * 0.5, False))
+                continue
+            after = watched.kill()
+            temps = sorted(_temporaries(out) - before)
+            kills.append({"target": names[target] if kind == "stage" else "atomic write",
+                          "stage": names[watched.stage] if watched.stage >= 0 else "start", "after_s": round(after, 2),
+                          "temporaries_left": temps[:5], "in_atomic_write": bool(temps)})
+            partial += partial_files(out)
+    result = _finish(command, out, reference, tolerance, log, kills, partial)
+    hit: dict = {}
+    for k in kills:
+        hit[k["stage"]] = hit.get(k["stage"], 0) + 1
+    result.update({"stages": lengths, "kills_per_stage": hit, "missed": missed,
+                   "in_atomic_write": sum(k["in_atomic_write"] for k in kills)})
+    return result
 
 
 def _simulate_stage(out: Path) -> str:
@@ -314,11 +525,14 @@ def main() -> None:
     parser.add_argument("--json", help="write the figures here")
     parser.add_argument("--fuzz-examples", type=int, default=100, help="hypothesis cases per reader file")
     parser.add_argument("--fuzz-timeout", type=float, default=10.0, help="time box per case (s)")
-    parser.add_argument("--kill-points", type=int, default=10, help="kills per command")
+    parser.add_argument("--kill-points", type=int, default=10, help="kills of bcmocap simulate")
+    parser.add_argument("--points-per-stage", type=int, default=2, help="kills in each stage of the staged commands")
+    parser.add_argument("--atomic-points", type=int, default=2,
+                        help="kills inside an atomic write, per staged command")
     parser.add_argument("--tolerance", type=float, default=1e-6, help="largest array difference after resume")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "kill", "paths"])
-    parser.add_argument("--keep", help="keep the runs in this folder")
+    parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "kill", "paths", "simulate", "pixels"])
+    parser.add_argument("--keep", help="keep the runs in this folder (and reuse its rendered capture)")
     args = parser.parse_args()
 
     import numpy as np
@@ -351,46 +565,79 @@ def main() -> None:
         folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bcmocap-reliability-"))
         folder.mkdir(parents=True, exist_ok=True)
         log = folder / "commands.log"
+        kills, determinism, seconds = {}, {}, {}
+        staged = dict(per_stage=args.points_per_stage, atomic=args.atomic_points, rng=rng, log=log)
+
+        # bcmocap simulate: twice uninterrupted, then killed at random times
         simulate = lambda out: BCMOCAP + ["simulate", str(out), *SIMULATE, "--seed", "1"]  # noqa: E731
+        if "simulate" not in args.skip or not (folder / "sim_a" / "capture.json").is_file():
+            seconds["simulate"] = [_timed(simulate(folder / f"sim_{k}"), log) for k in "ab"]
+            determinism["simulate"] = compare(folder / "sim_a", folder / "sim_b", 0.0)
+        if "simulate" not in args.skip:
+            kills["simulate"] = kill_resume(simulate(folder / "sim_k"), folder / "sim_k", folder / "sim_a",
+                                            args.kill_points, min(seconds["simulate"]), rng, 0.0, log,
+                                            stage=_simulate_stage, restart=_restart_simulate)
+            _report_kills("simulate", kills["simulate"], determinism["simulate"])
+
+        # the stages after the frontend of bcmocap run, on simulated frontend output
         drive = [PYTHON, str(Path(__file__).resolve()), "--drive"]
-        # determinism: each command twice, uninterrupted
-        sim_seconds = [_timed(simulate(folder / f"sim_{k}"), log) for k in "ab"]
-        sim_det = compare(folder / "sim_a", folder / "sim_b", 0.0)
-        for k in "ab":
+        for k in "abk":
+            shutil.rmtree(folder / f"run_{k}", ignore_errors=True)
             (folder / f"run_{k}").mkdir()
             _write_frontend(folder / f"run_{k}" / "out")
-        run_seconds = [_timed(drive + [str(folder / f"run_{k}" / "out")], log) for k in "ab"]
-        run_det = compare(folder / "run_a" / "out", folder / "run_b" / "out", 0.0)
-        print(f"simulate {sim_seconds[0]:.0f} s, run stages {run_seconds[0]:.0f} s per uninterrupted command", flush=True)
-        # kill -9 and resume
-        sim_kill = kill_resume(simulate(folder / "sim_k"), folder / "sim_k", folder / "sim_a", args.kill_points,
-                               min(sim_seconds), rng, 0.0, log, stage=_simulate_stage)
-        (folder / "run_k").mkdir()
-        _write_frontend(folder / "run_k" / "out")
-        run_kill = kill_resume(drive + [str(folder / "run_k" / "out")], folder / "run_k" / "out",
-                               folder / "run_a" / "out", args.kill_points, min(run_seconds), rng, args.tolerance, log)
+        stages = RUN_STAGES[1:]
+        first, lengths = timeline(drive + [str(folder / "run_a" / "out")], log, stages)
+        seconds["run"] = [first, _timed(drive + [str(folder / "run_b" / "out")], log)]
+        determinism["run"] = compare(folder / "run_a" / "out", folder / "run_b" / "out", 0.0)
+        kills["run"] = staged_kill_resume(drive + [str(folder / "run_k" / "out")], folder / "run_k" / "out",
+                                          folder / "run_a" / "out", stages, lengths, tolerance=args.tolerance,
+                                          restart=_restart_if_finished, rewind=_rewind_run, **staged)
+        _report_kills("run", kills["run"], determinism["run"])
+
+        shutil.rmtree(folder / "lock", ignore_errors=True)
         (folder / "lock").mkdir()
         _write_frontend(folder / "lock" / "out")
         lock = concurrent(drive, folder / "sim_a", folder / "lock", log)
-        payload["kill_resume"] = {"points": sim_kill["points"] + run_kill["points"],
-                                  "mismatches": sim_kill["mismatches"] + run_kill["mismatches"],
-                                  "simulate": sim_kill, "run": run_kill}
-        differing = [{"command": "simulate", **d} for d in sim_det["differing"]] + \
-                    [{"command": "run", **d} for d in run_det["differing"]]
+        print(f"concurrent run refused: {lock['refused']} ({lock['message']})", flush=True)
+
+        if "pixels" not in args.skip:  # the frontend on pixels, and bcmocap run from pixels
+            capture = folder / "pixels"
+            if not (capture / "capture.json").is_file() or not json.loads(
+                    (capture / "capture.json").read_text()).get("complete"):
+                seconds["render"] = _timed(BCMOCAP + ["simulate", str(capture), *PIXELS_SIMULATE], log)
+            for name in ("frontend_a", "frontend_b", "frontend_k", "pixels_a", "pixels_b", "pixels_k"):
+                shutil.rmtree(folder / name, ignore_errors=True)  # a kept folder's runs start afresh
+            frontend = lambda out: BCMOCAP + ["frontend", str(capture), "--out", str(out), *PIXELS_FRONTEND]  # noqa: E731
+            first, lengths = timeline(frontend(folder / "frontend_a"), log, FRONTEND_STAGES)
+            seconds["frontend"] = [first, _timed(frontend(folder / "frontend_b"), log)]
+            determinism["frontend"] = compare(folder / "frontend_a", folder / "frontend_b", 0.0)
+            kills["frontend"] = staged_kill_resume(frontend(folder / "frontend_k"), folder / "frontend_k",
+                                                   folder / "frontend_a", FRONTEND_STAGES, lengths, tolerance=0.0,
+                                                   **staged)
+            _report_kills("frontend", kills["frontend"], determinism["frontend"])
+
+            (folder / "pixels.toml").write_text(PIXELS_RUN_CONFIG)
+            run = lambda out: BCMOCAP + ["run", str(capture), "--out", str(out), "--config",  # noqa: E731
+                                         str(folder / "pixels.toml")]
+            first, lengths = timeline(run(folder / "pixels_a"), log, PIXEL_RUN_STAGES)
+            seconds["run_pixels"] = [first, _timed(run(folder / "pixels_b"), log)]
+            determinism["run_pixels"] = compare(folder / "pixels_a", folder / "pixels_b", 0.0)
+            kills["run_pixels"] = staged_kill_resume(run(folder / "pixels_k"), folder / "pixels_k",
+                                                     folder / "pixels_a", PIXEL_RUN_STAGES, lengths,
+                                                     tolerance=args.tolerance, restart=_restart_if_finished,
+                                                     rewind=_rewind_run,
+                                                     **{**staged, "per_stage": max(1, args.points_per_stage // 2)})
+            _report_kills("run_pixels", kills["run_pixels"], determinism["run_pixels"])
+
+        payload["kill_resume"] = {"points": sum(r["points"] for r in kills.values()),
+                                  "mismatches": sum(r["mismatches"] for r in kills.values()), **kills}
+        differing = [{"command": name, **d} for name, r in determinism.items() for d in r["differing"]]
         payload["determinism"] = {"runs": 2, "differing_outputs": differing,
-                                  "bitwise_equal": {"simulate": sim_det["bitwise_equal"], "run": run_det["bitwise_equal"]},
-                                  "seconds": {"simulate": sim_seconds, "run": run_seconds}}
+                                  "bitwise_equal": {name: r["bitwise_equal"] for name, r in determinism.items()},
+                                  "equal_but_timings": {name: r["equal_but_timings"] for name, r in determinism.items()},
+                                  "seconds": seconds}
         payload["concurrent_runs_refused"] = lock["refused"]
         payload["concurrent"] = lock
-        for name, r in (("simulate", sim_kill), ("run", run_kill)):
-            stages = sorted({k["stage"] for k in r["kills"]})
-            print(f"kill -9 {name:8s} {r['points']} points (stages: {', '.join(stages)}), {r['mismatches']} mismatches, "
-                  f"{r['bitwise_equal']} files bitwise equal, {len(r['differing'])} within tolerance / differing", flush=True)
-        for name, d in (("simulate", sim_det), ("run", run_det)):
-            worst = max((x["max_difference"] for x in d["differing"] if x["max_difference"] is not None), default=0.0)
-            print(f"determinism {name:8s} {d['bitwise_equal']} files bitwise equal, {len(d['differing'])} differ "
-                  f"(largest difference {worst:.3g}; {[x['file'] for x in d['differing']][:8]})", flush=True)
-        print(f"concurrent run refused: {lock['refused']} ({lock['message']})", flush=True)
         if not args.keep:
             shutil.rmtree(folder, ignore_errors=True)
 
@@ -398,8 +645,23 @@ def main() -> None:
     if "fuzz" in payload:
         total = sum(v["cases"] for v in payload["fuzz"].values())
         print(f"fuzz: {total} cases, {sum(v['escapes'] for v in payload['fuzz'].values())} escapes")
+    if "kill_resume" in payload:
+        print(f"kill -9: {payload['kill_resume']['points']} points, {payload['kill_resume']['mismatches']} mismatches; "
+              f"determinism: {len(payload['determinism']['differing_outputs'])} outputs differ")
     print(f"{payload['seconds']:.0f} s")
     write_json(args.json, payload)
+
+
+def _report_kills(name: str, kills: dict, determinism: dict) -> None:
+    stages = kills.get("kills_per_stage") or {k["stage"]: None for k in kills["kills"]}
+    atomic = f", {kills['in_atomic_write']} inside an atomic write" if "in_atomic_write" in kills else ""
+    print(f"kill -9 {name:10s} {kills['points']} points (stages: {', '.join(f'{k} {v}' if v else k for k, v in stages.items())}"
+          f"{atomic}), {kills['mismatches']} mismatches, {kills['bitwise_equal']} files bitwise equal, "
+          f"{len(kills['differing'])} within tolerance / differing", flush=True)
+    worst = max((x["max_difference"] for x in determinism["differing"] if x["max_difference"] is not None), default=0.0)
+    print(f"determinism {name:10s} {determinism['bitwise_equal']} files bitwise equal, {len(determinism['differing'])} "
+          f"differ (largest difference {worst:.3g}; {[x['file'] for x in determinism['differing']][:8]}); equal but "
+          f"timings: {determinism['equal_but_timings'][:6]}", flush=True)
 
 
 if __name__ == "__main__":

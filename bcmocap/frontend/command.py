@@ -8,7 +8,8 @@ Stages, each saved under ``DIR`` and reused when rerun (delete a stage's output 
    SIFT of every ``--stride``-th frame of every camera from the first clap to the second
    (``features/<trial>/<camera>/``, :mod:`~.features`: streamed to disk and read back memory-mapped);
 3. per trial, registration (:func:`~.relative.register_capture`; with ``--chunk-frames N`` in chunks of N
-   frames saved to ``<trial>/chunks/`` as they are done), homographies for the frames left
+   frames saved to ``<trial>/chunks/`` as they are done; its progress within a chunk is saved to
+   ``<trial>/progress/`` as it goes, so a killed run continues there), homographies for the frames left
    (:func:`~.homography.fill_with_homographies`) and ``<trial>/correspondences/`` (the solver's
    measurements as a :class:`~bcmocap.correspondence_store.CorrespondenceStore`, in blocks of frames, in
    the reference model's frame and scale) with
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import time
 
@@ -192,7 +194,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
                 "homographies": homographies, "registration": registration, "max_measurements": max_measurements,
                 **({} if points == "all" else {"points": points})}
 
-    def chunk_inputs(a: int, b: int):
+    def chunk_inputs(a: int, b: int, progress_dir):
         """``(features, initial, points, leave, after_rounds)`` of the processed frames ``a … b − 1`` for
         :func:`_register_frames`."""
         if tracks is None:
@@ -206,7 +208,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
             filled = track_after_rounds(capture, trial, result, starts=starts, stride=stride, first=a, options=options)
             rest = int((leave & ~result.registered).sum())
             result = rounds_for_the_rest(capture, trial, result, leave, partners, index, starts=starts, stride=stride,
-                                         first=a, max_features=max_features, progress=progress)
+                                         first=a, max_features=max_features, progress=progress,
+                                         checkpoint=_checkpoint(progress_dir, "rest", settings, [a, b]))
             extracted = sift_for_homographies(capture, trial, result, leave, starts=starts, stride=stride, first=a,
                                               max_features=max_features) if homographies else 0
             log(f"{trial}: frames {a}-{b - 1}: of the {int(leave.sum())} frames the rounds left, {filled} tracked "
@@ -228,17 +231,21 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
             if part is not None:
                 log(f"{label}: reused {saved.with_suffix('.npz')}")
             else:
-                part, summary = _register_frames(*chunk_inputs(a, b), a, capture, index, stride, homographies, label,
-                                                 max_measurements, points)
+                progress_dir = out / trial / "progress" / f"{k:04d}"
+                part, summary = _register_frames(*chunk_inputs(a, b, progress_dir), a, capture, index, stride,
+                                                 homographies, label, max_measurements, points,
+                                                 checkpoint=_checkpoint(progress_dir, "rounds", settings, [a, b]))
                 summary = {"frames": [a, b], "settings": settings, **summary}
                 if len(bounds) > 1:
                     part.save(saved.with_suffix(".npz"))
                     write_json_atomic(saved.with_suffix(".json"), summary)
+                    shutil.rmtree(progress_dir, ignore_errors=True)  # the chunk is saved
             chunks.append(summary)
             yield part
             del part  # before the next chunk is registered
 
     store = write_store(out / trial / "correspondences", parts())
+    shutil.rmtree(out / trial / "progress", ignore_errors=True)  # the trial is saved: its progress is not needed
     reg = store.registered
     report = {"trial": trial, "first_clap_frames": starts.tolist(), "stride": stride,
               "frames": int(reg.shape[0]), "cameras": list(capture.camera_names),
@@ -301,13 +308,24 @@ def _saved_chunk(saved, settings: dict, frames: list[int]):
         return None, None
 
 
+def _checkpoint(folder, stage: str, settings: dict, frames: list[int]):
+    """The :class:`~.relative.RegistrationCheckpoint` of one :func:`~.relative.register_capture` call of a chunk
+    (``stage`` "rounds", or "rest" for the tracking frontend's second pass)."""
+    from .relative import RegistrationCheckpoint
+
+    return RegistrationCheckpoint(folder / stage, {"settings": settings, "frames": frames, "stage": stage,
+                                                   "version": SETTINGS_VERSION})
+
+
 def _register_frames(features, initial, initial_points, leave, after_rounds, first: int, capture, index, stride: int,
-                     homographies: bool, label: str, max_measurements: int | None, points: str = "all"):
+                     homographies: bool, label: str, max_measurements: int | None, points: str = "all",
+                     checkpoint=None):
     """Registration (from ``initial`` when given, :func:`~.relative.register_capture`) and homographies of the
     processed frames ``first … first + len(features) − 1``: ``(Correspondences, summary)``; the registration's
     points and tracks are released on return. The rounds skip the frames in ``leave`` ((T, C) bool or None);
     ``after_rounds(result, progress) → (result, count)``, when given, registers frames after them (before the
-    homographies)."""
+    homographies). ``checkpoint`` (a :class:`~.relative.RegistrationCheckpoint`) saves the registration's
+    progress, and a rerun continues from it."""
     import numpy as np
 
     from .homography import fill_with_homographies
@@ -322,7 +340,8 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
     # After tracking, many frames may be left: only the pairs their new points come from are matched.
     options = RelativeOptions(second_order_pairs=initial is None)
     result = register_capture(features, cameras, index, options, frames=(first + np.arange(len(features))) * stride,
-                              initial=initial, initial_points=initial_points, leave=leave, progress=progress)
+                              initial=initial, initial_points=initial_points, leave=leave, checkpoint=checkpoint,
+                              progress=progress)
     tracked_after = 0
     if after_rounds is not None:
         result, tracked_after = after_rounds(result, progress)

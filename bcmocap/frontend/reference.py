@@ -11,8 +11,9 @@ test, fundamental-matrix RANSAC, then pycolmap's incremental mapper.
    go into a pycolmap database; ``pycolmap.geometric_verification`` estimates each pair's two-view
    geometry from them (RANSAC threshold as in step 3) and ``pycolmap.incremental_mapping`` builds the
    model;
-5. steps 3–4 are repeated with new seeds while the model leaves photos out or its mean reprojection
-   error is poor (``attempts``, ``good_error_px``); the best model is kept.
+5. pycolmap's verification and mapping are repeated with new seeds while the model leaves photos out or
+   its mean reprojection error is poor (``attempts``, ``good_error_px``); the best model is kept. Steps 2–3
+   are deterministic (FLANN's trees from :data:`FLANN_SEED`; OpenCV's RANSAC seeds itself), so they run once.
 
 The result, :class:`ReferenceModel`, holds the largest ``pycolmap.Reconstruction`` and reports how many
 photos were registered and the mean reprojection error.
@@ -63,10 +64,17 @@ def uint8_descriptors(descriptors: np.ndarray) -> np.ndarray:
     return np.clip(np.round(np.asarray(descriptors).reshape(-1, 128)), 0, 255).astype(np.uint8)
 
 
+FLANN_SEED = 0
+"""Seed of OpenCV's RNG when FLANN builds its randomised k-d trees: the same descriptors always give the same
+trees, whichever thread builds them and whatever it did before (OpenCV's RNG is per thread, and a thread of a
+pool builds the trees of whichever pairs it is handed). Anything drawing on OpenCV's RNG afterwards in that
+thread must seed it itself (:func:`verify_matches` takes a ``seed``)."""
+
+
 class DescriptorIndex:
     """FLANN randomised k-d trees over ``(M, 128)`` descriptors, searched with arrays (no per-match Python
     objects; OpenCV releases the GIL, so threads search in parallel). Each thread gets its own copy of the
-    trees, built on first use.
+    trees, built on first use from :data:`FLANN_SEED`, so every copy is the same and so are the matches.
 
     Args:
         descriptors: ``(M, 128)`` uint8 or float32; trees: k-d trees; checks: leaves visited per query
@@ -90,15 +98,18 @@ class DescriptorIndex:
             return np.full(len(query), -1, np.int64), np.zeros(len(query), bool)
         flann = getattr(self._local, "flann", None)
         if flann is None:
+            cv2.setRNGSeed(FLANN_SEED)  # this thread's RNG: the trees do not depend on timing or history
             flann = self._local.flann = cv2.flann_Index(self.descriptors, {"algorithm": 1, "trees": self.trees})
         idx, dist2 = flann.knnSearch(query, 2, params={"checks": self.checks})
         return idx[:, 0].astype(np.int64), dist2[:, 0] < ratio**2 * dist2[:, 1]  # squared L2 distances
 
 
 def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, *, ratio: float = 0.8,
-                      mutual: bool = True, checks: int = 64) -> np.ndarray:
+                      mutual: bool = True, checks: int = 64, index_a: DescriptorIndex | None = None,
+                      index_b: DescriptorIndex | None = None) -> np.ndarray:
     """Approximate nearest-neighbour matches (FLANN k-d trees, :class:`DescriptorIndex`) passing Lowe's
-    ratio test.
+    ratio test. ``index_a``/``index_b``: the index of ``desc_a``/``desc_b`` if already built (its trees are
+    the ones built here, :data:`FLANN_SEED`, so the matches are the same).
 
     Returns:
         ``(K, 2)`` uint32 pairs of indices into ``desc_a`` and ``desc_b``; with ``mutual`` only pairs
@@ -106,10 +117,10 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, *, ratio: float = 
     """
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros((0, 2), np.uint32)
-    ab, good_ab = DescriptorIndex(desc_b, checks=checks).nearest(desc_a, ratio)
+    ab, good_ab = (index_b or DescriptorIndex(desc_b, checks=checks)).nearest(desc_a, ratio)
     idx = np.flatnonzero(good_ab)
     if mutual:
-        ba, good_ba = DescriptorIndex(desc_a, checks=checks).nearest(desc_b, ratio)
+        ba, good_ba = (index_a or DescriptorIndex(desc_a, checks=checks)).nearest(desc_b, ratio)
         back = ab[idx]
         idx = idx[(ba[back] == idx) & good_ba[back]]
     return np.stack([idx, ab[idx]], axis=1).astype(np.uint32)
@@ -117,7 +128,9 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, *, ratio: float = 
 
 def verify_matches(xy_a: np.ndarray, xy_b: np.ndarray, matches: np.ndarray, *, threshold_px: float = 1.5,
                    confidence: float = 0.999, min_inliers: int = 15) -> np.ndarray:
-    """Matches consistent with one fundamental matrix (``cv2.findFundamentalMat``, RANSAC).
+    """Matches consistent with one fundamental matrix (``cv2.findFundamentalMat``, RANSAC). OpenCV's RANSAC
+    draws its samples from a generator of its own with a fixed seed, not from ``cv2.setRNGSeed``'s (which
+    FLANN's trees use, :data:`FLANN_SEED`): the same matches always give the same inliers.
 
     Returns:
         The inlier rows of ``matches`` (empty when fewer than ``min_inliers`` survive).
@@ -178,17 +191,21 @@ def _reader_options(camera):
     return options
 
 
-def _match_pairs(names, features, *, ratio, threshold_px, min_inliers) -> dict:
-    """``{(name_a, name_b): (M, 2) verified matches}`` over all pairs of photos with enough inliers."""
-    verified = {}
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
-            (ka, da), (kb, db) = features[a], features[b]
-            m = verify_matches(ka, kb, match_descriptors(da, db, ratio=ratio), threshold_px=threshold_px,
-                               min_inliers=min_inliers)
-            if len(m):
-                verified[(a, b)] = m
-    return verified
+def _match_pairs(names, features, *, ratio, threshold_px, min_inliers, workers: int | None = None) -> dict:
+    """``{(name_a, name_b): (M, 2) verified matches}`` over all pairs of photos with enough inliers (pairs in
+    threads, since FLANN and OpenCV's RANSAC release the GIL; kept in pair order)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    indices = {name: DescriptorIndex(features[name][1]) for name in names}  # trees built once per photo and thread
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+
+    def pair(ab):
+        (ka, da), (kb, db) = features[ab[0]], features[ab[1]]
+        matches = match_descriptors(da, db, ratio=ratio, index_a=indices[ab[0]], index_b=indices[ab[1]])
+        return verify_matches(ka, kb, matches, threshold_px=threshold_px, min_inliers=min_inliers)
+
+    with ThreadPoolExecutor(max_workers=max(1, workers or os.cpu_count() or 1)) as pool:
+        return {ab: m for ab, m in zip(pairs, pool.map(pair, pairs)) if len(m)}
 
 
 def _write_database(db_path: Path, image_dir: Path, names, camera, features, verified) -> Path:
@@ -228,11 +245,11 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
         max_features: SIFT features per photo; ratio: Lowe's ratio; threshold_px: RANSAC epipolar
             threshold; min_inliers: fewest verified matches for a pair to be written.
         refine_intrinsics: let bundle adjustment refine focal length and distortion.
-        random_seed: seed of the RANSACs (OpenCV's global RNG is reseeded) and of the mapper; the
-            same seed and photos give the same model on one machine.
+        random_seed: seed of pycolmap's two-view RANSAC and of the mapper (OpenCV's F-RANSAC and FLANN's trees
+            are seeded on their own); the same seed and photos give the same model on one machine.
         attempts: a poor two-view geometry can lead the incremental mapper to a distorted model (seen on
             small photo sets: mean reprojection error ~1 px instead of ~0.15 px, poses tens of degrees
-            off). Matching, verification and mapping are repeated with seeds ``random_seed + k`` until a model
+            off). pycolmap's verification and mapping are repeated with seeds ``random_seed + k`` until a model
             registers every photo with mean reprojection error <= ``good_error_px``, at most ``attempts``
             times; the model with most photos, then least error, is kept.
 
@@ -265,14 +282,13 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
         features[name] = extract_sift(image, max_features=max_features)
     seconds["features"] = time.perf_counter() - clock
 
-    seconds["matching"] = seconds["mapping"] = 0.0
+    clock = time.perf_counter()  # matching is deterministic (seeded trees, OpenCV's own RANSAC seed): once
+    verified = _match_pairs(names, features, ratio=ratio, threshold_px=threshold_px, min_inliers=min_inliers)
+    seconds["matching"] = time.perf_counter() - clock
+    seconds["mapping"] = 0.0
     best = None
     for attempt in range(attempts):
         seed = random_seed + attempt
-        clock = time.perf_counter()
-        cv2.setRNGSeed(seed)  # OpenCV's F-RANSAC in verify_matches
-        verified = _match_pairs(names, features, ratio=ratio, threshold_px=threshold_px, min_inliers=min_inliers)
-        seconds["matching"] += time.perf_counter() - clock
         clock = time.perf_counter()
         db_name = "database.db" if attempt == 0 else f"database_attempt{attempt}.db"
         db_path = _write_database(work / db_name, image_dir, names, camera, features, verified)

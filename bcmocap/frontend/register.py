@@ -181,6 +181,7 @@ def register_frame(image: np.ndarray, camera: CameraModel | object, index: Refer
     xyz = index.xyz[rows]
     est = pycolmap.AbsolutePoseEstimationOptions()
     est.ransac.max_error = options.ransac_max_error_px
+    est.ransac.random_seed = 0  # the same frame gives the same pose (COLMAP's default, -1, seeds at random)
     result = pycolmap.estimate_and_refine_absolute_pose(xy, xyz, cam, est)
     if result is None:
         return _failed(len(query))

@@ -32,8 +32,10 @@ convention (COLMAP's +0.5 px is applied only at the pycolmap calls).
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import threading
+import zipfile
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -45,8 +47,8 @@ from .features import read_camera_features, write_camera_features
 from .reference import extract_sift, match_descriptors, uint8_descriptors
 from .register import ReferenceIndex, RegistrationOptions, _pose_wxyz_xyz, match_to_reference
 
-__all__ = ["FrameState", "RelativeOptions", "CaptureRegistration", "extract_trial_features", "register_features",
-           "register_capture", "triangulate_rays"]
+__all__ = ["FrameState", "RelativeOptions", "CaptureRegistration", "RegistrationCheckpoint", "extract_trial_features",
+           "register_features", "register_capture", "triangulate_rays"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -447,9 +449,104 @@ def _neighbours(t: int, c: int, num_frames: int, num_cameras: int, gap: int, sta
                 yield t2, c
 
 
+class RegistrationCheckpoint:
+    """The progress of one :func:`register_capture` call, saved under ``folder`` as it goes, so a run killed
+    during registration continues where it was instead of starting the trial again.
+
+    - ``absolute_NNNNNN.npz``: the absolute registration of ``every`` camera-frames from the ``NNNNNN``-th
+      (found or not, pose, the keypoints' point ids);
+    - ``round_NN.npz``: the whole state after round ``NN`` (poses, how and round of every frame, point ids,
+      points, tracks, the pairs already matched, the rounds' counts); the files it supersedes are removed.
+
+    Every file is written atomically (:mod:`bcmocap.atomic`) and holds ``key`` (the caller's settings) and a
+    digest of the call's inputs: a file of other settings or inputs is ignored. Resuming gives the same result
+    as an uninterrupted call because registration is deterministic (seeded FLANN trees and RANSACs, results
+    of threads used in order). The caller removes the folder once the result is saved.
+    """
+
+    def __init__(self, folder, key: dict, every: int = 64):
+        from pathlib import Path
+
+        self.folder, self.every = Path(folder), max(1, int(every))
+        self.key = json.dumps(key, sort_keys=True)
+
+    def _tag(self, digest: str) -> str:
+        return json.dumps([self.key, digest])
+
+    def _read(self, path, digest: str) -> dict | None:
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                if str(data["tag"]) != self._tag(digest):
+                    return None
+                return {k: data[k] for k in data.files}
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            return None  # damaged (it was written atomically, so not by a kill): redo that part
+
+    def _write(self, name: str, digest: str, **arrays) -> None:
+        from ..atomic import write_npz_atomic
+
+        write_npz_atomic(self.folder / name, {"tag": np.array(self._tag(digest)), **arrays})
+
+    def absolute(self, digest: str, count: int) -> list:
+        """The saved absolute registrations of the first camera-frames of the todo list, in order:
+        ``[(pose (7,), keypoints (K,), their point ids (K,)) or None]`` (up to the first part missing)."""
+        found: list = []
+        while len(found) < count:
+            part = self._read(self.folder / f"absolute_{len(found):06d}.npz", digest)
+            if part is None:
+                break
+            cut = np.cumsum(part["counts"])[:-1]
+            for ok, pose, kp, ids in zip(part["found"], part["poses"], np.split(part["keypoints"], cut),
+                                         np.split(part["ids"], cut)):
+                found.append((pose, kp, ids) if ok else None)
+        return found[:count]
+
+    def save_absolute(self, digest: str, start: int, results: list) -> None:
+        ok = [r is not None for r in results]
+        sparse = [(np.flatnonzero(r[1] >= 0), r[1][r[1] >= 0]) if r is not None else (np.zeros(0, np.int64),) * 2
+                  for r in results]
+        self._write(f"absolute_{start:06d}.npz", digest, found=np.array(ok, bool),
+                    poses=np.array([r[0] if r is not None else np.full(7, np.nan) for r in results]).reshape(-1, 7),
+                    counts=np.array([len(k) for k, _ in sparse], np.int64),
+                    keypoints=np.concatenate([k for k, _ in sparse] + [np.zeros(0, np.int64)]).astype(np.int64),
+                    ids=np.concatenate([i for _, i in sparse] + [np.zeros(0, np.int64)]).astype(np.int64))
+
+    def last_round(self, digest: str) -> dict | None:
+        """The state after the last round saved, or None."""
+        for path in sorted(self.folder.glob("round_*.npz"), reverse=True):
+            state = self._read(path, digest)
+            if state is not None:
+                return state
+        return None
+
+    def save_round(self, digest: str, round_no: int, **state) -> None:
+        self._write(f"round_{round_no:02d}.npz", digest, **state)
+        for path in self.folder.glob("*.npz"):  # superseded: earlier rounds and the absolute parts
+            if path.name != f"round_{round_no:02d}.npz":
+                path.unlink(missing_ok=True)
+
+
+def _inputs_digest(states: list, initial: list | None, initial_points: dict | None, leave, frames) -> str:
+    """A digest of what :func:`register_capture` starts from (keypoints, initial registration, frames left)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for row in states:
+        for s in row:
+            h.update(np.ascontiguousarray(s.keypoints).tobytes())
+            h.update(np.int64(len(s.descriptors)).tobytes())
+            if initial is not None:
+                h.update(s.how.encode() + b"|" + np.ascontiguousarray(s.world_from_camera).tobytes()
+                         + np.ascontiguousarray(s.point_ids).tobytes())
+    for i in sorted(initial_points or {}):
+        h.update(np.int64(i).tobytes() + np.asarray(initial_points[i], np.float64).tobytes())
+    h.update(np.ascontiguousarray(leave).tobytes() + np.asarray(frames, np.int64).tobytes())
+    return h.hexdigest()[:32]
+
+
 def register_capture(features: list, cameras, index: ReferenceIndex, options: RelativeOptions = RelativeOptions(),
                      *, frames: np.ndarray | None = None, initial: list | None = None, initial_points: dict | None = None,
-                     leave: np.ndarray | None = None,
+                     leave: np.ndarray | None = None, checkpoint: RegistrationCheckpoint | None = None,
                      progress: Callable[[str, int, int], None] | None = None) -> CaptureRegistration:
     """Register every frame of a trial (module docstring): absolute, then rounds of new points and relative
     registration.
@@ -465,6 +562,8 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         initial_points: ``{id: (3,) position}`` of points ``initial`` observes besides the reference's.
         leave: ``(T, C)`` bool, unregistered frames the rounds neither register nor match around (filled
             afterwards by other means, e.g. :func:`~.tracking.track_after_rounds`).
+        checkpoint: a :class:`RegistrationCheckpoint`: progress is saved there as it is made and a call with
+            the same inputs continues from it (the result is the same as without it).
         progress: called as ``progress(stage, done, total)``.
     """
     num_t = len(features)
@@ -497,25 +596,48 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
     if leave.shape != (num_t, num_c):
         raise ValueError(f"register_capture: leave has shape {leave.shape}, expected {(num_t, num_c)}")
 
+    frames = np.arange(num_t) if frames is None else np.asarray(frames)
+    digest = _inputs_digest(states, initial, initial_points, leave, frames) if checkpoint is not None else ""
+    resumed = checkpoint.last_round(digest) if checkpoint is not None else None
+    matched: set = set()
+    pair_matches: dict = {}  # (a, b) with a < b -> (K, 2) int32; mutual matching is symmetric, rounds reuse it
+
     # 2. absolute registration, frames in threads (FLANN searches release the GIL); given frames skip it
-    todo = [(t, c) for t in range(num_t) for c in range(num_c)] if initial is None else []
+    todo = [(t, c) for t in range(num_t) for c in range(num_c)] if initial is None and resumed is None else []
 
     def absolute(tc):
         s = states[tc[0]][tc[1]]
         return register_features(s.keypoints, s.descriptors, cams[tc[1]], index, reg)
 
-    with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
-        for k, ((t, c), found) in enumerate(zip(todo, pool.map(absolute, todo))):
-            s = states[t][c]
+    def keep_absolute(tc, found) -> None:
+        s = states[tc[0]][tc[1]]
+        if found is not None:
+            s.world_from_camera, s.point_ids = found
+            s.how, s.round = "absolute", 0
+
+    saved = []
+    if checkpoint is not None and todo:
+        for tc, found in zip(todo, checkpoint.absolute(digest, len(todo))):
             if found is not None:
-                s.world_from_camera, s.point_ids = found
-                s.how, s.round = "absolute", 0
+                ids = np.full(len(states[tc[0]][tc[1]].keypoints), -1, np.int64)
+                ids[found[1]] = found[2]
+                found = (np.asarray(found[0], np.float64), ids)
+            keep_absolute(tc, found)
+            saved.append(tc)
+    with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
+        rest, batch = todo[len(saved):], []
+        for k, (tc, found) in enumerate(zip(rest, pool.map(absolute, rest)), start=len(saved)):
+            keep_absolute(tc, found)
+            batch.append(found)
+            if checkpoint is not None and (len(batch) == checkpoint.every or k + 1 == len(todo)):
+                checkpoint.save_absolute(digest, k + 1 - len(batch), batch)
+                batch = []
             if progress is not None:
                 progress("absolute", k + 1, len(todo))
     rounds = [{"registered": int(sum(s.registered for row in states for s in row)), "new_points": 0}]
-
-    matched: set = set()
-    pair_matches: dict = {}  # (a, b) with a < b -> (K, 2) int32; mutual matching is symmetric, rounds reuse it
+    first_round = 1
+    if resumed is not None:
+        next_id, first_round, rounds = _restore_round(resumed, states, points, new_ids, tracks, matched)
 
     def match(a, b):
         key = (min(a, b), max(a, b))
@@ -712,12 +834,59 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
             count += 1
         return count
 
-    for round_no in range(1, options.max_rounds + 1):
+    finished = resumed is not None and (rounds[-1]["registered"] == 0 or first_round > options.max_rounds)
+    for round_no in range(first_round, options.max_rounds + 1):
+        if finished:
+            break
         added = add_points(round_no)
         adjust()
         count = register_relative(round_no)
         rounds.append({"registered": count, "new_points": added})
+        if checkpoint is not None:
+            checkpoint.save_round(digest, round_no, **_round_state(states, points, new_ids, tracks, matched, next_id,
+                                                                   rounds))
         if count == 0:
             break
-    frames = np.arange(num_t) if frames is None else np.asarray(frames)
     return CaptureRegistration(frames, states, points, new_ids, rounds, cams, frozenset(int(i) for i in index.point3D_ids))
+
+
+def _round_state(states, points: dict, new_ids: set, tracks: dict, matched: set, next_id: int, rounds: list) -> dict:
+    """Arrays of :func:`register_capture`'s state after a round (dict orders kept: they order later work)."""
+    flat = [s for row in states for s in row]
+    has = [np.flatnonzero(s.point_ids >= 0) for s in flat]
+    track_ids = np.fromiter(tracks, np.int64, len(tracks))
+    return {"poses": np.array([s.world_from_camera for s in flat]).reshape(-1, 7),
+            "how": np.array([s.how for s in flat], dtype="U16"), "round": np.array([s.round for s in flat], np.int64),
+            "counts": np.array([len(h) for h in has], np.int64),
+            "keypoints": np.concatenate(has + [np.zeros(0, np.int64)]).astype(np.int64),
+            "ids": np.concatenate([s.point_ids[h] for s, h in zip(flat, has)] + [np.zeros(0, np.int64)]),
+            "point_ids": np.fromiter(points, np.int64, len(points)),
+            "point_xyz": np.array(list(points.values()), np.float64).reshape(-1, 3),
+            "new_ids": np.array(sorted(new_ids), np.int64), "track_ids": track_ids,
+            "track_counts": np.array([len(tracks[int(p)]) for p in track_ids], np.int64),
+            "track_obs": np.array([o for p in track_ids for o in tracks[int(p)]], np.int64).reshape(-1, 3),
+            "matched": np.array([[*a, *b] for a, b in sorted(matched)], np.int64).reshape(-1, 4),
+            "next_id": np.int64(next_id), "rounds": np.array(json.dumps(rounds))}
+
+
+def _restore_round(state: dict, states, points: dict, new_ids: set, tracks: dict, matched: set) -> tuple:
+    """Put a :func:`_round_state` back (in place); returns ``(next_id, next round, rounds)``."""
+    flat = [s for row in states for s in row]
+    cut = np.cumsum(state["counts"])[:-1]
+    for s, pose, how, rnd, kp, ids in zip(flat, state["poses"], state["how"], state["round"],
+                                          np.split(state["keypoints"], cut), np.split(state["ids"], cut)):
+        s.world_from_camera, s.how, s.round = np.array(pose, np.float64), str(how), int(rnd)
+        s.point_ids = np.full(len(s.keypoints), -1, np.int64)
+        s.point_ids[kp] = ids
+    points.clear()
+    points.update({int(i): x for i, x in zip(state["point_ids"].tolist(), np.array(state["point_xyz"], np.float64))})
+    new_ids.clear()
+    new_ids.update(state["new_ids"].tolist())
+    tracks.clear()
+    cut = np.cumsum(state["track_counts"])[:-1]
+    tracks.update({int(p): [tuple(o) for o in obs.tolist()]
+                   for p, obs in zip(state["track_ids"].tolist(), np.split(state["track_obs"], cut))})
+    matched.clear()
+    matched.update(((a, b), (c, d)) for a, b, c, d in state["matched"].tolist())
+    rounds = json.loads(str(state["rounds"]))
+    return int(state["next_id"]), len(rounds), rounds

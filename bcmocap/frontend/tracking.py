@@ -918,12 +918,13 @@ def sift_for_homographies(capture, trial: str, result, leave: np.ndarray, *, sta
 
 
 def rounds_for_the_rest(capture, trial: str, result, leave: np.ndarray, partners: list, index: ReferenceIndex, *,
-                        starts, stride: int, first: int, max_features: int = 8000, progress=None):
+                        starts, stride: int, first: int, max_features: int = 8000, progress=None, checkpoint=None):
     """A second pass of the rounds of relative registration for the frames in ``leave`` that neither the
     first pass (on the seeds) nor :func:`track_after_rounds` registered: SIFT for them and their neighbours
     (:func:`frames_for_rounds` with the ``partners`` of :func:`states_for_rounds`), then
     :func:`~.relative.register_capture` from ``result``'s registration. Returns the new
-    :class:`~.relative.CaptureRegistration` (``result`` itself when nothing is left)."""
+    :class:`~.relative.CaptureRegistration` (``result`` itself when nothing is left). ``checkpoint``: see
+    :func:`~.relative.register_capture`."""
     from .relative import RelativeOptions, register_capture
 
     rest = np.asarray(leave, bool) & ~result.registered
@@ -935,7 +936,7 @@ def rounds_for_the_rest(capture, trial: str, result, leave: np.ndarray, partners
     features = [[(s.keypoints, s.descriptors) for s in row] for row in result.states]
     initial = [[(s.world_from_camera, s.point_ids, s.how) for s in row] for row in result.states]
     second = register_capture(features, result.cameras, index, options, frames=result.frames, initial=initial,
-                              initial_points=result.points, progress=progress)
+                              initial_points=result.points, checkpoint=checkpoint, progress=progress)
     second.new_point_ids |= result.new_point_ids
     second.rounds = result.rounds + second.rounds[1:]
     return second

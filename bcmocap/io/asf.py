@@ -499,6 +499,8 @@ def _finish_bone(where: str, end_line: int, bone: dict) -> dict:
                 limits.append((float(lo), float(hi)))
             except ValueError:
                 raise ValueError(f"{where}:{n}: expected numbers in '({lo} {hi})'") from None
+            if math.isnan(limits[-1][0]) or math.isnan(limits[-1][1]):  # ±inf: no limit, as ASF allows
+                raise ValueError(f"{where}:{n}: limits '({lo} {hi})' hold NaN")
     if limits and len(limits) != len(dofs):
         raise ValueError(
             f"{where}:{bone['limits'][0][0]}: bone '{out['name']}' has {len(dofs)} dofs but {len(limits)} limits"

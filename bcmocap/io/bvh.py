@@ -181,6 +181,8 @@ class _Tokens:
                 out.append(float(tok))
             except ValueError:
                 raise self.error(line, f"expected {count} numbers for {what}, found '{tok}'") from None
+            if not np.isfinite(out[-1]):
+                raise self.error(line, f"{what} holds '{tok}'; NaN and inf are not read")
         return np.array(out)
 
 
@@ -323,8 +325,8 @@ def read_bvh(
         raise ValueError(f"{where}:{frames_line}: expected a non-negative frame count, found {num_frames}")
     if num_frames > len(lines):  # one line per frame: refused before allocating a huge array
         raise ValueError(f"{where}:{frames_line}: 'Frames: {num_frames}' but the file has only {len(lines)} lines")
-    if not frame_time > 0:
-        raise ValueError(f"{where}:{time_line}: expected a positive frame time, found {frame_time}")
+    if not (np.isfinite(frame_time) and frame_time > 0):
+        raise ValueError(f"{where}:{time_line}: expected a positive, finite frame time, found {frame_time}")
 
     joints = [k for k, node in enumerate(nodes) if not node.is_end]
     num_channels = sum(len(nodes[k].channels) for k in joints)
@@ -534,7 +536,9 @@ def write_bvh(
             "write_bvh: expected frames on one leading axis, root_position (F, 3) and rotations (F, J, 4), got "
             f"{root_position.shape} and {quats.shape}"
         )
-    motion.check(skeleton, "write_bvh")
+    motion.check(skeleton, f"write_bvh: {path}")  # NaN or inf is never written
+    if not np.all(np.isfinite(np.asarray(skeleton.offsets))):
+        raise ValueError(f"write_bvh: {path}: the skeleton's offsets hold NaN or inf")
     for name in skeleton.names:
         if not name or any(ch.isspace() for ch in name) or "{" in name or "}" in name:
             raise ValueError(f"write_bvh: segment name {name!r} cannot be written to BVH (whitespace or braces)")

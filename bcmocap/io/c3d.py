@@ -165,8 +165,8 @@ def read_c3d(
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: not a readable C3D file, no 3D points, an unknown unit or frame rate, or a label
-            in ``markers`` that the file does not have (the message names the file and the field).
+        ValueError: not a readable C3D file, no 3D points, an infinite coordinate, an unknown unit or frame
+            rate, or a label in ``markers`` that the file does not have (the message names the file and the field).
     """
     path = Path(path)
     if not path.is_file():
@@ -205,6 +205,9 @@ def read_c3d(
     scale = _UNITS_M[units.lower()]
 
     xyz = np.moveaxis(data[:3], 0, -1).transpose(1, 0, 2) * scale  # (F, M, 3)
+    if np.isinf(xyz).any():  # NaN marks a gap (ezc3d's reading of an invalid point); inf is damage
+        f, m, _ = np.argwhere(np.isinf(xyz))[0]
+        raise ValueError(f"{path}: point '{labels[m]}' has an infinite coordinate at frame {f}")
     missing = ~np.all(np.isfinite(xyz), axis=-1)
     residuals = c3d["data"].get("meta_points", {}).get("residuals")
     if residuals is not None:

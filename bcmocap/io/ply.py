@@ -308,6 +308,15 @@ def _parse_header(where: str, data: bytes):
     return fmt, elements, end + size
 
 
+def _check_finite(where: str, element: str, names: list[str], values: np.ndarray) -> None:
+    """Refuse NaN or inf in ``values (rows, len(names))``, naming the element, row and property."""
+    bad = ~np.isfinite(values)
+    if bad.any():
+        row, k = np.argwhere(bad)[0]
+        raise ValueError(f"{where}: element '{element}' row {row} property '{names[k]}' is {values[row, k]} "
+                         "(NaN and inf are not read)")
+
+
 def read_ply_elements(path: str | os.PathLike, *, stop_after: str | None = None) -> dict[str, dict[str, np.ndarray]]:
     """Read the elements of a PLY file into ``{element: {property: (count,) array}}``.
 
@@ -317,7 +326,7 @@ def read_ply_elements(path: str | os.PathLike, *, stop_after: str | None = None)
 
     Raises:
         ValueError: naming the file when it is not PLY, is big-endian, has a list property in an element
-            it must read, or ends early / holds values that do not parse.
+            it must read, or ends early / holds values that do not parse or are NaN or inf.
     """
     path = Path(path)
     where = str(path)
@@ -340,6 +349,7 @@ def read_ply_elements(path: str | os.PathLike, *, stop_after: str | None = None)
             except ValueError:
                 raise ValueError(f"{where}: element '{name}' holds a value that is not a number") from None
             pos += need
+            _check_finite(where, name, [p for p, _ in props], values)
             rows = {p: values[:, k].astype(t) for k, (p, t) in enumerate(props)}
         else:
             need = count * dtype.itemsize
@@ -350,6 +360,9 @@ def read_ply_elements(path: str | os.PathLike, *, stop_after: str | None = None)
             arr = np.frombuffer(data, dtype=dtype, count=count, offset=pos)
             pos += need
             rows = {p: arr[p].astype(arr[p].dtype.newbyteorder("=")) for p, _ in props}
+            floats = [p for p, _ in props if rows[p].dtype.kind == "f"]
+            if floats:
+                _check_finite(where, name, floats, np.stack([rows[p] for p in floats], axis=1))
         out[name] = rows
         if name == stop_after:
             break
