@@ -13,7 +13,10 @@ Performance notes (XLA:CPU). The intersection loop carries the nearest hit as on
 (distance bits with the surface id in the low bits), ends in a division by a runtime 1 so that XLA
 stores it instead of recomputing the loop inside every consumer, and the colour is packed into one
 uint32 per pixel; carrying several arrays, or ``lax.optimization_barrier``, made XLA recompute the whole
-loop per output (10x slower).
+loop per output (10x slower). Several samples per pixel (motion blur's sub-exposures, several rays) are
+summed by a ``fori_loop`` whose step stores each sample's scalar shade (:func:`_shade_sum`): unrolled into
+one fused loop, the samples' textures made a loop LLVM no longer vectorised (4 sub-exposures cost 20-25
+plain renders instead of 4).
 
 Time. A frame's pose is the pose at its timestamp. With ``motion_blur`` the image averages
 ``blur_samples`` renders spread over ``exposure_frames`` centred on the timestamp; with
@@ -336,12 +339,14 @@ def _select(index: jax.Array, table: jax.Array) -> list[jax.Array]:
     return out
 
 
-def _shade(scene: dict, texture: TextureParams, light: jax.Array, ambient: float, d, o, pixel_angle,
-           capsules, radii, cap_colors, one, box_active=None, capsule_active=None) -> tuple[list[jax.Array], jax.Array]:
-    """``([r, g, b], depth)``: colour in [0, 1] and distance along the ray, each ``(H, W)``, one ray per pixel.
+def _shade_terms(scene: dict, texture: TextureParams, light: jax.Array, ambient: float, d, o, pixel_angle, capsules,
+                 radii, one, box_active=None, capsule_active=None) -> tuple:
+    """The pieces of a pixel's colour, each ``(H, W)``: ``(material, shade, t, body)``.
 
-    Written as one chain of element-wise operations from rays to colour, with no gather or reduction,
-    so that XLA compiles it into a single loop over pixels (every intermediate computed once).
+    ``material`` indexes the scene's colours and ``shade`` scales it, ``t`` is the distance to the scene;
+    ``body`` is None without capsules, else ``(hit, k, body_shade, t_body)``: where ``hit`` the pixel shows
+    capsule ``k``'s colour times ``body_shade`` at distance ``t_body``. Both intersection keys are stored
+    (:func:`_materialize`): ``material``, ``t``, ``k``, ``t_body`` are cheap to re-derive from them.
     """
     num_boxes, num_pillars = scene["boxes"].shape[0], scene["pillars"].shape[0]
     t, ident = _unpack(_materialize(_trace_scene(scene, d, o, box_active), one), _scene_bits(6 + num_boxes + num_pillars))
@@ -363,25 +368,81 @@ def _shade(scene: dict, texture: TextureParams, light: jax.Array, ambient: float
     footprint = t * pixel_angle / jnp.sqrt(jnp.maximum(cos_view, 0.05))
     grey = surface_texture(u, v, material, footprint, texture)
     shade = (0.15 + 0.85 * grey) * lit
+    if not capsules.shape[0]:
+        return material, shade, t, None
+    t_body, k = _unpack(_materialize(_trace_capsules(capsules, radii, d, o, capsule_active), one),
+                        _capsule_bits(capsules.shape[0]))
+    body = t_body < t
+    q = [o[i] + t_body * d[i] for i in range(3)]
+    ends = jnp.concatenate([capsules[:, 0], capsules[:, 1] - capsules[:, 0]], axis=1)  # (K, 6)
+    sel = _select(k, ends)
+    a, ab = sel[0:3], sel[3:6]
+    s = sum((q[i] - a[i]) * ab[i] for i in range(3)) / jnp.maximum(sum(ab[i] * ab[i] for i in range(3)), 1e-12)
+    s = jnp.clip(s, 0.0, 1.0)
+    n = [q[i] - a[i] - s * ab[i] for i in range(3)]
+    n_len = jnp.sqrt(jnp.maximum(n[0] * n[0] + n[1] * n[1] + n[2] * n[2], 1e-12))
+    facing = jnp.abs(n[0] * d[0] + n[1] * d[1] + n[2] * d[2]) / n_len
+    body_shade = 0.35 + 0.65 * facing
+    return material, shade, t, (body, k, body_shade, t_body)
+
+
+def _shade(scene: dict, texture: TextureParams, light: jax.Array, ambient: float, d, o, pixel_angle,
+           capsules, radii, cap_colors, one, box_active=None, capsule_active=None) -> tuple[list[jax.Array], jax.Array]:
+    """``([r, g, b], depth)``: colour in [0, 1] and distance along the ray, each ``(H, W)``, one ray per pixel.
+
+    Written as one chain of element-wise operations from rays to colour, with no gather or reduction,
+    so that XLA compiles it into a single loop over pixels (every intermediate computed once).
+    """
+    material, shade, t, body = _shade_terms(scene, texture, light, ambient, d, o, pixel_angle, capsules, radii, one,
+                                            box_active, capsule_active)
     rgb = [c * shade for c in _select(material, scene["colors"])]
     depth = t
-    if capsules.shape[0]:
-        t_body, k = _unpack(_materialize(_trace_capsules(capsules, radii, d, o, capsule_active), one),
-                            _capsule_bits(capsules.shape[0]))
-        body = t_body < t
-        q = [o[i] + t_body * d[i] for i in range(3)]
-        ends = jnp.concatenate([capsules[:, 0], capsules[:, 1] - capsules[:, 0], cap_colors], axis=1)  # (K, 9)
-        sel = _select(k, ends)
-        a, ab, color = sel[0:3], sel[3:6], sel[6:9]
-        s = sum((q[i] - a[i]) * ab[i] for i in range(3)) / jnp.maximum(sum(ab[i] * ab[i] for i in range(3)), 1e-12)
-        s = jnp.clip(s, 0.0, 1.0)
-        n = [q[i] - a[i] - s * ab[i] for i in range(3)]
-        n_len = jnp.sqrt(jnp.maximum(n[0] * n[0] + n[1] * n[1] + n[2] * n[2], 1e-12))
-        facing = jnp.abs(n[0] * d[0] + n[1] * d[1] + n[2] * d[2]) / n_len
-        body_shade = 0.35 + 0.65 * facing
-        rgb = [jnp.where(body, color[c] * body_shade, rgb[c]) for c in range(3)]
-        depth = jnp.where(body, t_body, t)
+    if body is not None:
+        hit, k, body_shade, t_body = body
+        color = _select(k, cap_colors)
+        rgb = [jnp.where(hit, color[c] * body_shade, rgb[c]) for c in range(3)]
+        depth = jnp.where(hit, t_body, t)
     return rgb, depth
+
+
+def _materialize_f32(x: jax.Array, one: jax.Array) -> jax.Array:
+    """:func:`_materialize` for float32 (through its bits: the same value, stored)."""
+    return jax.lax.bitcast_convert_type(_materialize(jax.lax.bitcast_convert_type(x, jnp.int32), one), _F32)
+
+
+def _shade_sum(scene, texture, light, ambient, pixel_angle, box_active, capsule_active, rays, rotations, origins,
+               capsules, radii, cap_colors, one) -> list[jax.Array]:
+    """Sum of the colours ``[r, g, b]`` ``(h, W)`` of all rays (``rays`` ``(N, 3, h, W)``) at all sub-exposures.
+
+    Sub-exposure ``s`` and ray ``n`` are summed in the order ``s * N + n`` (the order of a plain double
+    loop), by a ``fori_loop``. One step stores the intersection keys and the pixel's scalar shade (surface
+    or body), then adds its colour (a table entry) times that shade: each colour is the same product as
+    in :func:`_shade` and the sums the same, so the images are those of unrolled loops (up to float
+    rounding: about 1e-5 of the bytes differ by a level), but XLA compiles one small vectorised step instead
+    of a fused loop holding every sample's texture (5-8x slower per sample, and a long compilation).
+    """
+    num_rays = rays.shape[0]
+    num_samples = rotations.shape[0] * num_rays
+
+    def step(i, acc):
+        s, n = i // num_rays, i % num_rays
+        o = tuple(jax.lax.dynamic_index_in_dim(origins, s, keepdims=False)[:, j][:, None] for j in range(3))
+        rot = jax.lax.dynamic_index_in_dim(rotations, s, keepdims=False)
+        ray = rays[0] if num_rays == 1 else jax.lax.dynamic_index_in_dim(rays, n, keepdims=False)
+        caps = jax.lax.dynamic_index_in_dim(capsules, s, keepdims=False)
+        d = _world_rays(ray, rot)
+        material, shade, _, body = _shade_terms(scene, texture, light, ambient, d, o, pixel_angle, caps, radii, one,
+                                                box_active, capsule_active)
+        color = _select(material, scene["colors"])
+        if body is not None:
+            hit, k, body_shade, _ = body
+            shade = jnp.where(hit, body_shade, shade)
+            color = [jnp.where(hit, a, b) for a, b in zip(_select(k, cap_colors), color)]
+        shade = _materialize_f32(shade, one)
+        return tuple(acc[c] + color[c] * shade for c in range(3))
+
+    zero = jnp.zeros(pixel_angle.shape, _F32)
+    return list(jax.lax.fori_loop(0, num_samples, step, (zero, zero, zero)))
 
 
 def _in_cone(centres: jax.Array, bounds: jax.Array, rotation: jax.Array, origin: jax.Array, axis: jax.Array,
@@ -435,14 +496,13 @@ def _render_rows(scene, texture, light, ambient, noise_dn, shot_scale, one, widt
 
     The channels are packed into one uint32 per pixel so that the band is one fused loop.
     """
-    acc = [0.0, 0.0, 0.0]
-    for s in range(rotations.shape[0]):
-        o = tuple(origins[s, :, i][:, None] for i in range(3))
-        for n in range(rays.shape[0]):
-            d = _world_rays(rays[n], rotations[s])
-            rgb, _ = _shade(scene, texture, light, ambient, d, o, pixel_angle, capsules[s], radii, cap_colors, one,
-                            box_active, capsule_active)
-            acc = [acc[c] + rgb[c] for c in range(3)]
+    if rotations.shape[0] * rays.shape[0] == 1:  # one ray per pixel, one exposure: a single fused loop
+        o = tuple(origins[0, :, i][:, None] for i in range(3))
+        acc, _ = _shade(scene, texture, light, ambient, _world_rays(rays[0], rotations[0]), o, pixel_angle,
+                        capsules[0], radii, cap_colors, one, box_active, capsule_active)
+    else:
+        acc = _shade_sum(scene, texture, light, ambient, pixel_angle, box_active, capsule_active, rays, rotations,
+                         origins, capsules, radii, cap_colors, one)
     scale = 255.0 / (rotations.shape[0] * rays.shape[0])
     h = pixel_angle.shape[0]
     packed = jnp.zeros(pixel_angle.shape, jnp.uint32)
