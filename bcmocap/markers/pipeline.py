@@ -383,7 +383,7 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
     seconds["topology"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    joints = solve_joints(clean, seg.groups, edges, alpha=options.alpha_final, max_iterations=100,
+    joints = solve_joints(clean, seg.groups, edges, alpha=options.alpha_final, max_iterations=400,
                           max_solve_frames=options.joint_frames)
     for sol in joints:
         a, b = sol.groups

@@ -396,7 +396,7 @@ def segment_markers(
     labels, costs = best_clustering(n)
     if num_groups is None and rigid_tolerance_m is not None:
         limit = min(max_groups - fixed, r - 1)
-        while n < limit and least_rigid(reference[sub], labels) > rigid_tolerance_m:
+        while n < limit and least_rigid(reference, full(labels)) > rigid_tolerance_m:  # attached markers count
             n += 1
             labels, costs = best_clustering(n)
         if n > eig_n:
