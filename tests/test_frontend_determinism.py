@@ -51,6 +51,41 @@ def test_flann_trees_do_not_depend_on_the_thread_or_its_history():
     assert np.array_equal(match_descriptors(data[:500], query, checks=8), pairs)
 
 
+def test_mutual_matching_searches_back_only_the_rows_chosen():
+    """The way back of mutual matching searches only the rows the first way chose; the matches are those of
+    searching every row back (each query's neighbours do not depend on the other queries)."""
+    rng = np.random.default_rng(2)
+    a = rng.integers(0, 256, (800, 128)).astype(np.uint8)
+    b = np.concatenate([a[:300] + rng.integers(0, 6, (300, 128)).astype(np.uint8),
+                        rng.integers(0, 256, (600, 128)).astype(np.uint8)])
+    ab, good_ab = DescriptorIndex(b, checks=16).nearest(a, 0.8)
+    ba, good_ba = DescriptorIndex(a, checks=16).nearest(b, 0.8)
+    idx = np.flatnonzero(good_ab)
+    idx = idx[(ba[ab[idx]] == idx) & good_ba[ab[idx]]]
+    pairs = match_descriptors(a, b, checks=16)
+    assert len(pairs) > 200
+    assert np.array_equal(pairs, np.stack([idx, ab[idx]], 1).astype(np.uint32))
+    rows = rng.permutation(len(b))[:450]  # e.g. the features of a registered frame that observe a point
+    assert np.array_equal(match_descriptors(a, b, checks=16, rows_b=rows), pairs[np.isin(pairs[:, 1], rows)])
+    with pytest.raises(ValueError, match="rows_b needs mutual"):
+        match_descriptors(a, b, mutual=False, rows_b=rows)
+
+
+def test_index_cache_shares_each_frames_trees_and_stays_bounded():
+    rng = np.random.default_rng(3)
+    states = [[relative.FrameState(np.zeros((300, 2)), rng.integers(0, 256, (300, 128)).astype(np.uint8),
+                                   np.full(300, -1), np.full(7, np.nan)) for _ in range(2)] for _ in range(3)]
+    cache = relative._IndexCache(states, 16, 3)
+    first = cache((0, 0))
+    assert cache((0, 0)) is first
+    for tc in ((0, 1), (1, 0), (1, 1)):
+        cache(tc)
+    assert len(cache.cache) == 3 and (0, 0) not in cache.cache  # the least recently used went
+    da, db = states[0][0].descriptors, states[2][1].descriptors
+    assert np.array_equal(match_descriptors(da, db, checks=16, index_a=cache((0, 0)), index_b=cache((2, 1))),
+                          match_descriptors(da, db, checks=16))
+
+
 def test_f_ransac_does_not_draw_on_the_rng_flann_reseeds():
     """OpenCV's F-RANSAC seeds a generator of its own, so FLANN reseeding the thread's RNG (and whatever ran
     before in a pool thread) leaves the reference's verified matches as they are. A guard on that assumption:
@@ -206,3 +241,22 @@ def test_registration_does_not_depend_on_threads_or_the_rng_they_inherit(trial, 
     features, index = trial
     _disturb_rng(8)
     _same(register_capture(features, [CAMERA] * 4, index, RelativeOptions(workers=1)), whole)
+
+
+def test_relative_registration_from_the_keypoints_with_points_equals_whole_matching(trial, whole, monkeypatch):
+    """Relative registration matches a frame only to its registered neighbours' keypoints that observe a point
+    (``rows_b``, searched again each round only where points appeared): the result is that of matching
+    whole frames and keeping those keypoints' matches."""
+    features, index = trial
+    searched = []
+
+    def whole_frames(desc_a, desc_b, *, rows_b=None, index_a=None, index_b=None, **kw):
+        m = match_descriptors(desc_a, desc_b, **kw)
+        if rows_b is not None:
+            searched.append(len(rows_b))
+            m = m[np.isin(m[:, 1], rows_b)]
+        return m
+
+    monkeypatch.setattr(relative, "match_descriptors", whole_frames)
+    _same(register_capture(features, [CAMERA] * 4, index, RelativeOptions(workers=2)), whole)
+    assert searched  # the keypoints-with-points path was taken

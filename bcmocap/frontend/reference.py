@@ -106,22 +106,41 @@ class DescriptorIndex:
 
 def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, *, ratio: float = 0.8,
                       mutual: bool = True, checks: int = 64, index_a: DescriptorIndex | None = None,
-                      index_b: DescriptorIndex | None = None) -> np.ndarray:
+                      index_b: DescriptorIndex | None = None, rows_b: np.ndarray | None = None) -> np.ndarray:
     """Approximate nearest-neighbour matches (FLANN k-d trees, :class:`DescriptorIndex`) passing Lowe's
     ratio test. ``index_a``/``index_b``: the index of ``desc_a``/``desc_b`` if already built (its trees are
-    the ones built here, :data:`FLANN_SEED`, so the matches are the same).
+    the ones built here, :data:`FLANN_SEED`, so the matches are the same). ``rows_b`` (mutual only): just the
+    matches of these rows of ``desc_b``, found by searching from them (e.g. the few hundred features of a
+    registered frame that observe a 3D point, instead of its thousands).
+
+    Each query's neighbours do not depend on the other queries, so the way back searches only the rows the
+    first way chose (a sixth of them or fewer between body-camera frames), and ``rows_b`` gives the rows of
+    the whole matching whose ``desc_b`` row is in ``rows_b``: the matches are those of every row searched
+    both ways.
 
     Returns:
-        ``(K, 2)`` uint32 pairs of indices into ``desc_a`` and ``desc_b``; with ``mutual`` only pairs
-        that are each other's nearest neighbour (and pass the test both ways).
+        ``(K, 2)`` uint32 pairs of indices into ``desc_a`` and ``desc_b``, in the order of ``desc_a``; with
+        ``mutual`` only pairs that are each other's nearest neighbour (and pass the test both ways).
     """
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros((0, 2), np.uint32)
+    if rows_b is not None:
+        if not mutual:
+            raise ValueError("match_descriptors: rows_b needs mutual matching")
+        rows_b = np.asarray(rows_b, np.int64)
+        index_a = index_a or DescriptorIndex(desc_a, checks=checks)
+        index_b = index_b or DescriptorIndex(desc_b, checks=checks)
+        ba, good_ba = index_a.nearest(np.asarray(desc_b)[rows_b], ratio)  # each row's nearest in desc_a
+        rows_b, ba = rows_b[good_ba], ba[good_ba]
+        chosen, back = np.unique(ba, return_inverse=True)
+        ab, good_ab = index_b.nearest(np.asarray(desc_a)[chosen], ratio)
+        keep = (ab[back] == rows_b) & good_ab[back]
+        return np.stack([ba[keep], rows_b[keep]], axis=1)[np.argsort(ba[keep], kind="stable")].astype(np.uint32)
     ab, good_ab = (index_b or DescriptorIndex(desc_b, checks=checks)).nearest(desc_a, ratio)
     idx = np.flatnonzero(good_ab)
-    if mutual:
-        ba, good_ba = (index_a or DescriptorIndex(desc_a, checks=checks)).nearest(desc_b, ratio)
-        back = ab[idx]
+    if mutual and len(idx):
+        chosen, back = np.unique(ab[idx], return_inverse=True)
+        ba, good_ba = (index_a or DescriptorIndex(desc_a, checks=checks)).nearest(np.asarray(desc_b)[chosen], ratio)
         idx = idx[(ba[back] == idx) & good_ba[back]]
     return np.stack([idx, ab[idx]], axis=1).astype(np.uint32)
 

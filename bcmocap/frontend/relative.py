@@ -44,7 +44,7 @@ import numpy as np
 from ..cameras import CameraModel
 from ..io.colmap import to_pycolmap
 from .features import read_camera_features, write_camera_features
-from .reference import extract_sift, match_descriptors, uint8_descriptors
+from .reference import DescriptorIndex, extract_sift, match_descriptors, uint8_descriptors
 from .register import ReferenceIndex, RegistrationOptions, _pose_wxyz_xyz, match_to_reference
 
 __all__ = ["FrameState", "RelativeOptions", "CaptureRegistration", "RegistrationCheckpoint", "extract_trial_features",
@@ -639,14 +639,41 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
     if resumed is not None:
         next_id, first_round, rounds = _restore_round(resumed, states, points, new_ids, tracks, matched)
 
+    indexes = _IndexCache(states, reg.checks, (2 * options.max_time_gap + 2) * num_c)
+
     def match(a, b):
         key = (min(a, b), max(a, b))
         m = pair_matches.get(key)
         if m is None:
             sa, sb = states[key[0][0]][key[0][1]], states[key[1][0]][key[1][1]]
             m = pair_matches[key] = match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio,
-                                                      checks=reg.checks).astype(np.int32)
+                                                      checks=reg.checks, index_a=indexes(key[0]),
+                                                      index_b=indexes(key[1])).astype(np.int32)
         return (m if key[0] == a else m[:, ::-1]).astype(np.int64)
+
+    point_matches: dict = {}  # (a, b) -> (rows of b searched (M_b,) bool, their matches (K, 2) int64)
+
+    def match_to_points(a, b):
+        """The rows of ``match(a, b)`` whose keypoint of ``b`` observes a 3D point now, in the same order (what
+        relative registration of ``a`` uses; the order decides RANSAC's samples). Unless the pair is matched
+        already, they are found from those keypoints alone: the matches of a set of rows are those of the whole
+        matching on them, so each round searches only the keypoints that gained a point since the last (none,
+        mostly). Called from threads, each pair by one of them."""
+        sb = states[b[0]][b[1]]
+        if (min(a, b), max(a, b)) in pair_matches:
+            m = match(a, b)
+            return m[sb.point_ids[m[:, 1]] >= 0]
+        has = sb.point_ids[: len(sb.descriptors)] >= 0
+        done, m = point_matches.get((a, b), (np.zeros(len(has), bool), np.zeros((0, 2), np.int64)))
+        rows = np.flatnonzero(has & ~done)
+        if len(rows):
+            sa = states[a[0]][a[1]]
+            more = match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio, checks=reg.checks,
+                                     index_a=indexes(a), index_b=indexes(b), rows_b=rows).astype(np.int64)
+            m = np.concatenate([m, more])  # in the order of match(a, b): by the keypoints of the earlier frame
+            m = m[np.argsort(m[:, 0 if a < b else 1], kind="stable")]
+            point_matches[(a, b)] = (done | has, m)
+        return m[sb.point_ids[m[:, 1]] >= 0]
 
     def neighbours(t, c):
         return _neighbours(t, c, num_t, num_c, options.max_time_gap, states, options.max_view_angle_deg,
@@ -784,7 +811,7 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
             sn = states[n[0]][n[1]]
             if not sn.registered:
                 continue
-            m = match((t, c), n)
+            m = match_to_points((t, c), n)
             if not len(m):
                 continue
             p = sn.point_ids[m[:, 1]]
@@ -848,6 +875,32 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         if count == 0:
             break
     return CaptureRegistration(frames, states, points, new_ids, rounds, cams, frozenset(int(i) for i in index.point3D_ids))
+
+
+class _IndexCache:
+    """The FLANN index (:class:`~.reference.DescriptorIndex`) of each frame's descriptors, built once and shared
+    by every pair the frame is matched in (a frame is in about ten pairs per round), for the ``size`` frames
+    used last (pairs are matched in time order, so a few times' frames are in use at once; each index holds
+    its descriptors as float32, 0.5 kB per feature, and k-d trees per thread). Thread-safe. The trees are
+    seeded (:data:`~.reference.FLANN_SEED`), so the matches are those of indexes built per pair."""
+
+    def __init__(self, states: list, checks: int, size: int):
+        from collections import OrderedDict
+
+        self.states, self.checks, self.size = states, int(checks), max(2, int(size))
+        self.cache: OrderedDict = OrderedDict()
+        self.lock = threading.Lock()
+
+    def __call__(self, tc: tuple) -> DescriptorIndex:
+        with self.lock:
+            found = self.cache.get(tc)
+            if found is None:
+                found = self.cache[tc] = DescriptorIndex(self.states[tc[0]][tc[1]].descriptors, checks=self.checks)
+                if len(self.cache) > self.size:
+                    self.cache.popitem(last=False)
+            else:
+                self.cache.move_to_end(tc)
+            return found
 
 
 def _round_state(states, points: dict, new_ids: set, tracks: dict, matched: set, next_id: int, rounds: list) -> dict:
