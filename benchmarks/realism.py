@@ -13,13 +13,27 @@ Rows:
   ``calibration`` (focal length and centre errors in the intrinsics given);
 - ``realistic``: all of them (the preset), the paper's terms only;
 - ``realistic+terms``: the same capture with ``[solver] rolling_shutter_readout`` (the rendered readout),
-  ``estimate_readout``, ``self_calibration`` and ``mount_compliance`` (the preset's wobble RMS) on.
+  ``estimate_readout``, ``self_calibration`` and ``mount_compliance`` (the preset's wobble RMS) on;
+- one solver variant per modelled degradation, on that degradation's capture with the term that models it:
+  ``mount_wobble+compliance`` (``mount_compliance`` at the capture's wobble RMS), ``rolling_shutter+readout``
+  (``rolling_shutter_readout`` at the rendered readout), ``calibration+self_calibration`` (``self_calibration``).
+
+A solver variant (``realistic+terms`` and the ``+`` rows, :data:`VARIANTS`) changes only the stages after the
+frontend, so it reuses its base condition's frontend instead of redoing it (tens of minutes): the base's run is
+done first if it is not finished, then ``runs/BASE/frontend`` (both trials' registrations and correspondences and
+the reference model; not the tracking cache) is copied into ``runs/NAME/frontend`` and ``bcmocap run`` goes on
+from there: its frontend stage finds each trial's registration with the same settings and reuses it (a copy
+made with other frontend settings, or by another version of the frontend, would be redone, not trusted), and the
+world, skeleton, initial, solve and outputs stages run with the variant's settings. The row's
+``frontend_reused_from`` names the base run and ``frontend_seconds_of_base`` its frontend time.
 
 It reports the joint position and joint angle errors (mean, median, max, after the §5.1 similarity alignment,
 from the run's ``metrics.json``) and the registered fraction of frames per trial, and writes JSON
 ``{"conditions": {NAME: {...}}, "preset": "realistic", "modelled": "realistic+terms"}``. Everything is kept in
 ``--out`` (``captures/NAME``, ``runs/NAME``): a condition whose run finished is read back, not run again; an
-interrupted one resumes (the studio and ``bcmocap run`` both resume).
+interrupted one resumes (the studio and ``bcmocap run`` both resume). The table and the JSON hold the conditions
+asked for and every other condition whose run in ``--out`` is finished (read back), so rows run one at a time
+add up.
 
     python benchmarks/realism.py --out /tmp/realism --json benchmarks/results/realism.json \\
         [--conditions clean,mount_wobble] [--seconds 2] [--rom-seconds 3]
@@ -30,6 +44,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -57,31 +73,74 @@ DEGRADATIONS = {
     "compression": ("container", "video_bitrate_mbps"),
     "calibration": ("focal_error_pct", "centre_error_px"),
 }
-CONDITIONS = ("clean", *DEGRADATIONS, PRESET, MODELLED)
+
+def _readout(settings: StudioSettings) -> dict:
+    return {"rolling_shutter_readout": settings.readout_ms / 1000.0}
+
+
+def _compliance(settings: StudioSettings) -> dict:
+    return {"mount_compliance": [settings.mount_wobble_mm / 1000.0, settings.mount_wobble_deg]}
+
+
+#: Solver variants: name → (the condition whose capture and frontend it reuses, its ``[solver]`` settings from the
+#: capture's studio settings). They differ from their base in the stages after the frontend only.
+VARIANTS = {
+    "mount_wobble+compliance": ("mount_wobble", _compliance),
+    "rolling_shutter+readout": ("rolling_shutter", _readout),
+    "calibration+self_calibration": ("calibration", lambda settings: {"self_calibration": True}),
+    MODELLED: (PRESET, lambda settings: {**_readout(settings), "estimate_readout": True, "self_calibration": True,
+                                         **_compliance(settings)}),
+}
+CONDITIONS = ("clean", *DEGRADATIONS, PRESET, *VARIANTS)
+
+
+def base_condition(condition: str) -> str:
+    """The condition whose capture ``condition`` renders (a solver variant's base; else itself)."""
+    return VARIANTS[condition][0] if condition in VARIANTS else condition
 
 
 def capture_settings(condition: str, base: StudioSettings) -> StudioSettings:
-    """The studio settings of a condition's capture (``MODELLED`` shares the preset's)."""
+    """The studio settings of a condition's capture (a solver variant shares its base condition's)."""
+    condition = base_condition(condition)
     preset = preset_settings(PRESET, **{k: v for k, v in dataclasses.asdict(base).items() if k not in REALISTIC})
     if condition == "clean":
         return base
-    if condition in (PRESET, MODELLED):
+    if condition == PRESET:
         return preset
     return dataclasses.replace(base, **{k: getattr(preset, k) for k in DEGRADATIONS[condition]})
 
 
 def run_config(condition: str, base: RunConfig, settings: StudioSettings) -> RunConfig:
-    """The run settings of a condition: the base's, without pictures; with the modelling terms for ``MODELLED``."""
+    """The run settings of a condition: the base's, without pictures; with its modelling terms for a solver variant."""
     data = base.to_dict()
     data["outputs"]["pictures"] = False
-    if condition == MODELLED:
-        data["solver"].update({
-            "rolling_shutter_readout": settings.readout_ms / 1000.0,
-            "estimate_readout": True,
-            "self_calibration": True,
-            "mount_compliance": [settings.mount_wobble_mm / 1000.0, settings.mount_wobble_deg],
-        })
+    if condition in VARIANTS:
+        data["solver"].update(VARIANTS[condition][1](settings))
     return RunConfig.from_dict(data)
+
+
+#: What a solver variant copies of its base run's frontend (``DIR/frontend/``): the trials' registrations and
+#: correspondences and the reference model the outputs convert; the tracking cache (``tracks/``) is not read after
+#: the frontend.
+FRONTEND_PARTS = ("rom", "capture", "reference")
+
+
+def seed_frontend(source: Path, run: Path) -> None:
+    """Copy the finished frontend of the run ``source`` into the new run folder ``run`` (see the module's notes).
+
+    Nothing is copied into a run folder that already has a run log or a frontend: that run resumes as it is."""
+    log = json.loads((source / "run.json").read_text())
+    if "frontend" not in log.get("stages", {}):
+        raise ValueError(f"{source}: its frontend stage has not finished")
+    if (run / "run.json").exists() or (run / "frontend").exists():
+        return
+    staging = run.with_name(run.name + ".frontend-copy")
+    shutil.rmtree(staging, ignore_errors=True)
+    for part in FRONTEND_PARTS:
+        shutil.copytree(source / "frontend" / part, staging / "frontend" / part, symlinks=False)
+    run.mkdir(parents=True, exist_ok=True)
+    (staging / "frontend").rename(run / "frontend")  # whole or not at all
+    staging.rmdir()
 
 
 def finished(run: Path) -> bool:
@@ -110,38 +169,58 @@ def row(run: Path) -> dict:
     }
 
 
-def condition(name: str, out: Path, base: StudioSettings, config: RunConfig) -> dict:
-    """Render (or resume) the condition's capture and run (or resume, or read back) ``bcmocap run`` on it."""
-    settings = capture_settings(name, base)
-    capture = out / "captures" / (PRESET if name == MODELLED else name)
-    run = out / "runs" / name
-    timings: dict = {}
-    if finished(run):
-        print(f"{name}: finished run in {run}, read back", flush=True)
-        result = row(run)
-        result["render_seconds"] = json.loads((run / "benchmark.json").read_text()).get("render_seconds") \
-            if (run / "benchmark.json").is_file() else None
-        return result
-    clock = time.perf_counter()
-    write_capture(capture, settings, progress=False, timings=timings)
-    render_seconds = time.perf_counter() - clock
-    print(f"{name}: capture {capture} ready in {render_seconds:.0f} s", flush=True)
-    run_pipeline(capture, run, run_config(name, config, settings), log=lambda line: print(f"  [{name}] {line}", flush=True))
+def read_back(run: Path) -> dict:
+    """A finished run's row with what :func:`condition` saved beside it (``benchmark.json``)."""
     result = row(run)
-    result["render_seconds"] = render_seconds
-    run.joinpath("benchmark.json").write_text(json.dumps({"render_seconds": render_seconds,
-                                                         "render_timings": timings}, indent=1) + "\n")
+    extra = json.loads((run / "benchmark.json").read_text()) if (run / "benchmark.json").is_file() else {}
+    result["render_seconds"] = extra.get("render_seconds")
+    for key in ("frontend_reused_from", "frontend_seconds_of_base", "load_average"):
+        if key in extra:
+            result[key] = extra[key]
     return result
 
 
+def condition(name: str, out: Path, base: StudioSettings, config: RunConfig) -> dict:
+    """Render (or resume) the condition's capture and run (or resume, or read back) ``bcmocap run`` on it; a solver
+    variant first finishes its base condition and starts from a copy of its frontend."""
+    settings = capture_settings(name, base)
+    source = base_condition(name)
+    capture = out / "captures" / source
+    run = out / "runs" / name
+    if finished(run):
+        print(f"{name}: finished run in {run}, read back", flush=True)
+        return read_back(run)
+    extra: dict = {}
+    if name in VARIANTS:
+        base_row = condition(source, out, base, config)
+        seed_frontend(out / "runs" / source, run)
+        extra = {"frontend_reused_from": str(out / "runs" / source),
+                 "frontend_seconds_of_base": base_row["stage_seconds"]["frontend"],
+                 "render_seconds": base_row.get("render_seconds")}
+        print(f"{name}: frontend of {out / 'runs' / source} in {run / 'frontend'}", flush=True)
+    else:
+        timings: dict = {}
+        clock = time.perf_counter()
+        write_capture(capture, settings, progress=False, timings=timings)
+        extra = {"render_seconds": time.perf_counter() - clock, "render_timings": timings}
+        print(f"{name}: capture {capture} ready in {extra['render_seconds']:.0f} s", flush=True)
+    run_pipeline(capture, run, run_config(name, config, settings), log=lambda line: print(f"  [{name}] {line}", flush=True))
+    extra["load_average"] = list(os.getloadavg())
+    run.joinpath("benchmark.json").write_text(json.dumps(extra, indent=1) + "\n")
+    return read_back(run)
+
+
 def print_table(rows: dict[str, dict]) -> None:
-    print(f"\n{'condition':<18}{'joint pos. cm mean / median / max':>36}{'joint angle deg mean / median / max':>38}"
-          f"{'registered rom / capture':>27}{'run s':>8}")
+    """One line per row: solved (and initial) joint errors, registered fractions, the run's stage seconds."""
+    print(f"\n{'condition':<30}{'joint pos. cm mean / median / max':>36}{'joint angle deg mean / median / max':>38}"
+          f"{'initial cm / deg':>18}{'registered rom / capture':>27}{'run s':>8}")
     for name, r in rows.items():
         p, a, reg = r["joint_position_error_cm"], r["joint_angle_error_deg"], r["registered_fraction"]
+        p0, a0 = r["initial"]["joint_position_error_cm"], r["initial"]["joint_angle_error_deg"]
         seconds = sum(r["stage_seconds"].values())
-        print(f"{name:<18}{p['mean']:>14.3f} / {p['median']:6.3f} / {p['max']:7.3f}"
+        print(f"{name:<30}{p['mean']:>14.3f} / {p['median']:6.3f} / {p['max']:7.3f}"
               f"{a['mean']:>16.3f} / {a['median']:6.3f} / {a['max']:7.3f}"
+              f"{p0['mean']:>10.3f} / {a0['mean']:5.3f}"
               f"{100 * reg['rom']:>15.1f} % / {100 * reg['capture']:5.1f} %{seconds:>8.0f}")
 
 
@@ -172,6 +251,10 @@ def main(argv=None) -> int:
         rows[name] = condition(name, args.out, base, config)
         seconds[name] = time.perf_counter() - clock
         print_table({name: rows[name]})
+    for name in CONDITIONS:  # every other finished row in --out, read back
+        if name not in rows and finished(args.out / "runs" / name):
+            rows[name] = read_back(args.out / "runs" / name)
+    rows = {name: rows[name] for name in CONDITIONS if name in rows}
     print_table(rows)
     write_json(args.json, {
         "conditions": rows, "preset": PRESET, "modelled": MODELLED,

@@ -1,0 +1,80 @@
+"""benchmarks/realism.py's solver variants (issue 20 item 3): a variant renders its base condition's capture, differs
+from it in the ``[solver]`` settings only (so the frontend's settings fingerprint is the base's), and starts from a
+copy of the base run's finished frontend, which ``bcmocap run`` then reuses."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from benchmarks import realism
+from bcmocap.pipeline import RunConfig
+from bcmocap.pipeline.run import fingerprints
+from bcmocap.sim.studio import StudioSettings
+
+BASE = StudioSettings(seconds=2.0, rom_seconds=3.0, seed=3, reference_width=640, reference_height=480)
+
+
+@pytest.mark.parametrize("variant", list(realism.VARIANTS))
+def test_variant_shares_its_base_capture_and_frontend(variant):
+    source = realism.VARIANTS[variant][0]
+    assert realism.base_condition(variant) == source and source in realism.CONDITIONS
+    settings = realism.capture_settings(variant, BASE)
+    assert settings == realism.capture_settings(source, BASE)
+    config = RunConfig()
+    mine, theirs = realism.run_config(variant, config, settings), realism.run_config(source, config, settings)
+    assert fingerprints(mine)["frontend"] == fingerprints(theirs)["frontend"]
+    assert fingerprints(mine)["initial"] == fingerprints(theirs)["initial"]
+    assert fingerprints(mine)["solve"] != fingerprints(theirs)["solve"]
+    a, b = mine.to_dict(), theirs.to_dict()
+    assert {k: v for k, v in a.items() if k != "solver"} == {k: v for k, v in b.items() if k != "solver"}
+
+
+def test_modelled_terms_follow_the_capture():
+    settings = realism.capture_settings(realism.MODELLED, BASE)
+    s = realism.run_config(realism.MODELLED, RunConfig(), settings).solver
+    assert s.rolling_shutter_readout == pytest.approx(settings.readout_ms / 1000) and s.estimate_readout
+    assert s.self_calibration
+    assert s.mount_compliance == pytest.approx((settings.mount_wobble_mm / 1000, settings.mount_wobble_deg))
+    wobble = realism.run_config("mount_wobble+compliance", RunConfig(), realism.capture_settings("mount_wobble", BASE))
+    assert wobble.solver.mount_compliance == pytest.approx((0.003, 1.5))
+    assert wobble.solver.rolling_shutter_readout == 0 and not wobble.solver.self_calibration
+
+
+def _base_run(tmp_path: Path, frontend_finished: bool = True) -> Path:
+    run = tmp_path / "runs" / "base"
+    for part in ("rom", "capture"):
+        (run / "frontend" / part / "correspondences").mkdir(parents=True)
+        (run / "frontend" / part / "registration.json").write_text(json.dumps({"settings": {"stride": 2}}))
+        (run / "frontend" / part / "correspondences" / "index.json").write_text("{}")
+    (run / "frontend" / "reference" / "model").mkdir(parents=True)
+    (run / "frontend" / "reference" / "model" / "points3D.bin").write_bytes(b"points")
+    (run / "frontend" / "tracks" / "capture").mkdir(parents=True)
+    (run / "frontend" / "tracks" / "capture" / "cache.npz").write_bytes(b"cache")
+    stages = {"frontend": {"fingerprint": "f", "seconds": 1.0}} if frontend_finished else {}
+    (run / "run.json").write_text(json.dumps({"format": "bcmocap-run", "capture": "c", "stages": stages}))
+    return run
+
+
+def test_seed_frontend_copies_the_trials_and_reference_only(tmp_path):
+    source, run = _base_run(tmp_path), tmp_path / "runs" / "variant"
+    realism.seed_frontend(source, run)
+    for part in ("rom", "capture"):
+        assert (run / "frontend" / part / "registration.json").read_text() == \
+            (source / "frontend" / part / "registration.json").read_text()
+        assert (run / "frontend" / part / "correspondences" / "index.json").is_file()
+    assert (run / "frontend" / "reference" / "model" / "points3D.bin").read_bytes() == b"points"
+    assert not (run / "frontend" / "tracks").exists()  # the tracking cache is not read after the frontend
+    assert not (run / "run.json").exists()  # bcmocap run itself decides the frontend is reusable
+    assert sorted(p.name for p in run.parent.iterdir()) == ["base", "variant"]  # no staging folder left
+
+
+def test_seed_frontend_leaves_a_started_run_and_refuses_an_unfinished_base(tmp_path):
+    source, run = _base_run(tmp_path), tmp_path / "runs" / "variant"
+    (run / "frontend" / "rom").mkdir(parents=True)
+    realism.seed_frontend(source, run)  # a started variant resumes as it is
+    assert not (run / "frontend" / "capture").exists()
+    unfinished = _base_run(tmp_path / "other", frontend_finished=False)
+    with pytest.raises(ValueError, match="frontend stage has not finished"):
+        realism.seed_frontend(unfinished, tmp_path / "runs" / "fresh")
+    assert not (tmp_path / "runs" / "fresh").exists()
