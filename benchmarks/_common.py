@@ -38,6 +38,12 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def cpu_seconds() -> float:
+    """CPU time (user + system, s) this process has used so far."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 def write_json(path: str | None, payload: dict) -> None:
     """Write ``payload`` (plus the machine) atomically to ``path`` if given."""
     if not path:

@@ -46,7 +46,6 @@ Goals (issue 24): topology correct in every trial at 25 % missing, mean joint-ce
 from __future__ import annotations
 
 import argparse
-import resource
 import sys
 import time
 import warnings
@@ -55,7 +54,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import write_json  # noqa: E402
+from _common import cpu_seconds, write_json  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -182,11 +181,6 @@ def load_motion(name: str):
     skeleton, motion = load_cmu(Path(str(resources.files("bcmocap") / "data" / "cmu" / "02.asf")), FLOOR_AMC, fps=CMU_FPS)
     skeleton, motion = reduce_motion(skeleton, motion)
     return skeleton, resample(motion, CMU_FPS, FPS)
-
-
-def cpu_seconds() -> float:
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
 
 
 def occluded_capture(motion_name: str, seed: int, missing_pct: float, calibration_s: float):

@@ -12,7 +12,6 @@ machine's two cores).
 from __future__ import annotations
 
 import argparse
-import resource
 import sys
 import time
 import warnings
@@ -20,7 +19,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, peak_rss_mb, write_json  # noqa: E402
+from _common import cpu_seconds, machine, peak_rss_mb, write_json  # noqa: E402
 
 from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
 from bcmocap.io.c3d import read_c3d  # noqa: E402
@@ -36,10 +35,6 @@ FULL_BODY = (
     "BTKData_PiG_PiG_Motion-FlatFoot-Hole.c3d",
 )
 
-
-def cpu_seconds() -> float:
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
 
 
 def fit_file(path: Path) -> dict:
