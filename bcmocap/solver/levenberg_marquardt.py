@@ -181,6 +181,7 @@ class _SolverState(eqx.Module):
     terminate: jax.Array
     result: optx.RESULTS
     num_accepted_steps: jax.Array
+    non_finite: jax.Array  # int: NOT_NON_FINITE, or the check that stopped the solve
 
 
 def _model(cost: jax.Array, system: NormalEquations) -> optx.FunctionInfo.EvalGradHessian:
@@ -198,6 +199,10 @@ def _predicted_reduction(f_info: optx.FunctionInfo.EvalGradHessian, delta) -> ja
 NON_FINITE_START = "levenberg_marquardt: the starting point holds NaN or inf"
 NON_FINITE_SYSTEM = ("levenberg_marquardt: the Gauss–Newton system is NaN or inf at a point of finite cost "
                      "(a term's Jacobian is not finite there)")
+# Codes of Convergence.non_finite: the checks are flags in the loop state, not host callbacks
+# (``eqx.error_if``), so that the compiled solve stays pure and is found in the persistent compilation cache.
+FINITE, START_NOT_FINITE, SYSTEM_NOT_FINITE = 0, 1, 2
+NON_FINITE_MESSAGES = {START_NOT_FINITE: NON_FINITE_START, SYSTEM_NOT_FINITE: NON_FINITE_SYSTEM}
 
 
 def _all_finite(tree) -> jax.Array:
@@ -214,9 +219,10 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
 
     Attributes:
         build: ``y ↦ NormalEquations`` (an ``eqx.Partial`` closing over the window problem).
-        check_finite: raise (``eqx.error_if``, inside the compiled loop) when the normal equations at an
-            accepted point of finite cost hold NaN or inf. Without it such a point ends the solve quietly
-            (the step is not finite: ``RESULTS.singular``, reported as not converged).
+
+    A starting point holding NaN or inf ends the solve before its first step, and so do normal equations
+    holding NaN or inf at an accepted point of finite cost; ``state.non_finite`` says which
+    (:data:`START_NOT_FINITE`, :data:`SYSTEM_NOT_FINITE`).
     """
 
     rtol: float
@@ -225,7 +231,6 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     build: Callable
     descent: StructuredDampedNewtonDescent
     search: optx.ClassicalTrustRegion
-    check_finite: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -234,7 +239,6 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         atol: float = 1e-4,
         norm: Callable = optx.rms_norm,
         damping_scale: float = 1e-3,
-        check_finite: bool = False,
     ):
         self.rtol = rtol
         self.atol = atol
@@ -242,13 +246,13 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         self.build = build
         self.descent = StructuredDampedNewtonDescent(damping_scale)
         self.search = optx.ClassicalTrustRegion()
-        self.check_finite = check_finite
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, args, options, f_struct, tags
         system = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(self.build, y))
         dtype = jax.tree.leaves(y)[0].dtype
         f_info = _model(jnp.zeros((), dtype), system)
+        start_bad = ~_all_finite(y)
         return _SolverState(
             first_step=jnp.array(True),
             y_eval=y,
@@ -257,9 +261,10 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             aux=jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), aux_struct),
             search_state=self.search.init(y, f_info),
             descent_state=self.descent.init(y, f_info),
-            terminate=jnp.array(False),
+            terminate=start_bad,
             result=optx.RESULTS.successful,
             num_accepted_steps=jnp.array(0),
+            non_finite=jnp.where(start_bad, START_NOT_FINITE, FINITE),
         )
 
     def _cost_tolerance(self, cost):
@@ -289,17 +294,17 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
                 lambda yy: self.build(yy),
                 state.y_eval,
             )
-            if self.check_finite:
-                system = eqx.error_if(system, jnp.isfinite(cost_eval) & ~_all_finite(system), NON_FINITE_SYSTEM)
-            return state.y_eval, _model(cost_eval, system), aux_eval, terminate
+            bad = jnp.isfinite(cost_eval) & ~_all_finite(system)
+            return state.y_eval, _model(cost_eval, system), aux_eval, terminate | bad, bad
 
         def rejected(_):
             # The model promised less than the cost tolerance for this step, so rounding decided that it
             # failed: there is nothing left to gain here (otherwise the trust region shrinks until max_steps).
             delta = jax.tree.map(jnp.subtract, state.y_eval, y)
-            return y, state.f_info, state.aux, _predicted_reduction(state.f_info, delta) <= self._cost_tolerance(state.f_info.f)
+            stop = _predicted_reduction(state.f_info, delta) <= self._cost_tolerance(state.f_info.f)
+            return y, state.f_info, state.aux, stop, jnp.array(False)
 
-        y, f_info, aux, terminate = jax.lax.cond(accept, accepted, rejected, None)
+        y, f_info, aux, terminate, bad_system = jax.lax.cond(accept, accepted, rejected, None)
         descent_state = self.descent.query(y, f_info, state.descent_state)
         y_descent, descent_result = self.descent.step(step_size, descent_state)
         result = optx.RESULTS.where(search_result == optx.RESULTS.successful, descent_result, search_result)
@@ -314,6 +319,7 @@ class StructuredLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             terminate=terminate,
             result=result,
             num_accepted_steps=state.num_accepted_steps + jnp.where(accept, 1, 0),
+            non_finite=jnp.where(bad_system, SYSTEM_NOT_FINITE, state.non_finite),
         )
         return y, new_state, aux
 
@@ -330,7 +336,11 @@ class Convergence(eqx.Module):
     Attributes:
         initial_cost, final_cost: ``½ Σ r²`` at the start and at the returned point.
         num_steps: iterations (accepted or rejected); num_accepted_steps: those the trust region accepted.
-        converged: stopped by the tolerances, not by ``max_steps`` or a failed step.
+        converged: stopped by the tolerances, not by ``max_steps``, a failed step or a non-finite value.
+        non_finite: :data:`FINITE` (0), or why the solve stopped: :data:`START_NOT_FINITE` (``y0`` holds NaN
+            or inf; no step was taken) or :data:`SYSTEM_NOT_FINITE` (the normal equations at an accepted point
+            of finite cost hold NaN or inf: a term's Jacobian is not finite there; ``y`` is that point).
+            :data:`NON_FINITE_MESSAGES` words them.
     """
 
     initial_cost: jax.Array
@@ -338,6 +348,7 @@ class Convergence(eqx.Module):
     num_steps: jax.Array
     num_accepted_steps: jax.Array
     converged: jax.Array
+    non_finite: jax.Array
 
 
 def levenberg_marquardt(
@@ -351,7 +362,6 @@ def levenberg_marquardt(
     damping_scale: float = 1e-3,
     max_steps: int = 100,
     norm: Callable = optx.rms_norm,
-    check_finite: bool = False,
 ):
     """Minimise ``½ Σ r(y)²`` from ``y0``: the one Levenberg–Marquardt of bcmocap (jit- and vmap-able).
 
@@ -366,23 +376,21 @@ def levenberg_marquardt(
         y0: ``(W, D)`` array, or ``((W, D), (S,))`` when the system has ``S`` static variables.
         rtol, atol, norm, damping_scale: see :class:`StructuredLevenbergMarquardt`.
         max_steps: iterations at most (accepted or rejected).
-        check_finite: check inside the compiled solve (``eqx.error_if``: an ``eqx.EquinoxRuntimeError``
-            under ``eqx.filter_jit``) that ``y0`` is finite (:data:`NON_FINITE_START`) and that the normal
-            equations are wherever the cost is (:data:`NON_FINITE_SYSTEM`); a non-finite cost is left to the
-            caller, who can say which term it comes from.
 
     Returns:
-        ``(y, Convergence)``: the last accepted point and how the solve went.
+        ``(y, Convergence)``: the last accepted point and how the solve went. A non-finite start or
+        Gauss–Newton system stops the solve and is reported in ``Convergence.non_finite`` (a flag, so the
+        compiled solve has no host callback); a non-finite cost is left to the caller, who can say which term
+        it comes from.
     """
-    if check_finite:
-        y0 = eqx.error_if(y0, ~_all_finite(y0), NON_FINITE_START)
-    solver = StructuredLevenbergMarquardt(build, rtol, atol, norm, damping_scale, check_finite)
+    solver = StructuredLevenbergMarquardt(build, rtol, atol, norm, damping_scale)
     sol = optx.least_squares(residual_fn, solver, y0, args=args, max_steps=max_steps, throw=False)
     report = Convergence(
         sol.state.initial_cost,
         sol.state.f_info.f,  # the cost at the returned point, the last accepted one
         sol.stats["num_steps"],
         sol.state.num_accepted_steps,
-        sol.result == optx.RESULTS.successful,
+        (sol.result == optx.RESULTS.successful) & (sol.state.non_finite == FINITE),
+        sol.state.non_finite,
     )
     return sol.value, report

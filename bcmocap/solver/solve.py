@@ -23,7 +23,7 @@ from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
 from ..residuals.base import CameraPairTerm, CameraTerm, Term
 from ..precision import require_float64
-from .levenberg_marquardt import NON_FINITE_START, NON_FINITE_SYSTEM, Convergence, levenberg_marquardt
+from .levenberg_marquardt import FINITE, NON_FINITE_MESSAGES, Convergence, levenberg_marquardt
 from .model_parameters import MODEL, ModelParameters, reaxis
 from .window import (WindowProblem, frame_layout, make_window_problem, model_motion, normal_equations, residuals,
                      static_values, window_history)
@@ -166,8 +166,7 @@ def _solve_window(problem: WindowProblem, options: SolverOptions):
     fn = lambda v, args: residuals(args, *v) if isinstance(v, tuple) else residuals(args, v)
     v0 = (jnp.zeros((w, d)), jnp.zeros(n_static)) if n_static else jnp.zeros((w, d))
     value, report = levenberg_marquardt(fn, eqx.Partial(_system, problem), v0, problem, rtol=options.rtol,
-                                        atol=options.atol, damping_scale=options.damping_scale, max_steps=options.max_steps,
-                                        check_finite=True)
+                                        atol=options.atol, damping_scale=options.damping_scale, max_steps=options.max_steps)
     y, z = value if n_static else (value, None)
     statics = static_values(problem, z)
     motion, frame_values = model_motion(problem, y, statics)
@@ -227,7 +226,7 @@ def solve(
         ValueError: mismatched shapes, NaN/inf, or a window without any usable observation.
         FloatingPointError: a window's cost or motion became non-finite (naming the window and the terms that
             are non-finite at its initial motion), or its Gauss–Newton system did at a point of finite cost
-            (found inside the compiled solve, ``levenberg_marquardt(check_finite=True)``).
+            (found inside the compiled solve: ``Convergence.non_finite``).
     """
     require_float64("bcmocap.solve")
     skeleton, rig, num_frames = problem.skeleton, problem.rig, problem.num_frames
@@ -265,11 +264,10 @@ def solve(
                             for name, variable in frame_layout(terms)}
         wp = make_window_problem(skeleton, rig, terms, reference, min(start, history), statics, model_parameters,
                                  {name: value[extended] for name, value in frame_values.items()})
-        try:
-            motion, new_statics, new_frame_values, lm = _solve_window(wp, options)
-        except eqx.EquinoxRuntimeError as exc:  # checked inside the compiled solve (check_finite)
-            why = next((m for m in (NON_FINITE_START, NON_FINITE_SYSTEM) if m in str(exc)), str(exc))
-            raise FloatingPointError(f"solve: window of frames [{start}, {stop}): {why}; nothing was kept") from None
+        motion, new_statics, new_frame_values, lm = _solve_window(wp, options)
+        if int(lm.non_finite) != FINITE:  # checked inside the compiled solve
+            why = NON_FINITE_MESSAGES[int(lm.non_finite)]
+            raise FloatingPointError(f"solve: window of frames [{start}, {stop}): {why}; nothing was kept")
         new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
         new_statics = {k: np.asarray(v) for k, v in new_statics.items()}
         new_frame_values = {k: np.asarray(v) for k, v in new_frame_values.items()}
