@@ -506,6 +506,21 @@ def concurrent(drive: list[str], capture: Path, folder: Path, log: Path) -> dict
     return {"refused": refused, "exit": second.returncode, "message": message, "first_still_running": still_running}
 
 
+def _escape_saver(folder: str | None, reader: str):
+    """``on_escape`` of :func:`fuzz_reader` writing each escaping case's bytes into ``folder`` (or None)."""
+    if folder is None:
+        return None
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    count = iter(range(10**9))
+
+    def save(target: str, data: bytes, detail: str) -> None:
+        path = Path(folder) / f"{reader}-{next(count)}-{Path(target).name}"
+        path.write_bytes(data)
+        print(f"  escape saved to {path}: {detail}", flush=True)
+
+    return save
+
+
 def path_safety() -> dict:
     """tests/test_path_safety.py's cases, run as they are: failures are path escapes."""
     report = Path(tempfile.mkdtemp()) / "report.xml"
@@ -533,6 +548,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "kill", "paths", "simulate", "pixels"])
     parser.add_argument("--keep", help="keep the runs in this folder (and reuse its rendered capture)")
+    parser.add_argument("--save-escapes", metavar="DIR",
+                        help="write each escaping fuzz case's file here (READER-N-NAME), to reproduce it")
     args = parser.parse_args()
 
     import numpy as np
@@ -549,7 +566,8 @@ def main() -> None:
         with Worker(timeout=args.fuzz_timeout) as worker:
             for name in READERS:
                 t = time.perf_counter()
-                r = fuzz_reader(name, args.fuzz_examples, worker, seed=args.seed)
+                r = fuzz_reader(name, args.fuzz_examples, worker, seed=args.seed,
+                                on_escape=_escape_saver(args.save_escapes, name))
                 payload["fuzz"][name] = {"cases": r.cases, "escapes": r.escapes, "accepted": r.valid,
                                          "seconds": round(time.perf_counter() - t, 1)}
                 escapes[name] = r.examples

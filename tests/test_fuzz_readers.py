@@ -42,6 +42,16 @@ def test_a_c3d_cut_inside_its_parameter_section_is_refused_not_a_hang(tmp_path):
     assert time.perf_counter() - start < 5.0
 
 
+def test_a_c3d_with_bytes_missing_from_its_parameter_section_is_refused_not_a_crash(worker, tmp_path):
+    """50 bytes deleted inside a parameter record (found by the fuzzer): ezc3d crashed the process (SIGSEGV)."""
+    folder = _seed("c3d", tmp_path)
+    data = (folder / "seed.c3d").read_bytes()
+    at = data.index(b"FORCE_PLATFORM") - 4
+    kind, detail = worker.run("c3d", folder, "seed.c3d", data[:at] + data[at + 50:])  # in a process of its own
+    assert kind == "error", detail
+    assert "seed.c3d: not a readable C3D file (its parameter section is damaged: parameter record" in detail
+
+
 def test_a_damaged_store_names_the_file(tmp_path):
     store = _seed("store", tmp_path) / "store"
     block = store / "block_000000.npz"

@@ -125,25 +125,81 @@ def _announced_frames(path: Path) -> int | None:
 
 
 def _check_sections(path: Path) -> None:
-    """Refuse a file shorter than the sections its header announces: ezc3d loops forever on some (a C3D cut
-    inside its parameter section). Words of the header: byte 0 the first parameter block, word 9 the first
-    data block; byte 2 of the parameter section its number of 512-byte blocks."""
+    """Refuse a file shorter than the sections its header announces, or whose parameter section does not
+    hold together: ezc3d loops forever on some (a C3D cut inside its parameter section) and crashes the
+    process on others (a run of bytes deleted from it). Words of the header: byte 0 the first parameter
+    block, word 9 the first data block; byte 2 of the parameter section its number of 512-byte blocks."""
     size = path.stat().st_size
     with open(path, "rb") as f:
         head = f.read(18)
         if len(head) < 18 or head[1] != 0x50 or head[0] < 1:
             return  # not C3D's header: ezc3d says so
-        f.seek(512 * (head[0] - 1))
+        start = 512 * (head[0] - 1)
+        f.seek(start)
         parameters = f.read(4)
-    if len(parameters) < 4:
-        raise ValueError(f"{path}: truncated: the header puts the parameter section at byte {512 * (head[0] - 1)}, "
-                         f"the file has {size} bytes")
-    order = ">" if parameters[3] == 86 else "<"
-    data_block = int.from_bytes(head[16:18], "big" if order == ">" else "little")
-    end = max(512 * (head[0] - 1 + parameters[2]), 512 * (data_block - 1))
-    if size < end:
-        raise ValueError(f"{path}: truncated: the header and parameter section announce at least {end} bytes, "
-                         f"the file has {size}")
+        if len(parameters) < 4:
+            raise ValueError(f"{path}: truncated: the header puts the parameter section at byte {start}, "
+                             f"the file has {size} bytes")
+        order = ">" if parameters[3] == 86 else "<"
+        data_block = int.from_bytes(head[16:18], "big" if order == ">" else "little")
+        end = max(start + 512 * parameters[2], 512 * (data_block - 1))
+        if size < end:
+            raise ValueError(f"{path}: truncated: the header and parameter section announce at least {end} bytes, "
+                             f"the file has {size}")
+        f.seek(start)
+        section = f.read(512 * parameters[2])
+    problem = _parameter_records_problem(section, order)
+    if problem is not None:
+        raise ValueError(f"{path}: not a readable C3D file (its parameter section is damaged: {problem})")
+
+
+C3D_PARAMETER_TYPES = (-1, 1, 2, 4)  # char, byte, 16-bit integer, float: bytes per element (char: 1)
+
+
+def _parameter_records_problem(section: bytes, order: str) -> str | None:
+    """Walk the group and parameter records of a C3D parameter section (after its 4-byte header); say what
+    does not fit, or None. A record: name length (int8; negative when locked; 0 ends the section), group id
+    (int8; negative for a group), the name, the int16 offset from that word to the next record (0: the last);
+    a parameter then has its type, dimension count, dimensions, data and a description, which must end
+    before the next record."""
+    import struct
+
+    pos, count = 4, 0
+    while pos + 2 <= len(section):
+        name_length = abs(struct.unpack_from("b", section, pos)[0])
+        if name_length == 0:
+            return None
+        group = struct.unpack_from("b", section, pos + 1)[0]
+        offset_at = pos + 2 + name_length
+        if offset_at + 2 > len(section):
+            return f"record {count} at byte {pos} runs past the section"
+        offset = struct.unpack_from(order + "h", section, offset_at)[0]
+        following = offset_at + offset if offset else len(section)
+        if offset and not offset_at + 2 <= following <= len(section):
+            return f"record {count} at byte {pos} points to byte {following}, outside the section"
+        body = offset_at + 2
+        if group > 0:  # a parameter: type, dimensions, data, description
+            if body + 2 > following:
+                return f"parameter record {count} at byte {pos} is cut short"
+            kind, dims = struct.unpack_from("bB", section, body)
+            if kind not in C3D_PARAMETER_TYPES:
+                return f"parameter record {count} at byte {pos} has data type {kind}"
+            shape = section[body + 2:body + 2 + dims]
+            elements = 1
+            for d in shape:
+                elements *= d
+            data_end = body + 2 + dims + abs(kind) * elements
+            if len(shape) < dims or data_end + 1 > following or data_end + 1 + section[data_end] > following:
+                return f"parameter record {count} at byte {pos} holds more than the {following - pos} bytes before the next"
+        elif group < 0:  # a group: its description
+            if body + 1 > following or body + 1 + section[body] > following:
+                return f"group record {count} at byte {pos} holds more than the {following - pos} bytes before the next"
+        else:
+            return f"record {count} at byte {pos} has group id 0"
+        if not offset:
+            return None
+        pos, count = following, count + 1
+    return None
 
 
 def read_c3d(
