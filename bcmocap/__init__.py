@@ -18,64 +18,61 @@ the pipeline and the file readers are in their subpackages (``bcmocap.frontend``
 ``bcmocap.pipeline``, ``bcmocap.io``).
 """
 
-from .cameras import FOVCamera, OpenCVFisheyeCamera, PinholeCamera
-from .correspondences import Correspondences
-from .geometry import SE3, SO3
-from .kinematics import JointType, Motion, Rig, Skeleton, forward_kinematics, joint_positions
-from .precision import enable_float64, require_float64
-from .residuals import (
-    CameraPairTerm,
-    CameraTerm,
-    CauchyLoss,
-    FrameTerm,
-    HomographyTransfer,
-    HuberLoss,
-    JointSmoothness,
-    MultiFrameTerm,
-    PairTerm,
-    Reprojection,
-    RootSmoothness,
-    Term,
-)
-from .solver import Problem, Solution, SolverOptions, solve, solve_with_refinement
-from .solver.objective import ObjectiveWeights, StoredProblem, paper_problem, paper_terms
+import importlib
+
+# The public API is imported on first use (PEP 562), so that `import bcmocap.<module>` and the command line
+# do not pay for JAX where they do not use it (the viewer, `bcmocap --help`).
+_PUBLIC = {
+    "CameraPairTerm": "residuals",
+    "CameraTerm": "residuals",
+    "CauchyLoss": "residuals",
+    "Correspondences": "correspondences",
+    "FOVCamera": "cameras",
+    "FrameTerm": "residuals",
+    "HomographyTransfer": "residuals",
+    "HuberLoss": "residuals",
+    "JointSmoothness": "residuals",
+    "JointType": "kinematics",
+    "Motion": "kinematics",
+    "MultiFrameTerm": "residuals",
+    "ObjectiveWeights": "solver.objective",
+    "OpenCVFisheyeCamera": "cameras",
+    "PairTerm": "residuals",
+    "PinholeCamera": "cameras",
+    "Problem": "solver",
+    "Reprojection": "residuals",
+    "Rig": "kinematics",
+    "RootSmoothness": "residuals",
+    "SE3": "geometry",
+    "SO3": "geometry",
+    "Skeleton": "kinematics",
+    "Solution": "solver",
+    "SolverOptions": "solver",
+    "StoredProblem": "solver.objective",
+    "Term": "residuals",
+    "enable_float64": "precision",
+    "forward_kinematics": "kinematics",
+    "joint_positions": "kinematics",
+    "paper_problem": "solver.objective",
+    "paper_terms": "solver.objective",
+    "require_float64": "precision",
+    "solve": "solver",
+    "solve_with_refinement": "solver",
+}
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "CameraPairTerm",
-    "CameraTerm",
-    "CauchyLoss",
-    "Correspondences",
-    "FOVCamera",
-    "FrameTerm",
-    "HomographyTransfer",
-    "HuberLoss",
-    "JointSmoothness",
-    "JointType",
-    "Motion",
-    "MultiFrameTerm",
-    "ObjectiveWeights",
-    "OpenCVFisheyeCamera",
-    "PairTerm",
-    "PinholeCamera",
-    "Problem",
-    "Reprojection",
-    "Rig",
-    "RootSmoothness",
-    "SE3",
-    "SO3",
-    "Skeleton",
-    "Solution",
-    "SolverOptions",
-    "StoredProblem",
-    "Term",
-    "enable_float64",
-    "forward_kinematics",
-    "joint_positions",
-    "paper_problem",
-    "paper_terms",
-    "require_float64",
-    "solve",
-    "solve_with_refinement",
-]
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str):
+    module = _PUBLIC.get(name)
+    if module is None:
+        raise AttributeError(f"module 'bcmocap' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value  # later lookups do not come here
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

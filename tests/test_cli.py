@@ -89,3 +89,19 @@ def test_importing_bcmocap_leaves_float32_and_the_solver_says_what_to_do():
 
     assert {"Skeleton", "Motion", "Rig", "Problem", "solve", "paper_problem", "FrameTerm"} <= set(bcmocap.__all__)
     assert all(hasattr(bcmocap, name) for name in bcmocap.__all__)
+
+
+def test_import_bcmocap_loads_its_public_api_on_first_use():
+    import subprocess
+
+    code = ("import sys, bcmocap\n"
+            "assert 'jax' not in sys.modules, 'import bcmocap imported JAX'\n"
+            "bcmocap.Skeleton\n"
+            "assert 'jax' in sys.modules\n"
+            "try:\n"
+            "    bcmocap.no_such_name\n"
+            "except AttributeError as err:\n"
+            "    print(err)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "module 'bcmocap' has no attribute 'no_such_name'" in out.stdout
