@@ -110,10 +110,20 @@ def capture_settings(condition: str, base: StudioSettings) -> StudioSettings:
     return dataclasses.replace(base, **{k: getattr(preset, k) for k in DEGRADATIONS[condition]})
 
 
+#: The skeleton stage's limit on a joint centre's standard error (cm) in every row (see run_config).
+MAX_CENTRE_STD_CM = 10.0
+
+
 def run_config(condition: str, base: RunConfig, settings: StudioSettings) -> RunConfig:
     """The run settings of a condition: the base's, without pictures; with its modelling terms for a solver variant."""
     data = base.to_dict()
     data["outputs"]["pictures"] = False
+    # The realistic preset registers 74 % of its 3 s range-of-motion trial (clean: 99.6 %), which leaves the left
+    # shoulder's centre to a standard error of 6.2 cm, above the default 5 cm at which the skeleton stage stops, and
+    # the left wrist moved about one axis only in the frames registered; the benchmark measures what follows instead
+    # (a looser limit, such a wrist as a hinge). Rows whose joints are all well determined are unchanged by this.
+    data["skeleton"]["max_centre_std_cm"] = max(data["skeleton"]["max_centre_std_cm"], MAX_CENTRE_STD_CM)
+    data["skeleton"]["degenerate"] = "hinge"
     if condition in VARIANTS:
         data["solver"].update(VARIANTS[condition][1](settings))
     return RunConfig.from_dict(data)

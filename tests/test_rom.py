@@ -106,6 +106,14 @@ def test_joint_not_exercised_is_named(model):
         trial.estimate()
 
 
+def test_uncertain_centre_says_which_limit_it_exceeds(model):
+    skeleton, rig = model
+    trial = range_of_motion_trial(skeleton, rig, seed=1, **TRIAL)
+    with pytest.raises(ValueError, match=r"ball\): the trial does not determine its centre: centre standard error "
+                       r"[\d.]+ cm, above the limit of 1e-05 cm \(rotation spreads"):
+        trial.estimate(RomOptions(max_centre_std_m=1e-7))
+
+
 def test_ball_joint_moved_about_one_axis(model, noiseless):
     # The topology says the knee is a ball joint, but the trial only flexes it: one direction is free.
     skeleton, _ = model

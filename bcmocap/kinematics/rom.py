@@ -438,11 +438,13 @@ def skeleton_from_range_of_motion(
                 )
                 est = _joint_estimate(name, pname, jtype, rel, 1, options, families)
             else:
-                raise ValueError(
-                    f"{what}: the trial does not determine its centre: {max(weak, 1)} direction(s) with rotation spread "
-                    f"below {options.min_spread} (spreads {np.array2string(est.spread[:3], precision=4)}), centre "
-                    f"standard error {100 * est.std_m:.2f} cm; exercise the joint about more axes, or declare it a hinge"
-                )
+                spreads = np.array2string(est.spread[:3], precision=4)
+                why = (f"{weak} direction(s) with rotation spread below {options.min_spread} (spreads {spreads}), "
+                       f"centre standard error {100 * est.std_m:.2f} cm" if weak else
+                       f"centre standard error {100 * est.std_m:.2f} cm, above the limit of {100 * options.max_centre_std_m:.3g} cm "
+                       f"(rotation spreads {spreads})")
+                raise ValueError(f"{what}: the trial does not determine its centre: {why}; exercise the joint about "
+                                 "more axes, or declare it a hinge")
         joints[name] = est
 
     # ---- rest pose: segment orientations, hinge centres on their axes (Eq. 17) -------------------

@@ -24,6 +24,8 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     up_from = ["left_foot", "right_foot"]   # the world's +Z points from these joint centres ...
     up_to = "head"                          # ... to this one, in the rest pose
     max_centre_std_cm = 5.0   # a joint centre less certain than this (standard error) is an error
+    degenerate = "raise"      # a ball joint the ROM trial moved about one axis only: raise | hinge (warn, and
+                              # fix its centre on that axis by the straight rest pose, as for a knee)
 
     [solver]
     window = 60               # frames per window, 2 to 100000
@@ -84,6 +86,7 @@ class SkeletonConfig:
     up_from: tuple[str, ...] = ("left_foot", "right_foot")
     up_to: str = "head"
     max_centre_std_cm: float = 5.0
+    degenerate: str = "raise"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,6 +151,7 @@ class RunConfig:
         _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)
+        _check(k.degenerate in ("raise", "hinge"), "skeleton.degenerate", "must be 'raise' or 'hinge'", k.degenerate)
         _check(2 <= s.window <= MAX_WINDOW, "solver.window", f"must be in [2, {MAX_WINDOW}]", s.window)
         _check(0 <= s.overlap < s.window, "solver.overlap", "must be in [0, window)", s.overlap)
         _check(isinstance(s.refine_rounds, int) and 0 <= s.refine_rounds <= 5, "solver.refine_rounds", "must be an integer in [0, 5]",

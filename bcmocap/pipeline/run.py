@@ -289,10 +289,15 @@ def _estimate_skeleton(ctx: RunContext, poses, registered, rest):
     from ..kinematics.rom import RomOptions, skeleton_from_range_of_motion
 
     cams = [(c.name, c.segment) for c in ctx.capture.cameras]
-    options = RomOptions(max_centre_std_m=ctx.config.skeleton.max_centre_std_cm / 100)
-    return skeleton_from_range_of_motion(
-        _topology(ctx), cams, poses, registered, rest_frames=rest, options=options,
-        intrinsics=_stacked_intrinsics(ctx), root_origin=list(ctx.config.skeleton.root_origin))
+    settings = ctx.config.skeleton
+    options = RomOptions(max_centre_std_m=settings.max_centre_std_cm / 100, degenerate=settings.degenerate)
+    try:
+        return skeleton_from_range_of_motion(
+            _topology(ctx), cams, poses, registered, rest_frames=rest, options=options,
+            intrinsics=_stacked_intrinsics(ctx), root_origin=list(settings.root_origin))
+    except ValueError as exc:
+        raise ValueError(f"{exc} (run settings: [skeleton] max_centre_std_cm = {settings.max_centre_std_cm:g}, "
+                         f"degenerate = {settings.degenerate!r})") from None
 
 
 def _stacked_intrinsics(ctx: RunContext):
