@@ -1,6 +1,7 @@
 """bcmocap calibrate: board parsing and detection, view selection, the FOV / equidistant / Kannala–Brandt fits on
 real fisheye images and on simulated views of a known lens, the files it writes, and its one-line errors."""
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -95,6 +96,17 @@ def test_recovers_a_simulated_fov_lens():
     assert np.allclose(params_of("fov", fitted.camera), params_of("fov", truth), rtol=2e-3, atol=0.2)
 
 
+def test_a_view_without_a_board_pose_is_left_out_not_fatal():
+    """A view whose few points allow no pose (here 3 of them) used to fail the whole calibration."""
+    truth = fov_camera_for(640, 360)
+    views = _synthetic(truth, 12)
+    seen = views.seen.copy()
+    seen[4, np.flatnonzero(seen[4])[3:]] = False
+    fitted = calibrate(dataclasses.replace(views, seen=seen), "fov")
+    assert "view 4" in fitted.rejected and fitted.views.num_views == 11
+    assert camera_difference(fitted.camera, truth).max_px < 1.0  # 11 views: a fit, if not the best one
+
+
 @pytest.mark.slow
 def test_equidistant_model_has_no_distortion(real_views):
     eq = calibrate(real_views, "equidistant")
@@ -175,7 +187,7 @@ def test_image_folder_ignores_files_outside_it(tmp_path, real_folder):
 def test_video_source_and_charuco(tmp_path):
     """A ChArUco board warped into the frames of a short video is found in them, partial views included."""
     board = parse_board("charuco:7x5:0.04:0.03:DICT_4X4_50")
-    image = board._charuco().generateImage((700, 500), marginSize=20)
+    image = board.charuco().generateImage((700, 500), marginSize=20)
     path = tmp_path / "board.avi"
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (640, 480), False)
     rng = np.random.default_rng(0)

@@ -167,3 +167,20 @@ def test_refuses_non_finite_or_huge_lengths_and_rates(tmp_path, capsys, flag, va
     field = flag[2:].replace("-", "_")
     with pytest.raises(ValueError, match=f"StudioSettings.{field} must be in"):
         StudioSettings(**{field: float(value)})
+
+
+def test_board_videos_are_added_per_rendered_lens(capture, tmp_path, capsys):
+    from bcmocap.sim.board_video import STUDIO_BOARD, write_board_videos
+
+    copy = tmp_path / "capture"
+    shutil.copytree(capture, copy)
+    lenses = write_board_videos(copy, views=2, frames_per_view=2)
+    gt = load_ground_truth(copy)
+    assert sorted(c for cams in lenses.values() for c in cams) == sorted(gt.rig.names)
+    record = json.loads((copy / "calibration" / "lenses.json").read_text())
+    assert record["board"] == STUDIO_BOARD and record["lenses"] == lenses
+    video = cv2.VideoCapture(str(copy / "calibration" / "lens_0.mp4"))
+    assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 4 and video.read()[1].shape[:2] == (36, 64)
+    video.release()
+    assert main(["simulate", str(tmp_path / "nothing"), "--board-videos"]) == 2
+    assert "capture.json" in capsys.readouterr().err

@@ -2,7 +2,7 @@
 selection, the FOV / equidistant models fitted by bcmocap's own cameras and Levenberg–Marquardt, the
 Kannala–Brandt model by ``cv2.fisheye``, and reports (per-view errors, sensor coverage picture)."""
 
-from .board import Board, Detection, parse_board
+from ..io.board import Board, Detection, parse_board
 from .fit import MODELS, Calibration, calibrate
 from .views import BoardViews, detect_views, select_views
 

@@ -34,7 +34,7 @@ def add_calibrate_command(sub: argparse._SubParsersAction) -> None:
 
 def run_calibrate(args: argparse.Namespace) -> int:
     from ..compilation_cache import enable_compilation_cache
-    from .board import parse_board
+    from ..io.board import parse_board
     from .fit import calibrate
     from .report import output_paths, write_calibration
     from .views import detect_views, select_views
@@ -66,7 +66,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     print("  " + ", ".join(values))
     print("  per view (px): " + ", ".join(f"{n} {e:.2f}" for n, e in zip(result.views.names, result.view_rms_px)))
     if result.rejected:
-        print(f"  dropped as outliers: {', '.join(result.rejected)}")
+        print(f"  left out (no board pose, or outliers): {', '.join(result.rejected)}")
     print(f"wrote {', '.join(map(str, paths))} ({seconds:.1f} s)")
     return 0
 

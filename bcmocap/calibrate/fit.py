@@ -83,7 +83,8 @@ class Calibration:
 
     Attributes:
         model: one of :data:`MODELS`; camera: the fitted camera; method: how it was fitted.
-        views: the views used (rejected ones removed); rejected: names of views dropped as outliers.
+        views: the views used (rejected ones removed); rejected: names of views left out: no board pose in the
+            initial guess (the board too oblique or too small in them), or fitting as outliers.
         rotations: ``(V, 3, 3)`` camera_from_board rotations; translations: ``(V, 3)`` (m).
         residuals: ``(V, N, 2)`` projected minus detected pixels (0 where a point was not seen).
         std: one standard deviation per parameter (:data:`PARAM_NAMES` order; px, rad, or unitless),
@@ -156,30 +157,32 @@ def _equidistant_error(points, pixels, rotation, translation, focal, centre) -> 
     return np.linalg.norm(focal * p[:, :2] * scale[:, None] + centre - pixels, axis=1)
 
 
-def _initial_guess(views: BoardViews) -> tuple[float, np.ndarray, np.ndarray]:
-    """Focal length of the equidistant lens whose planar-PnP poses reproject best, and those poses."""
+def _initial_guess(views: BoardViews) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Focal length of the equidistant lens whose planar-PnP poses reproject best, those poses, and which views
+    have one ``(V,)`` bool: the candidate posing the most views wins, then the smallest median error."""
     centre = np.array([(views.width - 1) / 2, (views.height - 1) / 2])
     half_diagonal = 0.5 * math.hypot(views.width, views.height)
     points = views.board.points
     best = None
     for half_fov_deg in np.arange(25.0, 126.0, 5.0):  # half field of view across the diagonal
         focal = half_diagonal / math.radians(half_fov_deg)
-        rotations, translations, score = [], [], 0.0
+        rotations, translations, posed, score = [], [], [], 0.0
         for v in range(views.num_views):
             m = views.seen[v]
             pose = _pose_from_rays(points[m], _equidistant_rays(views.pixels[v, m], focal, centre))
+            posed.append(pose is not None)
             if pose is None:
-                score = np.inf
-                break
+                continue
             rotations.append(pose[0])
             translations.append(pose[1])
             score += float(np.median(_equidistant_error(points[m], views.pixels[v, m], *pose, focal, centre)))
-        if best is None or score < best[0]:
-            best = (score, focal, rotations, translations)
-    if best is None or not np.isfinite(best[0]):
-        raise ValueError("degenerate views: no board pose could be estimated (the board must be seen in front of "
-                         "the lens, less than 80° off its axis)")
-    return best[1], np.stack(best[2]), np.stack(best[3])
+        key = (-sum(posed), score)
+        if rotations and (best is None or key < best[0]):
+            best = (key, focal, rotations, translations, np.array(posed))
+    if best is None or best[4].sum() < MIN_VIEWS:
+        raise ValueError("degenerate views: no board pose could be estimated in enough views (the board must be seen "
+                         "in front of the lens, less than 80° off its axis)")
+    return best[1], np.stack(best[2]), np.stack(best[3]), best[4]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -296,7 +299,14 @@ def _opencv_fisheye(views: BoardViews, focal: float, rotations: np.ndarray, tran
 
 
 def _fit(views: BoardViews, model: str, max_steps: int):
-    focal, rotations, translations = _initial_guess(views)
+    """``(views fitted, params, rotations, translations, residuals, std, steps, method)``: the views without a
+    board pose in the initial guess are left out."""
+    focal, rotations, translations, posed = _initial_guess(views)
+    views = views.subset(posed)
+    return (views, *_fit_posed(views, model, max_steps, focal, rotations, translations))
+
+
+def _fit_posed(views: BoardViews, model: str, max_steps: int, focal: float, rotations, translations):
     centre = [(views.width - 1) / 2, (views.height - 1) / 2]
     eq = _lm(views, "equidistant", np.array([focal, focal, *centre]), rotations, translations, max_steps)
     if model == "equidistant":
@@ -329,15 +339,16 @@ def calibrate(views: BoardViews, model: str = "fov", *, max_steps: int = 200, re
     if views.num_views < MIN_VIEWS:
         raise ValueError(f"too few views: the board was found in {views.num_views} of {views.examined} images or "
                          f"frames; at least {MIN_VIEWS} are needed (10-40 spread over the image are better)")
-    params, rotations, translations, residuals, std, steps, method = _fit(views, model, max_steps)
-    rejected: tuple[str, ...] = ()
+    given = views.names
+    views, params, rotations, translations, residuals, std, steps, method = _fit(views, model, max_steps)
+    rejected: tuple[str, ...] = tuple(n for n in given if n not in set(views.names))  # no board pose
     if reject_outliers:
         view_rms = np.sqrt((residuals**2).sum(axis=(1, 2)) / np.maximum(views.seen.sum(axis=1), 1))
         bad = view_rms > max(REJECT_FACTOR * float(np.median(view_rms)), REJECT_FLOOR_PX)
         if bad.any() and (~bad).sum() >= MIN_VIEWS:
-            rejected = tuple(n for n, b in zip(views.names, bad) if b)
-            views = views.subset(~bad)
-            params, rotations, translations, residuals, std, steps, method = _fit(views, model, max_steps)
+            rejected += tuple(n for n, b in zip(views.names, bad) if b)
+            views, params, rotations, translations, residuals, std, steps, method = _fit(views.subset(~bad), model,
+                                                                                       max_steps)
     camera = camera_from_params(model, params, views.width, views.height)
     focal_scale = float(np.mean(params[:2]))
     if not np.all(np.isfinite(std[:4])) or np.max(std[:4]) > DEGENERATE_FRACTION * focal_scale:

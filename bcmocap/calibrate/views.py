@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .board import Board, Detection
+from ..io.board import Board, Detection
 
 __all__ = ["BoardViews", "IMAGE_SUFFIXES", "detect_views", "image_files", "select_views", "view_descriptor"]
 

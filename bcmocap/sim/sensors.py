@@ -403,19 +403,13 @@ def write_sensor_data(capture_path: str | os.PathLike, *, seed: int | None = Non
     Raises:
         ValueError: naming a missing or malformed file of the capture.
     """
-    from ..io.model_json import rig_from_dict, skeleton_from_dict
     from ..io.names import checked_name
-    from .studio import CAPTURE_FORMAT, TRIALS, StudioSettings, _read_json, _read_npz
+    from .studio import TRIALS, _read_npz, read_studio_model
 
     folder = Path(capture_path)
-    manifest = _read_json(folder / "capture.json")
-    if manifest.get("format") != CAPTURE_FORMAT:
-        raise ValueError(f"{folder / 'capture.json'}: format is {manifest.get('format')!r}, expected {CAPTURE_FORMAT!r}")
-    settings = StudioSettings.from_dict(manifest.get("settings", {}), str(folder / "capture.json"))
+    manifest, settings, skeleton, rig = read_studio_model(folder)
     seed = settings.seed if seed is None else seed
     gt = folder / "ground_truth"
-    skeleton = skeleton_from_dict(_read_json(gt / "skeleton.json"), str(gt / "skeleton.json"))
-    rig = rig_from_dict(_read_json(gt / "rig.json"), skeleton, str(gt / "rig.json"))
     trials = manifest.get("trials", list(TRIALS))
     if not isinstance(trials, list):
         raise ValueError(f"{folder / 'capture.json'}: field 'trials' must be a list of names, got {trials!r}")

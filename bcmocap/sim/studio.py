@@ -1115,13 +1115,13 @@ class GroundTruth:
     trials: dict[str, TrialTruth]
 
 
-def load_ground_truth(path: str | os.PathLike) -> GroundTruth:
-    """Read the ground truth of a capture folder written by :func:`write_capture`.
+def read_studio_model(folder: Path) -> tuple[dict, StudioSettings, Skeleton, Rig]:
+    """``(manifest, settings, skeleton, rig)`` of a studio capture: ``capture.json`` and the true model of
+    ``ground_truth/`` (the rendered lenses and mounts).
 
     Raises:
-        ValueError: naming the file that is missing or malformed.
+        ValueError: not a studio capture, or a missing or malformed file (naming it).
     """
-    folder = Path(path)
     manifest = _read_json(folder / "capture.json")
     if manifest.get("format") != CAPTURE_FORMAT:
         raise ValueError(f"{folder / 'capture.json'}: format is {manifest.get('format')!r}, expected {CAPTURE_FORMAT!r}")
@@ -1129,6 +1129,18 @@ def load_ground_truth(path: str | os.PathLike) -> GroundTruth:
     gt = folder / "ground_truth"
     skeleton = skeleton_from_dict(_read_json(gt / "skeleton.json"), str(gt / "skeleton.json"))
     rig = rig_from_dict(_read_json(gt / "rig.json"), skeleton, str(gt / "rig.json"))
+    return manifest, settings, skeleton, rig
+
+
+def load_ground_truth(path: str | os.PathLike) -> GroundTruth:
+    """Read the ground truth of a capture folder written by :func:`write_capture`.
+
+    Raises:
+        ValueError: naming the file that is missing or malformed.
+    """
+    folder = Path(path)
+    manifest, settings, skeleton, rig = read_studio_model(folder)
+    gt = folder / "ground_truth"
     scene = TexturedScene.from_dict(_read_json(gt / "scene.json"), str(gt / "scene.json"))
     points = _read_npz(gt / "world_points.npz")
     reference = _read_npz(gt / "reference.npz")

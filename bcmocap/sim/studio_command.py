@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 from ..compilation_cache import enable_compilation_cache
 
@@ -77,6 +78,10 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
     deg.add_argument("--centre-error-px", type=float,
                      help="calibration given to the user: centres off by 0.3-1 times this (px; default 0)")
     cmd.add_argument("--no-progress", action="store_true", help="no progress bar")
+    cmd.add_argument("--board-videos", action="store_true",
+                     help="only add calibration videos to the existing capture CAPTURE_DIR: calibration/lens_K.mp4, a "
+                     "ChArUco board moved in front of each distinct rendered lens, and calibration/lenses.json (the "
+                     "board and which cameras have each lens), for bcmocap calibrate; the other options are ignored")
     cmd.add_argument("--sensors-only", action="store_true",
                      help="only add trials/<trial>/imu.npz and contacts.npz to the existing capture CAPTURE_DIR from its "
                      "ground truth (nothing rendered; the other options are ignored)")
@@ -90,6 +95,21 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
         if args.capture_dir is None:
             print("bcmocap simulate: CAPTURE_DIR is required (the folder to write)", file=sys.stderr)
             return 2
+
+        if args.board_videos:
+            from .board_video import write_board_videos
+
+            start = time.perf_counter()
+            try:
+                lenses = write_board_videos(args.capture_dir, progress=lambda name: print(f"rendering {name} ...",
+                                                                                        flush=True))
+            except ValueError as err:
+                print(f"bcmocap simulate: {err}", file=sys.stderr)
+                return 2
+            for name, cameras in lenses.items():
+                print(f"{Path(args.capture_dir) / 'calibration' / name}.mp4: {', '.join(cameras)}")
+            print(f"wrote {len(lenses)} calibration videos in {time.perf_counter() - start:.1f} s")
+            return 0
 
         if args.sensors_only:
             from .sensors import write_sensor_data

@@ -82,7 +82,7 @@ class Board:
     def points(self) -> np.ndarray:
         """``(N, 3)`` float64 board points in the board frame (m, z = 0), in detection id order."""
         if self.kind == "charuco":
-            return np.asarray(self._charuco().getChessboardCorners(), np.float64).reshape(-1, 3)
+            return np.asarray(self.charuco().getChessboardCorners(), np.float64).reshape(-1, 3)
         i, j = np.mgrid[0 : self.rows, 0 : self.cols]
         x = (2 * j + i % 2) if self.asymmetric else j
         pts = np.stack([x.ravel() * self.spacing, i.ravel() * self.spacing, np.zeros(i.size)], axis=-1)
@@ -96,7 +96,8 @@ class Board:
         what = "asymmetric circle grid" if self.asymmetric else ("circle grid" if self.kind == "circles" else "chessboard")
         return f"{what} {self.cols}x{self.rows}, spacing {self.spacing * 1000:g} mm"
 
-    def _charuco(self):
+    def charuco(self):
+        """The OpenCV ``CharucoBoard`` of a ChArUco board (its drawing, ``generateImage``, and detection)."""
         import cv2
 
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
@@ -125,7 +126,7 @@ class Board:
                 if ok:
                     return self._whole(centres)
             return None
-        detector = cv2.aruco.CharucoDetector(self._charuco())
+        detector = cv2.aruco.CharucoDetector(self.charuco())
         corners, ids, _, _ = detector.detectBoard(gray)
         if ids is None or len(ids) == 0:
             return None
