@@ -96,6 +96,7 @@ def test_recovers_a_simulated_fov_lens():
     assert np.allclose(params_of("fov", fitted.camera), params_of("fov", truth), rtol=2e-3, atol=0.2)
 
 
+@pytest.mark.slow  # two fits of new shapes to compile (12 and 11 views)
 def test_a_view_without_a_board_pose_is_left_out_not_fatal():
     """A view whose few points allow no pose (here 3 of them) used to fail the whole calibration."""
     truth = fov_camera_for(640, 360)
