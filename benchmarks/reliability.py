@@ -197,6 +197,8 @@ def _difference(a: Path, b: Path) -> float | None:
                      for k in p.files if p[k].dtype.kind in "fiub"]
             equal = all(np.array_equal(p[k], q[k]) for k in p.files if p[k].dtype.kind not in "fiub")
             return max(diffs, default=0.0) if equal else None
+    if a.suffix == ".db":  # SQLite (COLMAP's database): the same rows can sit in other pages; compare the rows
+        return 0.0 if _sqlite_rows(a) == _sqlite_rows(b) else None
     if a.suffix in (".png", ".bin", ".f64") or b"\0" in x[:4096]:
         if a.suffix == ".f64" and len(x) == len(y):
             return float(np.max(np.abs(np.frombuffer(x, "<f8") - np.frombuffer(y, "<f8")), initial=0.0))
@@ -208,6 +210,15 @@ def _difference(a: Path, b: Path) -> float | None:
 
 
 TIMINGS_ONLY = -1.0  # _difference: equal once the "seconds" fields are left out
+
+
+def _sqlite_rows(path: Path) -> dict:
+    """Every table of an SQLite file as its sorted rows (opened read-only)."""
+    import sqlite3
+
+    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+        tables = [t for (t,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table' ORDER BY name")]
+        return {t: sorted(db.execute(f'SELECT * FROM "{t}"').fetchall(), key=repr) for t in tables}
 
 
 def _without_timings(value):

@@ -81,6 +81,17 @@ def test_reference_index_holds_observations_of_3d_points(studio):
     assert np.allclose(idx.xyz[k], rec.point3D(int(idx.point3D_ids[k])).xyz)
 
 
+def test_reference_index_is_the_same_for_a_model_read_back(studio, tmp_path):
+    """A resumed run reads the reference model from disk, where its images are listed by id; the one just
+    reconstructed lists them in registration order. The index's rows (FLANN's trees) must not differ."""
+    import dataclasses
+
+    studio.model.reconstruction.write(str(tmp_path))
+    again = reference_index(dataclasses.replace(studio.model, reconstruction=pycolmap.Reconstruction(str(tmp_path))))
+    assert np.array_equal(again.point3D_ids, studio.index.point3D_ids)
+    assert np.array_equal(again.descriptors, studio.index.descriptors) and np.array_equal(again.xyz, studio.index.xyz)
+
+
 def test_register_fisheye_frames_to_true_pose(studio):
     for frame, truth in zip(studio.frames, studio.queries):
         result = register_frame(frame, studio.fisheye, studio.index, TEST_OPTIONS)

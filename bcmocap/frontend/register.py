@@ -127,7 +127,9 @@ def reference_index(model: ReferenceModel) -> ReferenceIndex:
     rec = model.reconstruction
     desc, ids = [], []
     with pycolmap.Database.open(str(model.database_path)) as db:
-        for image_id in rec.reg_image_ids():
+        # By id: a model read back from disk lists its images so, a model just reconstructed in registration order,
+        # and the index's row order decides FLANN's trees, so a resumed run would match differently.
+        for image_id in sorted(rec.reg_image_ids()):
             image = rec.image(image_id)
             idx = np.array([i for i, p in enumerate(image.points2D) if p.has_point3D()], np.int64)
             if not len(idx):
