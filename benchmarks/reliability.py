@@ -213,10 +213,10 @@ TIMINGS_ONLY = -1.0  # _difference: equal once the "seconds" fields are left out
 
 
 def _sqlite_rows(path: Path) -> dict:
-    """Every table of an SQLite file as its sorted rows (opened read-only)."""
+    """Every table of an SQLite file as its sorted rows (read as immutable: the comparison writes nothing beside it)."""
     import sqlite3
 
-    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+    with sqlite3.connect(f"file:{path}?immutable=1", uri=True) as db:  # immutable: no -shm or -wal file is made
         tables = [t for (t,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table' ORDER BY name")]
         return {t: sorted(db.execute(f'SELECT * FROM "{t}"').fetchall(), key=repr) for t in tables}
 
