@@ -341,7 +341,8 @@ def calibrate(views: BoardViews, model: str = "fov", *, max_steps: int = 200, re
                          f"frames; at least {MIN_VIEWS} are needed (10-40 spread over the image are better)")
     given = views.names
     views, params, rotations, translations, residuals, std, steps, method = _fit(views, model, max_steps)
-    rejected: tuple[str, ...] = tuple(n for n in given if n not in set(views.names))  # no board pose
+    posed = set(views.names)
+    rejected: tuple[str, ...] = tuple(n for n in given if n not in posed)  # no board pose
     if reject_outliers:
         view_rms = np.sqrt((residuals**2).sum(axis=(1, 2)) / np.maximum(views.seen.sum(axis=1), 1))
         bad = view_rms > max(REJECT_FACTOR * float(np.median(view_rms)), REJECT_FLOOR_PX)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_path, write_json_atomic
 from ..cameras import CameraModel
 from ..geometry import matrix_from_quat, quat_from_matrix, slerp
 from .board_views import simulate_board_views
@@ -141,17 +142,15 @@ def write_board_video(path: str | os.PathLike, camera: CameraModel, board, *, vi
     poses = board_video_poses(camera, board, views, frames_per_view, rng, **placement)
     pattern = board_pattern(board, px_per_m)
     rays = _rays(camera, samples)
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.partial.mp4")
-    writer = MediaWriter(tmp, fps, (camera.width, camera.height), crf=crf)
-    try:
-        for pose in poses:
-            grey = render_board_frame(rays, pattern, px_per_m, pose) + rng.normal(scale=noise_dn, size=rays.shape[:2])
-            frame = np.clip(np.round(grey), 0, 255).astype(np.uint8)
-            writer.write([np.repeat(frame[..., None], 3, axis=-1)])
-    finally:
-        writer.close()
-    os.replace(tmp, path)
+    with atomic_path(path, suffix=".mp4") as tmp:
+        writer = MediaWriter(tmp, fps, (camera.width, camera.height), crf=crf)
+        try:
+            for pose in poses:
+                grey = render_board_frame(rays, pattern, px_per_m, pose) + rng.normal(scale=noise_dn, size=rays.shape[:2])
+                frame = np.clip(np.round(grey), 0, 255).astype(np.uint8)
+                writer.write([np.repeat(frame[..., None], 3, axis=-1)])
+        finally:
+            writer.close()
     return poses
 
 
@@ -180,8 +179,8 @@ def write_board_videos(capture_path: str | os.PathLike, *, board: str = STUDIO_B
     """
     import json
 
-    from ..io.board import parse_board
     from ..cameras import camera_at
+    from ..io.board import parse_board
     from ..io.model_json import camera_to_dict
     from .studio import read_studio_model
 
@@ -204,8 +203,5 @@ def write_board_videos(capture_path: str | os.PathLike, *, board: str = STUDIO_B
         write_board_video(out / f"{lens_name}.mp4", camera, parsed, views=views, frames_per_view=frames_per_view,
                           fps=fps, seed=settings.seed if seed is None else seed, distance_m=(0.3, 0.7))
     table = {name: cameras for name, _, cameras in lenses.values()}
-    record = {"board": board, "fps": fps, "lenses": table}
-    tmp = out / ".lenses.json.partial"
-    tmp.write_text(json.dumps(record, indent=1) + "\n")
-    os.replace(tmp, out / "lenses.json")
+    write_json_atomic(out / "lenses.json", {"board": board, "fps": fps, "lenses": table})
     return table

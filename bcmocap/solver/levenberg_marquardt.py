@@ -181,7 +181,7 @@ class _SolverState(eqx.Module):
     terminate: jax.Array
     result: optx.RESULTS
     num_accepted_steps: jax.Array
-    non_finite: jax.Array  # int: NOT_NON_FINITE, or the check that stopped the solve
+    non_finite: jax.Array  # int: FINITE, or the check that stopped the solve (START_/SYSTEM_NOT_FINITE)
 
 
 def _model(cost: jax.Array, system: NormalEquations) -> optx.FunctionInfo.EvalGradHessian:
