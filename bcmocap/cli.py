@@ -12,10 +12,11 @@ from .calibrate.command import add_calibrate_command
 from .compilation_cache import enable_compilation_cache
 from .frontend.command import add_frontend_command
 from .frontend.init_command import add_init_command
+from .io.messages import one_line_error
 from .io.output_folder import output_folder
 from .kcs.command import add_kcs_command
 from .markers.command import add_markers_command
-from .pipeline.command import add_run_command
+from .pipeline.command import add_batch_command, add_run_command
 from .pipeline.view_command import add_view_command
 from .precision import enable_float64
 from .sim.studio_command import add_simulate_command
@@ -161,6 +162,7 @@ COMMANDS = [
     add_kcs_command,
     add_frontend_command,
     add_run_command,
+    add_batch_command,
     add_view_command,
     add_calibrate_command,
     add_init_command,
@@ -186,17 +188,6 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"bcmocap {args.command}: {one_line_error(exc)}", file=sys.stderr)
         return 2
-
-
-def one_line_error(exc: BaseException) -> str:
-    """``exc`` as one line: its message (or its type when it has none), newlines folded."""
-    if isinstance(exc, MemoryError):
-        return f"out of memory ({exc})" if str(exc) else "out of memory"
-    if isinstance(exc, OSError) and exc.strerror and exc.filename is not None:
-        text = f"{exc.filename}: {exc.strerror}"
-    else:
-        text = str(exc) or type(exc).__name__
-    return " ".join(text.split())
 
 
 if __name__ == "__main__":

@@ -320,3 +320,29 @@ def test_a_user_term_named_in_the_config_reaches_the_solve(simulated_run, tmp_pa
     with pytest.raises(ValueError, match="term factory 'user_terms_for_run:missing': module 'user_terms_for_run' has no 'missing'"):
         run_pipeline(fake, tmp_path / "other", broken, log=lines.append)
     assert not (tmp_path / "other" / "frontend").exists()
+
+
+def test_independent_windows_on_a_local_cluster_equal_those_without_one(simulated_run, tmp_path):
+    """solver.windows = "independent": the windows and seams are tasks on a LocalCluster of worker processes,
+    with the result of the same setting without a cluster, and close to the sequential solve."""
+    import shutil
+
+    from bcmocap.pipeline.cluster import open_executor
+
+    out, _, _, _, _, fake, config = simulated_run
+    independent = config.with_overrides({"solver.windows": "independent", "outputs.pictures": False})
+    motions, tasks = {}, {}
+    for name, spec in (("alone", None), ("cluster", "local:2")):
+        copy = tmp_path / name
+        shutil.copytree(out, copy)
+        lines = []
+        with open_executor(spec, log=lines.append) as executor:
+            run_pipeline(fake, copy, independent, log=lines.append, executor=executor)
+        assert any("solved independently" in line for line in lines)
+        motions[name], tasks[name] = load_motion(copy / "solve" / "motion.npz"), [t[0] for t in executor.tasks]
+    assert tasks["alone"] == tasks["cluster"] and {"window", "seam"} <= set(tasks["cluster"])
+    for field in ("root_position", "rotations"):
+        np.testing.assert_allclose(np.asarray(getattr(motions["cluster"], field)),
+                                   np.asarray(getattr(motions["alone"], field)), atol=1e-7)
+    sequential = load_motion(out / "solve" / "motion.npz")
+    assert np.max(np.abs(np.asarray(motions["alone"].root_position) - np.asarray(sequential.root_position))) < 0.01

@@ -35,9 +35,9 @@ def observe(skeleton, rig, motion, points, rng, sigma=0.5, outliers=0.0, camera_
         world_from_camera = world_from_camera @ SE3.exp(jnp.asarray(camera_offsets))
     cam_from_world = world_from_camera.inverse()
     n = len(points)
-    ids = np.full((T, rig.num_cameras, n), -1, np.int32)
-    pix = np.zeros((T, rig.num_cameras, n, 2))
-    w = np.zeros((T, rig.num_cameras, n))
+    ids = np.full((motion.num_frames, rig.num_cameras, n), -1, np.int32)
+    pix = np.zeros((motion.num_frames, rig.num_cameras, n, 2))
+    w = np.zeros((motion.num_frames, rig.num_cameras, n))
     for c in range(rig.num_cameras):
         cam = jax.tree.map(lambda a: a[c], rig.intrinsics)
         uv, valid = cam.project(transform_points(SE3(cam_from_world.wxyz_xyz[:, c, None]), points[None]))

@@ -21,10 +21,13 @@ Heavy modules are imported inside :func:`run_frontend`, so ``bcmocap --help`` st
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import functools
 import json
 import shutil
 import sys
 import time
+from pathlib import Path
 
 from ..atomic import write_json_atomic
 from ..io.output_folder import check_outside, locked_output, output_folder
@@ -128,7 +131,7 @@ def prepare_reference(capture, ref_dir, log=print):
 def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
                   max_features: int = 8000, offsets=None, homographies: bool = True, chunk_frames: int = 0,
                   registration: str = "global", max_measurements: int | None = None, points: str = "all",
-                  log=print) -> dict:
+                  log=print, map_tasks=None) -> dict:
     """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
     are given), through sync, features, registration and homographies, written under ``out``.
 
@@ -155,11 +158,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     import numpy as np
 
     from ..correspondence_store import write_store
-    from .register import RegistrationOptions
-    from .relative import extract_trial_features
     from .sync import given_offsets, synchronize
-    from .tracking import (TrackingOptions, rounds_for_the_rest, sift_for_homographies, states_for_rounds,
-                           track_after_rounds, track_trial)
 
     requested_frames = frames
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
@@ -172,53 +171,27 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     if registration not in ("tracking", "global"):
         raise ValueError(f"registration must be 'tracking' or 'global', got {registration!r}")
     clock = time.perf_counter()
-    if registration == "global":
-        features = extract_trial_features(capture, trial, stride=stride, starts=starts, num_frames=frames,
-                                          max_features=max_features, cache_dir=out / "features" / trial,
-                                          progress=_progress(f"{trial} features"))
-        count = len(features)
-        tracks = None
-    else:
-        options = TrackingOptions(registration=RegistrationOptions(max_features=max_features))
-        tracks, keyframe_features = track_trial(capture, trial, index, starts=starts, num_frames=frames, stride=stride,
-                                                options=options, cache_dir=out / "tracks" / trial,
-                                                progress=_progress(f"{trial} tracking"))
-        count = min(len(t.how) for t in tracks)
-        tracked = np.stack([t.registered[:count] for t in tracks], 1)
-        log(f"{trial}: tracking registered {100 * tracked.mean():.1f} % of {tracked.size} camera-frames "
-            f"({sum(int(t.keyframe[:count].sum()) for t in tracks)} keyframes)")
-    if not count:
-        raise ValueError(f"trial {trial!r}: no frames to register after the first clap (stride {stride})")
-    bounds = chunk_bounds(count, chunk_frames)
     settings = {"first_clap_frames": starts.tolist(), "stride": stride, "max_features": max_features,
                 "homographies": homographies, "registration": registration, "max_measurements": max_measurements,
                 **({} if points == "all" else {"points": points})}
+    job = TrialRegistration(capture, index, trial, Path(out), starts, frames, stride, max_features, homographies,
+                            registration, max_measurements, points, settings)
+    state = job.per_camera(log, map_tasks)
+    count = state.count
+    if not count:
+        raise ValueError(f"trial {trial!r}: no frames to register after the first clap (stride {stride})")
+    bounds = chunk_bounds(count, chunk_frames)
+    if map_tasks is not None and len(bounds) > 1:  # chunks are independent: register them as tasks, saved
+        todo = [k for k, (a, b) in enumerate(bounds)
+                if _saved_chunk(job.chunk_path(k), settings, [a, b])[0] is None]
+        if todo:
+            log(f"{trial}: {len(todo)} of {len(bounds)} chunks as tasks")
 
-    def chunk_inputs(a: int, b: int, progress_dir):
-        """``(features, initial, points, leave, after_rounds)`` of the processed frames ``a … b − 1`` for
-        :func:`_register_frames`."""
-        if tracks is None:
-            return features[a:b], None, None, None, None
-        *inputs, leave, partners = states_for_rounds(capture, trial, tracks, keyframe_features, index, starts=starts,
-                                                     stride=stride, first=a, stop=b, options=options, log=log)
+            def done(i, result):
+                for line in result:
+                    log(line)
 
-        def after_rounds(result, progress):
-            """The frames the rounds left: tracked from theirs, a second pass for the rest, SIFT for the
-            homographies of what is still left. Returns ``(registration, frames tracked)``."""
-            filled = track_after_rounds(capture, trial, result, starts=starts, stride=stride, first=a, options=options)
-            rest = int((leave & ~result.registered).sum())
-            result = rounds_for_the_rest(capture, trial, result, leave, partners, index, starts=starts, stride=stride,
-                                         first=a, max_features=max_features, progress=progress,
-                                         checkpoint=_checkpoint(progress_dir, "rest", settings, [a, b]))
-            extracted = sift_for_homographies(capture, trial, result, leave, starts=starts, stride=stride, first=a,
-                                              max_features=max_features) if homographies else 0
-            log(f"{trial}: frames {a}-{b - 1}: of the {int(leave.sum())} frames the rounds left, {filled} tracked "
-                f"from the frames they registered, {rest - int((leave & ~result.registered).sum())} of the {rest} "
-                f"others in a second pass; SIFT of {extracted} frames for the homographies")
-            return result, filled
-
-        return (*inputs, leave, after_rounds)
-
+            map_tasks(functools.partial(_chunk_task, job, bounds), todo, label=f"register {trial}", on_done=done)
     chunks = []
 
     def parts():
@@ -226,20 +199,12 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         before the next is made)."""
         for k, (a, b) in enumerate(bounds):
             label = trial if len(bounds) == 1 else f"{trial} chunk {k + 1}/{len(bounds)}"
-            saved = out / trial / "chunks" / f"{k:04d}"
+            saved = job.chunk_path(k)
             part, summary = _saved_chunk(saved, settings, [a, b]) if len(bounds) > 1 else (None, None)
             if part is not None:
                 log(f"{label}: reused {saved.with_suffix('.npz')}")
             else:
-                progress_dir = out / trial / "progress" / f"{k:04d}"
-                part, summary = _register_frames(*chunk_inputs(a, b, progress_dir), a, capture, index, stride,
-                                                 homographies, label, max_measurements, points,
-                                                 checkpoint=_checkpoint(progress_dir, "rounds", settings, [a, b]))
-                summary = {"frames": [a, b], "settings": settings, **summary}
-                if len(bounds) > 1:
-                    part.save(saved.with_suffix(".npz"))
-                    write_json_atomic(saved.with_suffix(".json"), summary)
-                    shutil.rmtree(progress_dir, ignore_errors=True)  # the chunk is saved
+                part, summary = job.register_chunk(state, k, a, b, label, log, save=len(bounds) > 1)
             chunks.append(summary)
             yield part
             del part  # before the next chunk is registered
@@ -283,6 +248,130 @@ def trial_settings(*, stride: int, frames: int | None, max_features: int, homogr
             **({} if points == "all" else {"points": str(points)})}  # registrations saved before the setting: "all"
 
 
+@dataclasses.dataclass(frozen=True)
+class _PerCamera:
+    """What :meth:`TrialRegistration.per_camera` found: SIFT of every frame (global registration) or the
+    camera tracks and their keyframe SIFT (tracking), and the frames every camera has."""
+
+    count: int
+    features: list | None = None
+    tracks: list | None = None
+    keyframe_features: list | None = None
+    options: object = None
+
+
+@dataclasses.dataclass(frozen=True)
+class TrialRegistration:
+    """The registration of one trial after sync, split into what a cluster can run as tasks: each camera's
+    SIFT or tracking (:meth:`per_camera`), then each chunk of frames (:meth:`register_chunk`). Holds paths
+    and small values only (it is pickled into every task); what a task makes is written under ``out``."""
+
+    capture: object
+    index: object
+    trial: str
+    out: Path
+    starts: object  # (C,) int64: each camera's first clap frame
+    frames: int
+    stride: int
+    max_features: int
+    homographies: bool
+    registration: str
+    max_measurements: int | None
+    points: str
+    settings: dict
+
+    def chunk_path(self, k: int) -> Path:
+        """Chunk ``k``'s saved correspondences and summary, without suffix (``.npz``, ``.json``)."""
+        return self.out / self.trial / "chunks" / f"{k:04d}"
+
+    def per_camera(self, log=print, map_tasks=None, progress: bool = True) -> _PerCamera:
+        """Each camera's SIFT (global) or track (tracking), computed or read from the caches under ``out``;
+        with ``map_tasks``, each camera not cached yet is one task."""
+        import numpy as np
+
+        from .register import RegistrationOptions
+        from .relative import extract_trial_features
+        from .tracking import TrackingOptions, track_trial
+
+        trial = self.trial
+        if self.registration == "global":
+            features = extract_trial_features(self.capture, trial, stride=self.stride, starts=self.starts,
+                                              num_frames=self.frames, max_features=self.max_features,
+                                              cache_dir=self.out / "features" / trial,
+                                              progress=_progress(f"{trial} features") if progress else None,
+                                              map_tasks=map_tasks)
+            return _PerCamera(len(features), features=features)
+        options = TrackingOptions(registration=RegistrationOptions(max_features=self.max_features))
+        tracks, keyframe_features = track_trial(self.capture, trial, self.index, starts=self.starts,
+                                                num_frames=self.frames, stride=self.stride, options=options,
+                                                cache_dir=self.out / "tracks" / trial,
+                                                progress=_progress(f"{trial} tracking") if progress else None,
+                                                map_tasks=map_tasks)
+        count = min(len(t.how) for t in tracks)
+        tracked = np.stack([t.registered[:count] for t in tracks], 1)
+        if progress:
+            log(f"{trial}: tracking registered {100 * tracked.mean():.1f} % of {tracked.size} camera-frames "
+                f"({sum(int(t.keyframe[:count].sum()) for t in tracks)} keyframes)")
+        return _PerCamera(count, tracks=tracks, keyframe_features=keyframe_features, options=options)
+
+    def _chunk_inputs(self, state: _PerCamera, a: int, b: int, progress_dir: Path, log):
+        """``(features, initial, points, leave, after_rounds)`` of the processed frames ``a … b − 1`` for
+        :func:`_register_frames`."""
+        from .tracking import rounds_for_the_rest, sift_for_homographies, states_for_rounds, track_after_rounds
+
+        if state.tracks is None:
+            return state.features[a:b], None, None, None, None
+        capture, trial, starts, stride, options = self.capture, self.trial, self.starts, self.stride, state.options
+        *inputs, leave, partners = states_for_rounds(capture, trial, state.tracks, state.keyframe_features,
+                                                     self.index, starts=starts, stride=stride, first=a, stop=b,
+                                                     options=options, log=log)
+
+        def after_rounds(result, progress):
+            """The frames the rounds left: tracked from theirs, a second pass for the rest, SIFT for the
+            homographies of what is still left. Returns ``(registration, frames tracked)``."""
+            filled = track_after_rounds(capture, trial, result, starts=starts, stride=stride, first=a, options=options)
+            rest = int((leave & ~result.registered).sum())
+            result = rounds_for_the_rest(capture, trial, result, leave, partners, self.index, starts=starts,
+                                         stride=stride, first=a, max_features=self.max_features, progress=progress,
+                                         checkpoint=_checkpoint(progress_dir, "rest", self.settings, [a, b]))
+            extracted = sift_for_homographies(capture, trial, result, leave, starts=starts, stride=stride, first=a,
+                                              max_features=self.max_features) if self.homographies else 0
+            log(f"{trial}: frames {a}-{b - 1}: of the {int(leave.sum())} frames the rounds left, {filled} tracked "
+                f"from the frames they registered, {rest - int((leave & ~result.registered).sum())} of the {rest} "
+                f"others in a second pass; SIFT of {extracted} frames for the homographies")
+            return result, filled
+
+        return (*inputs, leave, after_rounds)
+
+    def register_chunk(self, state: _PerCamera, k: int, a: int, b: int, label: str, log=print, save: bool = True,
+                       progress: bool = True):
+        """Register chunk ``k`` (processed frames ``a … b − 1``): ``(Correspondences, summary)``; with ``save``
+        written to :meth:`chunk_path` (its progress, saved as it goes under ``out/<trial>/progress/``, is
+        then removed)."""
+        progress_dir = self.out / self.trial / "progress" / f"{k:04d}"
+        part, summary = _register_frames(*self._chunk_inputs(state, a, b, progress_dir, log), a, self.capture,
+                                         self.index, self.stride, self.homographies, label, self.max_measurements,
+                                         self.points, checkpoint=_checkpoint(progress_dir, "rounds", self.settings,
+                                                                             [a, b]), progress=progress)
+        summary = {"frames": [a, b], "settings": self.settings, **summary}
+        if save:
+            saved = self.chunk_path(k)
+            part.save(saved.with_suffix(".npz"))
+            write_json_atomic(saved.with_suffix(".json"), summary)
+            shutil.rmtree(progress_dir, ignore_errors=True)  # the chunk is saved
+        return part, summary
+
+
+def _chunk_task(job: TrialRegistration, bounds: list, k: int) -> list[str]:
+    """A task on a cluster: register and save chunk ``k`` of ``job`` (the per-camera work is read from its
+    caches); returns the log lines it wrote."""
+    lines: list[str] = []
+    state = job.per_camera(lines.append, progress=False)
+    a, b = bounds[k]
+    job.register_chunk(state, k, a, b, f"{job.trial} chunk {k + 1}/{len(bounds)}", lines.append, progress=False)
+    return lines
+
+
 def chunk_bounds(num_frames: int, chunk_frames: int) -> list[tuple[int, int]]:
     """``[(start, stop), …]``: the fewest chunks of at most ``chunk_frames`` frames, of equal length within
     one frame (no short tail chunk); ``chunk_frames`` 0 gives one chunk."""
@@ -319,7 +408,7 @@ def _checkpoint(folder, stage: str, settings: dict, frames: list[int]):
 
 def _register_frames(features, initial, initial_points, leave, after_rounds, first: int, capture, index, stride: int,
                      homographies: bool, label: str, max_measurements: int | None, points: str = "all",
-                     checkpoint=None):
+                     checkpoint=None, progress: bool = True):
     """Registration (from ``initial`` when given, :func:`~.relative.register_capture`) and homographies of the
     processed frames ``first … first + len(features) − 1``: ``(Correspondences, summary)``; the registration's
     points and tracks are released on return. The rounds skip the frames in ``leave`` ((T, C) bool or None);
@@ -333,8 +422,11 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
 
     stages: dict[str, object] = {}
 
+    show = progress
+
     def progress(stage, done, total):
-        stages.setdefault(stage, _progress(f"{label} {stage}"))(done, total)
+        if show:
+            stages.setdefault(stage, _progress(f"{label} {stage}"))(done, total)
 
     cameras = [c.intrinsics for c in capture.cameras]
     # After tracking, many frames may be left: only the pairs their new points come from are matched.

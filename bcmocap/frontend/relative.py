@@ -242,7 +242,7 @@ class CaptureRegistration:
 
 def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None, num_frames: int | None = None,
                            max_features: int = 8000, cache_dir=None, workers: int | None = None,
-                           progress: Callable[[int, int], None] | None = None) -> list:
+                           progress: Callable[[int, int], None] | None = None, map_tasks=None) -> list:
     """SIFT features of every ``stride``-th frame of every camera of a trial.
 
     Args:
@@ -253,11 +253,13 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
             in memory; they are read back instead of recomputed when start, stride, frame count and
             ``max_features`` are the same. Without it they are kept in memory.
         workers: cameras processed at once (threads; default: the CPU count).
+        map_tasks: ``map_tasks(fn, items, label=, on_done=)`` running independent calls elsewhere (a cluster);
+            with ``cache_dir``, each camera's SIFT is one such call filling its cache folder, read back here.
 
     Returns:
         ``features[t][c] = (keypoints (N, 2), descriptors (N, 128) uint8)``.
     """
-    from pathlib import Path
+    import functools
 
     names = capture.camera_names
     starts = np.zeros(len(names), np.int64) if starts is None else np.asarray(starts, np.int64)
@@ -267,37 +269,56 @@ def extract_trial_features(capture, trial: str, *, stride: int = 1, starts=None,
         num_frames = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(names, starts))
     per_video = max(0, -(-num_frames // stride))
     tick = ProgressCounter(len(names) * per_video, progress)
+    one_camera = functools.partial(_camera_features, capture, trial, stride, num_frames, max_features, cache_dir)
+    if map_tasks is not None and cache_dir is not None:
+        map_tasks(functools.partial(_camera_features_task, one_camera), list(zip(names, starts.tolist())),
+                  label=f"sift {trial}", on_done=lambda i, done: tick(done))
+        tick = ProgressCounter(0, None)  # every camera is in its cache now: read back without counting again
 
-    def sift_frames(name: str, start: int):
+    # OpenCV releases the GIL while decoding and in SIFT, so threads run the cameras in parallel.
+    with ThreadPoolExecutor(max_workers=_workers(workers)) as pool:
+        per_camera = list(pool.map(lambda name, start: one_camera(name, start, tick), names, starts.tolist()))
+    count = min(len(f) for f in per_camera)
+    return [[per_camera[c][t] for c in range(len(names))] for t in range(count)]
+
+
+def _camera_features_task(one_camera, name_start: tuple[str, int]) -> int:
+    """A task of :func:`extract_trial_features` on a cluster: one camera's SIFT into its cache; the frames."""
+    return len(one_camera(*name_start, None))
+
+
+def _camera_features(capture, trial: str, stride: int, num_frames: int, max_features: int, cache_dir,
+                     name: str, start: int, tick) -> list:
+    """One camera's features (:func:`extract_trial_features`), from its cache folder when it holds them;
+    ``tick(n)`` (or None) counts processed frames."""
+    from pathlib import Path
+
+    count = tick or (lambda n: None)
+    per_video = max(0, -(-num_frames // stride))
+
+    def sift_frames():
         for _, gray in capture.frames(trial, name, stride=stride, start=int(start),
                                       stop=int(start) + num_frames, gray=True):
             kp, desc = extract_sift(gray, max_features=max_features)
             yield kp[:, :2].astype(np.float64), desc
-            tick(1)
+            count(1)
 
-    def one_camera(name: str, start: int) -> list:
-        if cache_dir is None:
-            feats = list(sift_frames(name, start))
-        else:
-            settings = {"start": int(start), "stride": int(stride), "num_frames": int(num_frames),
-                        "max_features": int(max_features)}
-            folder = Path(cache_dir) / name
-            feats = read_camera_features(folder, settings)
-            if feats is not None:
-                tick(per_video)
-                return feats
-            write_camera_features(folder, settings, sift_frames(name, start))
-            feats = read_camera_features(folder, settings)
-            if feats is None:
-                raise OSError(f"{folder}: features written but not readable")
-        tick(per_video - len(feats))
-        return feats
-
-    # OpenCV releases the GIL while decoding and in SIFT, so threads run the cameras in parallel.
-    with ThreadPoolExecutor(max_workers=_workers(workers)) as pool:
-        per_camera = list(pool.map(one_camera, names, starts.tolist()))
-    count = min(len(f) for f in per_camera)
-    return [[per_camera[c][t] for c in range(len(names))] for t in range(count)]
+    if cache_dir is None:
+        feats = list(sift_frames())
+    else:
+        settings = {"start": int(start), "stride": int(stride), "num_frames": int(num_frames),
+                    "max_features": int(max_features)}
+        folder = Path(cache_dir) / name
+        feats = read_camera_features(folder, settings)
+        if feats is not None:
+            count(per_video)
+            return feats
+        write_camera_features(folder, settings, sift_frames())
+        feats = read_camera_features(folder, settings)
+        if feats is None:
+            raise OSError(f"{folder}: features written but not readable")
+    count(per_video - len(feats))
+    return feats
 
 
 class ProgressCounter:

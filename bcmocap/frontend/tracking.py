@@ -509,7 +509,7 @@ def track_camera(frames: Iterable[np.ndarray], cam, index: ReferenceIndex,
 
 def track_trial(capture, trial: str, index: ReferenceIndex, *, starts, num_frames: int, stride: int = 1,
                 options: TrackingOptions = TrackingOptions(), cache_dir=None, workers: int | None = None,
-                progress: Callable[[int, int], None] | None = None) -> tuple[list, list]:
+                progress: Callable[[int, int], None] | None = None, map_tasks=None) -> tuple[list, list]:
     """Track every camera of a trial (:func:`track_camera`), cameras in parallel.
 
     Args:
@@ -521,62 +521,85 @@ def track_trial(capture, trial: str, index: ReferenceIndex, *, starts, num_frame
             recomputed when the settings match.
         workers: cameras tracked at once (threads; OpenCV and pycolmap release the GIL).
         progress: ``progress(done, total)`` over all processed images.
+        map_tasks: ``map_tasks(fn, items, label=, on_done=)`` running independent calls elsewhere (a cluster,
+            :class:`bcmocap.pipeline.cluster.Executor`); with ``cache_dir``, each camera is tracked as one
+            such call that fills its cache folder, and the tracks are then read from the caches here.
 
     Returns:
         ``(tracks, features)``: per camera its :class:`CameraTrack` and its per-frame keyframe SIFT
         ``[(keypoints (N, 2), descriptors (N, 128) uint8)]`` (memory-mapped with ``cache_dir``).
     """
+    import functools
     import os
     from concurrent.futures import ThreadPoolExecutor
-    from pathlib import Path
 
-    from ..io.colmap import to_pycolmap
-    from .features import read_camera_features, write_camera_features
     from .relative import ProgressCounter
 
     names = capture.camera_names
     starts = np.asarray(starts, np.int64)
     per_video = max(0, -(-num_frames // stride))
     tick = ProgressCounter(len(names) * per_video, progress)
-
-    def one_camera(c: int):
-        name, start = names[c], int(starts[c])
-        cam = to_pycolmap(capture.cameras[c].intrinsics)
-        tracker = _Tracker(cam, index, options, id_base=(c + 1) << 40)
-
-        def steps():
-            for _, gray in capture.frames(trial, name, stride=stride, start=start, stop=start + num_frames, gray=True):
-                yield tracker.step(gray)
-                tick(1)
-
-        if cache_dir is None:
-            feats = list(steps())
-            return tracker.result(), feats
-        settings = {"start": start, "stride": int(stride), "num_frames": int(num_frames), "tracking": options.to_dict()}
-        folder = Path(cache_dir) / name
-        feats = read_camera_features(folder, settings)
-        if feats is not None and (folder / "track.npz").is_file():
-            try:
-                track = CameraTrack.load(folder / "track.npz")
-            except (OSError, ValueError, KeyError):
-                track = None
-            if track is not None and len(track.how) == len(feats):
-                tick(len(feats))
-                return track, feats
-        write_camera_features(folder, settings, steps())
-        track = tracker.result()
-        tmp = folder / ".track.npz"
-        track.save(tmp)
-        os.replace(tmp, folder / "track.npz")
-        feats = read_camera_features(folder, settings)
-        if feats is None:
-            raise OSError(f"{folder}: features written but not readable")
-        return track, feats
-
+    one_camera = functools.partial(_track_one_camera, capture, trial, index, starts, num_frames, stride, options,
+                                   cache_dir)
+    if map_tasks is not None and cache_dir is not None:
+        map_tasks(functools.partial(_track_camera_task, one_camera), range(len(names)), label=f"track {trial}",
+                  on_done=lambda i, done: tick(done))
+        tick = ProgressCounter(0, None)  # every camera is in its cache now: read back without counting again
     count = workers if workers is not None else (os.cpu_count() or 1)
     with ThreadPoolExecutor(max_workers=max(1, count)) as pool:
-        done = list(pool.map(one_camera, range(len(names))))
+        done = list(pool.map(lambda c: one_camera(c, tick), range(len(names))))
     return [d[0] for d in done], [d[1] for d in done]
+
+
+def _track_camera_task(one_camera, c: int) -> int:
+    """A task of :func:`track_trial` on a cluster: track camera ``c`` into its cache; the images processed."""
+    track, _ = one_camera(c, None)
+    return len(track.how)
+
+
+def _track_one_camera(capture, trial: str, index: ReferenceIndex, starts: np.ndarray, num_frames: int, stride: int,
+                      options: TrackingOptions, cache_dir, c: int, tick) -> tuple:
+    """``(CameraTrack, keyframe features)`` of camera ``c`` (:func:`track_trial`), from its cache folder when
+    it holds them for these settings; ``tick(n)`` (or None) counts processed images."""
+    import os
+    from pathlib import Path
+
+    from ..io.colmap import to_pycolmap
+    from .features import read_camera_features, write_camera_features
+
+    name, start = capture.camera_names[c], int(starts[c])
+    cam = to_pycolmap(capture.cameras[c].intrinsics)
+    tracker = _Tracker(cam, index, options, id_base=(c + 1) << 40)
+    count = tick or (lambda n: None)
+
+    def steps():
+        for _, gray in capture.frames(trial, name, stride=stride, start=start, stop=start + num_frames, gray=True):
+            yield tracker.step(gray)
+            count(1)
+
+    if cache_dir is None:
+        feats = list(steps())
+        return tracker.result(), feats
+    settings = {"start": start, "stride": int(stride), "num_frames": int(num_frames), "tracking": options.to_dict()}
+    folder = Path(cache_dir) / name
+    feats = read_camera_features(folder, settings)
+    if feats is not None and (folder / "track.npz").is_file():
+        try:
+            track = CameraTrack.load(folder / "track.npz")
+        except (OSError, ValueError, KeyError):
+            track = None
+        if track is not None and len(track.how) == len(feats):
+            count(len(feats))
+            return track, feats
+    write_camera_features(folder, settings, steps())
+    track = tracker.result()
+    tmp = folder / ".track.npz"
+    track.save(tmp)
+    os.replace(tmp, folder / "track.npz")
+    feats = read_camera_features(folder, settings)
+    if feats is None:
+        raise OSError(f"{folder}: features written but not readable")
+    return track, feats
 
 
 def frames_for_rounds(registered: np.ndarray, gap: int, partners: list | None = None) -> np.ndarray:

@@ -7,6 +7,9 @@ stages are reused, the solver continues at its next window; changed settings red
 affect. Settings: a TOML or JSON file (``--config``), then the flags below; the settings used are saved
 in ``DIR/config.json``.
 
+``bcmocap batch CAPTURE... --out DIR`` runs many captures the same way, each into ``DIR/<name>/``, on one
+cluster, and prints a summary table.
+
 Heavy modules are imported inside the command, so ``bcmocap --help`` stays fast.
 """
 
@@ -33,6 +36,11 @@ FLAGS = {
     "root_smoothness": ("solver.root_smoothness", float, "λ_O (px² per m² of frame-to-frame root change)"),
     "joint_smoothness": ("solver.joint_smoothness", float, "λ_A (px² per rad² of joint-angle change)"),
     "loss": ("solver.loss", str, "robust loss: none, huber or cauchy"),
+    "windows": ("solver.windows", str, "sequential (default: each window from the one before) or independent "
+                                       "(windows solved at once on a cluster, joined, seams solved again)"),
+    "cluster": ("cluster.address", str, "local:N (N worker processes on this machine) or tcp://HOST:PORT (a running "
+                                        "Dask scheduler): the frontend's cameras and chunks, and independent "
+                                        "windows, run as tasks there (default: this process)"),
 }
 
 
@@ -42,12 +50,7 @@ def add_run_command(sub: argparse._SubParsersAction) -> None:
                          description=__doc__.split("\n\n", 1)[1].rsplit("\n\nHeavy", 1)[0])
     cmd.add_argument("capture", help="capture folder (the layout `bcmocap simulate` writes)")
     cmd.add_argument("--out", required=True, help="output folder (created; a run found there is resumed)")
-    cmd.add_argument("--config", help="settings file (.toml or .json), see bcmocap.pipeline.config")
-    for flag, (_, kind, text) in FLAGS.items():
-        cmd.add_argument(f"--{flag.replace('_', '-')}", dest=flag, type=kind, default=None, help=text)
-    cmd.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
-    cmd.add_argument("--stop-after", choices=["frontend", "world", "skeleton", "initial", "solve", "outputs"],
-                     help="stop after this stage")
+    _add_settings(cmd, "settings file (.toml or .json), see bcmocap.pipeline.config", "stop after this stage")
 
     def run(args: argparse.Namespace) -> int:
         return run_command(args)
@@ -55,13 +58,37 @@ def add_run_command(sub: argparse._SubParsersAction) -> None:
     cmd.set_defaults(run=run)
 
 
-def run_command(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .run import run_pipeline
+def add_batch_command(sub: argparse._SubParsersAction) -> None:
+    """Register ``bcmocap batch`` on the CLI's subparsers."""
+    from .batch import __doc__ as batch_doc
 
-    out = output_folder("run", args.out)
+    cmd = sub.add_parser("batch", help="many capture folders through `bcmocap run` on one cluster, with a summary",
+                         description=batch_doc.split("\n\n", 1)[1])
+    cmd.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture folders")
+    cmd.add_argument("--out", required=True, help="output folder: one run folder per capture in it, and batch.json")
+    _add_settings(cmd, "settings file (.toml or .json) for every capture, see bcmocap.pipeline.config",
+                  "stop each capture's run after this stage")
+    cmd.set_defaults(run=batch_command)
+
+
+def _add_settings(cmd: argparse.ArgumentParser, config_help: str, stop_help: str) -> None:
+    """``--config``, the setting flags, ``--no-pictures`` and ``--stop-after`` of run and batch."""
+    cmd.add_argument("--config", help=config_help)
+    for flag, (_, kind, text) in FLAGS.items():
+        cmd.add_argument(f"--{flag.replace('_', '-')}", dest=flag, type=kind, default=None, help=text)
+    cmd.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
+    cmd.add_argument("--stop-after", choices=["frontend", "world", "skeleton", "initial", "solve", "outputs"],
+                     help=stop_help)
+
+
+def _out_and_config(command: str, args: argparse.Namespace):
+    """``(out, config)``: ``--out`` and the config file overridden by the flags; None after saying on stderr
+    what is wrong with them. Turns on JAX's compilation cache."""
+    from .config import load_config
+
+    out = output_folder(command, args.out)
     if out is None:
-        return 2
+        return None
     try:
         config = load_config(args.config)
         overrides = {key: getattr(args, flag) for flag, (key, _, _) in FLAGS.items() if getattr(args, flag) is not None}
@@ -69,9 +96,36 @@ def run_command(args: argparse.Namespace) -> int:
             overrides["outputs.pictures"] = False
         config = config.with_overrides(overrides)
     except ValueError as exc:
-        print(f"bcmocap run: {exc}", file=sys.stderr)
-        return 2
+        print(f"bcmocap {command}: {exc}", file=sys.stderr)
+        return None
     enable_compilation_cache()
+    return out, config
+
+
+def batch_command(args: argparse.Namespace) -> int:
+    from .batch import run_batch, summary_table
+    from .cluster import open_executor
+
+    prepared = _out_and_config("batch", args)
+    if prepared is None:
+        return 2
+    out, config = prepared
+    with open_executor(config.cluster.address, log=lambda line: print(line, flush=True)) as executor:
+        rows = run_batch(args.captures, out, config, executor, log=lambda line: print(line, flush=True),
+                         stop_after=args.stop_after)
+    print(summary_table(rows))
+    failed = sum(not r["ok"] for r in rows)
+    print(f"{len(rows) - failed} of {len(rows)} captures done; summary in {out / 'batch.json'}", flush=True)
+    return 1 if failed else 0
+
+
+def run_command(args: argparse.Namespace) -> int:
+    from .run import run_pipeline
+
+    prepared = _out_and_config("run", args)
+    if prepared is None:
+        return 2
+    out, config = prepared
     try:
         run_pipeline(args.capture, out, config, log=lambda line: print(line, flush=True), stop_after=args.stop_after)
     except ValueError as exc:

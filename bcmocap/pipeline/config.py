@@ -30,6 +30,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     [solver]
     window = 60               # frames per window, 2 to 100000
     overlap = 10              # frames shared by consecutive windows, 0 to window - 1
+    windows = "sequential"    # sequential: each window starts from the one before (the paper) | independent:
+                              # each from the initial motion, joined over the overlaps, then a pass over the
+                              # seams (tasks on a cluster; bcmocap.solver.parallel)
     root_smoothness = 1000.0  # λ_O, px² per m² (and per rad²) of frame-to-frame change
     joint_smoothness = 10.0   # λ_A, px² per rad²
     homography = 1.0
@@ -50,6 +53,10 @@ values of the wrong type (also inside lists), numbers that are not finite and va
 
     [outputs]
     pictures = true
+
+    [cluster]
+    address = ""              # "" (this process) | "local:N" (N worker processes here) | "tcp://HOST:PORT" (a
+                              # running Dask scheduler); never changes a result (see bcmocap.pipeline.cluster)
 """
 
 from __future__ import annotations
@@ -59,6 +66,8 @@ import json
 import math
 import tomllib
 from pathlib import Path
+
+from .cluster import parse_cluster
 
 TERMS = ("reprojection", "homography", "smoothness")
 LOSSES = ("none", "huber", "cauchy")
@@ -101,6 +110,7 @@ class UserTermConfig:
 class SolverConfig:
     window: int = 60
     overlap: int = 10
+    windows: str = "sequential"
     root_smoothness: float = 1e3
     joint_smoothness: float = 1e1
     homography: float = 1.0
@@ -121,6 +131,11 @@ class OutputsConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ClusterConfig:
+    address: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
 class RunConfig:
     """Everything ``bcmocap run`` can be told (see the module docstring for the meaning of each key)."""
 
@@ -128,6 +143,7 @@ class RunConfig:
     skeleton: SkeletonConfig = SkeletonConfig()
     solver: SolverConfig = SolverConfig()
     outputs: OutputsConfig = OutputsConfig()
+    cluster: ClusterConfig = ClusterConfig()
 
     def __post_init__(self):
         for section in dataclasses.fields(self):
@@ -154,6 +170,8 @@ class RunConfig:
         _check(k.degenerate in ("raise", "hinge"), "skeleton.degenerate", "must be 'raise' or 'hinge'", k.degenerate)
         _check(2 <= s.window <= MAX_WINDOW, "solver.window", f"must be in [2, {MAX_WINDOW}]", s.window)
         _check(0 <= s.overlap < s.window, "solver.overlap", "must be in [0, window)", s.overlap)
+        _check(s.windows in ("sequential", "independent"), "solver.windows", "must be 'sequential' or 'independent'",
+               s.windows)
         _check(isinstance(s.refine_rounds, int) and 0 <= s.refine_rounds <= 5, "solver.refine_rounds", "must be an integer in [0, 5]",
                s.refine_rounds)
         for name in ("root_smoothness", "joint_smoothness", "homography", "loss_scale"):
@@ -167,6 +185,10 @@ class RunConfig:
         bad = [t for t in s.terms if t not in TERMS]
         _check(not bad, "solver.terms", f"must be a subset of {TERMS}", list(s.terms))
         _check("reprojection" in s.terms, "solver.terms", "must include 'reprojection'", list(s.terms))
+        try:
+            parse_cluster(self.cluster.address)
+        except ValueError as exc:
+            raise ValueError(f"config: cluster.address: {exc}") from None
 
     def to_dict(self) -> dict:
         return json.loads(json.dumps(dataclasses.asdict(self)))

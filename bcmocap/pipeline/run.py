@@ -18,11 +18,14 @@ ones after it):
 6. ``outputs`` — :mod:`.outputs`: BVH, PLY, the reference model in COLMAP's format, NPZ/CSV,
    pictures, and ``metrics.json`` when the capture has ground truth.
 
-Nothing in the capture folder is written; every output file is written atomically.
+Nothing in the capture folder is written; every output file is written atomically. With a cluster
+(``--cluster``, :mod:`.cluster`) the frontend's cameras and chunks and (``solver.windows = "independent"``)
+the solver's windows are Dask tasks; the results are those of the same settings without one.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
 import hashlib
@@ -37,6 +40,7 @@ import numpy as np
 
 from ..atomic import atomic_path, write_json_atomic
 from ..io.output_folder import check_outside, locked_output
+from .cluster import Executor, open_executor
 from .config import RunConfig
 
 STAGES = ("frontend", "world", "skeleton", "initial", "solve", "outputs")
@@ -76,6 +80,7 @@ class RunContext:
     config: RunConfig
     out: Path
     log: Callable[[str], None]
+    executor: Executor = dataclasses.field(default_factory=Executor)  # this process, or a cluster
 
     def path(self, *parts: str) -> Path:
         return self.out.joinpath(*parts)
@@ -111,9 +116,18 @@ class RunLog:
         write_json_atomic(self.path, self.data)
 
 
+#: Settings added after runs were made, left out of the fingerprints at these (default) values, so that those
+#: runs stay reusable.
+_LATER_DEFAULTS = {"solver": {"windows": "sequential"}}
+
+
 def fingerprints(config: RunConfig) -> dict[str, str]:
     """Per stage, a hash of the settings it and the stages before it depend on."""
     data, out, acc = config.to_dict(), {}, []
+    for section, defaults in _LATER_DEFAULTS.items():
+        for key, value in defaults.items():
+            if data[section][key] == value:
+                del data[section][key]
     for stage in STAGES:
         acc += [data[s] for s in _STAGE_SECTIONS[stage]]
         out[stage] = hashlib.sha256(json.dumps(acc, sort_keys=True).encode()).hexdigest()[:16]
@@ -121,7 +135,8 @@ def fingerprints(config: RunConfig) -> dict[str, str]:
 
 
 def run_pipeline(capture_dir: str | Path, out: str | Path, config: RunConfig = RunConfig(), *,
-                 log: Callable[[str], None] = print, stop_after: str | None = None) -> dict:
+                 log: Callable[[str], None] = print, stop_after: str | None = None,
+                 executor: Executor | None = None) -> dict:
     """Run (or resume) every stage; return the run log's content.
 
     Args:
@@ -130,6 +145,8 @@ def run_pipeline(capture_dir: str | Path, out: str | Path, config: RunConfig = R
         config: the settings (saved as ``DIR/config.json``).
         log: receives one line per event (also appended to ``DIR/log.txt``).
         stop_after: stop after this stage (for inspection, or to split a long run).
+        executor: where independent work runs (:mod:`~bcmocap.pipeline.cluster`; ``bcmocap batch`` shares
+            one between captures); default: the cluster of ``config.cluster.address``, opened for this run.
 
     Raises:
         ValueError: an unreadable capture, a missing subject description, bad settings; naming the
@@ -147,8 +164,10 @@ def run_pipeline(capture_dir: str | Path, out: str | Path, config: RunConfig = R
     out = Path(out)
     check_outside(out, capture.path)
     out.mkdir(parents=True, exist_ok=True)
-    with locked_output(out):
-        return _run_stages(capture, out, config, log, stop_after)
+    with locked_output(out), contextlib.ExitStack() as stack:
+        if executor is None:
+            executor = stack.enter_context(open_executor(config.cluster.address, log=log))
+        return _run_stages(capture, out, config, log, stop_after, executor)
 
 
 def _append_line(path: Path, line: str) -> None:
@@ -163,7 +182,8 @@ def _append_line(path: Path, line: str) -> None:
         fh.write(line + "\n")
 
 
-def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None], stop_after: str | None) -> dict:
+def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None], stop_after: str | None,
+                executor: Executor) -> dict:
     """:func:`run_pipeline` once the output folder is locked."""
     run_log = RunLog(out, capture.path)
     log_file = out / "log.txt"
@@ -172,7 +192,7 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
         log(line)
         _append_line(log_file, f"{datetime.datetime.now().isoformat(timespec='seconds')} {line}")
 
-    ctx = RunContext(capture, config, out, say)
+    ctx = RunContext(capture, config, out, say, executor)
     if not run_log.finished("skeleton", fingerprints(config)["skeleton"]):
         _topology(ctx)  # a capture without its subject description fails now, not after the frontend
         _rest_seconds(ctx)
@@ -203,6 +223,10 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
 
 # ---- stages -------------------------------------------------------------------------------------
 def _stage_frontend(ctx: RunContext) -> dict:
+    """Both trials registered (reused when saved with the same settings); on a cluster side by side, each
+    handing its cameras and chunks to the cluster as tasks."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from ..frontend.command import prepare_reference, process_trial, trial_settings
     from ..frontend.register import reference_index
 
@@ -211,8 +235,7 @@ def _stage_frontend(ctx: RunContext) -> dict:
     if missing:
         raise ValueError(f"{ctx.capture.path}: no trial {missing[0]!r} (bcmocap run needs 'rom' and 'capture')")
     folder = ctx.path("frontend")
-    index = None
-    reports = {}
+    reports, todo = {}, []
     for trial, stride, homographies in (("rom", f.rom_stride, False), ("capture", f.stride, True)):
         done = folder / trial / "registration.json"
         settings = trial_settings(stride=stride, frames=f.frames or None, max_features=f.max_features,
@@ -224,14 +247,23 @@ def _stage_frontend(ctx: RunContext) -> dict:
                 ctx.log(f"{trial}: registration found in {done}, reused")
                 reports[trial] = report
                 continue
-        if index is None:
-            index = reference_index(prepare_reference(ctx.capture, folder / "reference", log=ctx.log))
-        reports[trial] = process_trial(ctx.capture, index, trial, folder, stride=stride, frames=f.frames or None,
-                                       max_features=f.max_features, homographies=homographies,
-                                       chunk_frames=f.chunk_frames, registration=f.registration,
-                                       max_measurements=f.max_measurements or None, points=f.points, log=ctx.log)
-    return {trial: {"registered_fraction": r["registered_fraction"], "frames": r["frames"]}
-            for trial, r in reports.items()}
+        todo.append((trial, stride, homographies))
+    if todo:
+        index = reference_index(prepare_reference(ctx.capture, folder / "reference", log=ctx.log))
+        map_tasks = ctx.executor.map if ctx.executor.distributed else None
+
+        def register(trial: str, stride: int, homographies: bool) -> dict:
+            return process_trial(ctx.capture, index, trial, folder, stride=stride, frames=f.frames or None,
+                                 max_features=f.max_features, homographies=homographies,
+                                 chunk_frames=f.chunk_frames, registration=f.registration,
+                                 max_measurements=f.max_measurements or None, points=f.points, log=ctx.log,
+                                 map_tasks=map_tasks)
+
+        with ThreadPoolExecutor(max_workers=len(todo) if map_tasks is not None else 1) as pool:
+            for (trial, *_), report in zip(todo, pool.map(lambda job: register(*job), todo)):
+                reports[trial] = report
+    return {trial: {"registered_fraction": reports[trial]["registered_fraction"], "frames": reports[trial]["frames"]}
+            for trial in ("rom", "capture")}
 
 
 def _subject(ctx: RunContext) -> dict:
@@ -446,7 +478,7 @@ def _stage_solve(ctx: RunContext) -> dict:
     (:class:`~bcmocap.solver.objective.StoredProblem`), so memory does not grow with the trial."""
     from ..correspondence_store import CorrespondenceStore
     from ..io.model_json import rig_to_dict, skeleton_to_dict
-    from ..solver import SolverOptions, refine_model, solve
+    from ..solver import SolverOptions, refine_model, solve, solve_windows_independently
     from ..solver.objective import StoredProblem
     from ..solver.solve import window_starts
 
@@ -474,8 +506,14 @@ def _stage_solve(ctx: RunContext) -> dict:
         save_motion(checkpoint_path, so_far.motion, **_solved_variables(so_far))
         write_json_atomic(reports_path, {"fingerprint": fingerprints(ctx.config)["solve"], "reports": reports})
 
-    solution = solve(problem, initial, options, progress=True, skip_windows=skip, checkpoint=save,
-                     initial_statics=statics, initial_frame_variables=frame_variables)
+    if s.windows == "independent":  # every window from the initial motion: tasks on a cluster (no checkpoint)
+        ctx.log(f"solve: {len(window_starts(corr.num_frames, min(s.window, corr.num_frames), s.overlap))} windows "
+                f"solved independently{' on the cluster' if ctx.executor.distributed else ''}, then their seams")
+        solution = solve_windows_independently(problem, initial, options, map=_window_map(ctx.executor))
+        reports = [dataclasses.asdict(r) for r in solution.reports]
+    else:
+        solution = solve(problem, initial, options, progress=True, skip_windows=skip, checkpoint=save,
+                         initial_statics=statics, initial_frame_variables=frame_variables)
     refinements = []
     for k in range(1, s.refine_rounds + 1):  # the model refined on the same problem, then solved again
         ctx.log(f"solve: refinement round {k} of {s.refine_rounds} (bone offsets, mounts, hinge axes, with the motion)")
@@ -484,7 +522,10 @@ def _stage_solve(ctx: RunContext) -> dict:
         ctx.log(f"solve: refinement moved offsets ≤ {1e3 * refinement.report.offset_change_m:.2f} mm, mounts ≤ "
                 f"{1e3 * refinement.report.mount_translation_change_m:.2f} mm / {refinement.report.mount_rotation_change_deg:.3f}°")
         problem = dataclasses.replace(problem, skeleton=refinement.skeleton, rig=refinement.rig)
-        solution = solve(problem, refinement.motion, options, progress=True)
+        if s.windows == "independent":
+            solution = solve_windows_independently(problem, refinement.motion, options, map=_window_map(ctx.executor))
+        else:
+            solution = solve(problem, refinement.motion, options, progress=True)
     for name in ("skeleton.json", "rig.json"):  # a refined model lives in solve/ (a rerun without refinement drops it)
         ctx.path("solve", name).unlink(missing_ok=True)
     if refinements:
@@ -493,6 +534,17 @@ def _stage_solve(ctx: RunContext) -> dict:
     save_motion(ctx.path("solve", "motion.npz"), solution.motion, **_solved_variables(solution))
     write_json_atomic(ctx.path("solve", "reports.json"), {"windows": reports, "refinements": refinements})
     return {"windows": len(reports), "converged": all(r["converged"] for r in reports), "refinement_rounds": len(refinements)}
+
+
+def _window_map(executor: Executor):
+    """``map(fn, starts)`` for :func:`~bcmocap.solver.solve_windows_independently` on ``executor``: its first
+    call solves the windows, its second the seams (labelled so in the executor's timings)."""
+    labels = iter(("window", "seam"))
+
+    def map_windows(fn, starts):
+        return executor.map(fn, list(starts), label=next(labels, "window"))
+
+    return map_windows
 
 
 def _stage_outputs(ctx: RunContext) -> dict:

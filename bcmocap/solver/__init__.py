@@ -9,6 +9,7 @@ from .levenberg_marquardt import (
     levenberg_marquardt,
 )
 from .model_parameters import ModelParameters
+from .parallel import WindowSolution, join_windows, seam_windows, solve_window, solve_windows_independently
 from .refine import (
     RefineOptions,
     RefineReport,
@@ -26,6 +27,7 @@ from .solve import (
     SolverOptions,
     WindowReport,
     motion_from_tangent,
+    sequence_cost,
     solve,
     whole_sequence_residual_function,
     window_starts,
@@ -48,7 +50,9 @@ __all__ = [
     "StructuredLevenbergMarquardt",
     "WindowProblem",
     "WindowReport",
+    "WindowSolution",
     "cost",
+    "join_windows",
     "levenberg_marquardt",
     "motion_from_tangent",
     "normal_equations",
@@ -56,8 +60,12 @@ __all__ = [
     "refine_skeleton_and_rig",
     "reprojection_cost",
     "residuals",
+    "seam_windows",
+    "sequence_cost",
     "solve",
     "solve_block_tridiagonal",
+    "solve_window",
+    "solve_windows_independently",
     "solve_with_refinement",
     "whole_sequence_residual_function",
     "window_starts",

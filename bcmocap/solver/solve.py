@@ -228,18 +228,11 @@ def solve(
             are non-finite at its initial motion), or its Gauss–Newton system did at a point of finite cost
             (found inside the compiled solve: ``Convergence.non_finite``).
     """
-    require_float64("bcmocap.solve")
-    skeleton, rig, num_frames = problem.skeleton, problem.rig, problem.num_frames
-    initial_motion.check(skeleton, "initial_motion")
-    if initial_motion.num_frames != num_frames:
-        raise ValueError(f"initial_motion has {initial_motion.num_frames} frames, the problem has {num_frames}")
-    window = min(options.window, num_frames)
-    starts = window_starts(num_frames, window, min(options.overlap, window - 1))
-    root = np.array(initial_motion.root_position, dtype=np.float64)
-    rotations = np.array(initial_motion.rotations, dtype=np.float64)
+    # statics are carried window to window; frame_values are (T, …) each
+    starts, window, root, rotations, statics, frame_values = prepare_sequence(
+        problem, initial_motion, options, initial_statics, initial_frame_variables, "bcmocap.solve")
+    num_frames = problem.num_frames
     reports: list[WindowReport] = []
-    statics = {k: np.asarray(v, np.float64) for k, v in (initial_statics or {}).items()}  # carried window to window
-    frame_values = {k: np.array(v, np.float64) for k, v in (initial_frame_variables or {}).items()}  # (T, …) each
     bar = None
     if progress is True:
         from tqdm.auto import tqdm
@@ -253,33 +246,16 @@ def solve(
     for index, start in enumerate(starts[skip_windows:], start=skip_windows):
         stop = start + window
         t0 = time.perf_counter()
-        terms = tuple(problem.window(start, stop))
-        _check_window_has_observations(terms, start, stop)
-        history = window_history(terms)
-        before = np.maximum(np.arange(start - history, start), 0)  # the fixed frames (repeats of 0 at the start)
-        extended = np.concatenate([before, np.arange(start, stop)])
-        reference = Motion(root[extended], rotations[extended])
-        if not frame_values:  # the blocks the terms declare, at their start values
-            frame_values = {name: np.array(np.broadcast_to(variable.start(), (num_frames, *variable.value_shape)))
-                            for name, variable in frame_layout(terms)}
-        wp = make_window_problem(skeleton, rig, terms, reference, min(start, history), statics, model_parameters,
-                                 {name: value[extended] for name, value in frame_values.items()})
-        motion, new_statics, new_frame_values, lm = _solve_window(wp, options)
-        if int(lm.non_finite) != FINITE:  # checked inside the compiled solve
-            why = NON_FINITE_MESSAGES[int(lm.non_finite)]
-            raise FloatingPointError(f"solve: window of frames [{start}, {stop}): {why}; nothing was kept")
-        new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
-        new_statics = {k: np.asarray(v) for k, v in new_statics.items()}
-        new_frame_values = {k: np.asarray(v) for k, v in new_frame_values.items()}
-        finite = [new_root, new_rot, np.asarray(lm.initial_cost), np.asarray(lm.final_cost), *new_statics.values(),
-                  *new_frame_values.values()]
-        if not all(np.all(np.isfinite(a)) for a in finite):
-            raise FloatingPointError(_non_finite_window(wp, start, stop))
-        root[start:stop], rotations[start:stop] = new_root, new_rot
-        for name, value in new_frame_values.items():
+        terms = window_terms(problem, start, stop)
+        frame_values = with_start_values(frame_values, terms, num_frames)
+        solved = solve_window_span(problem, terms, start, stop, root, rotations, frame_values, statics, options,
+                                   model_parameters)
+        new_statics, lm = solved.statics, solved.convergence
+        root[start:stop], rotations[start:stop] = solved.root_position, solved.rotations
+        for name, value in solved.frame_values.items():
             frame_values[name][start:stop] = value
         if model_parameters is not None:  # later frames keep their hinge angles about the moved axes
-            old_axes = model_parameters.model(wp.statics[MODEL])[0].hinge_axes
+            old_axes = model_parameters.model(solved.problem.statics[MODEL])[0].hinge_axes
             new_axes = model_parameters.model(jnp.asarray(new_statics[MODEL]))[0].hinge_axes
             rotations[stop:] = np.asarray(reaxis(model_parameters.layout, Motion(root[stop:], rotations[stop:]),
                                                  old_axes, new_axes).rotations)
@@ -298,6 +274,148 @@ def solve(
     if bar is not None:
         bar.close()
     return Solution(Motion(root, rotations), reports, statics, frame_values)
+
+
+def prepare_sequence(problem: SequenceProblem, initial_motion: Motion, options: SolverOptions,
+                     initial_statics: dict | None, initial_frame_variables: dict | None, what: str):
+    """Checked inputs of a whole-sequence solve as numpy: ``(starts, window, root, rotations, statics,
+    frame_values)`` (window start frames, the window length, copies of the starting estimates)."""
+    require_float64(what)
+    num_frames = problem.num_frames
+    initial_motion.check(problem.skeleton, "initial_motion")
+    if initial_motion.num_frames != num_frames:
+        raise ValueError(f"initial_motion has {initial_motion.num_frames} frames, the problem has {num_frames}")
+    window = min(options.window, num_frames)
+    starts = window_starts(num_frames, window, min(options.overlap, window - 1))
+    root = np.array(initial_motion.root_position, dtype=np.float64)
+    rotations = np.array(initial_motion.rotations, dtype=np.float64)
+    statics = {k: np.asarray(v, np.float64) for k, v in (initial_statics or {}).items()}
+    frame_values = {k: np.array(v, np.float64) for k, v in (initial_frame_variables or {}).items()}
+    for name, value in frame_values.items():
+        if value.shape[:1] != (num_frames,):
+            raise ValueError(f"initial_frame_variables[{name!r}] has shape {value.shape}; expected {num_frames} frames first")
+    return starts, window, root, rotations, statics, frame_values
+
+
+def window_terms(problem: SequenceProblem, start: int, stop: int) -> tuple[Term, ...]:
+    """The problem's terms cut to frames ``[start, stop)``.
+
+    Raises:
+        ValueError: no camera term of the window has a usable observation.
+    """
+    terms = tuple(problem.window(start, stop))
+    _check_window_has_observations(terms, start, stop)
+    return terms
+
+
+def with_start_values(frame_values: dict, terms: Sequence[Term], num_frames: int) -> dict:
+    """``frame_values`` (``{name: (T, …)}``) with every per-frame block the terms declare and it lacks at the
+    block's start value (the same dict when it lacks none)."""
+    missing = [(name, variable) for name, variable in frame_layout(terms) if name not in frame_values]
+    if not missing:
+        return frame_values
+    return {**frame_values, **{name: np.array(np.broadcast_to(variable.start(), (num_frames, *variable.value_shape)))
+                               for name, variable in missing}}
+
+
+@dataclasses.dataclass(frozen=True)
+class SolvedSpan:
+    """One window's solve (:func:`solve_window_span`): its motion ``(w, …)``, static values, per-frame values
+    ``{name: (w, …)}`` (numpy), the solver's convergence record and the window's problem."""
+
+    root_position: np.ndarray
+    rotations: np.ndarray
+    statics: dict
+    frame_values: dict
+    convergence: Convergence
+    problem: WindowProblem
+
+
+def solve_window_span(
+    problem: SequenceProblem,
+    terms: Sequence[Term],
+    start: int,
+    stop: int,
+    root: np.ndarray,
+    rotations: np.ndarray,
+    frame_values: dict,
+    statics: dict,
+    options: SolverOptions,
+    model_parameters: ModelParameters | None = None,
+) -> SolvedSpan:
+    """Solve the window of frames ``[start, stop)`` (its ``terms``, from :func:`window_terms`) starting from the
+    whole-sequence estimates ``root`` ``(T, 3)``, ``rotations`` ``(T, J, 4)`` and ``frame_values``
+    (``{name: (T, …)}``) and from ``statics``; the :func:`window_history` frames before ``start`` are held
+    fixed at those estimates. This is the one implementation of a window's solve: :func:`solve` runs it
+    window after window, :mod:`bcmocap.solver.parallel` on windows independently. Nothing is modified.
+
+    Raises:
+        FloatingPointError: the window's cost, motion or variables became non-finite (naming the window).
+    """
+    history = window_history(terms)
+    before = np.maximum(np.arange(start - history, start), 0)  # the fixed frames (repeats of 0 at the start)
+    extended = np.concatenate([before, np.arange(start, stop)])
+    reference = Motion(root[extended], rotations[extended])
+    wp = make_window_problem(problem.skeleton, problem.rig, terms, reference, min(start, history), statics,
+                             model_parameters, {name: value[extended] for name, value in frame_values.items()})
+    motion, new_statics, new_frame_values, lm = _solve_window(wp, options)
+    if int(lm.non_finite) != FINITE:  # checked inside the compiled solve
+        why = NON_FINITE_MESSAGES[int(lm.non_finite)]
+        raise FloatingPointError(f"solve: window of frames [{start}, {stop}): {why}; nothing was kept")
+    new_root, new_rot = np.asarray(motion.root_position), np.asarray(motion.rotations)
+    new_statics = {k: np.asarray(v) for k, v in new_statics.items()}
+    new_frame_values = {k: np.asarray(v) for k, v in new_frame_values.items()}
+    finite = [new_root, new_rot, np.asarray(lm.initial_cost), np.asarray(lm.final_cost), *new_statics.values(),
+              *new_frame_values.values()]
+    if not all(np.all(np.isfinite(a)) for a in finite):
+        raise FloatingPointError(_non_finite_window(wp, start, stop))
+    return SolvedSpan(new_root, new_rot, new_statics, new_frame_values, lm, wp)
+
+
+@eqx.filter_jit
+def _frame_costs(wp: WindowProblem) -> jax.Array:
+    """``(W,)``: ½ Σ r² of each frame of the window at its reference (pair terms counted at their later frame)."""
+    blocks = residuals(wp, jnp.zeros((wp.num_frames, wp.frame_size)))
+    return 0.5 * sum(jnp.sum((r * r).reshape(r.shape[0], -1), axis=1) for r in blocks)
+
+
+def sequence_cost(
+    problem: SequenceProblem,
+    motion: Motion,
+    *,
+    statics: dict | None = None,
+    frame_variables: dict | None = None,
+    chunk: int = 60,
+) -> float:
+    """Eq. (1), ½ Σ r² over the whole sequence, at ``motion`` (and the static and per-frame variables' values;
+    missing: their start values), e.g. to compare solutions whose windows' costs overlap.
+
+    Evaluated in chunks of ``chunk`` frames (one compiled program; the last chunk shifted back to end at the last
+    frame, its frames already counted dropped), each with the frames before it fixed at ``motion``, so every
+    frame term and every pair or span of frames is counted once, exactly as a single window over all frames
+    would count it.
+    """
+    require_float64("bcmocap.sequence_cost")
+    num_frames = problem.num_frames
+    motion.check(problem.skeleton, "motion")
+    if motion.num_frames != num_frames:
+        raise ValueError(f"motion has {motion.num_frames} frames, the problem has {num_frames}")
+    chunk = min(chunk, num_frames)
+    root, rotations = np.asarray(motion.root_position, np.float64), np.asarray(motion.rotations, np.float64)
+    values = {k: np.asarray(v, np.float64) for k, v in (frame_variables or {}).items()}
+    total, counted = 0.0, 0
+    while counted < num_frames:
+        start = min(counted, num_frames - chunk)
+        stop = start + chunk
+        terms = tuple(problem.window(start, stop))
+        values = with_start_values(values, terms, num_frames)
+        history = window_history(terms)
+        extended = np.concatenate([np.maximum(np.arange(start - history, start), 0), np.arange(start, stop)])
+        wp = make_window_problem(problem.skeleton, problem.rig, terms, Motion(root[extended], rotations[extended]),
+                                 min(start, history), statics, None, {k: v[extended] for k, v in values.items()})
+        total += float(np.sum(np.asarray(_frame_costs(wp))[counted - start:]))
+        counted = stop
+    return total
 
 
 def _check_window_has_observations(terms: Sequence[Term], start: int, stop: int) -> None:

@@ -1,0 +1,208 @@
+"""Where a run's independent pieces of work go: this process, or a Dask cluster.
+
+``bcmocap run --cluster SPEC`` (or ``[cluster] address = SPEC`` in the config) hands the run's
+independent work to Dask's distributed scheduler: each camera's tracking, each chunk's registration,
+the two trials of the frontend side by side, and, with ``solver.windows = "independent"``, the solver's
+windows. ``SPEC`` is
+
+- ``local:N``: a ``LocalCluster`` of ``N`` worker processes on this machine, one thread each (started
+  for the run, stopped after it);
+- ``tcp://HOST:PORT`` (or ``tls://``, ``ws://``): the scheduler of a cluster that already runs (e.g.
+  started by ``dask-jobqueue`` on SLURM/PBS, or ``dask scheduler`` / ``dask worker``); its workers must
+  see the capture and output folders at the same paths (a shared file system) and have bcmocap installed.
+
+Tasks read their inputs from and write their outputs to the run folder and return small summaries, so a
+lost worker's task is rerun by the scheduler and an interrupted run resumes from what finished. The
+cluster never changes a result: a setting does (``frontend.chunk_frames``, ``solver.windows``), and the
+same settings give the same outputs with or without a cluster.
+
+Every task runs one piece of work on one core (OpenCV and XLA are held to one thread in a worker): the
+number of workers is the parallelism, as Dask's scheduler expects.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import re
+import time
+from collections.abc import Callable, Iterable, Iterator
+
+#: Environment of each local worker process: numeric libraries on one thread (one task = one core).
+WORKER_ENVIRONMENT = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
+}
+MAX_LOCAL_WORKERS = 1024
+_ADDRESS = re.compile(r"^(tcp|tls|ws|wss)://[A-Za-z0-9._\-\[\]:]+:\d{1,5}$")
+
+
+@dataclasses.dataclass(frozen=True)
+class ClusterSpec:
+    """A parsed ``--cluster`` value: ``local`` workers to start, or the ``address`` of a running scheduler."""
+
+    local_workers: int = 0
+    address: str = ""
+
+    @property
+    def text(self) -> str:
+        return f"local:{self.local_workers}" if self.local_workers else self.address
+
+
+def parse_cluster(text: str) -> ClusterSpec | None:
+    """``"local:N"`` / ``"tcp://HOST:PORT"`` → :class:`ClusterSpec`; ``""`` → None (no cluster).
+
+    Raises:
+        ValueError: naming the value and the two accepted forms.
+    """
+    text = str(text).strip()
+    if not text:
+        return None
+    if text.startswith("local:"):
+        count = text.removeprefix("local:")
+        if not count.isdigit() or not 1 <= int(count) <= MAX_LOCAL_WORKERS:
+            raise ValueError(f"cluster {text!r}: local:N needs a number of workers N in 1..{MAX_LOCAL_WORKERS}")
+        return ClusterSpec(local_workers=int(count))
+    if _ADDRESS.match(text):
+        return ClusterSpec(address=text)
+    raise ValueError(f"cluster {text!r}: expected local:N (N worker processes on this machine) or "
+                     "tcp://HOST:PORT (a running Dask scheduler)")
+
+
+class Executor:
+    """Runs independent calls: in this process (no cluster) or as Dask tasks.
+
+    ``map(fn, items, label=...)`` returns ``fn(item)`` for each item, in order; with a cluster the calls
+    are tasks that may run at once on different workers (``fn`` and the items are pickled: pass paths
+    and small values, not big arrays). For timing reports, ``tasks`` records ``(label, seconds)`` of each
+    finished call, measured where it ran, and ``calls`` the ``(label, start, stop)`` of each ``map`` call on
+    this process's ``time.perf_counter`` clock (the caller waits for its tasks meanwhile).
+    """
+
+    def __init__(self, client=None, spec: ClusterSpec | None = None):
+        self.client = client
+        self.spec = spec
+        self.tasks: list[tuple[str, float]] = []
+        self.calls: list[tuple[str, float, float]] = []
+
+    @property
+    def distributed(self) -> bool:
+        return self.client is not None
+
+    @property
+    def workers(self) -> int:
+        """Worker threads of the cluster (1 without one)."""
+        if self.client is None:
+            return 1
+        return max(1, sum(self.client.nthreads().values()))
+
+    def map(self, fn: Callable, items: Iterable, *, label: str = "task",
+            on_done: Callable[[int, object], None] | None = None) -> list:
+        """``[fn(item) for item in items]``, as tasks on the cluster when there is one; ``on_done(i, result)``
+        is called as each finishes (in completion order with a cluster)."""
+        items = list(items)
+        if not items:
+            return []
+        clock = time.perf_counter()
+        try:
+            return self._map(fn, items, label, on_done)
+        finally:
+            self.calls.append((label, clock, time.perf_counter()))
+
+    def _map(self, fn: Callable, items: list, label: str, on_done) -> list:
+        if self.client is None:
+            out = []
+            for i, item in enumerate(items):
+                result, seconds = _timed(fn, item)
+                self.tasks.append((label, seconds))
+                out.append(result)
+                if on_done is not None:
+                    on_done(i, result)
+            return out
+        from distributed import as_completed
+
+        shared = self.client.scatter(fn, hash=False)  # once, not once per task (it may hold a reference index)
+        futures = self.client.map(_timed, [shared] * len(items), items, pure=False,
+                                  key=[f"{label}-{i}-{os.urandom(4).hex()}" for i in range(len(items))])
+        index = {f.key: i for i, f in enumerate(futures)}
+        out = [None] * len(items)
+        try:
+            for future in as_completed(futures):
+                result, seconds = future.result()
+                self.tasks.append((label, seconds))
+                i = index[future.key]
+                out[i] = result
+                if on_done is not None:
+                    on_done(i, result)
+        finally:
+            for future in futures:
+                future.cancel()
+        return out
+
+
+def _timed(fn: Callable, item) -> tuple[object, float]:
+    worker_setup()
+    clock = time.perf_counter()
+    result = fn(item)
+    return result, time.perf_counter() - clock
+
+
+def worker_setup() -> None:
+    """What every task needs in a worker process (idempotent; cheap after the first call): float64 JAX, the
+    persistent compilation cache, OpenCV on one thread."""
+    from ..compilation_cache import enable_compilation_cache
+    from ..precision import enable_float64
+
+    enable_float64()
+    enable_compilation_cache()
+    if _in_worker():
+        import cv2
+
+        cv2.setNumThreads(1)
+
+
+def _in_worker() -> bool:
+    try:
+        from distributed import get_worker
+
+        get_worker()
+        return True
+    except (ImportError, ValueError):
+        return False
+
+
+@contextlib.contextmanager
+def open_executor(spec: ClusterSpec | str | None, log: Callable[[str], None] = print, *,
+                  connect_timeout_s: float = 20.0) -> Iterator[Executor]:
+    """An :class:`Executor` on the cluster ``spec`` (started here for ``local:N``, connected to otherwise,
+    waiting at most ``connect_timeout_s``), closed on exit; ``None`` or ``""``: no cluster.
+
+    Raises:
+        ValueError: a bad spec, or a scheduler that cannot be reached (one line).
+    """
+    if isinstance(spec, str):
+        spec = parse_cluster(spec)
+    if spec is None:
+        yield Executor()
+        return
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    with contextlib.ExitStack() as stack:
+        if spec.local_workers:
+            cluster = stack.enter_context(LocalCluster(
+                n_workers=spec.local_workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                silence_logs=logging.ERROR, env=dict(WORKER_ENVIRONMENT)))
+            client = stack.enter_context(Client(cluster))
+            log(f"cluster: {spec.local_workers} local worker process(es) at {cluster.scheduler_address}")
+        else:
+            try:
+                client = stack.enter_context(Client(spec.address, timeout=f"{connect_timeout_s}s"))
+            except (OSError, TimeoutError) as exc:
+                raise ValueError(f"cluster {spec.address}: cannot reach the scheduler ({exc})") from None
+            log(f"cluster: {spec.address}, {len(client.nthreads())} worker(s)")
+        yield Executor(client, spec)
