@@ -18,10 +18,9 @@ the pipeline and the file readers are in their subpackages (``bcmocap.frontend``
 ``bcmocap.pipeline``, ``bcmocap.io``).
 """
 
-import importlib
+from .lazy_exports import lazy_exports
 
-# The public API is imported on first use (PEP 562), so that `import bcmocap.<module>` and the command line
-# do not pay for JAX where they do not use it (the viewer, `bcmocap --help`).
+# The public API, imported on first use (the viewer and `bcmocap --help` do not pay for JAX).
 _PUBLIC = {
     "CameraPairTerm": "residuals",
     "CameraTerm": "residuals",
@@ -62,17 +61,4 @@ _PUBLIC = {
 
 __version__ = "0.1.0"
 
-__all__ = sorted(_PUBLIC)
-
-
-def __getattr__(name: str):
-    module = _PUBLIC.get(name)
-    if module is None:
-        raise AttributeError(f"module 'bcmocap' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value  # later lookups do not come here
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _PUBLIC)

@@ -5,8 +5,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import jax
-
 
 def enable_compilation_cache() -> None:
     """Persist XLA compilations across runs (``BCMOCAP_CACHE_DIR``, default ``~/.cache/bcmocap/jax``)."""
@@ -15,5 +13,7 @@ def enable_compilation_cache() -> None:
         Path(cache).mkdir(parents=True, exist_ok=True)
     except OSError:
         return
+    import jax
+
     jax.config.update("jax_compilation_cache_dir", cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)

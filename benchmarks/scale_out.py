@@ -2,8 +2,8 @@
 ``local:2``, and a simulated schedule of a 10-minute capture on 8, 32 and 128 workers.
 
 Renders a capture with the standard rig (or takes ``--capture``) and runs every stage three times into
-fresh folders under ``--work``, with the same settings (``frontend.registration`` tracking, chunks of
-``--chunk-frames`` processed frames, ``solver.windows`` independent): only the cluster differs. Prints
+fresh folders under ``--work``, with the same settings (``bcmocap demo``'s, in chunks of ``--chunk-frames``
+processed frames and with ``solver.windows`` independent): only the cluster differs. Prints
 per mode the wall time, the time the run spent waiting for tasks and the time it worked alone (the serial
 part: reference model, sync, reading caches, world, skeleton, initial motion, joining windows, outputs);
 the speedup of ``local:2`` over ``local:1`` (goal ≥ 1.7); whether the outputs are the same (largest
@@ -161,8 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--capture", type=Path, help="capture folder (default: render one into --work)")
     parser.add_argument("--work", type=Path, default=Path("/tmp/bcmocap-scale-out"))
-    parser.add_argument("--seconds", type=float, default=2.0, help="capture trial to render (s)")
-    parser.add_argument("--rom-seconds", type=float, default=6.0, help="range-of-motion trial to render (s)")
+    parser.add_argument("--seconds", type=float, default=4.0, help="capture trial to render (s)")
+    parser.add_argument("--rom-seconds", type=float, default=2.5, help="range-of-motion trial to render (s)")
     parser.add_argument("--chunk-frames", type=int, default=10, help="frontend.chunk_frames")
     parser.add_argument("--window", type=int, default=20, help="solver.window")
     parser.add_argument("--overlap", type=int, default=5, help="solver.overlap")
@@ -179,11 +179,9 @@ def main(argv: list[str] | None = None) -> int:
                   flush=True)
             write_capture(capture, StudioSettings(seconds=args.seconds, rom_seconds=args.rom_seconds, fps=30.0,
                                                   reference_width=640, reference_height=480, seed=0), progress=False)
-    config = RunConfig().with_overrides({
-        "frontend.registration": "tracking", "frontend.chunk_frames": args.chunk_frames,
-        "frontend.max_measurements": 400, "frontend.points": "reference", "solver.windows": "independent",
-        "solver.window": args.window, "solver.overlap": args.overlap, "skeleton.degenerate": "hinge",
-        "skeleton.max_centre_std_cm": 10.0})
+    config = RunConfig().with_overrides({  # bcmocap demo's settings, in chunks and independent windows
+        "frontend.rom_stride": 2, "frontend.max_features": 3000, "frontend.chunk_frames": args.chunk_frames,
+        "solver.windows": "independent", "solver.window": args.window, "solver.overlap": args.overlap})
     results = {}
     for mode in args.modes:
         print(f"{mode}: bcmocap run ...", flush=True)

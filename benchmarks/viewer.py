@@ -143,12 +143,15 @@ def step(name):
 import bcmocap.cli
 from bcmocap.precision import enable_float64
 enable_float64()
-step("import the command (bcmocap, JAX, every subcommand)")
-from bcmocap.pipeline.view_input import check_run_folder, load_view_input
-from bcmocap.viewer.app import Viewer, start_server
+step("import the command (every subcommand's parser)")
+from bcmocap.pipeline.view_input import check_run_folder
+from bcmocap.viewer.server import start_server
 check_run_folder(sys.argv[1])
 server = start_server("127.0.0.1", 0)
-step("import viser, start the server")
+step("import viser, start the server (a browser can load the page from here)")
+from bcmocap.pipeline.view_input import load_view_input
+from bcmocap.viewer.app import Viewer
+step("import the viewer and the model's classes (JAX)")
 data = load_view_input(sys.argv[1], editable=False, defer=True)
 step("read the run for the first frame (model, motions, store index)")
 viewer = Viewer(data, server)

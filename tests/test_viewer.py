@@ -299,7 +299,8 @@ def test_save_refuses_while_another_command_writes_and_outside_paths(run, tmp_pa
 @pytest.fixture(scope="module")
 def viewer(run):
     from bcmocap.pipeline.view_input import load_view_input
-    from bcmocap.viewer.app import Viewer, start_server
+    from bcmocap.viewer.app import Viewer
+    from bcmocap.viewer.server import start_server
 
     data = load_view_input(run[0], editable=False)
     truth_skeleton, _, _, true_joints = run[1]
@@ -315,7 +316,8 @@ def viewer(run):
 def test_the_first_frame_waits_for_nothing_but_the_model_and_motions(run):
     """`bcmocap view` reads the scene points, the ground truth and the videos after the first frame is up."""
     from bcmocap.pipeline.view_input import load_view_input
-    from bcmocap.viewer.app import Viewer, start_server
+    from bcmocap.viewer.app import Viewer
+    from bcmocap.viewer.server import start_server
 
     data = load_view_input(run[0], editable=False, defer=True)
     assert data.later is not None and data.scene_points is None and data.camera_frame is None
@@ -564,7 +566,7 @@ def kcs_folder(tmp_path_factory):
 def track_viewer():
     """``open(folder) → TrackViewer`` on a fresh server; the servers are stopped afterwards."""
     from bcmocap.pipeline.view_tracks import load_track_folder
-    from bcmocap.viewer.app import start_server
+    from bcmocap.viewer.server import start_server
     from bcmocap.viewer.tracks import TrackViewer
 
     opened = []

@@ -2,9 +2,10 @@
 selection, the FOV / equidistant models fitted by bcmocap's own cameras and Levenberg–Marquardt, the
 Kannala–Brandt model by ``cv2.fisheye``, and reports (per-view errors, sensor coverage picture)."""
 
-from ..io.board import Board, Detection, parse_board
-from .fit import MODELS, Calibration, calibrate
-from .views import BoardViews, detect_views, select_views
+from ..lazy_exports import lazy_exports
 
-__all__ = ["MODELS", "Board", "BoardViews", "Calibration", "Detection", "calibrate", "detect_views", "parse_board",
-           "select_views"]
+# Imported on first use (PEP 562), so that the command line does not pay for JAX where it is not used.
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "Board": "..io.board", "Detection": "..io.board", "parse_board": "..io.board", "MODELS": "fit",
+    "Calibration": "fit", "calibrate": "fit", "BoardViews": "views", "detect_views": "views",
+    "select_views": "views"})

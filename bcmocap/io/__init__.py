@@ -2,22 +2,25 @@
 and :class:`~bcmocap.kinematics.Motion`, converted to bcmocap's Z-up world in metres; PLY point clouds and camera
 paths; C3D marker files."""
 
-from .asf import AsfBone, AsfData, load_cmu, read_amc, read_asf
-from .bvh import BvhData, read_bvh, write_bvh
-from .c3d import C3dData, read_c3d  # noqa: F401  (C3D marker trajectories, via ezc3d)
-from .ply import read_ply, read_ply_elements, write_camera_paths_ply, write_ply
+from ..lazy_exports import lazy_exports
 
-__all__ = [
-    "AsfBone",
-    "AsfData",
-    "BvhData",
-    "load_cmu",
-    "read_amc",
-    "read_asf",
-    "read_bvh",
-    "read_ply",
-    "read_ply_elements",
-    "write_bvh",
-    "write_camera_paths_ply",
-    "write_ply",
-]
+# Imported on first use (PEP 562), so that `import bcmocap.io.<module>` (e.g. the commands' output folders) does
+# not pay for JAX where it is not used.
+_PUBLIC = {
+    "AsfBone": "asf",
+    "AsfData": "asf",
+    "load_cmu": "asf",
+    "read_amc": "asf",
+    "read_asf": "asf",
+    "BvhData": "bvh",
+    "read_bvh": "bvh",
+    "write_bvh": "bvh",
+    "C3dData": "c3d",
+    "read_c3d": "c3d",
+    "read_ply": "ply",
+    "read_ply_elements": "ply",
+    "write_camera_paths_ply": "ply",
+    "write_ply": "ply",
+}
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _PUBLIC)

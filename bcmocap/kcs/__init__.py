@@ -15,32 +15,28 @@ its 2-D joints seen by one uncalibrated camera with little or no motion:
 * :func:`aligned_joint_errors` (3DPE; per joint :func:`aligned_joint_distances`) and :func:`joint_errors` (MPJPE).
 """
 
-from .anatomy import Anatomy, Hinge, human_anatomy
-from .cameras import WeakPerspectiveCameras, fit_cameras, initial_cameras, reprojection_rms
-from .chain_space import CMU_JOINTS, KinematicChainSpace, mean_pose
-from .export import motion_from_joints
-from .metrics import aligned_joint_distances, aligned_joint_errors, joint_errors
-from .solve import KCSOptions, KCSResult, limb_signs, reconstruct, singular_value_threshold, solve_bones
+from ..lazy_exports import lazy_exports
 
-__all__ = [
-    "Anatomy",
-    "CMU_JOINTS",
-    "Hinge",
-    "KCSOptions",
-    "KCSResult",
-    "KinematicChainSpace",
-    "WeakPerspectiveCameras",
-    "aligned_joint_distances",
-    "aligned_joint_errors",
-    "fit_cameras",
-    "human_anatomy",
-    "initial_cameras",
-    "joint_errors",
-    "limb_signs",
-    "mean_pose",
-    "motion_from_joints",
-    "reconstruct",
-    "reprojection_rms",
-    "singular_value_threshold",
-    "solve_bones",
-]
+# Imported on first use (PEP 562), so that the command line does not pay for JAX where it is not used.
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "Anatomy": "anatomy",
+    "Hinge": "anatomy",
+    "human_anatomy": "anatomy",
+    "WeakPerspectiveCameras": "cameras",
+    "fit_cameras": "cameras",
+    "initial_cameras": "cameras",
+    "reprojection_rms": "cameras",
+    "CMU_JOINTS": "chain_space",
+    "KinematicChainSpace": "chain_space",
+    "mean_pose": "chain_space",
+    "motion_from_joints": "export",
+    "aligned_joint_distances": "metrics",
+    "aligned_joint_errors": "metrics",
+    "joint_errors": "metrics",
+    "KCSOptions": "solve",
+    "KCSResult": "solve",
+    "limb_signs": "solve",
+    "reconstruct": "solve",
+    "singular_value_threshold": "solve",
+    "solve_bones": "solve",
+})

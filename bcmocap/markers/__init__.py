@@ -7,49 +7,45 @@ which labels are the same physical marker (§4). :func:`fit_marker_skeleton` run
 is ``bcmocap markers FILE.c3d --out DIR``.
 """
 
-from .identities import IdentityMerge, concurrent_labels, label_distances, merge_identities
-from .ik import IkResult, initial_motion, marker_model_positions, solve_ik
-from .joints import JointSolution, informative_frames, joint_cost_matrix, joint_objective, minimum_spanning_tree, solve_joints
-from .pipeline import MarkerOptions, MarkerSkeleton, fit_marker_skeleton
-from .preprocess import MarkerTrajectories, PreprocessReport, preprocess, visible_runs
-from .rigid import RigidSkeleton, build_skeleton, procrustes
-from .segmentation import PairStatistics, Segmentation, distance_std, jittered_samples, pair_statistics, segment_markers, within_group_cost
-from .spectral import eigengap, kmeans, spectral_clustering, spectral_embedding
+from ..lazy_exports import lazy_exports
+from .preprocess import preprocess  # noqa: F401  (now: the function shares its module's name, which an import of
+#                                      the module would otherwise put here; numpy only, no JAX)
 
-__all__ = [
-    "IdentityMerge",
-    "IkResult",
-    "JointSolution",
-    "MarkerOptions",
-    "MarkerSkeleton",
-    "MarkerTrajectories",
-    "PairStatistics",
-    "PreprocessReport",
-    "RigidSkeleton",
-    "Segmentation",
-    "build_skeleton",
-    "concurrent_labels",
-    "distance_std",
-    "eigengap",
-    "fit_marker_skeleton",
-    "informative_frames",
-    "initial_motion",
-    "jittered_samples",
-    "joint_cost_matrix",
-    "joint_objective",
-    "kmeans",
-    "label_distances",
-    "marker_model_positions",
-    "merge_identities",
-    "minimum_spanning_tree",
-    "pair_statistics",
-    "preprocess",
-    "procrustes",
-    "segment_markers",
-    "solve_ik",
-    "solve_joints",
-    "spectral_clustering",
-    "spectral_embedding",
-    "visible_runs",
-    "within_group_cost",
-]
+# Imported on first use (PEP 562), so that the command line does not pay for JAX where it is not used.
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "IdentityMerge": "identities",
+    "concurrent_labels": "identities",
+    "label_distances": "identities",
+    "merge_identities": "identities",
+    "IkResult": "ik",
+    "initial_motion": "ik",
+    "marker_model_positions": "ik",
+    "solve_ik": "ik",
+    "JointSolution": "joints",
+    "informative_frames": "joints",
+    "joint_cost_matrix": "joints",
+    "joint_objective": "joints",
+    "minimum_spanning_tree": "joints",
+    "solve_joints": "joints",
+    "MarkerOptions": "pipeline",
+    "MarkerSkeleton": "pipeline",
+    "fit_marker_skeleton": "pipeline",
+    "MarkerTrajectories": "preprocess",
+    "PreprocessReport": "preprocess",
+    "preprocess": "preprocess",
+    "visible_runs": "preprocess",
+    "RigidSkeleton": "rigid",
+    "build_skeleton": "rigid",
+    "procrustes": "rigid",
+    "PairStatistics": "segmentation",
+    "Segmentation": "segmentation",
+    "distance_std": "segmentation",
+    "jittered_samples": "segmentation",
+    "pair_statistics": "segmentation",
+    "segment_markers": "segmentation",
+    "within_group_cost": "segmentation",
+    "eigengap": "spectral",
+    "kmeans": "spectral",
+    "spectral_clustering": "spectral",
+    "spectral_embedding": "spectral",
+})

@@ -1,8 +1,9 @@
 """The user's workflow end to end: ``bcmocap run`` (:mod:`.run`), its settings (:mod:`.config`), the metric
 world it works in (:mod:`.world`) and the files it leaves (:mod:`.outputs`)."""
 
-from .config import RunConfig, load_config
-from .run import STAGES, load_model, load_motion, run_pipeline
-from .world import Similarity, transform_model
+from ..lazy_exports import lazy_exports
 
-__all__ = ["STAGES", "RunConfig", "Similarity", "load_config", "load_model", "load_motion", "run_pipeline", "transform_model"]
+# Imported on first use (PEP 562): `bcmocap view` starts its server before it imports JAX.
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "STAGES": "run", "RunConfig": "config", "Similarity": "world", "load_config": "config", "load_model": "run",
+    "load_motion": "run", "run_pipeline": "run", "transform_model": "world"})

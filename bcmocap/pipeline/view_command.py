@@ -53,7 +53,7 @@ def serve(args: argparse.Namespace, on_ready: Callable[[object], None] | None = 
     if not 0 <= args.port <= 65535:
         print(f"bcmocap view: --port must be in 0..65535, got {args.port}", file=sys.stderr)
         return 2
-    from ..viewer.app import start_server
+    from ..viewer.server import start_server
     from .view_input import check_run_folder
     from .view_tracks import folder_kind, load_track_folder
 

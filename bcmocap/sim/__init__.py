@@ -1,49 +1,46 @@
 """Vicon-style synthetic ground truth: CMU motions, the paper's rig, a scene and its measurements."""
 
-from .capture import LazyProblem, SyntheticCapture, standard_capture
-from .markers import MarkerNoise, MarkerSpec, SimulatedMarkers, calibration_motion, full_body_markers, simulate_markers  # noqa: F401
-from .motions import (BODY_SEGMENTS, CMU_TRIALS, BodySegment, back_and_forth, load_body_motion, load_motion_file,
-                      reduce_motion, resample)
-from .observe import NoiseModel, ObservationSimulator, body_capsules
-from .rig import fov_camera_for, standard_rig
-from .render import RenderOptions, Renderer, camera_rays
-from .rom import RangeOfMotionTrial, range_of_motion, range_of_motion_trial, skeleton_errors
-from .scene import TexturedScene, TextureParams, make_textured_scene
-from .studio import GroundTruth, StudioSettings, load_ground_truth, preset_settings, write_capture
-from .world import World, make_world
+from ..lazy_exports import lazy_exports
 
-__all__ = [
-    "BODY_SEGMENTS",
-    "CMU_TRIALS",
-    "BodySegment",
-    "LazyProblem",
-    "NoiseModel",
-    "ObservationSimulator",
-    "GroundTruth",
-    "RangeOfMotionTrial",
-    "RenderOptions",
-    "Renderer",
-    "StudioSettings",
-    "SyntheticCapture",
-    "TextureParams",
-    "TexturedScene",
-    "World",
-    "back_and_forth",
-    "body_capsules",
-    "camera_rays",
-    "fov_camera_for",
-    "load_body_motion",
-    "load_ground_truth",
-    "load_motion_file",
-    "make_textured_scene",
-    "make_world",
-    "preset_settings",
-    "range_of_motion",
-    "range_of_motion_trial",
-    "reduce_motion",
-    "resample",
-    "skeleton_errors",
-    "standard_capture",
-    "standard_rig",
-    "write_capture",
-]
+# Imported on first use (PEP 562), so that the command line does not pay for JAX where it is not used.
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "LazyProblem": "capture",
+    "SyntheticCapture": "capture",
+    "standard_capture": "capture",
+    "MarkerNoise": "markers",
+    "MarkerSpec": "markers",
+    "SimulatedMarkers": "markers",
+    "calibration_motion": "markers",
+    "full_body_markers": "markers",
+    "simulate_markers": "markers",
+    "BODY_SEGMENTS": "motions",
+    "CMU_TRIALS": "motions",
+    "BodySegment": "motions",
+    "back_and_forth": "motions",
+    "load_body_motion": "motions",
+    "load_motion_file": "motions",
+    "reduce_motion": "motions",
+    "resample": "motions",
+    "NoiseModel": "observe",
+    "ObservationSimulator": "observe",
+    "body_capsules": "observe",
+    "fov_camera_for": "rig",
+    "standard_rig": "rig",
+    "RenderOptions": "render",
+    "Renderer": "render",
+    "camera_rays": "render",
+    "RangeOfMotionTrial": "rom",
+    "range_of_motion": "rom",
+    "range_of_motion_trial": "rom",
+    "skeleton_errors": "rom",
+    "TexturedScene": "scene",
+    "TextureParams": "scene",
+    "make_textured_scene": "scene",
+    "GroundTruth": "studio",
+    "StudioSettings": "studio",
+    "load_ground_truth": "studio",
+    "preset_settings": "studio",
+    "write_capture": "studio",
+    "World": "world",
+    "make_world": "world",
+})

@@ -17,9 +17,16 @@ Reading a run folder and saving an edited model are the pipeline's (:mod:`bcmoca
 (:mod:`bcmocap.pipeline.view_tracks`).
 """
 
-from .edits import EditableModel
-from .inputs import CameraFrame, GroundTruth, LineTracks, PointTracks, TrackInput, ViewerInput
-from .posing import Posing
+from ..lazy_exports import lazy_exports
 
-__all__ = ["CameraFrame", "EditableModel", "GroundTruth", "LineTracks", "PointTracks", "Posing", "TrackInput",
-           "ViewerInput"]
+# Imported on first use (PEP 562), so that the command line does not pay for JAX where it is not used.
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "EditableModel": "edits",
+    "CameraFrame": "inputs",
+    "GroundTruth": "inputs",
+    "LineTracks": "inputs",
+    "PointTracks": "inputs",
+    "TrackInput": "inputs",
+    "ViewerInput": "inputs",
+    "Posing": "posing",
+})

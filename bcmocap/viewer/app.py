@@ -22,9 +22,6 @@ background thread, and added to the scene and panel with the pictures once a bro
 
 from __future__ import annotations
 
-import contextlib
-import io
-import socket
 import threading
 import time
 
@@ -103,37 +100,6 @@ def box_mesh(extents) -> tuple[np.ndarray, np.ndarray]:
     faces = [(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1), (2, 3, 7), (2, 7, 6), (0, 2, 6),
              (0, 6, 4), (1, 5, 7), (1, 7, 3)]
     return corners * np.asarray(extents, np.float32), np.asarray(faces, np.uint32)
-
-
-def port_free(host: str, port: int) -> bool:
-    """Whether a server could listen on ``host:port`` now."""
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    with socket.socket(family, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind((host, port))
-        except OSError:
-            return False
-    return True
-
-
-def start_server(host: str, port: int):
-    """A viser server on exactly ``host:port``; ValueError (one line) if that port is taken or the host
-    cannot be bound (viser alone would move to the next free port)."""
-    import viser
-
-    if port and not port_free(host, port):
-        raise ValueError(f"port {port} on {host} is in use (choose another with --port)")
-    quiet = io.StringIO()
-    try:
-        with contextlib.redirect_stdout(quiet):  # viser prints a banner; the command prints its own line
-            server = viser.ViserServer(host=host, port=port, verbose=False)
-    except OSError as exc:
-        raise ValueError(f"cannot listen on {host}:{port} ({exc.strerror or exc})") from None
-    if port and server.get_port() != port:
-        server.stop()
-        raise ValueError(f"port {port} on {host} is in use (choose another with --port)")
-    return server
 
 
 class Viewer(Session):
