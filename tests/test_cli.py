@@ -1,7 +1,9 @@
 """`bcmocap demo` end to end on a short capture, and the examples on tiny inputs."""
 
 import json
+import os
 import runpy
+import subprocess
 import sys
 from pathlib import Path
 
@@ -70,7 +72,6 @@ def test_expected_failures_of_any_stage_end_in_one_line(tmp_path, monkeypatch, c
 def test_importing_bcmocap_leaves_float32_and_the_solver_says_what_to_do():
     """No import-time side effect: a fresh interpreter importing bcmocap keeps JAX's float32 default, and
     bcmocap.solve refuses it with the fix in the message; enable_float64 turns it on."""
-    import subprocess
 
     code = (
         "import jax, bcmocap\n"
@@ -92,7 +93,6 @@ def test_importing_bcmocap_leaves_float32_and_the_solver_says_what_to_do():
 
 
 def test_import_bcmocap_loads_its_public_api_on_first_use():
-    import subprocess
 
     code = ("import sys, bcmocap\n"
             "assert 'jax' not in sys.modules, 'import bcmocap imported JAX'\n"
@@ -105,3 +105,17 @@ def test_import_bcmocap_loads_its_public_api_on_first_use():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "module 'bcmocap' has no attribute 'no_such_name'" in out.stdout
+
+
+def test_the_command_line_imports_no_jax_until_a_command_needs_it():
+    """`bcmocap view` starts its server before JAX is imported (the page loads meanwhile): the command line, the
+    view command and the viewer's server import no JAX, and float64 set before JAX is imported still holds."""
+    code = ("import sys, bcmocap.cli, bcmocap.pipeline.view_command, bcmocap.pipeline.view_input, bcmocap.viewer.server\n"
+            "assert 'jax' not in sys.modules, 'jax was imported'\n"
+            "from bcmocap.precision import enable_float64\n"
+            "enable_float64()\n"
+            "import jax\n"
+            "assert jax.numpy.zeros(1).dtype == 'float64'\n")
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr
