@@ -32,6 +32,7 @@ import numpy as np
 
 from ..cameras import CameraModel
 from ..io.colmap import to_pycolmap
+from .threads import default_threads
 
 __all__ = ["DescriptorIndex", "ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "verify_matches"]
 
@@ -223,7 +224,7 @@ def _match_pairs(names, features, *, ratio, threshold_px, min_inliers, workers: 
         matches = match_descriptors(da, db, ratio=ratio, index_a=indices[ab[0]], index_b=indices[ab[1]])
         return verify_matches(ka, kb, matches, threshold_px=threshold_px, min_inliers=min_inliers)
 
-    with ThreadPoolExecutor(max_workers=max(1, workers or os.cpu_count() or 1)) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, workers or default_threads())) as pool:
         return {ab: m for ab, m in zip(pairs, pool.map(pair, pairs)) if len(m)}
 
 

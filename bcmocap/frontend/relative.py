@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import threading
 import zipfile
 from collections.abc import Callable
@@ -46,6 +45,7 @@ from ..io.colmap import to_pycolmap
 from .features import read_camera_features, write_camera_features
 from .reference import DescriptorIndex, extract_sift, match_descriptors, uint8_descriptors
 from .register import ReferenceIndex, RegistrationOptions, _pose_wxyz_xyz, match_to_reference
+from .threads import default_threads
 
 __all__ = ["FrameState", "RelativeOptions", "CaptureRegistration", "RegistrationCheckpoint", "extract_trial_features",
            "register_features", "register_capture", "triangulate_rays"]
@@ -336,7 +336,7 @@ class ProgressCounter:
 
 
 def _workers(workers: int | None) -> int:
-    return max(1, int(workers) if workers is not None else (os.cpu_count() or 1))
+    return max(1, int(workers) if workers is not None else default_threads())
 
 
 def _estimate_pose(xy: np.ndarray, xyz: np.ndarray, cam, options: RegistrationOptions):

@@ -42,6 +42,7 @@ import numpy as np
 from ..geometry import matrix_from_quat
 from .reference import extract_sift
 from .register import ReferenceIndex, RegistrationOptions
+from .threads import default_threads
 
 __all__ = ["CameraTrack", "TrackingOptions", "frames_for_rounds", "map_index", "predict_pose", "relocalise", "retrack",
            "sift_at", "states_for_rounds", "track_camera", "track_trial", "tracking_states"]
@@ -530,7 +531,6 @@ def track_trial(capture, trial: str, index: ReferenceIndex, *, starts, num_frame
         ``[(keypoints (N, 2), descriptors (N, 128) uint8)]`` (memory-mapped with ``cache_dir``).
     """
     import functools
-    import os
     from concurrent.futures import ThreadPoolExecutor
 
     from .relative import ProgressCounter
@@ -545,7 +545,7 @@ def track_trial(capture, trial: str, index: ReferenceIndex, *, starts, num_frame
         map_tasks(functools.partial(_track_camera_task, one_camera), range(len(names)), label=f"track {trial}",
                   on_done=lambda i, done: tick(done))
         tick = ProgressCounter(0, None)  # every camera is in its cache now: read back without counting again
-    count = workers if workers is not None else (os.cpu_count() or 1)
+    count = workers if workers is not None else default_threads()
     with ThreadPoolExecutor(max_workers=max(1, count)) as pool:
         done = list(pool.map(lambda c: one_camera(c, tick), range(len(names))))
     return [d[0] for d in done], [d[1] for d in done]
@@ -679,7 +679,6 @@ def sift_at(capture, trial: str, wanted: np.ndarray, *, starts, stride: int, fir
     """SIFT of the processed frames ``wanted (T, C)`` (bool, rows are processed frames ``first …
     first + T − 1``): ``{(t, c): (keypoints (N, 2), descriptors (N, 128) uint8)}`` with ``t`` counted
     from 0 like the processed frames. Each camera's video is decoded once, up to its last wanted frame."""
-    import os
     from concurrent.futures import ThreadPoolExecutor
 
     names = capture.camera_names
@@ -700,7 +699,7 @@ def sift_at(capture, trial: str, wanted: np.ndarray, *, starts, stride: int, fir
                 out[(first + k, c)] = (kp[:, :2].astype(np.float64), desc)
         return out
 
-    count = workers if workers is not None else (os.cpu_count() or 1)
+    count = workers if workers is not None else default_threads()
     found = {}
     with ThreadPoolExecutor(max_workers=max(1, count)) as pool:
         for part in pool.map(one_camera, range(len(names))):
@@ -740,7 +739,6 @@ def relocalise(tracks: list, keyframe_features: list, cams: list, index: Referen
         ``({(t, c): (world_from_camera (7,), point_ids per keypoint (N,))}, affinity (C, C))``: per camera,
         how many of its frames' matches fell on each other camera's map (which cameras see what it sees).
     """
-    import os
     from concurrent.futures import ThreadPoolExecutor
 
     from .register import match_to_reference
@@ -769,7 +767,7 @@ def relocalise(tracks: list, keyframe_features: list, cams: list, index: Referen
         ids[query[inl]] = extended.point3D_ids[rows[inl]]
         return (_pose_wxyz_xyz(cfw), ids), votes
 
-    count = workers if workers is not None else (os.cpu_count() or 1)
+    count = workers if workers is not None else default_threads()
     registered = {}
     with ThreadPoolExecutor(max_workers=max(1, count)) as pool:
         for (t, c), (found, votes) in zip(todo, pool.map(one, todo)):
@@ -797,7 +795,6 @@ def _track_into_gaps(capture, trial: str, lookup: ReferenceIndex, registered: Ca
 
     Returns how many frames were registered.
     """
-    import os
     from concurrent.futures import ThreadPoolExecutor
 
     from ..io.colmap import to_pycolmap
@@ -842,7 +839,7 @@ def _track_into_gaps(capture, trial: str, lookup: ReferenceIndex, registered: Ca
                     count += 1
         return count
 
-    count = workers if workers is not None else (os.cpu_count() or 1)
+    count = workers if workers is not None else default_threads()
     with ThreadPoolExecutor(max_workers=max(1, count)) as pool:
         return sum(pool.map(one_camera, range(len(names))))
 

@@ -35,6 +35,7 @@ WORKER_ENVIRONMENT = {
     "OPENBLAS_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
     "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
+    "BCMOCAP_THREADS": "1",  # the frontend's own thread pools (bcmocap.frontend.relative.default_threads)
 }
 MAX_LOCAL_WORKERS = 1024
 _ADDRESS = re.compile(r"^(tcp|tls|ws|wss)://[A-Za-z0-9._\-\[\]:]+:\d{1,5}$")
