@@ -13,7 +13,7 @@ capture, from the measured task durations scaled to that length (per-camera trac
 and windows ∝ their count; the ROM trial and the reference model fixed) and list-scheduled on W workers
 (a simulation of the schedule, stated as such).
 
-    python benchmarks/scale_out.py --json benchmarks/results/scale_out.json
+    python benchmarks/scale_out.py --solve-run RUN_DIR --json benchmarks/results/scale_out.json
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import heapq
 import json
 import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -203,7 +204,8 @@ def simulate(tasks: dict[str, list[float]], serial: float, scale_frontend: float
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--capture", type=Path, help="capture folder (default: render one into --work)")
-    parser.add_argument("--work", type=Path, default=Path("/tmp/bcmocap-scale-out"))
+    parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "bcmocap-scale-out",
+                        help="folder for the rendered capture and the runs (default: bcmocap-scale-out in the temp folder)")
     parser.add_argument("--seconds", type=float, default=4.0, help="capture trial to render (s)")
     parser.add_argument("--rom-seconds", type=float, default=2.5, help="range-of-motion trial to render (s)")
     parser.add_argument("--chunk-frames", type=int, default=10, help="frontend.chunk_frames")
@@ -213,8 +215,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stop-after", default="frontend",
                         help="stage after which the runs on the rendered capture stop (default frontend: on so short a "
                              "range-of-motion trial the skeleton stage can fail; the solve is measured on --solve-run)")
-    parser.add_argument("--solve-run", type=Path, default=Path("/work/ct/bench/paper"),
-                        help="a finished run whose solve stage is redone per mode with independent windows ('' skips)")
+    parser.add_argument("--solve-run", type=Path,
+                        help="a finished `bcmocap run` folder (e.g. the 10 s walk's, made by benchmarks/custom_terms.py) "
+                             "whose solve stage is redone per mode with independent windows (default: not measured)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
     enable_float64()
@@ -238,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         results[mode] = run_mode(capture, args.work / f"out-{mode.replace(':', '')}", config, mode,
                                  stop_after=args.stop_after or None)
         print(f"{mode}: {results[mode]['wall_seconds']:.1f} s", flush=True)
-        if args.solve_run and str(args.solve_run):
+        if args.solve_run is not None:
             results[mode]["solve"] = solve_mode(args.solve_run, args.work / f"solve-{mode.replace(':', '')}", mode)
             print(f"{mode}: solve stage {results[mode]['solve']['solve_seconds']:.1f} s", flush=True)
         if args.json:  # what is measured so far, in case a later mode is stopped
@@ -252,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     capture_seconds = json.loads((capture / "capture.json").read_text()).get("settings", {}).get("seconds", args.seconds)
     scale_frontend = PROJECTED_SECONDS / float(capture_seconds)
     scale_solve, fixed = 0.0, 0.0
-    if args.solve_run and str(args.solve_run):
+    if args.solve_run is not None:
         log = json.loads((args.solve_run / "run.json").read_text())
         solve_frames = int(log["stages"]["frontend"]["capture"]["frames"])
         fps = float(np.load(args.solve_run / "motion.npz")["fps"])
