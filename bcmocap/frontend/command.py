@@ -182,8 +182,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         raise ValueError(f"trial {trial!r}: no frames to register after the first clap (stride {stride})")
     bounds = chunk_bounds(count, chunk_frames)
     if map_tasks is not None and len(bounds) > 1:  # chunks are independent: register them as tasks, saved
-        todo = [k for k, (a, b) in enumerate(bounds)
-                if _saved_chunk(job.chunk_path(k), settings, [a, b])[0] is None]
+        todo = [k for k, (a, b) in enumerate(bounds) if _saved_summary(job.chunk_path(k), settings, [a, b]) is None]
         if todo:
             log(f"{trial}: {len(todo)} of {len(bounds)} chunks as tasks")
 
@@ -385,16 +384,25 @@ def _saved_chunk(saved, settings: dict, frames: list[int]):
     frames (``saved`` without suffix), or ``(None, None)``."""
     from ..correspondences import Correspondences
 
-    try:
-        summary = json.loads(saved.with_suffix(".json").read_text())
-    except (OSError, ValueError):
-        return None, None
-    if not isinstance(summary, dict) or summary.get("settings") != settings or summary.get("frames") != frames:
+    summary = _saved_summary(saved, settings, frames)
+    if summary is None:
         return None, None
     try:
         return Correspondences.load(saved.with_suffix(".npz")), summary
     except ValueError:
         return None, None
+
+
+def _saved_summary(saved, settings: dict, frames: list[int]) -> dict | None:
+    """The summary (``saved`` + ``.json``) of a chunk saved with these settings and frames, or None (its
+    correspondences are read by :func:`_saved_chunk`)."""
+    try:
+        summary = json.loads(saved.with_suffix(".json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict) or summary.get("settings") != settings or summary.get("frames") != frames:
+        return None
+    return summary
 
 
 def _checkpoint(folder, stage: str, settings: dict, frames: list[int]):

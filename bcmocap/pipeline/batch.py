@@ -11,6 +11,7 @@ ground truth when the capture has one, the time, and the failure's reason.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
@@ -63,15 +64,13 @@ def run_one(item: BatchItem, config_dict: dict, executor=None, stop_after: str |
     clock = time.perf_counter()
     row = {"capture": str(item.capture), "out": str(item.out), "ok": False}
     try:
-        if executor is None:  # a task on a cluster: its pieces become tasks of the same cluster
-            from distributed import worker_client
+        with contextlib.ExitStack() as stack:
+            if executor is None:  # a task on a cluster: its pieces become tasks of the same cluster
+                from distributed import worker_client
 
-            from .cluster import Executor
+                from .cluster import Executor
 
-            with worker_client() as client:
-                log = run_pipeline(item.capture, item.out, RunConfig.from_dict(config_dict), executor=Executor(client),
-                                   log=lambda line: None, stop_after=stop_after)
-        else:
+                executor = Executor(stack.enter_context(worker_client()))
             log = run_pipeline(item.capture, item.out, RunConfig.from_dict(config_dict), executor=executor,
                                log=lambda line: None, stop_after=stop_after)
         row.update(_summary(item.out, log))

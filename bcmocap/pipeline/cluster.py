@@ -83,9 +83,8 @@ class Executor:
     this process's ``time.perf_counter`` clock (the caller waits for its tasks meanwhile).
     """
 
-    def __init__(self, client=None, spec: ClusterSpec | None = None):
+    def __init__(self, client=None):
         self.client = client
-        self.spec = spec
         self.tasks: list[tuple[str, float]] = []
         self.calls: list[tuple[str, float, float]] = []
 
@@ -206,4 +205,4 @@ def open_executor(spec: ClusterSpec | str | None, log: Callable[[str], None] = p
             except (OSError, TimeoutError) as exc:
                 raise ValueError(f"cluster {spec.address}: cannot reach the scheduler ({exc})") from None
             log(f"cluster: {spec.address}, {len(client.nthreads())} worker(s)")
-        yield Executor(client, spec)
+        yield Executor(client)

@@ -506,14 +506,20 @@ def _stage_solve(ctx: RunContext) -> dict:
         save_motion(checkpoint_path, so_far.motion, **_solved_variables(so_far))
         write_json_atomic(reports_path, {"fingerprint": fingerprints(ctx.config)["solve"], "reports": reports})
 
-    if s.windows == "independent":  # every window from the initial motion: tasks on a cluster (no checkpoint)
+    def solve_all(problem, motion, **resume):
+        """The whole sequence: sequential windows (``resume``: where a checkpoint left them), or independent ones
+        (tasks on a cluster; they start from ``motion``, so a checkpoint does not apply)."""
+        if s.windows == "independent":
+            return solve_windows_independently(problem, motion, options, map=_window_map(ctx.executor))
+        return solve(problem, motion, options, progress=True, **resume)
+
+    if s.windows == "independent":  # every window from the initial motion (no checkpoint)
         ctx.log(f"solve: {len(window_starts(corr.num_frames, min(s.window, corr.num_frames), s.overlap))} windows "
                 f"solved independently{' on the cluster' if ctx.executor.distributed else ''}, then their seams")
-        solution = solve_windows_independently(problem, initial, options, map=_window_map(ctx.executor))
+    solution = solve_all(problem, initial, skip_windows=skip, checkpoint=save, initial_statics=statics,
+                         initial_frame_variables=frame_variables)
+    if s.windows == "independent":
         reports = [dataclasses.asdict(r) for r in solution.reports]
-    else:
-        solution = solve(problem, initial, options, progress=True, skip_windows=skip, checkpoint=save,
-                         initial_statics=statics, initial_frame_variables=frame_variables)
     refinements = []
     for k in range(1, s.refine_rounds + 1):  # the model refined on the same problem, then solved again
         ctx.log(f"solve: refinement round {k} of {s.refine_rounds} (bone offsets, mounts, hinge axes, with the motion)")
@@ -522,10 +528,7 @@ def _stage_solve(ctx: RunContext) -> dict:
         ctx.log(f"solve: refinement moved offsets ≤ {1e3 * refinement.report.offset_change_m:.2f} mm, mounts ≤ "
                 f"{1e3 * refinement.report.mount_translation_change_m:.2f} mm / {refinement.report.mount_rotation_change_deg:.3f}°")
         problem = dataclasses.replace(problem, skeleton=refinement.skeleton, rig=refinement.rig)
-        if s.windows == "independent":
-            solution = solve_windows_independently(problem, refinement.motion, options, map=_window_map(ctx.executor))
-        else:
-            solution = solve(problem, refinement.motion, options, progress=True)
+        solution = solve_all(problem, refinement.motion)
     for name in ("skeleton.json", "rig.json"):  # a refined model lives in solve/ (a rerun without refinement drops it)
         ctx.path("solve", name).unlink(missing_ok=True)
     if refinements:
