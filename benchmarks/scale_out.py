@@ -47,6 +47,8 @@ PROJECTED_SECONDS = 600.0
 def run_mode(capture: Path, out: Path, config: RunConfig, mode: str, stop_after: str | None = None,
              fresh: bool = True) -> dict:
     """One run (fresh: every stage; else resumed) on the cluster ``mode``; wall time, tasks and the run log."""
+    enable_float64()
+    enable_compilation_cache()
     if fresh:
         shutil.rmtree(out, ignore_errors=True)
     lines: list[str] = []
@@ -92,6 +94,16 @@ def solve_mode(run_dir: Path, out: Path, mode: str) -> dict:
         result = run_mode(capture, out, config, mode, stop_after="solve", fresh=False)
     result["solve_seconds"] = result["stage_seconds"]["solve"]
     return result
+
+
+def in_fresh_process(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` in a new Python process, as each ``bcmocap run`` is: no mode inherits another's
+    warm state (imported modules, compiled programs, OpenCV's thread pool)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(fn, *args, **kwargs).result()
 
 
 def _union(intervals: list[tuple[float, float]]) -> float:
@@ -238,11 +250,12 @@ def main(argv: list[str] | None = None) -> int:
     results = {}
     for mode in args.modes:
         print(f"{mode}: bcmocap run ...", flush=True)
-        results[mode] = run_mode(capture, args.work / f"out-{mode.replace(':', '')}", config, mode,
-                                 stop_after=args.stop_after or None)
+        results[mode] = in_fresh_process(run_mode, capture, args.work / f"out-{mode.replace(':', '')}", config, mode,
+                                         stop_after=args.stop_after or None)
         print(f"{mode}: {results[mode]['wall_seconds']:.1f} s", flush=True)
         if args.solve_run is not None:
-            results[mode]["solve"] = solve_mode(args.solve_run, args.work / f"solve-{mode.replace(':', '')}", mode)
+            results[mode]["solve"] = in_fresh_process(solve_mode, args.solve_run,
+                                                      args.work / f"solve-{mode.replace(':', '')}", mode)
             print(f"{mode}: solve stage {results[mode]['solve']['solve_seconds']:.1f} s", flush=True)
         if args.json:  # what is measured so far, in case a later mode is stopped
             write_json(args.json.with_suffix(".partial.json"), {"runs": results, "machine": machine()})

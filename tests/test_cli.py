@@ -119,3 +119,14 @@ def test_the_command_line_imports_no_jax_until_a_command_needs_it():
     env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300, env=env)
     assert out.returncode == 0, out.stderr
+
+
+def test_a_script_running_the_pipeline_in_float32_is_stopped_before_it_reads_the_capture(tmp_path):
+    """Camera models hold JAX arrays: read in float32, a capture's intrinsics lose digits and the frontend
+    registers differently, so run_pipeline refuses to start (naming the fix) instead of running on."""
+    code = ("from bcmocap.pipeline.run import run_pipeline\n"
+            f"run_pipeline({str(tmp_path / 'no capture')!r}, {str(tmp_path / 'out')!r})\n")
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300, env=env)
+    assert out.returncode != 0 and "needs float64" in out.stderr and "enable_float64" in out.stderr, out.stderr
+    assert not (tmp_path / "out").exists()

@@ -1,8 +1,12 @@
 """bcmocap.pipeline.cluster: the --cluster spec, and independent calls run in this process or as Dask tasks
 on a LocalCluster of worker processes; bcmocap batch's run folders."""
 
+import functools
 import os
+import signal
+import time
 
+import numpy as np
 import pytest
 
 from bcmocap.pipeline.batch import batch_items, summary_table
@@ -80,6 +84,47 @@ def test_a_local_cluster_runs_tasks_in_worker_processes_and_passes_errors_on():
         assert len(ex.tasks) == 6 and all(seconds >= 0 for _, seconds in ex.tasks)
         with pytest.raises(ValueError, match="three is refused"):
             ex.map(_fail_on_three, range(5))
+
+
+def _slow_offset_square(offset: np.ndarray, x: int) -> tuple[int, int]:
+    time.sleep(0.3)
+    return int(x * x + offset.sum()), os.getpid()
+
+
+def test_a_map_survives_losing_every_worker_that_holds_its_function():
+    """The mapped function goes to the cluster as a task's result, so the scheduler computes it again when
+    the workers holding it die (scattered data would be lost for good, and its tasks cancelled)."""
+    fn = functools.partial(_slow_offset_square, np.zeros(200_000))  # big enough to be worth sending once
+    with open_executor("local:2", log=lambda line: None) as ex:
+        killed = []
+
+        def kill_every_worker(i, result):
+            if not killed:
+                pids = ex.client.run(os.getpid)
+                for pid in pids.values():
+                    os.kill(pid, signal.SIGKILL)
+                killed.extend(pids.values())
+
+        out = ex.map(fn, range(8), label="sq", on_done=kill_every_worker)
+    assert len(killed) == 2 and [o[0] for o in out] == [x * x for x in range(8)]
+
+
+def _camera_dtype(camera) -> str:
+    return str(camera.focal.dtype)
+
+
+def test_tasks_receive_camera_models_in_float64_even_on_workers_started_without_it():
+    """A task's JAX arrays are unpickled before it runs: the workers must be in float64 from the start (local
+    workers by their environment; any worker by the plugin open_executor registers)."""
+    from bcmocap.cameras import PinholeCamera
+    from bcmocap.pipeline.cluster import WORKER_ENVIRONMENT
+
+    camera = PinholeCamera(width=64, height=48, focal=[50.123456789012345, 50.0], principal_point=[32.0, 24.0])
+    with open_executor("local:1", log=lambda line: None) as ex:
+        assert ex.map(_camera_dtype, [camera]) == ["float64"]
+        assert ex.client.run(lambda: os.environ.get("JAX_ENABLE_X64")) and WORKER_ENVIRONMENT["JAX_ENABLE_X64"] == "1"
+        plugins = ex.client.run(lambda dask_worker: sorted(dask_worker.plugins))
+        assert all("bcmocap-worker-setup" in names for names in plugins.values())
 
 
 def test_an_unreachable_scheduler_is_one_clear_error():

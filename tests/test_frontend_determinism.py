@@ -51,6 +51,19 @@ def test_flann_trees_do_not_depend_on_the_thread_or_its_history():
     assert np.array_equal(match_descriptors(data[:500], query, checks=8), pairs)
 
 
+def test_a_used_index_pickles_to_one_that_finds_the_same_neighbours():
+    """A cluster task receives the index by pickle: the descriptors travel, its trees are built again."""
+    import pickle
+
+    rng = np.random.default_rng(1)
+    data, query = rng.integers(0, 256, (2000, 128)).astype(np.uint8), rng.integers(0, 256, (300, 128)).astype(np.uint8)
+    index = DescriptorIndex(data, checks=8)
+    found = index.nearest(query, 0.9)  # its trees are built and held per thread now
+    copy = pickle.loads(pickle.dumps(index))
+    again = copy.nearest(query, 0.9)
+    assert np.array_equal(found[0], again[0]) and np.array_equal(found[1], again[1])
+
+
 def test_mutual_matching_searches_back_only_the_rows_chosen():
     """The way back of mutual matching searches only the rows the first way chose; the matches are those of
     searching every row back (each query's neighbours do not depend on the other queries)."""

@@ -89,6 +89,16 @@ class DescriptorIndex:
         self.trees, self.checks = int(trees), int(checks)
         self._local = threading.local()
 
+    def __getstate__(self) -> dict:
+        """Pickled without the trees (a cluster task gets the descriptors and builds the same trees)."""
+        return {"descriptors": self.descriptors, "trees": self.trees, "checks": self.checks}
+
+    def __setstate__(self, state: dict) -> None:
+        import threading
+
+        self.descriptors, self.trees, self.checks = state["descriptors"], state["trees"], state["checks"]
+        self._local = threading.local()
+
     def nearest(self, query: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
         """``(nearest (N,), good (N,))``: index of each query row's nearest neighbour (−1 when the index holds
         fewer than two rows) and whether it passes Lowe's ratio test (distance < ``ratio`` × second)."""

@@ -27,6 +27,7 @@ import dataclasses
 import os
 import re
 import time
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 
 #: Environment of each local worker process: numeric libraries on one thread (one task = one core).
@@ -36,6 +37,9 @@ WORKER_ENVIRONMENT = {
     "MKL_NUM_THREADS": "1",
     "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
     "BCMOCAP_THREADS": "1",  # the frontend's own thread pools (bcmocap.frontend.relative.default_threads)
+    # float64 from the start: a task's arguments (a capture's camera models) are JAX arrays, unpickled before
+    # the task runs; in float32 they would silently lose their last digits
+    "JAX_ENABLE_X64": "1",
 }
 MAX_LOCAL_WORKERS = 1024
 _ADDRESS = re.compile(r"^(tcp|tls|ws|wss)://[A-Za-z0-9._\-\[\]:]+:\d{1,5}$")
@@ -124,7 +128,12 @@ class Executor:
             return out
         from distributed import as_completed
 
-        shared = self.client.scatter(fn, hash=False)  # once, not once per task (it may hold a reference index)
+        # fn goes to the cluster once, not once per task (it may hold a reference index), as the result of a
+        # task rather than scattered data: a worker lost with it makes the scheduler compute it again, while
+        # lost scattered data cannot be recovered and would cancel every task that needs it.
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*large graph.*")
+            shared = self.client.submit(_itself, fn, pure=False, key=f"{label}-function-{os.urandom(4).hex()}")
         futures = self.client.map(_timed, [shared] * len(items), items, pure=False,
                                   key=[f"{label}-{i}-{os.urandom(4).hex()}" for i in range(len(items))])
         index = {f.key: i for i, f in enumerate(futures)}
@@ -138,9 +147,13 @@ class Executor:
                 if on_done is not None:
                     on_done(i, result)
         finally:
-            for future in futures:
+            for future in (*futures, shared):
                 future.cancel()
         return out
+
+
+def _itself(value):
+    return value
 
 
 def _timed(fn: Callable, item) -> tuple[object, float]:
@@ -205,4 +218,7 @@ def open_executor(spec: ClusterSpec | str | None, log: Callable[[str], None] = p
             except (OSError, TimeoutError) as exc:
                 raise ValueError(f"cluster {spec.address}: cannot reach the scheduler ({exc})") from None
             log(f"cluster: {spec.address}, {len(client.nthreads())} worker(s)")
+        from .worker_plugin import WorkerSetup
+
+        client.register_plugin(WorkerSetup())
         yield Executor(client)

@@ -151,8 +151,13 @@ def run_pipeline(capture_dir: str | Path, out: str | Path, config: RunConfig = R
     Raises:
         ValueError: an unreadable capture, a missing subject description, bad settings; naming the
             file or field.
+        RuntimeError: JAX is not in float64 (call :func:`bcmocap.enable_float64` first): the capture's
+            camera models and every stage compute in it.
     """
     from ..frontend.capture import Capture, read_capture
+    from ..precision import require_float64
+
+    require_float64("bcmocap.pipeline.run_pipeline")
 
     from ..solver.objective import import_term_factory
 
