@@ -1,19 +1,20 @@
 """Scale-out on Dask (issue 23): the same capture through ``bcmocap run`` with no cluster, ``local:1`` and
 ``local:2``, and a simulated schedule of a 10-minute capture on 8, 32 and 128 workers.
 
-Renders a capture with the standard rig (or takes ``--capture``) and runs every stage three times into
-fresh folders under ``--work``, with the same settings (``bcmocap demo``'s, in chunks of ``--chunk-frames``
-processed frames and with ``solver.windows`` independent): only the cluster differs. Prints
-per mode the wall time, the time the run spent waiting for tasks and the time it worked alone (the serial
-part: reference model, sync, reading caches, world, skeleton, initial motion, joining windows, outputs);
-the speedup of ``local:2`` over ``local:1`` (goal ≥ 1.7); whether the outputs are the same (largest
-difference of the solved joint positions, and which arrays are bitwise equal); the tasks and the critical
-path (the serial part plus, per phase, its longest task); and the projected wall time of a 10-minute
-capture, from the measured task durations scaled to that length (per-camera tracking ∝ frames, chunks
-and windows ∝ their count; the ROM trial and the reference model fixed) and list-scheduled on W workers
-(a simulation of the schedule, stated as such).
+Renders a capture with the standard rig (or takes ``--capture``) and runs every stage once per mode, each
+in a fresh process and a fresh folder under ``--work``, with the same settings (``bcmocap demo``'s, in chunks
+of ``--chunk-frames`` processed frames and with ``solver.windows`` independent): only the cluster differs.
+Prints per mode the wall time, the time the run spent waiting for tasks and the time it worked alone (the
+serial part: reference model, sync, reading caches, writing stores, world, skeleton, initial motion, joining
+windows, outputs) and its accuracy against the capture's ground truth; the speedup of ``local:2`` over
+``local:1`` (goal ≥ 1.7); whether the outputs are the same (frontend stores bitwise, largest difference of
+the solved joint positions); the tasks and the critical path (the serial part plus, per phase, its longest
+task); and the projected wall time of a 10-minute capture, from the measured task durations scaled to that
+length (per-camera tracking or SIFT ∝ frames, chunks and windows ∝ their count; the ROM trial, world and
+skeleton fixed; the rest of the serial part ∝ length) and list-scheduled on W workers (a simulation of the
+schedule, stated as such).
 
-    python benchmarks/scale_out.py --solve-run RUN_DIR --json benchmarks/results/scale_out.json
+    python benchmarks/scale_out.py --json benchmarks/results/scale_out.json
 """
 
 from __future__ import annotations
@@ -59,41 +60,16 @@ def run_mode(capture: Path, out: Path, config: RunConfig, mode: str, stop_after:
 
     clock = time.perf_counter()
     with open_executor(None if mode == "none" else mode, log=say) as executor:
-        started = time.perf_counter()
+        started, cpu = time.perf_counter(), time.process_time()
         log = run_pipeline(capture, out, config, executor=executor, log=say, stop_after=stop_after)
-        wall = time.perf_counter() - started
+        wall, cpu = time.perf_counter() - started, time.process_time() - cpu
     waited = _union([(a, b) for _, a, b in executor.calls])
     return {"wall_seconds": wall, "with_cluster_start_seconds": time.perf_counter() - clock,
+            "this_process_cpu_seconds": cpu,  # with a local cluster: the run's serial part, the scheduler, the client
             "waiting_for_tasks_seconds": waited, "serial_seconds": wall - waited,
             "tasks": [list(t) for t in executor.tasks],
             "calls": [[label, a - started, b - started] for label, a, b in executor.calls],
             "stage_seconds": {stage: rec["seconds"] for stage, rec in log["stages"].items()}}
-
-
-SOLVE_INPUTS = ("run.json", "config.json", "model", "world", "solve/initial.npz", "solve/correspondences",
-                "frontend/rom/registration.json", "frontend/rom/correspondences",
-                "frontend/capture/registration.json", "frontend/capture/correspondences")
-
-
-def solve_mode(run_dir: Path, out: Path, mode: str) -> dict:
-    """The solve stage of a finished run redone with independent windows on the cluster ``mode``, in a copy
-    of what it needs; solved twice, the second timed (the window solve then comes from JAX's persistent
-    compilation cache in every process, as in any run after the first)."""
-    shutil.rmtree(out, ignore_errors=True)
-    for name in SOLVE_INPUTS:
-        (out / name).parent.mkdir(parents=True, exist_ok=True)
-        (shutil.copytree if (run_dir / name).is_dir() else shutil.copy2)(run_dir / name, out / name)
-    base = json.loads((run_dir / "config.json").read_text())
-    config = RunConfig.from_dict(base).with_overrides({"solver.windows": "independent", "outputs.pictures": False})
-    capture = Path(json.loads((run_dir / "run.json").read_text())["capture"])
-    for attempt in range(2):
-        log = json.loads((out / "run.json").read_text())
-        for stage in ("solve", "outputs"):
-            log["stages"].pop(stage, None)
-        (out / "run.json").write_text(json.dumps(log))
-        result = run_mode(capture, out, config, mode, stop_after="solve", fresh=False)
-    result["solve_seconds"] = result["stage_seconds"]["solve"]
-    return result
 
 
 def in_fresh_process(fn, *args, **kwargs):
@@ -130,22 +106,33 @@ def compare(work: Path, reference: str, mode: str) -> dict:
                 for m in (reference, mode))
         stores[trial] = all(np.array_equal(getattr(p, f), getattr(q, f), equal_nan=True)
                             for f in ("point_ids", "pixels", "weights", "registered", "world_from_camera", "points"))
-    out = {"frontend_correspondences_bitwise_equal": stores, "max_joint_position_difference_cm": 0.0,
+    out = {"frontend_correspondences_bitwise_equal": stores, "max_joint_position_difference_cm": None,
            "motion_arrays_bitwise_equal": []}
-    solved = {m: work / f"solve-{m.replace(':', '')}" for m in (reference, mode)}
-    if all((d / "solve" / "motion.npz").is_file() for d in solved.values()):
-        skeleton, _ = load_model(solved[reference])
-        a, b = (load_motion(solved[m] / "solve" / "motion.npz") for m in (reference, mode))
-        joints = np.asarray(joint_positions(skeleton, a)) - np.asarray(joint_positions(skeleton, b))
-        out["max_joint_position_difference_cm"] = float(np.max(np.abs(joints))) * 100.0
+    if all((folder[m] / "solve" / "motion.npz").is_file() for m in folder):
+        joints, motions = [], []
+        for m in (reference, mode):
+            skeleton, _ = load_model(folder[m])
+            motions.append(load_motion(folder[m] / "solve" / "motion.npz"))
+            joints.append(np.asarray(joint_positions(skeleton, motions[-1])))
+        out["max_joint_position_difference_cm"] = float(np.max(np.abs(joints[0] - joints[1]))) * 100.0
         out["motion_arrays_bitwise_equal"] = [f for f in ("root_position", "rotations")
-                                              if np.array_equal(getattr(a, f), getattr(b, f))]
+                                              if np.array_equal(getattr(motions[0], f), getattr(motions[1], f))]
     return out
+
+
+def accuracy(out: Path) -> dict | None:
+    """Mean joint position (cm) and angle (°) errors of a finished run against the ground truth (its
+    ``metrics.json``, after the §5.1 similarity); None if the run did not reach its outputs."""
+    path = out / "metrics.json"
+    if not path.is_file():
+        return None
+    solved = json.loads(path.read_text())["solved"]
+    return {key: solved[key]["mean"] for key in ("joint_position_error_cm", "joint_angle_error_deg")}
 
 
 def _phases(tasks: list[list]) -> dict[str, list[float]]:
     out: dict[str, list[float]] = {}
-    for label, seconds in tasks:
+    for label, seconds, *_ in tasks:
         out.setdefault(label, []).append(seconds)
     return out
 
@@ -219,17 +206,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "bcmocap-scale-out",
                         help="folder for the rendered capture and the runs (default: bcmocap-scale-out in the temp folder)")
     parser.add_argument("--seconds", type=float, default=4.0, help="capture trial to render (s)")
-    parser.add_argument("--rom-seconds", type=float, default=2.5, help="range-of-motion trial to render (s)")
+    parser.add_argument("--rom-seconds", type=float, default=3.0, help="range-of-motion trial to render (s)")
+    parser.add_argument("--seed", type=int, default=3, help="the rendered capture's seed")
     parser.add_argument("--chunk-frames", type=int, default=10, help="frontend.chunk_frames")
     parser.add_argument("--window", type=int, default=20, help="solver.window")
     parser.add_argument("--overlap", type=int, default=5, help="solver.overlap")
     parser.add_argument("--modes", nargs="+", default=list(MODES))
-    parser.add_argument("--stop-after", default="frontend",
-                        help="stage after which the runs on the rendered capture stop (default frontend: on so short a "
-                             "range-of-motion trial the skeleton stage can fail; the solve is measured on --solve-run)")
-    parser.add_argument("--solve-run", type=Path,
-                        help="a finished `bcmocap run` folder (e.g. the 10 s walk's, made by benchmarks/custom_terms.py) "
-                             "whose solve stage is redone per mode with independent windows (default: not measured)")
+    parser.add_argument("--stop-after", default="", help="stage after which the runs stop (default: none, every stage)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
     enable_float64()
@@ -241,7 +224,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"rendering a {args.seconds:g} s walk and a {args.rom_seconds:g} s ROM trial into {capture} ...",
                   flush=True)
             write_capture(capture, StudioSettings(seconds=args.seconds, rom_seconds=args.rom_seconds, fps=30.0,
-                                                  reference_width=640, reference_height=480, seed=0), progress=False)
+                                                  reference_width=640, reference_height=480, seed=args.seed),
+                          progress=False)
     config = RunConfig().with_overrides({  # bcmocap demo's settings, in chunks and independent windows
         "frontend.rom_stride": 2, "frontend.max_features": 3000, "frontend.chunk_frames": args.chunk_frames,
         "solver.windows": "independent", "solver.window": args.window, "solver.overlap": args.overlap,
@@ -250,69 +234,65 @@ def main(argv: list[str] | None = None) -> int:
     results = {}
     for mode in args.modes:
         print(f"{mode}: bcmocap run ...", flush=True)
-        results[mode] = in_fresh_process(run_mode, capture, args.work / f"out-{mode.replace(':', '')}", config, mode,
-                                         stop_after=args.stop_after or None)
+        out = args.work / f"out-{mode.replace(':', '')}"
+        results[mode] = in_fresh_process(run_mode, capture, out, config, mode, stop_after=args.stop_after or None)
+        results[mode]["accuracy"] = accuracy(out)
         print(f"{mode}: {results[mode]['wall_seconds']:.1f} s", flush=True)
-        if args.solve_run is not None:
-            results[mode]["solve"] = in_fresh_process(solve_mode, args.solve_run,
-                                                      args.work / f"solve-{mode.replace(':', '')}", mode)
-            print(f"{mode}: solve stage {results[mode]['solve']['solve_seconds']:.1f} s", flush=True)
         if args.json:  # what is measured so far, in case a later mode is stopped
             write_json(args.json.with_suffix(".partial.json"), {"runs": results, "machine": machine()})
     reference = "none" if "none" in args.modes else args.modes[0]
     same = {m: compare(args.work, reference, m) for m in args.modes if m != reference}
-    worst = max((s["max_joint_position_difference_cm"] for s in same.values()), default=0.0)
+    differences = [s["max_joint_position_difference_cm"] for s in same.values()]
+    worst = None if None in differences else max(differences, default=0.0)
     base = results.get("local:2") or results[args.modes[-1]]
-    solve_base = base.get("solve", {"tasks": [], "serial_seconds": 0.0, "calls": [], "stage_seconds": {}})
-    phases = _phases(base["tasks"] + solve_base["tasks"])
+    phases = _phases(base["tasks"])
     capture_seconds = json.loads((capture / "capture.json").read_text()).get("settings", {}).get("seconds", args.seconds)
-    scale_frontend = PROJECTED_SECONDS / float(capture_seconds)
-    scale_solve, fixed = 0.0, 0.0
-    if args.solve_run is not None:
-        log = json.loads((args.solve_run / "run.json").read_text())
-        solve_frames = int(log["stages"]["frontend"]["capture"]["frames"])
-        fps = float(np.load(args.solve_run / "motion.npz")["fps"])
-        scale_solve = PROJECTED_SECONDS / (solve_frames / fps)
-        fixed = sum(log["stages"][s]["seconds"] for s in ("world", "skeleton"))  # do not grow with the length
-        grows = sum(log["stages"][s]["seconds"] for s in ("initial", "outputs"))  # grow with it
-    else:
-        grows = 0.0
-    # Serial parts: the frontend's (sync, reference model, reading caches, writing stores) scaled with the length
-    # (conservative: the reference model does not grow), the solve's (cutting windows, joining) likewise.
-    serial = base["serial_seconds"] * scale_frontend + (solve_base["serial_seconds"] + grows) * scale_solve + fixed
-    projected = {str(w): simulate(phases, serial, scale_frontend, scale_solve, w) for w in PROJECTED_WORKERS}
-    wall = {m: r["wall_seconds"] + r.get("solve", {}).get("solve_seconds", 0.0) for m, r in results.items()}
+    scale = PROJECTED_SECONDS / float(capture_seconds)
+    stages = base["stage_seconds"]
+    # The serial part scaled with the length (conservative: the reference model and the ROM trial's share do
+    # not grow), except the world and skeleton stages, which depend on the reference model and the ROM trial only.
+    fixed = sum(stages.get(stage, 0.0) for stage in ("world", "skeleton"))
+    serial = (base["serial_seconds"] - fixed) * scale + fixed
+    projected = {str(w): simulate(phases, serial, scale, scale, w) for w in PROJECTED_WORKERS}
+    wall = {m: r["wall_seconds"] for m, r in results.items()}
     speedup = wall["local:1"] / wall["local:2"] if {"local:1", "local:2"} <= set(wall) else None
-    print(f"\n{'mode':<10}{'frontend s':>11}{'waiting s':>11}{'serial s':>10}{'tasks':>7}{'solve s':>9}{'sum s':>8}")
+    print(f"\n{'mode':<10}{'wall s':>9}{'waiting s':>11}{'serial s':>10}{'tasks':>7}{'frontend s':>12}{'solve s':>9}"
+          f"{'joints cm':>11}{'angles °':>10}")
     for m, r in results.items():
-        print(f"{m:<10}{r['wall_seconds']:>11.1f}{r['waiting_for_tasks_seconds']:>11.1f}{r['serial_seconds']:>10.1f}"
-              f"{len(r['tasks']):>7}{r.get('solve', {}).get('solve_seconds', float('nan')):>9.1f}{wall[m]:>8.1f}")
+        acc = r["accuracy"] or {"joint_position_error_cm": float("nan"), "joint_angle_error_deg": float("nan")}
+        print(f"{m:<10}{r['wall_seconds']:>9.1f}{r['waiting_for_tasks_seconds']:>11.1f}{r['serial_seconds']:>10.1f}"
+              f"{len(r['tasks']):>7}{r['stage_seconds'].get('frontend', float('nan')):>12.1f}"
+              f"{r['stage_seconds'].get('solve', float('nan')):>9.1f}{acc['joint_position_error_cm']:>11.3f}"
+              f"{acc['joint_angle_error_deg']:>10.3f}")
+    for m, r in results.items():
+        wall_sum, cpu_sum = sum(t[1] for t in r["tasks"]), sum(t[2] for t in r["tasks"])
+        print(f"{m}: tasks {wall_sum:.1f} s wall, {cpu_sum:.1f} s CPU; this process {r['this_process_cpu_seconds']:.1f} s CPU")
     if speedup is not None:
-        front = results["local:1"]["wall_seconds"] / results["local:2"]["wall_seconds"]
-        print(f"speedup of local:2 over local:1: {speedup:.2f} (goal ≥ 1.7); frontend alone {front:.2f}")
+        front = results["local:1"]["stage_seconds"]["frontend"] / results["local:2"]["stage_seconds"]["frontend"]
+        print(f"speedup of local:2 over local:1: {speedup:.2f} (goal ≥ 1.7); frontend stage alone {front:.2f}")
     print("same result: " + "; ".join(f"{m}: frontend stores bitwise equal {s['frontend_correspondences_bitwise_equal']}, "
-                                       f"solved joints differ ≤ {s['max_joint_position_difference_cm']:.2e} cm "
+                                       f"solved joints differ ≤ {s['max_joint_position_difference_cm']} cm "
                                        f"(bitwise equal arrays: {s['motion_arrays_bitwise_equal']})"
                                        for m, s in same.items()))
-    critical = critical_path(base) + critical_path(solve_base) if "solve" in base else critical_path(base)
+    critical = critical_path(base)
     print(f"critical path (local:2): {critical:.1f} s; tasks per phase: "
           + ", ".join(f"{k} {len(v)} (longest {max(v):.1f} s)" for k, v in phases.items()))
     print(f"projected wall time of a {PROJECTED_SECONDS / 60:.0f}-minute capture (simulated schedule): "
           + ", ".join(f"{w} workers {v / 60:.1f} min" for w, v in projected.items()))
     if args.json:
         write_json(args.json, {
-            "wall_seconds": wall, "speedup_2_workers": speedup, "same_result": worst <= 0.01 and all(
+            "wall_seconds": wall, "speedup_2_workers": speedup,
+            "same_result": worst is not None and worst <= 0.01 and all(
                 all(s["frontend_correspondences_bitwise_equal"].values()) for s in same.values()),
             "max_joint_position_difference_cm": worst, "comparison": same,
-            "critical_path_seconds": critical, "task_count": len(base["tasks"]) + len(solve_base["tasks"]),
+            "accuracy": {m: r["accuracy"] for m, r in results.items()},
+            "critical_path_seconds": critical, "task_count": len(base["tasks"]),
             "tasks_per_phase": {k: {"count": len(v), "seconds_total": sum(v), "seconds_longest": max(v)}
                                 for k, v in phases.items()},
             "projected_seconds_10min_capture": projected,
             "projection": {"method": "list schedule of the measured tasks scaled to the length (a simulation)",
-                           "scale_frontend": scale_frontend, "scale_solve": scale_solve,
-                           "serial_seconds": serial, "fixed_world_skeleton_seconds": fixed},
-            "runs": results, "config": config.to_dict(), "capture": str(capture),
-            "solve_run": str(args.solve_run), "machine": machine()})
+                           "scale": scale, "serial_seconds": serial, "fixed_world_skeleton_seconds": fixed},
+            "runs": results, "config": config.to_dict(), "capture": str(capture), "machine": machine()})
     return 0
 
 

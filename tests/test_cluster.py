@@ -81,7 +81,7 @@ def test_a_local_cluster_runs_tasks_in_worker_processes_and_passes_errors_on():
         out = ex.map(_square_and_pid, range(6), label="sq", on_done=lambda i, r: done.append(i))
         assert [o[0] for o in out] == [x * x for x in range(6)]
         assert os.getpid() not in {o[1] for o in out} and sorted(done) == list(range(6))
-        assert len(ex.tasks) == 6 and all(seconds >= 0 for _, seconds in ex.tasks)
+        assert len(ex.tasks) == 6 and all(seconds >= 0 and cpu >= 0 for _, seconds, cpu in ex.tasks)
         with pytest.raises(ValueError, match="three is refused"):
             ex.map(_fail_on_three, range(5))
 
@@ -107,6 +107,32 @@ def test_a_map_survives_losing_every_worker_that_holds_its_function():
 
         out = ex.map(fn, range(8), label="sq", on_done=kill_every_worker)
     assert len(killed) == 2 and [o[0] for o in out] == [x * x for x in range(8)]
+
+
+def _busy_pid(data: np.ndarray, seconds: float) -> int:
+    clock = time.perf_counter()
+    while time.perf_counter() - clock < seconds:
+        pass
+    return os.getpid()
+
+
+def test_two_maps_at_once_share_the_workers_to_the_end():
+    """Two trials' maps at once, each function held by one worker at first: when the short map is done, the
+    long map's remaining tasks go to both workers (they were queued on one worker and ran there one by one)."""
+    import threading
+
+    with open_executor("local:2", log=lambda line: None) as ex:
+        pids = {}
+
+        def trial(label, count):
+            pids[label] = ex.map(functools.partial(_busy_pid, np.zeros(200_000)), [0.7] * count, label=label)
+
+        threads = [threading.Thread(target=trial, args=args) for args in (("rom", 2), ("capture", 8))]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    assert len(pids["capture"]) == 8 and len(set(pids["capture"][-4:])) == 2, pids
 
 
 def _camera_dtype(camera) -> str:

@@ -82,14 +82,15 @@ class Executor:
 
     ``map(fn, items, label=...)`` returns ``fn(item)`` for each item, in order; with a cluster the calls
     are tasks that may run at once on different workers (``fn`` and the items are pickled: pass paths
-    and small values, not big arrays). For timing reports, ``tasks`` records ``(label, seconds)`` of each
-    finished call, measured where it ran, and ``calls`` the ``(label, start, stop)`` of each ``map`` call on
-    this process's ``time.perf_counter`` clock (the caller waits for its tasks meanwhile).
+    and small values, not big arrays). For timing reports, ``tasks`` records ``(label, seconds, cpu_seconds)``
+    of each finished call, measured where it ran (wall time and the CPU time of its process), and ``calls``
+    the ``(label, start, stop)`` of each ``map`` call on this process's ``time.perf_counter`` clock (the
+    caller waits for its tasks meanwhile).
     """
 
     def __init__(self, client=None):
         self.client = client
-        self.tasks: list[tuple[str, float]] = []
+        self.tasks: list[tuple[str, float, float]] = []
         self.calls: list[tuple[str, float, float]] = []
 
     @property
@@ -120,13 +121,13 @@ class Executor:
         if self.client is None:
             out = []
             for i, item in enumerate(items):
-                result, seconds = _timed(fn, item)
-                self.tasks.append((label, seconds))
+                result, seconds, cpu = _timed(fn, item)
+                self.tasks.append((label, seconds, cpu))
                 out.append(result)
                 if on_done is not None:
                     on_done(i, result)
             return out
-        from distributed import as_completed
+        from distributed import as_completed, wait
 
         # fn goes to the cluster once, not once per task (it may hold a reference index), as the result of a
         # task rather than scattered data: a worker lost with it makes the scheduler compute it again, while
@@ -134,20 +135,41 @@ class Executor:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*large graph.*")
             shared = self.client.submit(_itself, fn, pure=False, key=f"{label}-function-{os.urandom(4).hex()}")
-        futures = self.client.map(_timed, [shared] * len(items), items, pure=False,
-                                  key=[f"{label}-{i}-{os.urandom(4).hex()}" for i in range(len(items))])
-        index = {f.key: i for i, f in enumerate(futures)}
+        # ... and to every worker, so that no worker is preferred for holding it.
+        wait([shared])
+        if shared.status == "finished" and len(self.client.nthreads()) > 1:
+            self.client.replicate([shared])
+        # At most one task per worker thread is handed to the scheduler at a time, the next as one finishes:
+        # tasks given at once are queued on workers up front, and a worker's queue was not moved to a worker
+        # left idle (the last chunks of one trial ran one after another on one worker while the other waited).
+        todo = iter(range(len(items)))
+        running: dict[str, int] = {}
+        handed: list = []
+        done = as_completed()
+
+        def hand_over_next() -> None:
+            i = next(todo, None)
+            if i is not None:
+                future = self.client.submit(_timed, shared, items[i], pure=False,
+                                            key=f"{label}-{i}-{os.urandom(4).hex()}")
+                running[future.key] = i
+                handed.append(future)
+                done.add(future)
+
         out = [None] * len(items)
         try:
-            for future in as_completed(futures):
-                result, seconds = future.result()
-                self.tasks.append((label, seconds))
-                i = index[future.key]
+            for _ in range(self.workers):
+                hand_over_next()
+            for future in done:
+                result, seconds, cpu = future.result()
+                self.tasks.append((label, seconds, cpu))
+                i = running.pop(future.key)
                 out[i] = result
+                hand_over_next()
                 if on_done is not None:
                     on_done(i, result)
         finally:
-            for future in (*futures, shared):
+            for future in (*handed, shared):
                 future.cancel()
         return out
 
@@ -156,11 +178,12 @@ def _itself(value):
     return value
 
 
-def _timed(fn: Callable, item) -> tuple[object, float]:
+def _timed(fn: Callable, item) -> tuple[object, float, float]:
+    """``(fn(item), wall seconds, CPU seconds of this process meanwhile)`` (a worker runs one task at a time)."""
     worker_setup()
-    clock = time.perf_counter()
+    clock, cpu = time.perf_counter(), time.process_time()
     result = fn(item)
-    return result, time.perf_counter() - clock
+    return result, time.perf_counter() - clock, time.process_time() - cpu
 
 
 def worker_setup() -> None:
