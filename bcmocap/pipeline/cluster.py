@@ -27,7 +27,6 @@ import dataclasses
 import os
 import re
 import time
-import warnings
 from collections.abc import Callable, Iterable, Iterator
 
 #: Environment of each local worker process: numeric libraries on one thread (one task = one core).
@@ -132,9 +131,7 @@ class Executor:
         # fn goes to the cluster once, not once per task (it may hold a reference index), as the result of a
         # task rather than scattered data: a worker lost with it makes the scheduler compute it again, while
         # lost scattered data cannot be recovered and would cancel every task that needs it.
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*large graph.*")
-            shared = self.client.submit(_itself, fn, pure=False, key=f"{label}-function-{os.urandom(4).hex()}")
+        shared = self.client.submit(_itself, fn, pure=False, key=f"{label}-function-{os.urandom(4).hex()}")
         # ... and to every worker, so that no worker is preferred for holding it.
         wait([shared])
         if shared.status == "finished" and len(self.client.nthreads()) > 1:
@@ -226,9 +223,13 @@ def open_executor(spec: ClusterSpec | str | None, log: Callable[[str], None] = p
         return
     import logging
 
+    import dask
     from distributed import Client, LocalCluster
 
     with contextlib.ExitStack() as stack:
+        # a map sends the function its tasks share (it may hold a reference index of some 10 MB) once, as a
+        # task of its own: by design, not the repeated data Dask's large-graph warning is about
+        stack.enter_context(dask.config.set({"distributed.admin.large-graph-warning-threshold": "1GiB"}))
         if spec.local_workers:
             cluster = stack.enter_context(LocalCluster(
                 n_workers=spec.local_workers, threads_per_worker=1, processes=True, dashboard_address=None,
