@@ -45,13 +45,11 @@ PROJECTED_WORKERS = (8, 32, 128)
 PROJECTED_SECONDS = 600.0
 
 
-def run_mode(capture: Path, out: Path, config: RunConfig, mode: str, stop_after: str | None = None,
-             fresh: bool = True) -> dict:
-    """One run (fresh: every stage; else resumed) on the cluster ``mode``; wall time, tasks and the run log."""
+def run_mode(capture: Path, out: Path, config: RunConfig, mode: str, stop_after: str | None = None) -> dict:
+    """One run, every stage into an emptied ``out``, on the cluster ``mode``; wall time, tasks and the run log."""
     enable_float64()
     enable_compilation_cache()
-    if fresh:
-        shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(out, ignore_errors=True)
     lines: list[str] = []
 
     def say(line: str) -> None:
@@ -151,22 +149,17 @@ def critical_path(result: dict) -> float:
     return result["serial_seconds"] + trials + sum(longest.get(p, 0.0) for p in _SOLVE)
 
 
-def simulate(tasks: dict[str, list[float]], serial: float, scale_frontend: float, scale_solve: float,
-             workers: int) -> float:
+def simulate(tasks: dict[str, list[float]], serial: float, scale: float, workers: int) -> float:
     """Wall time of the run's phases list-scheduled on ``workers`` (longest task first, a phase after the
     one it depends on; the two trials' chains side by side), plus its serial part.
 
-    ``tasks``: phase → measured durations; the capture trial's phases are scaled by ``scale_frontend``
-    (tracking or SIFT: each camera's task that many times longer; chunks: that many times as many), the
-    solve's by ``scale_solve`` (windows and seams: that many times as many); the ROM trial is unchanged.
+    ``tasks``: phase → measured durations; the capture trial's and the solve's phases are scaled by ``scale``
+    (the capture's length: tracking or SIFT, each camera's task that many times longer; chunks, windows and
+    seams, that many times as many); the ROM trial is unchanged.
     """
     def scaled(phase: str) -> list[float]:
         durations = tasks.get(phase, [])
-        if phase in _SOLVE:
-            scale = scale_solve
-        elif phase.endswith("capture"):
-            scale = scale_frontend
-        else:
+        if phase not in _SOLVE and not phase.endswith("capture"):
             return list(durations)  # the ROM trial has its own length
         if phase.startswith(("track", "sift")):
             return [d * scale for d in durations]
@@ -253,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     # not grow), except the world and skeleton stages, which depend on the reference model and the ROM trial only.
     fixed = sum(stages.get(stage, 0.0) for stage in ("world", "skeleton"))
     serial = (base["serial_seconds"] - fixed) * scale + fixed
-    projected = {str(w): simulate(phases, serial, scale, scale, w) for w in PROJECTED_WORKERS}
+    projected = {str(w): simulate(phases, serial, scale, w) for w in PROJECTED_WORKERS}
     wall = {m: r["wall_seconds"] for m, r in results.items()}
     speedup = wall["local:1"] / wall["local:2"] if {"local:1", "local:2"} <= set(wall) else None
     print(f"\n{'mode':<10}{'wall s':>9}{'waiting s':>11}{'serial s':>10}{'tasks':>7}{'frontend s':>12}{'solve s':>9}"

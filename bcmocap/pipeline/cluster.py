@@ -35,7 +35,7 @@ WORKER_ENVIRONMENT = {
     "OPENBLAS_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
     "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
-    "BCMOCAP_THREADS": "1",  # the frontend's own thread pools (bcmocap.frontend.relative.default_threads)
+    "BCMOCAP_THREADS": "1",  # the frontend's own thread pools (bcmocap.frontend.threads.default_threads)
     # float64 from the start: a task's arguments (a capture's camera models) are JAX arrays, unpickled before
     # the task runs; in float32 they would silently lose their last digits
     "JAX_ENABLE_X64": "1",
@@ -140,8 +140,7 @@ class Executor:
         # tasks given at once are queued on workers up front, and a worker's queue was not moved to a worker
         # left idle (the last chunks of one trial ran one after another on one worker while the other waited).
         todo = iter(range(len(items)))
-        running: dict[str, int] = {}
-        handed: list = []
+        running = {}  # future → index of its item
         done = as_completed()
 
         def hand_over_next() -> None:
@@ -149,8 +148,7 @@ class Executor:
             if i is not None:
                 future = self.client.submit(_timed, shared, items[i], pure=False,
                                             key=f"{label}-{i}-{os.urandom(4).hex()}")
-                running[future.key] = i
-                handed.append(future)
+                running[future] = i
                 done.add(future)
 
         out = [None] * len(items)
@@ -160,13 +158,13 @@ class Executor:
             for future in done:
                 result, seconds, cpu = future.result()
                 self.tasks.append((label, seconds, cpu))
-                i = running.pop(future.key)
+                i = running.pop(future)
                 out[i] = result
                 hand_over_next()
                 if on_done is not None:
                     on_done(i, result)
         finally:
-            for future in (*handed, shared):
+            for future in (*running, shared):  # what is left after an error
                 future.cancel()
         return out
 
