@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=4.0, help="capture trial to render (s)")
     parser.add_argument("--rom-seconds", type=float, default=3.0, help="range-of-motion trial to render (s)")
     parser.add_argument("--seed", type=int, default=3, help="the rendered capture's seed")
-    parser.add_argument("--chunk-frames", type=int, default=10, help="frontend.chunk_frames")
+    parser.add_argument("--chunk-frames", type=int, default=5, help="frontend.chunk_frames")
     parser.add_argument("--window", type=int, default=20, help="solver.window")
     parser.add_argument("--overlap", type=int, default=5, help="solver.overlap")
     parser.add_argument("--modes", nargs="+", default=list(MODES))

@@ -153,6 +153,21 @@ def test_tasks_receive_camera_models_in_float64_even_on_workers_started_without_
         assert all("bcmocap-worker-setup" in names for names in plugins.values())
 
 
+def _worker_settings() -> tuple:
+    import dask
+
+    return (dask.config.get("distributed.worker.profile.enabled"), dask.config.get("distributed.admin.tick.interval"),
+            os.environ.get("MALLOC_TRIM_THRESHOLD_"), os.environ.get("OMP_NUM_THREADS"))
+
+
+def test_local_workers_start_with_less_housekeeping_and_glibc_s_own_trimming():
+    with open_executor("local:1", log=lambda line: None) as ex:
+        assert list(ex.client.run(_worker_settings).values()) == [(False, "1s", None, "1")]
+    import dask
+
+    assert dask.config.get("distributed.worker.profile.enabled")  # this process's settings are Dask's again
+
+
 def test_an_unreachable_scheduler_is_one_clear_error():
     with pytest.raises(ValueError, match="cannot reach the scheduler"):
         with open_executor("tcp://127.0.0.1:9", log=lambda line: None, connect_timeout_s=1):
