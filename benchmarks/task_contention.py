@@ -200,8 +200,10 @@ def main() -> None:
     parser.add_argument("--profile", action="store_true", help="py-spy profile of the first chunk alone")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
-    if not (args.run / "run.json").is_file() or not (args.run / "frontend" / "features").is_dir():
-        raise SystemExit(f"{args.run}: not a bcmocap run folder with a frontend (run.json, frontend/features)")
+    needed = ("run.json", "config.json", "frontend/features", "frontend/reference/reference.json")
+    missing = [name for name in needed if not (args.run / name).exists()]
+    if missing:  # (the reference model would otherwise be built into the given folder)
+        raise SystemExit(f"{args.run}: not a finished bcmocap run folder ({missing[0]} is missing)")
     report = {"run": str(args.run), "trial": args.trial}
     for kind, items in (("sift", list(range(len(args.chunks)))), ("register", args.chunks)):
         print(f"{kind}: {len(items)} task(s) alone, then at once ...", flush=True)
