@@ -1,5 +1,5 @@
-"""Do two cluster tasks on this machine slow each other down? The limit of issue 23's speedup, measured
-without Dask.
+"""Do two cluster tasks on this machine slow each other down, and how much of it is Dask's? The limit of
+issue 23's speedup.
 
 Takes a finished ``bcmocap run`` folder (e.g. ``out-local1`` of ``benchmarks/scale_out.py``, whose SIFT cache
 and reference model it reads, never writes) and runs some of its tasks, each in a fresh process set up as a
@@ -23,6 +23,7 @@ of a chunk's samples in its heaviest functions, alone.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import os
 import shutil
@@ -51,7 +52,10 @@ def _chunk_function(run: Path, out: Path, trial: str):
     config = RunConfig.from_dict(json.loads((run / "config.json").read_text()), where=str(run / "config.json"))
     capture = read_capture(json.loads((run / "run.json").read_text())["capture"])
     (out / "features").symlink_to((run / "frontend" / "features").resolve())
-    index = reference_index(prepare_reference(capture, run / "frontend" / "reference", log=lambda line: None))
+    # one process at a time opens the reference database: COLMAP's open fails while another process opens it
+    with open(Path(tempfile.gettempdir()) / "bcmocap-contention.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        index = reference_index(prepare_reference(capture, run / "frontend" / "reference", log=lambda line: None))
     found = {}
 
     def map_tasks(fn, items, label, on_done=None):
@@ -75,17 +79,26 @@ def _chunk_function(run: Path, out: Path, trial: str):
     raise ValueError(f"{run}: trial {trial!r} is registered in one chunk (frontend.chunk_frames), not as tasks")
 
 
+def _seconds(work) -> dict:
+    """Wall and CPU seconds (of this process) of ``work()``."""
+    clock, cpu = time.perf_counter(), time.process_time()
+    work()
+    return {"wall": time.perf_counter() - clock, "cpu": time.process_time() - cpu}
+
+
 def _one_task(kind: str, run: Path, trial: str, item: int, frames: int) -> dict:
-    """In a worker-like process: task ``item`` of ``kind``; its wall and CPU seconds."""
+    """In a worker-like process (a child of :func:`_start` or a Dask worker): task ``item`` of ``kind``; its wall
+    and CPU seconds."""
     import cv2
 
+    from bcmocap.precision import enable_float64
+
+    enable_float64()
     cv2.setNumThreads(1)
     if kind == "register":
         with tempfile.TemporaryDirectory(prefix="bcmocap-contention-") as tmp:
             fn = _chunk_function(run, Path(tmp), trial)
-            clock, cpu = time.perf_counter(), time.process_time()
-            fn(item)
-            return {"wall": time.perf_counter() - clock, "cpu": time.process_time() - cpu}
+            return _seconds(lambda: fn(item))
     from bcmocap.frontend.capture import read_capture
     from bcmocap.frontend.reference import extract_sift
 
@@ -93,10 +106,7 @@ def _one_task(kind: str, run: Path, trial: str, item: int, frames: int) -> dict:
     camera = capture.camera_names[item % len(capture.camera_names)]
     images = [gray for _, gray in capture.frames(trial, camera, stop=frames, gray=True)]
     max_features = json.loads((run / "config.json").read_text())["frontend"]["max_features"]
-    clock, cpu = time.perf_counter(), time.process_time()
-    for gray in images:
-        extract_sift(gray, max_features=max_features)
-    return {"wall": time.perf_counter() - clock, "cpu": time.process_time() - cpu}
+    return _seconds(lambda: [extract_sift(gray, max_features=max_features) for gray in images])
 
 
 def _start(kind: str, run: Path, trial: str, item: int, frames: int, profile: Path | None = None):
@@ -134,21 +144,6 @@ def measure(kind: str, run: Path, trial: str, items: list[int], frames: int) -> 
     return {"tasks": rows, "mean_slowdown": sum(r["slowdown"] for r in rows) / len(rows)}
 
 
-def _chunk_on_worker(run: str, trial: str, k: int) -> dict:
-    """A cluster task: chunk ``k`` registered, its wall and CPU seconds (as :func:`_one_task`)."""
-    import cv2
-
-    from bcmocap.precision import enable_float64
-
-    enable_float64()
-    cv2.setNumThreads(1)
-    with tempfile.TemporaryDirectory(prefix="bcmocap-contention-") as tmp:
-        fn = _chunk_function(Path(run), Path(tmp), trial)
-        clock, cpu = time.perf_counter(), time.process_time()
-        fn(k)
-        return {"wall": time.perf_counter() - clock, "cpu": time.process_time() - cpu}
-
-
 def on_dask(run: Path, trial: str, chunks: list[int], settings: dict) -> list[dict]:
     """``chunks`` at once on a ``LocalCluster`` of one worker each, started with the Dask ``settings``."""
     import logging
@@ -163,7 +158,7 @@ def on_dask(run: Path, trial: str, chunks: list[int], settings: dict) -> list[di
     with dask.config.set(settings), LocalCluster(n_workers=len(chunks), threads_per_worker=1, processes=True,
                                                  dashboard_address=None, silence_logs=logging.ERROR,
                                                  env=environment) as cluster, Client(cluster) as client:
-        futures = [client.submit(_chunk_on_worker, str(run), trial, k, pure=False) for k in chunks]
+        futures = [client.submit(_one_task, "register", run, trial, k, 0, pure=False) for k in chunks]
         return [future.result() for future in futures]
 
 
@@ -186,9 +181,6 @@ def profile_share(kind: str, run: Path, trial: str, item: int, frames: int, top:
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
-        from bcmocap.precision import enable_float64
-
-        enable_float64()
         kind, run, trial, item, frames = sys.argv[2:7]
         print(json.dumps(_one_task(kind, Path(run), trial, int(item), int(frames))), flush=True)
         return

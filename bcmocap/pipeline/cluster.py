@@ -51,7 +51,8 @@ LOCAL_WORKER_CONFIG = {
     "distributed.worker.memory.monitor-interval": "1s",  # the nanny's look at its worker's memory (100 ms)
     # without Dask's MALLOC_TRIM_THRESHOLD_=65536: glibc then returns every large array freed to the system and
     # faults in the next one's pages anew (twice the system time of a chunk's registration)
-    "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1},
+    "distributed.nanny.pre-spawn-environ": {key: WORKER_ENVIRONMENT[key]
+                                            for key in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")},
 }
 MAX_LOCAL_WORKERS = 1024
 _ADDRESS = re.compile(r"^(tcp|tls|ws|wss)://[A-Za-z0-9._\-\[\]:]+:\d{1,5}$")
