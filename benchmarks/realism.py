@@ -35,8 +35,13 @@ interrupted one resumes (the studio and ``bcmocap run`` both resume). The table 
 asked for and every other condition whose run in ``--out`` is finished (read back), so rows run one at a time
 add up.
 
+Joint centres are fitted to the motion of both trials (``[skeleton] centre_trials = ["rom", "capture"]``,
+``--centre-trials``): the realistic preset's 3 s range-of-motion trial alone leaves an ankle's centre to a
+standard error above 10 cm. ``--carry-over FILE`` keeps the rows of an earlier JSON whose runs are not in
+``--out`` (marked ``carried_over_from``, each with the run settings it was measured with).
+
     python benchmarks/realism.py --out /tmp/realism --json benchmarks/results/realism.json \\
-        [--conditions clean,mount_wobble] [--seconds 2] [--rom-seconds 3]
+        [--conditions clean,mount_wobble] [--seconds 2] [--rom-seconds 3] [--carry-over benchmarks/results/realism.json]
 """
 
 from __future__ import annotations
@@ -115,7 +120,8 @@ MAX_CENTRE_STD_CM = 10.0
 
 
 def run_config(condition: str, base: RunConfig, settings: StudioSettings) -> RunConfig:
-    """The run settings of a condition: the base's, without pictures; with its modelling terms for a solver variant."""
+    """The run settings of a condition: the base's, without pictures; with its modelling terms for a solver variant.
+    (``base`` holds ``--centre-trials``.)"""
     data = base.to_dict()
     data["outputs"]["pictures"] = False
     # The realistic preset registers 74 % of its 3 s range-of-motion trial (clean: 99.6 %), which leaves the left
@@ -176,6 +182,7 @@ def row(run: Path) -> dict:
         "registered_fraction": registered,
         "frames_evaluated": metrics.get("frames_evaluated"),
         "stage_seconds": {stage: rec["seconds"] for stage, rec in log["stages"].items()},
+        "run_config": json.loads((run / "config.json").read_text()),
     }
 
 
@@ -221,17 +228,20 @@ def condition(name: str, out: Path, base: StudioSettings, config: RunConfig) -> 
 
 
 def print_table(rows: dict[str, dict]) -> None:
-    """One line per row: solved (and initial) joint errors, registered fractions, the run's stage seconds."""
+    """One line per row: solved (and initial) joint errors, registered fractions, the run's stage seconds, the trials
+    its joint centres were fitted to (``*``: carried over from an earlier JSON)."""
     print(f"\n{'condition':<30}{'joint pos. cm mean / median / max':>36}{'joint angle deg mean / median / max':>38}"
-          f"{'initial cm / deg':>18}{'registered rom / capture':>27}{'run s':>8}")
+          f"{'initial cm / deg':>18}{'registered rom / capture':>27}{'run s':>8}  centres")
     for name, r in rows.items():
+        trials = ((r.get("run_config") or {}).get("skeleton") or {}).get("centre_trials", ["rom"])
+        centres = "+".join(trials) + (" *" if "carried_over_from" in r else "")
         p, a, reg = r["joint_position_error_cm"], r["joint_angle_error_deg"], r["registered_fraction"]
         p0, a0 = r["initial"]["joint_position_error_cm"], r["initial"]["joint_angle_error_deg"]
         seconds = sum(r["stage_seconds"].values())
         print(f"{name:<30}{p['mean']:>14.3f} / {p['median']:6.3f} / {p['max']:7.3f}"
               f"{a['mean']:>16.3f} / {a['median']:6.3f} / {a['max']:7.3f}"
               f"{p0['mean']:>10.3f} / {a0['mean']:5.3f}"
-              f"{100 * reg['rom']:>15.1f} % / {100 * reg['capture']:5.1f} %{seconds:>8.0f}")
+              f"{100 * reg['rom']:>15.1f} % / {100 * reg['capture']:5.1f} %{seconds:>8.0f}  {centres}")
 
 
 def main(argv=None) -> int:
@@ -245,6 +255,10 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--config", type=Path, default=ROOT / "benchmarks" / "configs" / "tracking.toml",
                         help="bcmocap run settings (TOML or JSON; default the tracking frontend)")
+    parser.add_argument("--centre-trials", default="rom,capture",
+                        help="[skeleton] centre_trials of every row (default rom,capture; rom: the paper's)")
+    parser.add_argument("--carry-over", type=Path,
+                        help="an earlier JSON of this benchmark: its rows whose runs are not in --out are kept")
     args = parser.parse_args(argv)
     wanted = [c.strip() for c in args.conditions.split(",") if c.strip()]
     unknown = [c for c in wanted if c not in CONDITIONS]
@@ -254,7 +268,14 @@ def main(argv=None) -> int:
     enable_compilation_cache()
     base = StudioSettings(seconds=args.seconds, rom_seconds=args.rom_seconds, seed=args.seed,
                           reference_width=640, reference_height=480)
-    config = load_config(args.config)
+    config = load_config(args.config).with_overrides(
+        {"skeleton.centre_trials": [t.strip() for t in args.centre_trials.split(",")]})
+    carried = {}
+    if args.carry_over:
+        earlier = json.loads(args.carry_over.read_text())
+        for name, r in earlier["conditions"].items():
+            carried[name] = {**r, "carried_over_from": str(args.carry_over),
+                             "run_config": r.get("run_config") or earlier.get("run_config", {}).get(name)}
     rows, seconds = {}, {}
     for name in wanted:
         clock = time.perf_counter()
@@ -264,12 +285,13 @@ def main(argv=None) -> int:
     for name in CONDITIONS:  # every other finished row in --out, read back
         if name not in rows and finished(args.out / "runs" / name):
             rows[name] = read_back(args.out / "runs" / name)
+        elif name not in rows and name in carried:
+            rows[name] = carried[name]
     rows = {name: rows[name] for name in CONDITIONS if name in rows}
     print_table(rows)
     write_json(args.json, {
         "conditions": rows, "preset": PRESET, "modelled": MODELLED,
         "capture_settings": {name: capture_settings(name, base).to_dict() for name in rows},
-        "run_config": {name: run_config(name, config, capture_settings(name, base)).to_dict() for name in rows},
         "this_run_seconds": seconds, "machine": machine(), "peak_rss_mb": peak_rss_mb(),
     })
     return 0

@@ -285,6 +285,30 @@ def test_refinement_rounds_refine_the_model_in_the_solve_stage(simulated_run, tm
     assert not (copy / "solve" / "skeleton.json").exists()
 
 
+def _summary_frames(out) -> dict[str, int]:
+    """Joint → frames of its centre fit, from ``model/rom_summary.txt``."""
+    rows = (out / "model" / "rom_summary.txt").read_text().splitlines()[1:]
+    return {row.split()[0]: int(row.split()[2]) for row in rows}
+
+
+def test_centre_trials_fit_the_joint_centres_to_the_capture_too(simulated_run, tmp_path):
+    """``skeleton.centre_trials = ["rom", "capture"]``: the frontend is reused, the world and later stages are
+    redone with every joint's centre fitted to both trials' frames, and the skeleton stays near the truth."""
+    import shutil
+
+    out, _, _, capture, _, fake, config = simulated_run
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    lines = []
+    run_pipeline(fake, copy, config.with_overrides({"skeleton.centre_trials": ["rom", "capture"]}), log=lines.append)
+    assert sum("reused" in line for line in lines) == 1 and any("world: settings changed" in line for line in lines)
+    alone, pooled = _summary_frames(out), _summary_frames(copy)
+    assert alone.keys() == pooled.keys()
+    assert all(pooled[j] - alone[j] > 0.8 * capture.num_frames for j in alone)
+    bones = [np.linalg.norm(np.asarray(sk.offsets), axis=1) for sk in (capture.skeleton, load_model(copy)[0])]
+    assert np.abs(bones[1] - bones[0]).max() < 0.02
+
+
 def test_a_user_term_named_in_the_config_reaches_the_solve(simulated_run, tmp_path, monkeypatch):
     """``[[solver.user_terms]]`` names a factory by import path; bcmocap run imports it before any stage, calls
     it for every window with the window's frames, times and the capture's trial folder, and solves with its

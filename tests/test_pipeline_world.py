@@ -10,7 +10,7 @@ from bcmocap.kinematics import Motion
 from bcmocap.kinematics.fk import joint_positions
 from bcmocap.kinematics.rig import camera_poses
 from bcmocap.pipeline.config import RunConfig, load_config
-from bcmocap.pipeline.run import fingerprints
+from bcmocap.pipeline.run import STAGES, fingerprints
 from bcmocap.pipeline.world import Similarity, scale_from_measurements, transform_model, upright_frame
 
 
@@ -134,6 +134,8 @@ def test_run_refuses_a_user_term_it_cannot_import_before_reading_the_capture(tmp
     ("run.json", '{"skeleton": {"root_origin": [1]}}', "skeleton.root_origin must be a list of strings"),
     ("run.toml", '[frontend]\npoints = "some"\n', "frontend.points must be 'all' or 'reference', got 'some'"),
     ("run.toml", '[skeleton]\ndegenerate = "ignore"\n', "skeleton.degenerate must be 'raise' or 'hinge', got 'ignore'"),
+    ("run.toml", '[skeleton]\ncentre_trials = ["capture"]\n',
+     """skeleton.centre_trials must be ["rom"] or ["rom", "capture"], got ['capture']"""),
 ])
 def test_run_refuses_non_finite_huge_or_mistyped_settings(tmp_path, capsys, name, text, culprit):
     path = tmp_path / name
@@ -158,3 +160,5 @@ def test_fingerprints_change_from_the_first_stage_a_setting_affects():
     assert base["solve"] != solver["solve"] and base["outputs"] != solver["outputs"]
     stride = fingerprints(RunConfig().with_overrides({"frontend.stride": 3}))
     assert all(base[s] != stride[s] for s in base)
+    pooled = fingerprints(RunConfig().with_overrides({"skeleton.centre_trials": ["rom", "capture"]}))
+    assert base["frontend"] == pooled["frontend"] and all(base[s] != pooled[s] for s in STAGES[1:])

@@ -106,6 +106,22 @@ def test_joint_not_exercised_is_named(model):
         trial.estimate()
 
 
+def test_more_trials_determine_a_joint_the_rom_trial_did_not_move(model, noiseless):
+    # The ROM trial leaves the hip (thigh) out; a second trial of the same mounts moves it: pooled, the centres
+    # are exact again, the rest pose still the ROM trial's.
+    skeleton, rig = model
+    rom = range_of_motion_trial(skeleton, rig, exercised=["pelvis", "torso", "shin", "foot"], seed=1,
+                                rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0, **TRIAL)
+    with pytest.raises(ValueError, match=r"joint 'thigh'.*does not determine"):
+        rom.estimate()
+    est = rom.estimate(more_trials=[(noiseless.world_from_camera, noiseless.registered)])
+    np.testing.assert_allclose(est.skeleton.offsets, skeleton.offsets, atol=1e-9)
+    assert_same_mounts(np.asarray(est.rig.segment_from_camera), np.asarray(rig.segment_from_camera), 1e-9)
+    assert est.joints["thigh"].frames == rom.registered.shape[0] + noiseless.registered.shape[0]
+    with pytest.raises(ValueError, match=r"more_trials\[0\]: expected world_from_camera \(T, 7, 7\) and registered \(T, 7\)"):
+        rom.estimate(more_trials=[(noiseless.world_from_camera[:, :6], noiseless.registered[:, :6])])
+
+
 def test_uncertain_centre_says_which_limit_it_exceeds(model):
     skeleton, rig = model
     trial = range_of_motion_trial(skeleton, rig, seed=1, **TRIAL)

@@ -344,6 +344,7 @@ def skeleton_from_range_of_motion(
     intrinsics: CameraModel | None = None,
     root_origin: Sequence[str] | None = None,
     world_from_rest: np.ndarray | None = None,
+    more_trials: Sequence[tuple[np.ndarray, np.ndarray]] = (),
     options: RomOptions = RomOptions(),
 ) -> RomEstimate:
     """Estimate a skeleton and its camera mounts from the camera poses of a range-of-motion trial.
@@ -362,6 +363,11 @@ def skeleton_from_range_of_motion(
             of the root's children).
         world_from_rest: ``(4,)`` quaternion, the common orientation of all segment frames in the
             rest pose (default: the world axes).
+        more_trials: ``(world_from_camera (T', C, 7), registered (T', C))`` of other trials with the same
+            mounts, in the same world frame (e.g. the capture itself): their parent→child poses join each
+            joint's centre fit, so a joint the range-of-motion trial moved too little (or registered too
+            rarely) is determined by all the motion there is. The virtual cameras, the rest pose and the
+            hinges' flexion sides come from the range-of-motion trial alone.
         options: thresholds and choices (:class:`RomOptions`).
 
     Raises:
@@ -398,6 +404,8 @@ def skeleton_from_range_of_motion(
         )
         vcs[name] = vc
         world_v[:, j], known[:, j] = vc.world_from_virtual(world_from_camera[:, cams], registered[:, cams], robust=options.robust)
+    pooled = [(world_v, known)] + [_virtual_poses(vcs, topology, seg_cams, pairs, poses, reg, options, k)
+                                   for k, (poses, reg) in enumerate(more_trials)]
 
     # ---- joint centres (Eqs. 12-14, 16) ---------------------------------------------------------
     joints: dict[str, JointEstimate] = {}
@@ -405,13 +413,14 @@ def skeleton_from_range_of_motion(
     for j in range(1, n):
         name, p = topology.names[j], topology.parents[j]
         pname, jtype = topology.names[p], topology.joint_types[j]
-        both = known[:, j] & known[:, p]
-        if both.sum() < options.min_frames:
+        rel = np.concatenate([_compose(_inverse(wv[kn[:, j] & kn[:, p], p]), wv[kn[:, j] & kn[:, p], j])
+                              for wv, kn in pooled])
+        if len(rel) < options.min_frames:
+            trials = "trial" if not more_trials else f"{1 + len(more_trials)} trials"
             raise ValueError(
-                f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {both.sum()} frames "
-                f"(< {options.min_frames}) of the trial"
+                f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {len(rel)} frames "
+                f"(< {options.min_frames}) of the {trials}"
             )
-        rel = _compose(_inverse(world_v[both, p]), world_v[both, j])
         hinge = jtype == JointType.HINGE
         est = _joint_estimate(name, pname, jtype, rel, 1 if hinge else 0, options, families)
         weak = int(np.sum(est.spread < options.min_spread))
@@ -489,6 +498,24 @@ def skeleton_from_range_of_motion(
     names = tuple(c for c, _ in pairs)
     rig = None if intrinsics is None else Rig(names, camera_segments, mounts, intrinsics)
     return RomEstimate(skeleton, rig, mounts, names, camera_segments, joints, vcs, seg_from_v)
+
+
+def _virtual_poses(vcs, topology, seg_cams, pairs, world_from_camera, registered, options, k):
+    """``(T', J, 7)`` virtual-camera poses and ``(T', J)`` known of the ``k``-th further trial."""
+    world_from_camera = np.asarray(world_from_camera, dtype=np.float64)
+    registered = np.asarray(registered, dtype=bool)
+    c = len(pairs)
+    if world_from_camera.ndim != 3 or world_from_camera.shape[1:] != (c, 7) or registered.shape != world_from_camera.shape[:2]:
+        raise ValueError(
+            f"skeleton_from_range_of_motion: more_trials[{k}]: expected world_from_camera (T, {c}, 7) and registered "
+            f"(T, {c}) for the {c} assigned cameras, got {world_from_camera.shape} and {registered.shape}"
+        )
+    world_v = np.full((len(registered), len(topology.names), 7), np.nan)
+    known = np.zeros((len(registered), len(topology.names)), bool)
+    for j, cams in enumerate(seg_cams):
+        world_v[:, j], known[:, j] = vcs[topology.names[j]].world_from_virtual(
+            world_from_camera[:, cams], registered[:, cams], robust=options.robust)
+    return world_v, known
 
 
 def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known) -> JointEstimate:

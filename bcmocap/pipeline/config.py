@@ -26,6 +26,8 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     max_centre_std_cm = 5.0   # a joint centre less certain than this (standard error) is an error
     degenerate = "raise"      # a ball joint the ROM trial moved about one axis only: raise | hinge (warn, and
                               # fix its centre on that axis by the straight rest pose, as for a knee)
+    centre_trials = ["rom"]   # trials whose motion fits the joint centres: ["rom"] (the paper) | ["rom", "capture"]
+                              # (all the motion there is; rest pose and virtual cameras stay the ROM trial's)
 
     [solver]
     window = 60               # frames per window, 2 to 100000
@@ -96,6 +98,7 @@ class SkeletonConfig:
     up_to: str = "head"
     max_centre_std_cm: float = 5.0
     degenerate: str = "raise"
+    centre_trials: tuple[str, ...] = ("rom",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -168,6 +171,8 @@ class RunConfig:
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)
         _check(k.degenerate in ("raise", "hinge"), "skeleton.degenerate", "must be 'raise' or 'hinge'", k.degenerate)
+        _check(tuple(k.centre_trials) in (("rom",), ("rom", "capture")), "skeleton.centre_trials",
+               "must be [\"rom\"] or [\"rom\", \"capture\"]", list(k.centre_trials))
         _check(2 <= s.window <= MAX_WINDOW, "solver.window", f"must be in [2, {MAX_WINDOW}]", s.window)
         _check(0 <= s.overlap < s.window, "solver.overlap", "must be in [0, window)", s.overlap)
         _check(s.windows in ("sequential", "independent"), "solver.windows", "must be 'sequential' or 'independent'",

@@ -118,7 +118,7 @@ class RunLog:
 
 #: Settings added after runs were made, left out of the fingerprints at these (default) values, so that those
 #: runs stay reusable.
-_LATER_DEFAULTS = {"solver": {"windows": "sequential"}}
+_LATER_DEFAULTS = {"solver": {"windows": "sequential"}, "skeleton": {"centre_trials": ["rom"]}}
 
 
 def fingerprints(config: RunConfig) -> dict[str, str]:
@@ -319,10 +319,23 @@ def _rom_inputs(ctx: RunContext):
     return corr.world_from_camera, corr.registered, rest
 
 
-def _estimate_skeleton(ctx: RunContext, poses, registered, rest):
-    """Skeleton and mounts from the ROM trial. Pixel-registered poses are noisier than the 2 cm default
-    certainty of :class:`~bcmocap.kinematics.rom.RomOptions` allows for a small joint like the ankle
-    (3.0 cm for the left ankle of a rendered 3 s trial), hence ``skeleton.max_centre_std_cm`` (5 cm)."""
+def _more_trials(ctx: RunContext, to_world) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Camera poses and registered masks of the trials besides the ROM trial in ``skeleton.centre_trials``
+    (through ``to_world``, as the ROM trial's)."""
+    from ..correspondence_store import CorrespondenceStore
+
+    out = []
+    for trial in ctx.config.skeleton.centre_trials[1:]:
+        corr = CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences"))
+        out.append((to_world(corr.world_from_camera), corr.registered))
+    return out
+
+
+def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest):
+    """Skeleton and mounts from the ROM trial (camera poses through ``to_world``), its joint centres fitted to the
+    motion of ``skeleton.centre_trials``. Pixel-registered poses are noisier than the 2 cm default certainty of
+    :class:`~bcmocap.kinematics.rom.RomOptions` allows for a small joint like the ankle (3.0 cm for the left ankle
+    of a rendered 3 s trial), hence ``skeleton.max_centre_std_cm`` (5 cm)."""
     from ..kinematics.rom import RomOptions, skeleton_from_range_of_motion
 
     cams = [(c.name, c.segment) for c in ctx.capture.cameras]
@@ -330,11 +343,12 @@ def _estimate_skeleton(ctx: RunContext, poses, registered, rest):
     options = RomOptions(max_centre_std_m=settings.max_centre_std_cm / 100, degenerate=settings.degenerate)
     try:
         return skeleton_from_range_of_motion(
-            _topology(ctx), cams, poses, registered, rest_frames=rest, options=options,
-            intrinsics=_stacked_intrinsics(ctx), root_origin=list(settings.root_origin))
+            _topology(ctx), cams, to_world(poses), registered, rest_frames=rest, options=options,
+            intrinsics=_stacked_intrinsics(ctx), root_origin=list(settings.root_origin),
+            more_trials=_more_trials(ctx, to_world))
     except ValueError as exc:
         raise ValueError(f"{exc} (run settings: [skeleton] max_centre_std_cm = {settings.max_centre_std_cm:g}, "
-                         f"degenerate = {settings.degenerate!r})") from None
+                         f"degenerate = {settings.degenerate!r}, centre_trials = {list(settings.centre_trials)})") from None
 
 
 def _stacked_intrinsics(ctx: RunContext):
@@ -356,7 +370,7 @@ def _stage_world(ctx: RunContext) -> dict:
     if not spans:
         raise ValueError("world: no rest frame with two registered cameras in the range-of-motion trial")
     provisional = Similarity(1.7 / float(np.median(spans)), np.eye(3), np.zeros(3))
-    est = _estimate_skeleton(ctx, provisional.poses(poses), registered, rest)
+    est = _estimate_skeleton(ctx, provisional.poses, poses, registered, rest)
     measurements = _subject(ctx)["measurements"]
     factor = scale_from_measurements(est.skeleton, measurements, f"{ctx.capture.path / 'capture.json'}: subject.measurements")
     rest_motion = motion_from_camera_poses(est.skeleton, est.rig, provisional.poses(poses)[rest], registered[rest], robust=True)
@@ -380,7 +394,7 @@ def _stage_skeleton(ctx: RunContext) -> dict:
     from ..io.model_json import rig_to_dict, skeleton_to_dict
 
     poses, registered, rest = _rom_inputs(ctx)
-    est = _estimate_skeleton(ctx, _world(ctx).poses(poses), registered, rest)
+    est = _estimate_skeleton(ctx, _world(ctx).poses, poses, registered, rest)
     write_json_atomic(ctx.path("model", "skeleton.json"), skeleton_to_dict(est.skeleton))
     write_json_atomic(ctx.path("model", "rig.json"), rig_to_dict(est.rig, est.skeleton))
     with atomic_path(ctx.path("model", "rom_summary.txt"), suffix=".txt") as tmp:

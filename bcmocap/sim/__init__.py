@@ -32,6 +32,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "RangeOfMotionTrial": "rom",
     "range_of_motion": "rom",
     "range_of_motion_trial": "rom",
+    "sfm_like_poses": "rom",
     "skeleton_errors": "rom",
     "TexturedScene": "scene",
     "TextureParams": "scene",

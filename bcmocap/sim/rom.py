@@ -130,6 +130,44 @@ class RangeOfMotionTrial:
         )
 
 
+def sfm_like_poses(
+    true_poses: SE3,
+    rng: np.random.Generator,
+    *,
+    rotation_sigma_deg: float = 1.0,
+    position_sigma_m: float = 0.01,
+    missing_fraction: float = 0.1,
+    outlier_fraction: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """True camera poses ``(T, C)`` degraded like structure-from-motion output.
+
+    Args:
+        true_poses: ``(T, C)`` world_from_camera.
+        rng: the source of every random draw.
+        rotation_sigma_deg, position_sigma_m: noise of registered poses (per axis; rotation right-multiplied).
+        missing_fraction: share of camera-frames left unregistered (independently per camera and frame).
+        outlier_fraction: share of registered camera-frames replaced by gross errors (5–30°, 10–50 cm).
+
+    Returns:
+        ``(T, C, 7)`` poses (NaN where unregistered), ``(T, C)`` registered, ``(T, C)`` outliers.
+    """
+    t, c = true_poses.wxyz_xyz.shape[:2]
+    rot_noise = np.deg2rad(rotation_sigma_deg) * rng.normal(size=(t, c, 3))
+    pos_noise = position_sigma_m * rng.normal(size=(t, c, 3))
+    registered = rng.random((t, c)) >= missing_fraction
+    outliers = registered & (rng.random((t, c)) < outlier_fraction)
+    axis = rng.normal(size=(t, c, 3))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    direction = rng.normal(size=(t, c, 3))
+    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+    rot_noise = np.where(outliers[..., None], axis * np.deg2rad(rng.uniform(5.0, 30.0, (t, c, 1))), rot_noise)
+    pos_noise = np.where(outliers[..., None], direction * rng.uniform(0.1, 0.5, (t, c, 1)), pos_noise)
+    noisy = SE3.from_rotation_and_translation(
+        true_poses.rotation() @ SO3.exp(jnp.asarray(rot_noise)), true_poses.translation() + pos_noise
+    )
+    return np.where(registered[..., None], np.asarray(noisy.wxyz_xyz), np.nan), registered, outliers
+
+
 def range_of_motion_trial(
     skeleton: Skeleton | None = None,
     rig: Rig | None = None,
@@ -167,23 +205,9 @@ def range_of_motion_trial(
     truth, rest_frames = range_of_motion(
         skeleton, fps=fps, hold_seconds=hold_seconds, seconds_per_joint=seconds_per_joint, exercised=exercised
     )
-    rng = np.random.default_rng(seed)
-    true_poses = camera_poses(skeleton, rig, truth)
-    t, c = true_poses.wxyz_xyz.shape[:2]
-    rot_noise = np.deg2rad(rotation_sigma_deg) * rng.normal(size=(t, c, 3))
-    pos_noise = position_sigma_m * rng.normal(size=(t, c, 3))
-    registered = rng.random((t, c)) >= missing_fraction
-    outliers = registered & (rng.random((t, c)) < outlier_fraction)
-    axis = rng.normal(size=(t, c, 3))
-    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-    direction = rng.normal(size=(t, c, 3))
-    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
-    rot_noise = np.where(outliers[..., None], axis * np.deg2rad(rng.uniform(5.0, 30.0, (t, c, 1))), rot_noise)
-    pos_noise = np.where(outliers[..., None], direction * rng.uniform(0.1, 0.5, (t, c, 1)), pos_noise)
-    noisy = SE3.from_rotation_and_translation(
-        true_poses.rotation() @ SO3.exp(jnp.asarray(rot_noise)), true_poses.translation() + pos_noise
-    )
-    poses = np.where(registered[..., None], np.asarray(noisy.wxyz_xyz), np.nan)
+    poses, registered, outliers = sfm_like_poses(
+        camera_poses(skeleton, rig, truth), np.random.default_rng(seed), rotation_sigma_deg=rotation_sigma_deg,
+        position_sigma_m=position_sigma_m, missing_fraction=missing_fraction, outlier_fraction=outlier_fraction)
     root_kids = [k for k in skeleton.children(0) if np.linalg.norm(np.asarray(skeleton.offsets[k])) < 1e-9]
     root_origin = (skeleton.names[root_kids[0]],) if root_kids else None
     return RangeOfMotionTrial(skeleton, rig, truth, poses, registered, outliers, rest_frames, fps, root_origin)

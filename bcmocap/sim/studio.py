@@ -503,8 +503,8 @@ def subject_record(skeleton: Skeleton, rom_frames: int, fps: float) -> dict:
     }
 
 
-def _range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float, fps: float,
-                     rng: np.random.Generator) -> Motion:
+def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float, fps: float,
+                           rng: np.random.Generator) -> Motion:
     """A generated range-of-motion trial at the first position of ``reference``: the subject holds the
     rest pose (every joint at zero, the convention of :mod:`bcmocap.kinematics.rom`;
     :func:`rom_rest_frames`), then every joint swings about all its axes at once (incommensurate
@@ -712,7 +712,7 @@ def _plan(settings: StudioSettings) -> _Plan:
     if s.lens == "opencv_fisheye":
         rig = Rig(rig.names, rig.segments, rig.segment_from_camera, stack_cameras([fitted] * rig.num_cameras))
         fit_error = 0.0
-    rom = _range_of_motion(skeleton, motion, s.rom_seconds, s.fps, _rng(s.seed, 5))
+    rom = studio_range_of_motion(skeleton, motion, s.rom_seconds, s.fps, _rng(s.seed, 5))
     path_xy = np.asarray(motion.root_position)[:, :2]
     scene = make_textured_scene(path_xy, seed=s.seed)
     trials = {"rom": rom, "capture": motion}
