@@ -252,6 +252,8 @@ def main(argv=None) -> int:
                         help=f"comma-separated rows to run (default all: {','.join(CONDITIONS)})")
     parser.add_argument("--seconds", type=float, default=2.0, help="length of the capture trial (s, default 2)")
     parser.add_argument("--rom-seconds", type=float, default=3.0, help="length of the ROM trial (s, default 3)")
+    parser.add_argument("--rom-tempo", type=float, default=1.0,
+                        help="speed of the ROM trial's sweeps (default 1; 0.5: half as fast)")
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--config", type=Path, default=ROOT / "benchmarks" / "configs" / "tracking.toml",
                         help="bcmocap run settings (TOML or JSON; default the tracking frontend)")
@@ -266,7 +268,7 @@ def main(argv=None) -> int:
         parser.error(f"--conditions: unknown {unknown or wanted}; choose from {','.join(CONDITIONS)}")
     enable_float64()
     enable_compilation_cache()
-    base = StudioSettings(seconds=args.seconds, rom_seconds=args.rom_seconds, seed=args.seed,
+    base = StudioSettings(seconds=args.seconds, rom_seconds=args.rom_seconds, rom_tempo=args.rom_tempo, seed=args.seed,
                           reference_width=640, reference_height=480)
     config = load_config(args.config).with_overrides(
         {"skeleton.centre_trials": [t.strip() for t in args.centre_trials.split(",")]})

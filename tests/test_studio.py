@@ -157,8 +157,24 @@ def test_refuses_folders_it_must_not_write(capture, tmp_path):
         load_ground_truth(foreign)
 
 
+def test_rom_tempo_slows_the_same_sweeps():
+    """Half the tempo in twice the time: the same sweeps at half the angular speed."""
+    from bcmocap.sim.motions import load_body_motion
+    from bcmocap.sim.studio import studio_range_of_motion
+
+    skeleton, walk = load_body_motion("walk", fps=60.0, seconds=0.1)
+    speeds = []
+    for seconds, tempo in ((3.0, 1.0), (6.0, 0.5)):
+        rot = np.asarray(studio_range_of_motion(skeleton, walk, seconds, 60.0, np.random.default_rng(5), tempo).rotations)
+        step = 2 * np.arccos(np.clip(np.abs(np.sum(rot[1:] * rot[:-1], axis=-1)), 0, 1))  # (T - 1, J) rad per frame
+        speeds.append((step.max(axis=0)[1:], step.sum(axis=0)[1:]))
+    assert 0.4 < np.median(speeds[1][0] / speeds[0][0]) < 0.6  # peak speed per joint about halves
+    assert 0.8 < np.median(speeds[1][1] / speeds[0][1]) < 1.3  # the path swept stays about the same
+
+
 @pytest.mark.parametrize("flag, value", [("--seconds", "inf"), ("--fps", "inf"), ("--seconds", "nan"),
-                                         ("--rom-seconds", "1e9"), ("--fps", "1e6")])
+                                         ("--rom-seconds", "1e9"), ("--fps", "1e6"), ("--rom-tempo", "nan"),
+                                         ("--rom-tempo", "5")])
 def test_refuses_non_finite_or_huge_lengths_and_rates(tmp_path, capsys, flag, value):
     folder = tmp_path / "capture"
     assert main(["simulate", str(folder), *ARGS, flag, value]) == 2

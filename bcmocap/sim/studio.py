@@ -166,6 +166,8 @@ class StudioSettings:
         seconds: length of the capture trial (s, at most ``MAX_SECONDS``); longer than the motion plays it
             back and forth.
         rom_seconds: length of the range-of-motion trial (s, at most ``MAX_SECONDS``).
+        rom_tempo: speed of the range-of-motion trial's sweeps (1: each joint at 0.6–1.4 Hz; 0.5: the same
+            sweeps at half that speed, as a subject moving deliberately does, in (0, 4]).
         seed: random seed (scene, camera offsets, audio, markers, sensor noise).
         fps: frame rate of videos and ground truth (Hz, at most ``MAX_FPS``).
         width, height: body-camera image size (px).
@@ -202,6 +204,7 @@ class StudioSettings:
     motion_unit_m: float = 0.0
     seconds: float = 2.0
     rom_seconds: float = 2.0
+    rom_tempo: float = 1.0
     seed: int = 0
     fps: float = 60.0
     width: int = 640
@@ -257,6 +260,8 @@ class StudioSettings:
                 raise ValueError(f"StudioSettings.{name} must be at least 8, got {getattr(self, name)}")
         if self.reference_photos < 0 or self.markers_per_segment < 0:
             raise ValueError("StudioSettings.reference_photos and markers_per_segment must be >= 0")
+        if not 0.0 < self.rom_tempo <= 4.0:  # also refuses NaN
+            raise ValueError(f"StudioSettings.rom_tempo must be in (0, 4], got {self.rom_tempo}")
         if round(self.seconds * self.fps) < 2 or round(self.rom_seconds * self.fps) < 2:
             raise ValueError("StudioSettings: each trial needs at least 2 frames (seconds * fps >= 2)")
         frame_ms = 1000.0 / self.fps
@@ -504,12 +509,12 @@ def subject_record(skeleton: Skeleton, rom_frames: int, fps: float) -> dict:
 
 
 def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float, fps: float,
-                           rng: np.random.Generator) -> Motion:
+                           rng: np.random.Generator, tempo: float = 1.0) -> Motion:
     """A generated range-of-motion trial at the first position of ``reference``: the subject holds the
     rest pose (every joint at zero, the convention of :mod:`bcmocap.kinematics.rom`;
     :func:`rom_rest_frames`), then every joint swings about all its axes at once (incommensurate
-    sinusoids under a smooth envelope) while the body slowly turns, then holds the rest pose again;
-    hinges flex to the side ``reference`` flexes them."""
+    sinusoids of 0.6–1.4 Hz times ``tempo`` under a smooth envelope) while the body slowly turns, then holds
+    the rest pose again; hinges flex to the side ``reference`` flexes them."""
     from .rom import DEFAULT_AMPLITUDE_DEG, ROM_AMPLITUDE_DEG
 
     n = int(round(seconds * fps))
@@ -526,7 +531,7 @@ def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float
         name = skeleton.names[j]
         kind = name.split("_", 1)[1] if name.startswith(("left_", "right_")) else name
         amp = _ROM_SHARE * np.deg2rad(ROM_AMPLITUDE_DEG.get(kind, DEFAULT_AMPLITUDE_DEG))
-        freq = rng.uniform(0.6, 1.4, 3)
+        freq = tempo * rng.uniform(0.6, 1.4, 3)
         phase = rng.uniform(0, 2 * np.pi, 3)
         jt = skeleton.joint_types[j]
         if jt == JointType.BALL:
@@ -539,7 +544,7 @@ def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float
         else:
             continue
         rot[:, j] = np.asarray(SO3.exp(rotvec).wxyz)
-    yaw = np.deg2rad(60.0) * envelope * np.sin(2 * np.pi * 0.2 * tt)
+    yaw = np.deg2rad(60.0) * envelope * np.sin(2 * np.pi * 0.2 * tempo * tt)
     rot[:, 0] = np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], axis=1)
     rot = np.asarray(skeleton.project_rotations(rot))
     position = np.broadcast_to(np.asarray(reference.root_position[0]), (n, 3))
@@ -712,7 +717,7 @@ def _plan(settings: StudioSettings) -> _Plan:
     if s.lens == "opencv_fisheye":
         rig = Rig(rig.names, rig.segments, rig.segment_from_camera, stack_cameras([fitted] * rig.num_cameras))
         fit_error = 0.0
-    rom = studio_range_of_motion(skeleton, motion, s.rom_seconds, s.fps, _rng(s.seed, 5))
+    rom = studio_range_of_motion(skeleton, motion, s.rom_seconds, s.fps, _rng(s.seed, 5), s.rom_tempo)
     path_xy = np.asarray(motion.root_position)[:, :2]
     scene = make_textured_scene(path_xy, seed=s.seed)
     trials = {"rom": rom, "capture": motion}

@@ -38,6 +38,8 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--seconds", type=float, default=2.0, help="length of the capture trial (s, default 2, at most 600)")
     cmd.add_argument("--rom-seconds", type=float, default=2.0,
                      help="length of the range-of-motion trial (s, default 2, at most 600)")
+    cmd.add_argument("--rom-tempo", type=float, default=1.0,
+                     help="speed of the range-of-motion trial's sweeps (default 1: 0.6-1.4 Hz; 0.5: half as fast)")
     cmd.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     cmd.add_argument("--fps", type=float, default=60.0, help="frame rate (default 60, at most 240)")
     cmd.add_argument("--width", type=int, default=640, help="body-camera image width (px, default 640)")
@@ -140,7 +142,7 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
             return 2
         fields = dict(
             motion=motion, motion_fps=args.motion_fps, motion_unit_m=args.motion_unit_m, seconds=args.seconds,
-            rom_seconds=args.rom_seconds, seed=args.seed, fps=args.fps, width=args.width, height=args.height,
+            rom_seconds=args.rom_seconds, rom_tempo=args.rom_tempo, seed=args.seed, fps=args.fps, width=args.width, height=args.height,
             lens=args.lens, reference_photos=args.reference_photos, reference_width=ref_w, reference_height=ref_h,
         )
         fields.update({name: getattr(args, name) for name in DEGRADATIONS if getattr(args, name) is not None})
