@@ -134,6 +134,9 @@ def test_run_refuses_a_user_term_it_cannot_import_before_reading_the_capture(tmp
     ("run.json", '{"skeleton": {"root_origin": [1]}}', "skeleton.root_origin must be a list of strings"),
     ("run.toml", '[frontend]\npoints = "some"\n', "frontend.points must be 'all' or 'reference', got 'some'"),
     ("run.toml", '[skeleton]\ndegenerate = "ignore"\n', "skeleton.degenerate must be 'raise' or 'hinge', got 'ignore'"),
+    ("run.toml", "[solver]\nregistered_pose = [0.02, 0.0]\n",
+     "solver.registered_pose must be [m, deg], both 0 or both > 0 (at most 1 m, 30 deg), got [0.02, 0.0]"),
+    ("run.toml", "[solver]\nregistered_pose_below = 0\n", "solver.registered_pose_below must be an integer in [1, 100000]"),
     ("run.toml", '[skeleton]\ncentre_trials = ["capture"]\n',
      """skeleton.centre_trials must be ["rom"] or ["rom", "capture"], got ['capture']"""),
 ])

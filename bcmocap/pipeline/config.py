@@ -47,6 +47,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     estimate_readout = false  # also solve for a correction to the readout (prior σ 10 ms)
     self_calibration = false  # solve for each camera's focal length and centre (prior σ 1 %, 5 px)
     mount_compliance = [0.0, 0.0]   # σ of each camera's per-frame offset on its mount [m, deg]; [0, 0]: rigid
+    registered_pose = [0.0, 0.0]    # σ [m, deg] of a prior holding a registered camera-frame with few measurements
+                                    # at its registered pose; [0, 0]: off (bcmocap.residuals.registered_pose)
+    registered_pose_below = 20      # ... where it has fewer measurements than this, 1 to 100000
 
     [[solver.user_terms]]     # a user's terms, any number of these tables (see bcmocap.solver.objective)
     factory = "mypackage.terms:imu_terms"   # 'module:name' importable from PYTHONPATH, called per window
@@ -125,6 +128,8 @@ class SolverConfig:
     estimate_readout: bool = False
     self_calibration: bool = False
     mount_compliance: tuple[float, ...] = (0.0, 0.0)
+    registered_pose: tuple[float, ...] = (0.0, 0.0)
+    registered_pose_below: int = 20
     user_terms: tuple[UserTermConfig, ...] = ()
 
 
@@ -186,6 +191,11 @@ class RunConfig:
         _check(len(s.mount_compliance) == 2 and all(0.0 <= v <= 1.0 for v in s.mount_compliance[:1])
                and all(0.0 <= v <= 30.0 for v in s.mount_compliance[1:]) and (all(s.mount_compliance) or not any(s.mount_compliance)),
                "solver.mount_compliance", "must be [m, deg], both 0 or both > 0 (at most 1 m, 30 deg)", list(s.mount_compliance))
+        _check(len(s.registered_pose) == 2 and 0.0 <= s.registered_pose[0] <= 1.0 and 0.0 <= s.registered_pose[1] <= 30.0
+               and (all(s.registered_pose) or not any(s.registered_pose)),
+               "solver.registered_pose", "must be [m, deg], both 0 or both > 0 (at most 1 m, 30 deg)", list(s.registered_pose))
+        _check(isinstance(s.registered_pose_below, int) and 1 <= s.registered_pose_below <= 100000,
+               "solver.registered_pose_below", "must be an integer in [1, 100000]", s.registered_pose_below)
         _check(s.loss in LOSSES, "solver.loss", f"must be one of {LOSSES}", s.loss)
         bad = [t for t in s.terms if t not in TERMS]
         _check(not bad, "solver.terms", f"must be a subset of {TERMS}", list(s.terms))

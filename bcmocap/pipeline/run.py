@@ -118,7 +118,8 @@ class RunLog:
 
 #: Settings added after runs were made, left out of the fingerprints at these (default) values, so that those
 #: runs stay reusable.
-_LATER_DEFAULTS = {"solver": {"windows": "sequential"}, "skeleton": {"centre_trials": ["rom"]}}
+_LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 0.0], "registered_pose_below": 20},
+                   "skeleton": {"centre_trials": ["rom"]}}
 
 
 def fingerprints(config: RunConfig) -> dict[str, str]:
@@ -473,7 +474,9 @@ def objective_weights(s):
     smooth = "smoothness" in s.terms
     return ObjectiveWeights(root_smoothness=s.root_smoothness if smooth else 0.0,
                             joint_smoothness=s.joint_smoothness if smooth else 0.0,
-                            homography=s.homography, loss=s.loss, loss_scale=s.loss_scale)
+                            homography=s.homography, loss=s.loss, loss_scale=s.loss_scale,
+                            registered_pose=(s.registered_pose[0], math.radians(s.registered_pose[1])),
+                            registered_pose_below=s.registered_pose_below)
 
 
 def camera_effects(s):

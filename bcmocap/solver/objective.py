@@ -28,6 +28,7 @@ from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Skeleton
 from ..residuals import HomographyTransfer, camera_slot_count, camera_slots, JointSmoothness, Reprojection, RootSmoothness, Term, loss_from_name, pair_mask
 from ..residuals.mount_compliance import MountCompliance, MountSmoothness
+from ..residuals.registered_pose import RegisteredPose, registered_pose_data
 from ..residuals.rolling_shutter import READOUT, RollingShutterReprojection
 from ..residuals.self_calibration import INTRINSICS_CORRECTION, SelfCalibratingReprojection, StaticPrior, intrinsics_correction
 from ..residuals.variables import Euclidean
@@ -45,6 +46,9 @@ class ObjectiveWeights:
         loss: robust loss of the image terms ("none", "huber", "cauchy"); loss_scale in px. Cauchy at
             8 px keeps inliers of a 1–2° initial pose error in the convex zone while outliers (uniform
             over the image) get ~1 % of an inlier's influence.
+        registered_pose: ``(m, rad)`` σ of the camera centre and rotation of a prior holding a registered
+            camera-frame with fewer than ``registered_pose_below`` measurements at its registered pose
+            (:class:`~bcmocap.residuals.registered_pose.RegisteredPose`, with the image terms' loss; (0, 0): off).
     """
 
     root_smoothness: float = 1e3
@@ -52,6 +56,8 @@ class ObjectiveWeights:
     homography: float = 1.0
     loss: str = "cauchy"
     loss_scale: float = 8.0
+    registered_pose: tuple[float, float] = (0.0, 0.0)
+    registered_pose_below: int = 20
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,6 +154,9 @@ def paper_terms(
             camera_slots(homography, count=homography_cameras),
             weight=weights.homography, loss=loss, name="homography",
         ))
+    if any(weights.registered_pose):
+        data = registered_pose_data(c.world_from_camera, c.registered, c.weights, weights.registered_pose_below)
+        terms.append(RegisteredPose(data, sigma=np.asarray(weights.registered_pose, float), loss=loss, name="registered pose"))
     if weights.root_smoothness > 0:
         terms.append(RootSmoothness(mask, weight=weights.root_smoothness, name="root smoothness"))
     if weights.joint_smoothness > 0:
