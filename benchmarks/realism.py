@@ -187,8 +187,11 @@ def row(run: Path) -> dict:
 
 
 def read_back(run: Path) -> dict:
-    """A finished run's row with what :func:`condition` saved beside it (``benchmark.json``)."""
+    """A finished run's row with what :func:`condition` saved beside it (``benchmark.json``) and the settings its
+    capture was rendered with (``OUT/captures/BASE/capture.json``)."""
     result = row(run)
+    capture = run.parent.parent / "captures" / base_condition(run.name) / "capture.json"
+    result["capture_settings"] = json.loads(capture.read_text())["settings"]
     extra = json.loads((run / "benchmark.json").read_text()) if (run / "benchmark.json").is_file() else {}
     result["render_seconds"] = extra.get("render_seconds")
     for key in ("frontend_reused_from", "frontend_seconds_of_base", "load_average"):
@@ -231,17 +234,19 @@ def print_table(rows: dict[str, dict]) -> None:
     """One line per row: solved (and initial) joint errors, registered fractions, the run's stage seconds, the trials
     its joint centres were fitted to (``*``: carried over from an earlier JSON)."""
     print(f"\n{'condition':<30}{'joint pos. cm mean / median / max':>36}{'joint angle deg mean / median / max':>38}"
-          f"{'initial cm / deg':>18}{'registered rom / capture':>27}{'run s':>8}  centres")
+          f"{'initial cm / deg':>18}{'registered rom / capture':>27}{'run s':>8}  ROM s@tempo  centres")
     for name, r in rows.items():
         trials = ((r.get("run_config") or {}).get("skeleton") or {}).get("centre_trials", ["rom"])
         centres = "+".join(trials) + (" *" if "carried_over_from" in r else "")
+        rom = r.get("capture_settings") or {}
+        rom = f"{rom.get('rom_seconds', '?')}@{rom.get('rom_tempo', 1.0)}"
         p, a, reg = r["joint_position_error_cm"], r["joint_angle_error_deg"], r["registered_fraction"]
         p0, a0 = r["initial"]["joint_position_error_cm"], r["initial"]["joint_angle_error_deg"]
         seconds = sum(r["stage_seconds"].values())
         print(f"{name:<30}{p['mean']:>14.3f} / {p['median']:6.3f} / {p['max']:7.3f}"
               f"{a['mean']:>16.3f} / {a['median']:6.3f} / {a['max']:7.3f}"
               f"{p0['mean']:>10.3f} / {a0['mean']:5.3f}"
-              f"{100 * reg['rom']:>15.1f} % / {100 * reg['capture']:5.1f} %{seconds:>8.0f}  {centres}")
+              f"{100 * reg['rom']:>15.1f} % / {100 * reg['capture']:5.1f} %{seconds:>8.0f}  {rom:<12} {centres}")
 
 
 def main(argv=None) -> int:
@@ -277,7 +282,8 @@ def main(argv=None) -> int:
         earlier = json.loads(args.carry_over.read_text())
         for name, r in earlier["conditions"].items():
             carried[name] = {**r, "carried_over_from": str(args.carry_over),
-                             "run_config": r.get("run_config") or earlier.get("run_config", {}).get(name)}
+                             "run_config": r.get("run_config") or earlier.get("run_config", {}).get(name),
+                             "capture_settings": r.get("capture_settings") or earlier["capture_settings"][name]}
     rows, seconds = {}, {}
     for name in wanted:
         clock = time.perf_counter()
@@ -293,7 +299,7 @@ def main(argv=None) -> int:
     print_table(rows)
     write_json(args.json, {
         "conditions": rows, "preset": PRESET, "modelled": MODELLED,
-        "capture_settings": {name: capture_settings(name, base).to_dict() for name in rows},
+        "capture_settings": {name: r["capture_settings"] for name, r in rows.items()},
         "this_run_seconds": seconds, "machine": machine(), "peak_rss_mb": peak_rss_mb(),
     })
     return 0
