@@ -40,14 +40,17 @@ def test_the_cluster_setting_is_checked_and_changes_no_fingerprint():
 
 
 def test_fingerprints_of_runs_made_before_the_windows_setting_stay_the_same():
-    """A run folder made before ``solver.windows`` existed is still reused with the default settings."""
+    """A run folder made before ``solver.windows`` (and ``solver.registered_pose``, ``registered_pose_below``,
+    ``skeleton.centre_trials``) existed is still reused with the default settings."""
     import hashlib
     import json
 
     from bcmocap.pipeline.run import STAGES, _STAGE_SECTIONS, fingerprints
 
     data = RunConfig().to_dict()
-    del data["solver"]["windows"]
+    for key in ("windows", "registered_pose", "registered_pose_below"):
+        del data["solver"][key]
+    del data["skeleton"]["centre_trials"]
     acc, old = [], {}
     for stage in STAGES:
         acc += [data[s] for s in _STAGE_SECTIONS[stage]]
