@@ -146,6 +146,25 @@ def test_ball_joint_moved_about_one_axis(model, noiseless):
     assert est.skeleton.joint_types[3] == JointType.BALL
 
 
+def test_end_joint_moved_about_one_axis_next_to_a_hinge(model, noiseless):
+    # The ankle (the foot, at the end of the chain, below the knee's hinge) swings about one axis only: its centre
+    # is placed on that axis on the line of hip and knee at rest, the knee's by the ankle's, and both come out exact.
+    skeleton, rig = model
+    rot = np.asarray(noiseless.motion.rotations).copy()
+    foot = skeleton.index("foot")
+    angle = np.linalg.norm(np.asarray(SO3(rot[:, foot]).log()), axis=-1)
+    rot[:, foot] = np.asarray(SO3.exp(angle[:, None] * np.array([0.0, 1.0, 0.0])).wxyz)
+    motion = type(noiseless.motion)(np.asarray(noiseless.motion.root_position), rot)
+    poses = np.asarray(camera_poses(skeleton, rig, motion).wxyz_xyz)
+    args = (skeleton, noiseless.assignment, poses, noiseless.registered)
+    with pytest.raises(ValueError, match=r"joint 'foot'.*1 direction\(s\) with rotation spread below"):
+        skeleton_from_range_of_motion(*args, rest_frames=noiseless.rest_frames)
+    with pytest.warns(UserWarning, match=r"joint 'foot'.*about one axis only"):
+        est = skeleton_from_range_of_motion(*args, rest_frames=noiseless.rest_frames, root_origin=["torso"],
+                                            options=RomOptions(degenerate="hinge"))
+    np.testing.assert_allclose(est.skeleton.offsets, skeleton.offsets, atol=1e-9)
+
+
 def test_camera_with_too_few_registered_frames(model, noiseless):
     skeleton, rig = model
     registered = noiseless.registered.copy()

@@ -463,8 +463,11 @@ def skeleton_from_range_of_motion(
         if not ok.any():
             raise ValueError(f"segment '{topology.names[j]}': none of its cameras is registered in the rest frames")
         world_from_v_rest[j] = _average_rotation(world_v[ok, j, :4])
-    for name, (y0, null) in families.items():
-        joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None])
+    # A family's placement reads its neighbours' centres; where neighbours are families too (an elbow next to a
+    # wrist moved about one axis), alternate until the placements settle.
+    for _ in range(1 if len(families) < 2 else 10):
+        for name, (y0, null) in families.items():
+            joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None])
 
     # ---- segment frames, bone vectors (Eq. 15), mounts (Eq. 5) -----------------------------------
     rest_q = np.array([1.0, 0, 0, 0]) if world_from_rest is None else np.asarray(world_from_rest, dtype=np.float64)
@@ -519,24 +522,30 @@ def _virtual_poses(vcs, topology, seg_cams, pairs, world_from_camera, registered
 
 
 def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known) -> JointEstimate:
-    """Pick the point on a hinge's axis that is collinear with the joints above and below at rest (Eq. 17)."""
+    """Pick the point on a hinge's axis that is collinear with the joints above and below at rest (Eq. 17); for a
+    joint at the end of a chain (a wrist, an ankle moved about one axis), collinear with the two joints above it
+    (the straight limb extended). A neighbour that is itself on an axis is taken where it currently is."""
     j = topology.index(name)
     p = topology.parents[j]
     kids = topology.children(j)
-    if topology.parents[p] < 0 or len(kids) != 1:
+    if topology.parents[p] < 0 or len(kids) > 1 or (not kids and topology.parents[topology.parents[p]] < 0):
         raise ValueError(
-            f"joint '{name}': a hinge's centre is fixed by the collinearity of the joints above and below it in the "
-            f"rest pose, so its parent must have a joint (not the root) and it needs exactly one child (has {len(kids)})"
+            f"joint '{name}': a centre on an axis is fixed by the straight limb of the rest pose — collinear with the "
+            f"joints above and below it, or with the two above it at the end of a chain — so its parent must have a "
+            f"joint (not the root), and it needs one child (has {len(kids)}) or a grandparent with a joint"
         )
-    below = topology.names[kids[0]]
-    if joints[below].axis_in_child is not None or joints[topology.names[p]].axis_in_child is not None:
-        raise ValueError(f"joint '{name}': the joints next to a hinge must be ball joints (a chain of hinges is not supported)")
-    ok = rest_known[:, j] & rest_known[:, p]
+    if kids:  # the parent's joint and the child's
+        segments = (p, j)
+        centres = (joints[topology.names[p]].centre_in_child, joints[topology.names[kids[0]]].centre_in_parent)
+    else:  # the grandparent's joint and the parent's
+        segments = (topology.parents[p], p)
+        centres = (joints[topology.names[segments[0]]].centre_in_child, joints[topology.names[p]].centre_in_child)
+    ok = rest_known[:, j] & rest_known[:, p] & rest_known[:, segments[0]]
     if not ok.any():
-        raise ValueError(f"joint '{name}': its segments are never both known in the rest frames")
-    wp, wc = world_v[ok, p], world_v[ok, j]
-    upper = _apply(wp, joints[topology.names[p]].centre_in_child)  # e.g. the hip, (R, 3)
-    lower = _apply(wc, joints[below].centre_in_parent)  # e.g. the ankle
+        raise ValueError(f"joint '{name}': its segments are never all known in the rest frames")
+    wv = world_v[ok]
+    wp, wc = wv[:, p], wv[:, j]
+    upper, lower = (_apply(wv[:, seg], centre) for seg, centre in zip(segments, centres))
     d = upper - lower
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rows, rhs = [], []
