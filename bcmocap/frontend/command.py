@@ -241,10 +241,13 @@ def trial_settings(*, stride: int, frames: int | None, max_features: int, homogr
                    registration: str, max_measurements: int | None, points: str = "all") -> dict:
     """The settings of :func:`process_trial` that its result depends on, as saved in ``registration.json``
     (``"settings"``): a saved registration is reused only when they are all the same."""
+    from .tracking import ROUND_FEATURES, ROUND_PARTNERS
+
     return {"stride": int(stride), "frames": None if frames is None else int(frames), "max_features": int(max_features),
             "homographies": bool(homographies), "chunk_frames": int(chunk_frames), "registration": str(registration),
             "max_measurements": None if max_measurements is None else int(max_measurements), "version": SETTINGS_VERSION,
-            **({} if points == "all" else {"points": str(points)})}  # registrations saved before the setting: "all"
+            **({} if points == "all" else {"points": str(points)}),  # registrations saved before the setting: "all"
+            **({"rounds": {"features": ROUND_FEATURES, "partners": ROUND_PARTNERS}} if registration == "tracking" else {})}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -427,6 +430,7 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
 
     from .homography import fill_with_homographies
     from .relative import RelativeOptions, register_capture
+    from .tracking import ROUND_PARTNERS
 
     stages: dict[str, object] = {}
 
@@ -437,8 +441,10 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
             stages.setdefault(stage, _progress(f"{label} {stage}"))(done, total)
 
     cameras = [c.intrinsics for c in capture.cameras]
-    # After tracking, many frames may be left: only the pairs their new points come from are matched.
-    options = RelativeOptions(second_order_pairs=initial is None)
+    # After tracking, many frames may be left: only the pairs their new points come from are matched, and each
+    # frame with fewer other cameras.
+    options = RelativeOptions(second_order_pairs=initial is None,
+                              **({} if initial is None else {"max_other_cameras": ROUND_PARTNERS}))
     result = register_capture(features, cameras, index, options, frames=(first + np.arange(len(features))) * stride,
                               initial=initial, initial_points=initial_points, leave=leave, checkpoint=checkpoint,
                               progress=progress)
