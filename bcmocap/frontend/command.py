@@ -241,13 +241,13 @@ def trial_settings(*, stride: int, frames: int | None, max_features: int, homogr
                    registration: str, max_measurements: int | None, points: str = "all") -> dict:
     """The settings of :func:`process_trial` that its result depends on, as saved in ``registration.json``
     (``"settings"``): a saved registration is reused only when they are all the same."""
-    from .tracking import ROUND_FEATURES, ROUND_PARTNERS
+    from .tracking import ROUND_PARTNERS
 
     return {"stride": int(stride), "frames": None if frames is None else int(frames), "max_features": int(max_features),
             "homographies": bool(homographies), "chunk_frames": int(chunk_frames), "registration": str(registration),
             "max_measurements": None if max_measurements is None else int(max_measurements), "version": SETTINGS_VERSION,
             **({} if points == "all" else {"points": str(points)}),  # registrations saved before the setting: "all"
-            **({"rounds": {"features": ROUND_FEATURES, "partners": ROUND_PARTNERS}} if registration == "tracking" else {})}
+            **({"round_partners": ROUND_PARTNERS} if registration == "tracking" else {})}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -48,11 +48,9 @@ __all__ = ["CameraTrack", "TrackingOptions", "frames_for_rounds", "map_index", "
            "sift_at", "states_for_rounds", "track_camera", "track_trial", "tracking_states"]
 
 
-#: The rounds of relative registration after tracking: SIFT of at most this many features in each frame they need
-#: (the keyframes keep theirs), and each frame matched with at most this many other cameras at the same time. On the
-#: rendered 10 s walk, against 8000 and 4: the rounds 30 % faster (294 → 204 s), registered 99.4 / 99.1 % instead of
-#: 99.0 / 99.2 % (ROM / capture), joints 0.99 cm and 0.28° instead of 1.18 cm and 0.29° (README, issue 18).
-ROUND_FEATURES = 4000
+#: The rounds of relative registration after tracking match each frame they need with at most this many other
+#: cameras at the same time (the most similar views). On the rendered 10 s walk, against 4: the rounds 31 % faster
+#: (294 → 203 s), registered 99.4 / 99.1 % instead of 99.0 / 99.2 % (ROM / capture); 1 gave 98.2 % of the capture.
 ROUND_PARTNERS = 2
 
 
@@ -942,7 +940,7 @@ def sift_for_homographies(capture, trial: str, result, leave: np.ndarray, *, sta
     left = np.asarray(leave, bool) & ~result.registered
     want = frames_for_rounds(~left, 1, [()] * left.shape[1])  # each such frame and the ones beside it in time
     return _attach_sift(capture, trial, result, want, starts=starts, stride=stride, first=first,
-                        max_features=min(max_features, ROUND_FEATURES))
+                        max_features=max_features)
 
 
 def rounds_for_the_rest(capture, trial: str, result, leave: np.ndarray, partners: list, index: ReferenceIndex, *,
@@ -960,7 +958,7 @@ def rounds_for_the_rest(capture, trial: str, result, leave: np.ndarray, partners
         return result
     options = RelativeOptions(second_order_pairs=False, max_other_cameras=ROUND_PARTNERS)
     _attach_sift(capture, trial, result, frames_for_rounds(~rest, options.max_time_gap, partners), starts=starts,
-                 stride=stride, first=first, max_features=min(max_features, ROUND_FEATURES))
+                 stride=stride, first=first, max_features=max_features)
     features = [[(s.keypoints, s.descriptors) for s in row] for row in result.states]
     initial = [[(s.world_from_camera, s.point_ids, s.how) for s in row] for row in result.states]
     second = register_capture(features, result.cameras, index, options, frames=result.frames, initial=initial,
@@ -1021,5 +1019,5 @@ def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list
     need = frames_for_rounds(~seeds, rounds.max_time_gap, partners) & ~leave  # the frames left need no SIFT
     need &= ~np.stack([t.keyframe[first:stop] for t in tracks], 1)  # keyframes have their SIFT already
     extra = sift_at(capture, trial, need, starts=starts, stride=stride, first=first,
-                    max_features=min(options.registration.max_features, ROUND_FEATURES))
+                    max_features=options.registration.max_features)
     return (*tracking_states(tracks, keyframe_features, extra, first, stop, found), leave, partners)
