@@ -8,7 +8,7 @@ import pytest
 
 from bcmocap.pipeline.config import RunConfig, load_config
 from bcmocap.residuals import FrameTerm
-from bcmocap.solver.objective import TermWindow, UserTerms, import_term_factory
+from bcmocap.solver.objective import ObjectiveWeights, TermWindow, UserTerms, import_term_factory
 
 from conftest import make_rig, make_skeleton
 
@@ -127,3 +127,10 @@ def test_camera_effects_choose_the_reprojection_and_add_their_priors():
     for bad in ({"mount_compliance": [0.003, 0.0]}, {"rolling_shutter_readout": 2.0}):
         with pytest.raises(ValueError, match="solver\\.(mount_compliance|rolling_shutter_readout)"):
             RunConfig.from_dict({"solver": bad})
+
+
+def test_registered_pose_sigmas_are_both_zero_or_both_positive():
+    for bad in ((0.02, 0.0), (0.0, 0.01), (-0.02, 0.01), (float("nan"), 0.01)):
+        with pytest.raises(ValueError, match=r"ObjectiveWeights.registered_pose must be \(m, rad\), both 0 or both > 0"):
+            ObjectiveWeights(registered_pose=bad)
+    assert ObjectiveWeights(registered_pose=(0.02, 0.01)).registered_pose == (0.02, 0.01)

@@ -163,6 +163,12 @@ def test_end_joint_moved_about_one_axis_next_to_a_hinge(model, noiseless):
         est = skeleton_from_range_of_motion(*args, rest_frames=noiseless.rest_frames, root_origin=["torso"],
                                             options=RomOptions(degenerate="hinge"))
     np.testing.assert_allclose(est.skeleton.offsets, skeleton.offsets, atol=1e-9)
+    # About an axis parallel to the knee's, the rest pose cannot place the two: an error, not a guess.
+    rot[:, foot] = np.asarray(SO3.exp(angle[:, None] * (LEG_KNEE_AXIS / np.linalg.norm(LEG_KNEE_AXIS))).wxyz)
+    poses = np.asarray(camera_poses(skeleton, rig, type(noiseless.motion)(np.asarray(noiseless.motion.root_position), rot)).wxyz_xyz)
+    with pytest.warns(UserWarning), pytest.raises(ValueError, match=r"joints '(shin|foot)' and '(shin|foot)'.*parallel at rest"):
+        skeleton_from_range_of_motion(skeleton, noiseless.assignment, poses, noiseless.registered,
+                                      rest_frames=noiseless.rest_frames, options=RomOptions(degenerate="hinge"))
 
 
 def test_camera_with_too_few_registered_frames(model, noiseless):

@@ -415,8 +415,8 @@ def skeleton_from_range_of_motion(
         pname, jtype = topology.names[p], topology.joint_types[j]
         rel = np.concatenate([_compose(_inverse(wv[kn[:, j] & kn[:, p], p]), wv[kn[:, j] & kn[:, p], j])
                               for wv, kn in pooled])
+        trials = "trial" if not more_trials else f"{1 + len(more_trials)} trials"
         if len(rel) < options.min_frames:
-            trials = "trial" if not more_trials else f"{1 + len(more_trials)} trials"
             raise ValueError(
                 f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {len(rel)} frames "
                 f"(< {options.min_frames}) of the {trials}"
@@ -428,7 +428,7 @@ def skeleton_from_range_of_motion(
         if hinge:
             if weak > 1 or est.std_m > options.max_centre_std_m:
                 raise ValueError(
-                    f"{what}: the trial did not exercise it: rotation spread about its axis {est.spread[1]:.4f} "
+                    f"{what}: the {trials} did not exercise it: rotation spread about its axis {est.spread[1]:.4f} "
                     f"(need ≥ {options.min_spread}), centre standard error {100 * est.std_m:.2f} cm; flex the joint "
                     "through its range in the trial"
                 )
@@ -452,7 +452,7 @@ def skeleton_from_range_of_motion(
                        f"centre standard error {100 * est.std_m:.2f} cm" if weak else
                        f"centre standard error {100 * est.std_m:.2f} cm, above the limit of {100 * options.max_centre_std_m:.3g} cm "
                        f"(rotation spreads {spreads})")
-                raise ValueError(f"{what}: the trial does not determine its centre: {why}; exercise the joint about "
+                raise ValueError(f"{what}: the {trials} do{'es' * (not more_trials)} not determine its centre: {why}; exercise the joint about "
                                  "more axes, or declare it a hinge")
         joints[name] = est
 
@@ -465,6 +465,7 @@ def skeleton_from_range_of_motion(
         world_from_v_rest[j] = _average_rotation(world_v[ok, j, :4])
     # A family's placement reads its neighbours' centres; where neighbours are families too (an elbow next to a
     # wrist moved about one axis), alternate until the placements settle.
+    _check_neighbouring_axes(topology, families, world_from_v_rest)
     for _ in range(1 if len(families) < 2 else 10):
         for name, (y0, null) in families.items():
             joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None])
@@ -519,6 +520,24 @@ def _virtual_poses(vcs, topology, seg_cams, pairs, world_from_camera, registered
         world_v[:, j], known[:, j] = vcs[topology.names[j]].world_from_virtual(
             world_from_camera[:, cams], registered[:, cams], robust=options.robust)
     return world_v, known
+
+
+def _check_neighbouring_axes(topology, families, world_from_v_rest, max_angle_deg: float = 10.0) -> None:
+    """Raise ValueError if two neighbouring joints whose centres lie on axes have nearly parallel axes at rest: the
+    straight rest pose then leaves a whole family of placements (both slide along their axes together)."""
+    axes = {}
+    for name, (_, null) in families.items():
+        j = topology.index(name)
+        axes[name] = _qrot(world_from_v_rest[j][None], (null[:3] / np.linalg.norm(null[:3]))[None])[0]
+    for name in families:
+        j = topology.index(name)
+        for other in (topology.names[topology.parents[j]], *(topology.names[k] for k in topology.children(j))):
+            if other in families and abs(float(axes[name] @ axes[other])) > np.cos(np.deg2rad(max_angle_deg)):
+                raise ValueError(
+                    f"joints '{name}' and '{other}': both centres lie on axes (a hinge, or a ball joint moved about one "
+                    f"axis only) that are parallel at rest, so the straight rest pose cannot place them; exercise the "
+                    f"ball joint about more axes"
+                )
 
 
 def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known) -> JointEstimate:

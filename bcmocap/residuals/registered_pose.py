@@ -22,7 +22,7 @@ IDENTITY_POSE = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 
 
 class RegisteredPose(CameraTerm):
-    """``((R_regᵀ R) / σ_rot, (c − c_reg) / σ_pos)`` per camera-frame: one block of 6.
+    """``((c − c_reg) / σ_pos, 2·vec(q_regᵀ ⊗ q) / σ_rot)`` per camera-frame: one block of 6.
 
     The rotation part is twice the vector part of the relative quaternion (the rotation vector for small
     angles, smooth everywhere); ``c`` is the camera centre in the world.

@@ -48,7 +48,8 @@ class ObjectiveWeights:
             over the image) get ~1 % of an inlier's influence.
         registered_pose: ``(m, rad)`` σ of the camera centre and rotation of a prior holding a registered
             camera-frame with fewer than ``registered_pose_below`` measurements at its registered pose
-            (:class:`~bcmocap.residuals.registered_pose.RegisteredPose`, with the image terms' loss; (0, 0): off).
+            (:class:`~bcmocap.residuals.registered_pose.RegisteredPose`, with the image terms' loss, its scale read
+            in σ: a pose more than ~8σ off its registration is down-weighted as an outlier; (0, 0): off).
     """
 
     root_smoothness: float = 1e3
@@ -58,6 +59,11 @@ class ObjectiveWeights:
     loss_scale: float = 8.0
     registered_pose: tuple[float, float] = (0.0, 0.0)
     registered_pose_below: int = 20
+
+    def __post_init__(self):
+        sigma = tuple(self.registered_pose)
+        if len(sigma) != 2 or any(not v >= 0 for v in sigma) or (any(sigma) and not all(sigma)):
+            raise ValueError(f"ObjectiveWeights.registered_pose must be (m, rad), both 0 or both > 0, got {self.registered_pose}")
 
 
 @dataclasses.dataclass(frozen=True)
