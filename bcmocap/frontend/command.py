@@ -430,7 +430,7 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
 
     from .homography import fill_with_homographies
     from .relative import RelativeOptions, register_capture
-    from .tracking import ROUND_PARTNERS
+    from .tracking import round_options
 
     stages: dict[str, object] = {}
 
@@ -443,8 +443,7 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
     cameras = [c.intrinsics for c in capture.cameras]
     # After tracking, many frames may be left: only the pairs their new points come from are matched, and each
     # frame with fewer other cameras.
-    options = RelativeOptions(second_order_pairs=initial is None,
-                              **({} if initial is None else {"max_other_cameras": ROUND_PARTNERS}))
+    options = RelativeOptions() if initial is None else round_options()
     result = register_capture(features, cameras, index, options, frames=(first + np.arange(len(features))) * stride,
                               initial=initial, initial_points=initial_points, leave=leave, checkpoint=checkpoint,
                               progress=progress)

@@ -54,6 +54,14 @@ __all__ = ["CameraTrack", "TrackingOptions", "frames_for_rounds", "map_index", "
 ROUND_PARTNERS = 2
 
 
+def round_options():
+    """The :class:`~.relative.RelativeOptions` of the rounds after tracking: only the pairs their new points come
+    from (no second-order pairs), each frame with at most :data:`ROUND_PARTNERS` other cameras."""
+    from .relative import RelativeOptions
+
+    return RelativeOptions(second_order_pairs=False, max_other_cameras=ROUND_PARTNERS)
+
+
 @dataclasses.dataclass(frozen=True)
 class TrackingOptions:
     """Settings of :func:`track_camera`.
@@ -951,12 +959,12 @@ def rounds_for_the_rest(capture, trial: str, result, leave: np.ndarray, partners
     :func:`~.relative.register_capture` from ``result``'s registration. Returns the new
     :class:`~.relative.CaptureRegistration` (``result`` itself when nothing is left). ``checkpoint``: see
     :func:`~.relative.register_capture`."""
-    from .relative import RelativeOptions, register_capture
+    from .relative import register_capture
 
     rest = np.asarray(leave, bool) & ~result.registered
     if not rest.any():
         return result
-    options = RelativeOptions(second_order_pairs=False, max_other_cameras=ROUND_PARTNERS)
+    options = round_options()
     _attach_sift(capture, trial, result, frames_for_rounds(~rest, options.max_time_gap, partners), starts=starts,
                  stride=stride, first=first, max_features=max_features)
     features = [[(s.keypoints, s.descriptors) for s in row] for row in result.states]
@@ -997,7 +1005,6 @@ def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list
     rounds skip (``register_capture(..., leave=leave)``; :func:`track_after_rounds` fills them), ``partners[c]``
     the cameras whose frames at the same time camera ``c``'s frames are matched with."""
     from ..io.colmap import to_pycolmap
-    from .relative import RelativeOptions
 
     cams = [to_pycolmap(c.intrinsics) for c in capture.cameras]
     found, affinity = relocalise(tracks, keyframe_features, cams, index, first, stop, options.registration)
@@ -1009,7 +1016,7 @@ def states_for_rounds(capture, trial: str, tracks: list, keyframe_features: list
     seeds = round_seeds(registered, round_stride)
     log(f"{trial}: frames {first}-{stop - 1}: {len(found)} relocalised against the tracked map, {retracked} "
         f"tracked from them; {int((~registered).sum())} left, {int(seeds.sum())} of them for the rounds")
-    rounds = RelativeOptions(max_other_cameras=ROUND_PARTNERS)
+    rounds = round_options()
     np.fill_diagonal(affinity, 0)
     partners = []
     for row in affinity:

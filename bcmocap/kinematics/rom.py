@@ -393,19 +393,22 @@ def skeleton_from_range_of_motion(
         raise ValueError("skeleton_from_range_of_motion: rest_frames selects no frame")
 
     # ---- virtual cameras: one trajectory per segment --------------------------------------------
-    vcs: dict[str, VirtualCamera] = {}
-    world_v = np.full((num_frames, n, 7), np.nan)
-    known = np.zeros((num_frames, n), bool)
-    for j, cams in enumerate(seg_cams):
-        name = topology.names[j]
-        vc = estimate_virtual_camera(
-            [pairs[i][0] for i in cams], world_from_camera[:, cams], registered[:, cams], name=name,
+    vcs: dict[str, VirtualCamera] = {
+        topology.names[j]: estimate_virtual_camera(
+            [pairs[i][0] for i in cams], world_from_camera[:, cams], registered[:, cams], name=topology.names[j],
             centred=options.centred_virtual, min_frames=options.min_frames,
         )
-        vcs[name] = vc
-        world_v[:, j], known[:, j] = vc.world_from_virtual(world_from_camera[:, cams], registered[:, cams], robust=options.robust)
-    pooled = [(world_v, known)] + [_virtual_poses(vcs, topology, seg_cams, pairs, poses, reg, options, k)
-                                   for k, (poses, reg) in enumerate(more_trials)]
+        for j, cams in enumerate(seg_cams)
+    }
+    for k, (poses, reg) in enumerate(more_trials):
+        if np.ndim(poses) != 3 or np.shape(poses)[1:] != (len(pairs), 7) or np.shape(reg) != np.shape(poses)[:2]:
+            raise ValueError(
+                f"skeleton_from_range_of_motion: more_trials[{k}]: expected world_from_camera (T, {len(pairs)}, 7) and "
+                f"registered (T, {len(pairs)}) for the {len(pairs)} assigned cameras, got {np.shape(poses)} and {np.shape(reg)}"
+            )
+    pooled = [_virtual_poses(vcs, topology, seg_cams, poses, reg, options)
+              for poses, reg in [(world_from_camera, registered), *more_trials]]
+    world_v, known = pooled[0]
 
     # ---- joint centres (Eqs. 12-14, 16) ---------------------------------------------------------
     joints: dict[str, JointEstimate] = {}
@@ -504,16 +507,10 @@ def skeleton_from_range_of_motion(
     return RomEstimate(skeleton, rig, mounts, names, camera_segments, joints, vcs, seg_from_v)
 
 
-def _virtual_poses(vcs, topology, seg_cams, pairs, world_from_camera, registered, options, k):
-    """``(T', J, 7)`` virtual-camera poses and ``(T', J)`` known of the ``k``-th further trial."""
+def _virtual_poses(vcs, topology, seg_cams, world_from_camera, registered, options):
+    """``(T, J, 7)`` virtual-camera poses and ``(T, J)`` known of one trial's ``(T, C, 7)`` camera poses."""
     world_from_camera = np.asarray(world_from_camera, dtype=np.float64)
     registered = np.asarray(registered, dtype=bool)
-    c = len(pairs)
-    if world_from_camera.ndim != 3 or world_from_camera.shape[1:] != (c, 7) or registered.shape != world_from_camera.shape[:2]:
-        raise ValueError(
-            f"skeleton_from_range_of_motion: more_trials[{k}]: expected world_from_camera (T, {c}, 7) and registered "
-            f"(T, {c}) for the {c} assigned cameras, got {world_from_camera.shape} and {registered.shape}"
-        )
     world_v = np.full((len(registered), len(topology.names), 7), np.nan)
     known = np.zeros((len(registered), len(topology.names)), bool)
     for j, cams in enumerate(seg_cams):

@@ -188,12 +188,10 @@ class RunConfig:
             _check(getattr(s, name) >= 0, f"solver.{name}", "must be ≥ 0", getattr(s, name))
         _check(0.0 <= s.rolling_shutter_readout <= 1.0, "solver.rolling_shutter_readout", "must be in [0, 1] s",
                s.rolling_shutter_readout)
-        _check(len(s.mount_compliance) == 2 and all(0.0 <= v <= 1.0 for v in s.mount_compliance[:1])
-               and all(0.0 <= v <= 30.0 for v in s.mount_compliance[1:]) and (all(s.mount_compliance) or not any(s.mount_compliance)),
-               "solver.mount_compliance", "must be [m, deg], both 0 or both > 0 (at most 1 m, 30 deg)", list(s.mount_compliance))
-        _check(len(s.registered_pose) == 2 and 0.0 <= s.registered_pose[0] <= 1.0 and 0.0 <= s.registered_pose[1] <= 30.0
-               and (all(s.registered_pose) or not any(s.registered_pose)),
-               "solver.registered_pose", "must be [m, deg], both 0 or both > 0 (at most 1 m, 30 deg)", list(s.registered_pose))
+        for name in ("mount_compliance", "registered_pose"):  # σ pairs [m, deg]
+            sigma = getattr(s, name)
+            _check(len(sigma) == 2 and 0.0 <= sigma[0] <= 1.0 and 0.0 <= sigma[1] <= 30.0 and (all(sigma) or not any(sigma)),
+                   f"solver.{name}", "must be [m, deg], both 0 or both > 0 (at most 1 m, 30 deg)", list(sigma))
         _check(isinstance(s.registered_pose_below, int) and 1 <= s.registered_pose_below <= 100000,
                "solver.registered_pose_below", "must be an integer in [1, 100000]", s.registered_pose_below)
         _check(s.loss in LOSSES, "solver.loss", f"must be one of {LOSSES}", s.loss)

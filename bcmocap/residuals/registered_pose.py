@@ -37,11 +37,10 @@ class RegisteredPose(CameraTerm):
     sigma: jax.Array = eqx.field(kw_only=True, converter=jnp.asarray)
 
     def residual(self, cam_from_world: SE3, camera, data):
-        registered = SE3(data["world_from_camera"])
-        relative = registered.rotation().inverse() @ cam_from_world.inverse().rotation()
-        q = relative.wxyz
+        registered, world_from_camera = SE3(data["world_from_camera"]), cam_from_world.inverse()
+        q = (registered.rotation().inverse() @ world_from_camera.rotation()).wxyz
         rotation = 2.0 * jnp.where(q[0] < 0, -1.0, 1.0) * q[1:]
-        centre = cam_from_world.inverse().translation() - registered.translation()
+        centre = world_from_camera.translation() - registered.translation()
         r = jnp.concatenate([centre / self.sigma[0], rotation / self.sigma[1]])
         return r[None], (data["weights"] > 0)[None]
 
