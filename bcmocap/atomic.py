@@ -46,13 +46,16 @@ def write_json_atomic(path: str | os.PathLike, payload: dict) -> None:
         tmp.write_text(json.dumps(payload, indent=2) + "\n")
 
 
-def write_npz_atomic(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> None:
-    """A deterministic ``.npz`` (fixed zip timestamps: the same arrays give the same bytes), written atomically."""
+def write_npz_atomic(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: bool = True) -> None:
+    """A deterministic ``.npz`` (fixed zip timestamps: the same arrays give the same bytes), written atomically.
+    ``compress=False`` stores the arrays as they are (for files written often and removed soon: deflating
+    megabytes takes about a second)."""
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as z:
+    with zipfile.ZipFile(buffer, "w", compression=method) as z:
         for name, value in arrays.items():
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
+            info.compress_type = method
             body = io.BytesIO()
             np.lib.format.write_array(body, np.asarray(value), allow_pickle=False)
             z.writestr(info, body.getvalue())

@@ -1,8 +1,11 @@
 """bcmocap.atomic: a file is replaced whole or not at all."""
 
+import zipfile
+
+import numpy as np
 import pytest
 
-from bcmocap.atomic import atomic_path
+from bcmocap.atomic import atomic_path, write_npz_atomic
 
 
 def test_atomic_path_replaces_on_success_and_leaves_the_original_on_failure(tmp_path):
@@ -27,3 +30,16 @@ def test_atomic_path_gives_the_permissions_of_a_plain_open(tmp_path):
     with atomic_path(target) as tmp:
         tmp.write_text("x")
     assert os.stat(target).st_mode & 0o777 == os.stat(plain).st_mode & 0o777
+
+
+def test_npz_is_deterministic_and_stored_uncompressed_when_asked(tmp_path):
+    arrays = {"a": np.arange(1000, dtype=np.int64), "tag": np.array("x")}
+    for compress, method in ((True, zipfile.ZIP_DEFLATED), (False, zipfile.ZIP_STORED)):
+        first, second = tmp_path / f"{compress}_1.npz", tmp_path / f"{compress}_2.npz"
+        write_npz_atomic(first, arrays, compress=compress)
+        write_npz_atomic(second, arrays, compress=compress)
+        assert first.read_bytes() == second.read_bytes()
+        with zipfile.ZipFile(first) as z:
+            assert {i.compress_type for i in z.infolist()} == {method}
+        with np.load(first) as data:
+            assert np.array_equal(data["a"], arrays["a"]) and str(data["tag"]) == "x"

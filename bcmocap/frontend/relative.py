@@ -506,7 +506,9 @@ class RegistrationCheckpoint:
     def _write(self, name: str, digest: str, **arrays) -> None:
         from ..atomic import write_npz_atomic
 
-        write_npz_atomic(self.folder / name, {"tag": np.array(self._tag(digest)), **arrays})
+        # not deflated: a round's state is megabytes, written after every round (deflating them took a
+        # tenth of the frontend's time on the 10 s walk) and removed once the registration is saved
+        write_npz_atomic(self.folder / name, {"tag": np.array(self._tag(digest)), **arrays}, compress=False)
 
     def absolute(self, digest: str, count: int) -> list:
         """The saved absolute registrations of the first camera-frames of the todo list, in order:
@@ -804,25 +806,37 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         for (t, c), sel in groups:
             states[t][c].point_ids[obs[sel[drop[sel]], 2]] = -1
         rows = np.split(np.arange(len(obs)), np.cumsum(count)[:-1])  # obs are grouped by owner
+        kept_all = np.add.reduceat(keep.astype(np.int64), np.cumsum(count) - count) == count  # tracks kept whole
         for k, pid in enumerate(ids.tolist()):
             if kept[k] < 2:
                 del tracks[pid], points[pid]
                 new_ids.discard(pid)
             else:
-                tracks[pid] = [tuple(o) for o in obs[rows[k][keep[rows[k]]]].tolist()]
+                if not kept_all[k]:  # some observations dropped (a whole track stays as it is)
+                    tracks[pid] = [tuple(o) for o in obs[rows[k][keep[rows[k]]]].tolist()]
                 points[pid] = xyz[k]
-        for (t, c), _ in groups:  # only these frames' points moved
+        point_ids = np.fromiter(points, np.int64, len(points))
+        by_id = np.argsort(point_ids)
+        point_ids, point_xyz = point_ids[by_id], np.array(list(points.values()), np.float64).reshape(-1, 3)[by_id]
+
+        def refine(tc):
+            """The frame's pose refined on its points (reads only; pycolmap releases the GIL)."""
+            t, c = tc
             s = states[t][c]
             has = np.flatnonzero(s.point_ids >= 0)
             if not s.registered or len(has) < 4:
-                continue
-            xyz_frame = np.array([points[int(p)] for p in s.point_ids[has]])
+                return None
+            xyz_frame = point_xyz[np.searchsorted(point_ids, s.point_ids[has])]
             rot, centre = geo.rotation_centre(s.world_from_camera)
             cfw = pycolmap.Rigid3d(pycolmap.Rotation3d(rot.T), -rot.T @ centre)
-            out = pycolmap.refine_absolute_pose(cfw, s.keypoints[has] + 0.5, xyz_frame, np.ones(len(has), bool),
-                                                cams[c])
-            if out is not None:
-                s.world_from_camera = _pose_wxyz_xyz(out["cam_from_world"])
+            return pycolmap.refine_absolute_pose(cfw, s.keypoints[has] + 0.5, xyz_frame, np.ones(len(has), bool),
+                                                 cams[c])
+
+        frames_moved = [tc for tc, _ in groups]  # only these frames' points moved
+        with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
+            for (t, c), out in zip(frames_moved, pool.map(refine, frames_moved)):
+                if out is not None:
+                    states[t][c].world_from_camera = _pose_wxyz_xyz(out["cam_from_world"])
 
     def relative_pose(t: int, c: int):
         """Match frame ``(t, c)`` to its registered neighbours and estimate its pose (reads states only)."""
