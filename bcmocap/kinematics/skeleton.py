@@ -180,15 +180,16 @@ class Skeleton(eqx.Module):
         scales its axis by its entry; a fixed joint gets zeros. Differentiable in ``hinge_axes``.
         """
         n, d = self.num_segments, self.num_dofs
-        basis = jnp.zeros((n, 3, d))
-        basis = basis.at[0, :, 3:6].set(jnp.eye(3))
+        fixed_part = np.zeros((n, 3, d))  # the root's and the ball joints' identity blocks
+        hinge_entry = np.zeros((n, 1, d), dtype=bool)  # where a hinge's axis goes
+        fixed_part[0, :, 3:6] = np.eye(3)
         for j in range(1, n):
             s = self.dof_starts[j]
             if self.joint_types[j] == JointType.BALL:
-                basis = basis.at[j, :, s : s + 3].set(jnp.eye(3))
+                fixed_part[j, :, s : s + 3] = np.eye(3)
             elif self.joint_types[j] == JointType.HINGE:
-                basis = basis.at[j, :, s].set(self.hinge_axes[j])
-        return basis
+                hinge_entry[j, 0, s] = True
+        return jnp.where(hinge_entry, jnp.asarray(self.hinge_axes)[:, :, None], fixed_part)
 
     def dof_names(self) -> tuple[str, ...]:
         """Human-readable name of each entry of the per-frame tangent vector."""

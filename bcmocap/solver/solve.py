@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
 import equinox as eqx
@@ -25,6 +26,7 @@ from ..residuals.base import CameraPairTerm, CameraTerm, Term
 from ..precision import require_float64
 from .levenberg_marquardt import FINITE, NON_FINITE_MESSAGES, Convergence, levenberg_marquardt
 from .model_parameters import MODEL, ModelParameters, reaxis
+from .program_cache import cached_call
 from .window import (WindowProblem, frame_layout, make_window_problem, model_motion, normal_equations, residuals,
                      static_values, window_history)
 
@@ -160,8 +162,8 @@ def _system(problem: WindowProblem, v) -> jax.Array:
     return normal_equations(problem, *v) if isinstance(v, tuple) else normal_equations(problem, v)
 
 
-@eqx.filter_jit
 def _solve_window(problem: WindowProblem, options: SolverOptions):
+    """The compiled solve of one window (through :func:`~bcmocap.solver.program_cache.cached_call`)."""
     w, d, n_static = problem.num_frames, problem.frame_size, problem.num_statics
     fn = lambda v, args: residuals(args, *v) if isinstance(v, tuple) else residuals(args, v)
     v0 = (jnp.zeros((w, d)), jnp.zeros(n_static)) if n_static else jnp.zeros((w, d))
@@ -243,34 +245,42 @@ def solve(
     done = starts[skip_windows - 1] + window if skip_windows else 0
     if bar is not None and done:
         bar.update(done)
-    for index, start in enumerate(starts[skip_windows:], start=skip_windows):
-        stop = start + window
-        t0 = time.perf_counter()
-        terms = window_terms(problem, start, stop)
-        frame_values = with_start_values(frame_values, terms, num_frames)
-        solved = solve_window_span(problem, terms, start, stop, root, rotations, frame_values, statics, options,
-                                   model_parameters)
-        new_statics, lm = solved.statics, solved.convergence
-        root[start:stop], rotations[start:stop] = solved.root_position, solved.rotations
-        for name, value in solved.frame_values.items():
-            frame_values[name][start:stop] = value
-        if model_parameters is not None:  # later frames keep their hinge angles about the moved axes
-            old_axes = model_parameters.model(solved.problem.statics[MODEL])[0].hinge_axes
-            new_axes = model_parameters.model(jnp.asarray(new_statics[MODEL]))[0].hinge_axes
-            rotations[stop:] = np.asarray(reaxis(model_parameters.layout, Motion(root[stop:], rotations[stop:]),
-                                                 old_axes, new_axes).rotations)
-        statics = new_statics  # the next window starts from this window's estimate
-        report = WindowReport.from_convergence(start, stop, lm, time.perf_counter() - t0)
-        reports.append(report)
-        if bar is not None:
-            bar.update(stop - done)
-            bar.set_postfix(cost=f"{report.final_cost:.4g}")
-        elif callable(progress):
-            progress(report)
-        if checkpoint is not None:
-            checkpoint(index, report, Solution(Motion(root.copy(), rotations.copy()), list(reports), dict(statics),
-                                               {k: v.copy() for k, v in frame_values.items()}))
-        done = stop
+    reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="bcmocap-window-terms")
+    upcoming = reader.submit(window_terms, problem, starts[skip_windows], starts[skip_windows] + window) \
+        if skip_windows < len(starts) else None
+    try:
+        for index, start in enumerate(starts[skip_windows:], start=skip_windows):
+            stop = start + window
+            t0 = time.perf_counter()
+            terms = upcoming.result()
+            if index + 1 < len(starts):  # read while this window solves (the compiled solve releases the GIL)
+                upcoming = reader.submit(window_terms, problem, starts[index + 1], starts[index + 1] + window)
+            frame_values = with_start_values(frame_values, terms, num_frames)
+            solved = solve_window_span(problem, terms, start, stop, root, rotations, frame_values, statics, options,
+                                       model_parameters)
+            new_statics, lm = solved.statics, solved.convergence
+            root[start:stop], rotations[start:stop] = solved.root_position, solved.rotations
+            for name, value in solved.frame_values.items():
+                frame_values[name][start:stop] = value
+            if model_parameters is not None:  # later frames keep their hinge angles about the moved axes
+                old_axes = model_parameters.model(solved.problem.statics[MODEL])[0].hinge_axes
+                new_axes = model_parameters.model(jnp.asarray(new_statics[MODEL]))[0].hinge_axes
+                rotations[stop:] = np.asarray(reaxis(model_parameters.layout, Motion(root[stop:], rotations[stop:]),
+                                                     old_axes, new_axes).rotations)
+            statics = new_statics  # the next window starts from this window's estimate
+            report = WindowReport.from_convergence(start, stop, lm, time.perf_counter() - t0)
+            reports.append(report)
+            if bar is not None:
+                bar.update(stop - done)
+                bar.set_postfix(cost=f"{report.final_cost:.4g}")
+            elif callable(progress):
+                progress(report)
+            if checkpoint is not None:
+                checkpoint(index, report, Solution(Motion(root.copy(), rotations.copy()), list(reports), dict(statics),
+                                                   {k: v.copy() for k, v in frame_values.items()}))
+            done = stop
+    finally:
+        reader.shutdown(cancel_futures=True)
     if bar is not None:
         bar.close()
     return Solution(Motion(root, rotations), reports, statics, frame_values)
@@ -358,7 +368,7 @@ def solve_window_span(
     reference = Motion(root[extended], rotations[extended])
     wp = make_window_problem(problem.skeleton, problem.rig, terms, reference, min(start, history), statics,
                              model_parameters, {name: value[extended] for name, value in frame_values.items()})
-    motion, new_statics, new_frame_values, lm = _solve_window(wp, options)
+    motion, new_statics, new_frame_values, lm = cached_call(_solve_window, wp, options)
     if int(lm.non_finite) != FINITE:  # checked inside the compiled solve
         why = NON_FINITE_MESSAGES[int(lm.non_finite)]
         raise FloatingPointError(f"solve: window of frames [{start}, {stop}): {why}; nothing was kept")

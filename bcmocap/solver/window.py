@@ -160,6 +160,11 @@ def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.A
                 variables: dict | None = None) -> FrameState:
     """State of frames with batch shape ``S`` from motion tangents ``(*S, D)``, static variables (repeated) and
     the frames' own ``variables`` (``{name: (*S, …)}``; :data:`CAMERA_OFFSETS` moves the cameras)."""
+    return _frame_state(skeleton, rig, reference, y, statics, variables)
+
+
+@eqx.filter_jit
+def _frame_state(skeleton, rig, reference, y, statics, variables):
     motion = skeleton.retract(reference, y)
     world_from_segment = forward_kinematics(skeleton, motion)
     variables = dict(variables or {})

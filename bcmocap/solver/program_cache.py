@@ -1,0 +1,170 @@
+"""Traced programs kept on disk, so a new process skips tracing the window solve.
+
+Why. JAX's persistent compilation cache (:mod:`bcmocap.compilation_cache`) skips XLA's compilation, but
+every new process still traces and lowers the window solve before it can look the compilation up: about
+3 s of Python for optimistix's Levenberg–Marquardt loop around our structured normal equations, paid by
+the first window of every ``bcmocap run`` (more than the window's own solve). Here the traced program is
+exported once (:func:`jax.export.export`, StableHLO) and stored beside the compilation cache; a later
+process with the same program deserialises it (milliseconds), and its compilation is a cache hit.
+
+What decides the program, and so the file name (a SHA-256 of all of it):
+
+- the static part of the arguments (everything that is not an array: term classes and settings, the
+  skeleton's tree, solver options), pickled in full; and every array argument's shape, dtype and weak type;
+- the code: the source of every ``bcmocap`` module and the versions of jax, jaxlib, equinox, optimistix,
+  lineax and numpy; the JAX backend and its ``x64`` flag.
+
+A program that refers to code outside these packages (a researcher's own residual term, a lambda) is
+never stored: its code could change under the same key. Nor is one that cannot be exported (e.g. it holds
+a host callback). Either way the function is simply traced, as without the cache. A file that cannot be
+read is traced again and replaced.
+
+The exported program computes exactly what the traced one does (the same StableHLO; a test compares the
+results bit for bit).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.metadata
+import io
+import pickle
+from collections.abc import Callable
+from pathlib import Path
+
+import equinox as eqx
+import jax
+
+from ..atomic import atomic_path
+
+#: Packages whose code a stored program may refer to (their versions, or bcmocap's source, are in the key).
+_KNOWN_PACKAGES = ("bcmocap", "jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy", "jaxlie",
+                   "jaxtyping", "builtins", "collections", "functools", "operator", "enum", "typing", "math")
+_VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy", "jaxlie")
+_FOLDER = "bcmocap_programs"
+
+_loaded: dict[str, Callable] = {}  # key → callable on the flat array arguments, this process
+_not_storable: set[str] = set()  # static-part digests whose programs cannot be exported
+
+
+class _UnknownCode(Exception):
+    """The static part refers to code outside :data:`_KNOWN_PACKAGES`."""
+
+
+class _KeyPickler(pickle.Pickler):
+    """Pickles the static part, refusing classes and functions of unknown packages."""
+
+    def reducer_override(self, obj):
+        owner = obj if isinstance(obj, type) or callable(obj) and hasattr(obj, "__qualname__") else type(obj)
+        module = getattr(owner, "__module__", None) or ""
+        if module.split(".")[0] not in _KNOWN_PACKAGES or "<lambda>" in getattr(owner, "__qualname__", "") \
+                or "<locals>" in getattr(owner, "__qualname__", ""):
+            raise _UnknownCode(f"{module}.{getattr(owner, '__qualname__', owner)}")
+        return NotImplemented
+
+
+@functools.lru_cache(maxsize=1)
+def _code_digest() -> bytes:
+    """SHA-256 of bcmocap's source and of the versions and settings that change a traced program."""
+    h = hashlib.sha256()
+    package = Path(__file__).resolve().parents[1]
+    for path in sorted(package.rglob("*.py")):
+        h.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes() + b"\0")
+    for name in _VERSIONED:
+        try:
+            h.update(f"{name}={importlib.metadata.version(name)}\0".encode())
+        except importlib.metadata.PackageNotFoundError:
+            h.update(f"{name}=?\0".encode())
+    return h.digest()
+
+
+def program_key(static, leaves) -> str | None:
+    """File stem of the program for ``static`` (an :func:`equinox.partition` static part) and array ``leaves``,
+    or None when the static part refers to code outside the known packages (or cannot be pickled)."""
+    buffer = io.BytesIO()
+    try:
+        _KeyPickler(buffer, protocol=5).dump(static)
+    except (_UnknownCode, pickle.PicklingError, TypeError, AttributeError):
+        return None
+    h = hashlib.sha256(_code_digest())
+    h.update(f"{jax.default_backend()} x64={jax.config.jax_enable_x64}\0".encode())
+    h.update(buffer.getvalue())
+    for leaf in leaves:
+        h.update(f"{tuple(leaf.shape)}{leaf.dtype}{bool(getattr(leaf, 'weak_type', False))};".encode())
+    return h.hexdigest()
+
+
+def _folder() -> Path | None:
+    cache = jax.config.jax_compilation_cache_dir
+    return Path(cache) / _FOLDER if cache else None
+
+
+def cached_call(fn: Callable, *args):
+    """``fn(*args)`` like :func:`equinox.filter_jit` (arrays traced, the rest static), through a program stored
+    beside JAX's persistent compilation cache when that cache is on (:mod:`bcmocap.compilation_cache`)
+    and the program can be stored; otherwise through ``eqx.filter_jit(fn)``. ``fn`` must be a module-level
+    function (its identity is part of the key through the static part)."""
+    folder = _folder()
+    dynamic, static = eqx.partition((fn, args), eqx.is_array)
+    leaves, treedef = jax.tree.flatten(dynamic)
+    key = program_key(static, leaves) if folder is not None else None
+    if key is None or key in _not_storable:
+        return _jitted(fn)(*args)
+    program = _loaded.get(key)
+    if program is None:
+        program = _load(folder / f"{key}.bin")
+    if program is None:
+        program = _export(fn, static, treedef, leaves, folder / f"{key}.bin")
+        if program is None:
+            _not_storable.add(key)
+            return _jitted(fn)(*args)
+    _loaded[key] = program
+    flat_out, out_treedef = program
+    return jax.tree.unflatten(out_treedef, flat_out(*leaves))
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted(fn: Callable) -> Callable:
+    return eqx.filter_jit(fn)
+
+
+def _load(path: Path):
+    """The stored program at ``path`` as (callable on flat arrays, output treedef), or None."""
+    from jax import export
+
+    try:
+        blob = path.read_bytes()
+        split = blob.index(b"\n")
+        out_treedef = jax.tree.structure(pickle.loads(bytes.fromhex(blob[:split].decode())))
+        exported = export.deserialize(bytearray(blob[split + 1:]))
+    except Exception:  # missing, truncated or from an incompatible writer: trace again
+        return None
+    return jax.jit(exported.call), out_treedef
+
+
+def _export(fn: Callable, static, treedef, leaves, path: Path):
+    """Trace ``fn`` at these arguments, store the program at ``path``; (callable, output treedef), or None when
+    it cannot be exported (then nothing is stored)."""
+    from jax import export
+
+    outputs = {}
+
+    def flat(*array_leaves):
+        function, args = eqx.combine(jax.tree.unflatten(treedef, array_leaves), static)
+        out_leaves, outputs["treedef"] = jax.tree.flatten(function(*args))
+        return out_leaves
+
+    try:
+        exported = export.export(jax.jit(flat))(*leaves)
+        blob = exported.serialize()
+        out_treedef = outputs["treedef"]  # stored as the outputs with 0 for every array
+        header = pickle.dumps(jax.tree.unflatten(out_treedef, [0] * out_treedef.num_leaves), protocol=5).hex().encode()
+    except Exception:  # a host callback, an effect or an output that cannot be pickled
+        return None
+    try:
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(header + b"\n" + bytes(blob))
+    except OSError:
+        pass  # a read-only cache still gives this process the program
+    return jax.jit(exported.call), out_treedef
