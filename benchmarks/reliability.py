@@ -58,7 +58,8 @@ VOLATILE = {"log.txt", "run.json", "run.lock"}  # times and pids
 # The small rendered capture of the pixel commands, and their settings (a few minutes per run on 2 cores).
 PIXELS_SIMULATE = ["--seconds", "0.5", "--rom-seconds", "3", "--fps", "8", "--width", "640", "--height", "360",
                    "--reference-photos", "20", "--reference-size", "640x480", "--seed", "1", "--no-progress"]
-PIXELS_FRONTEND = ["--max-features", "2000", "--frames", "6"]  # global registration (the default)
+PIXELS_FRONTEND = ["--max-features", "2000", "--frames", "6", "--registration", "global", "--max-measurements", "0",
+                   "--points", "all"]
 PIXELS_RUN_CONFIG = """[frontend]
 stride = 1
 rom_stride = 1
@@ -139,7 +140,8 @@ def _write_frontend(out: Path) -> None:
     for trial, sfm in trials.items():
         write_store(out / "frontend" / trial / "correspondences", [sfm], block_frames=7)
         settings = trial_settings(stride=1, frames=None, max_features=f.max_features, homographies=trial == "capture",
-                                  chunk_frames=f.chunk_frames, registration=f.registration, max_measurements=None)
+                                  chunk_frames=f.chunk_frames, registration=f.registration,
+                                  max_measurements=f.max_measurements or None, points=f.points)
         (out / "frontend" / trial / "registration.json").write_text(json.dumps(
             {"stride": 1, "frames": sfm.num_frames, "registered_fraction": float(sfm.registered.mean()),
              "cameras": list(rig.names), "settings": settings}))

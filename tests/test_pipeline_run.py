@@ -43,15 +43,17 @@ def simulated_run(tmp_path_factory):
                                 rotation_sigma_deg=0.3, position_sigma_m=0.003, seed=3)
     sfm_from_world = Similarity(0.37, np.asarray(SO3.exp(np.array([0.4, -1.1, 2.0])).as_matrix()), np.array([3.0, -1.0, 0.5]))
     frontend = root / "out" / "frontend"
+    # joint centres from the ROM trial alone (the paper), so that a test can pool the capture's motion
     config = RunConfig().with_overrides({"frontend.stride": 1, "frontend.rom_stride": 1, "solver.window": 20,
-                                         "solver.overlap": 5})
+                                         "solver.overlap": 5, "skeleton.centre_trials": ["rom"]})
     f = config.frontend
     for trial, corr in (("rom", _rom_correspondences(rom)), ("capture", capture.correspondences())):
         sfm = dataclasses.replace(corr, points=sfm_from_world.points(corr.points),
                                   world_from_camera=sfm_from_world.poses(corr.world_from_camera))
         write_store(frontend / trial / "correspondences", [sfm], block_frames=7)
         settings = trial_settings(stride=1, frames=None, max_features=f.max_features, homographies=trial == "capture",
-                                  chunk_frames=f.chunk_frames, registration=f.registration, max_measurements=None)
+                                  chunk_frames=f.chunk_frames, registration=f.registration,
+                                  max_measurements=f.max_measurements or None, points=f.points)
         (frontend / trial / "registration.json").write_text(json.dumps(
             {"stride": 1, "frames": sfm.num_frames, "registered_fraction": float(sfm.registered.mean()),
              "cameras": list(rig.names), "settings": settings}))

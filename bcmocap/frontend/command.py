@@ -60,17 +60,16 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--frames", type=int, default=None, help="at most this many frames per camera from the first clap")
     cmd.add_argument("--offsets", help="comma-separated video frame of the first clap per camera (skips audio sync)")
     cmd.add_argument("--max-features", type=int, default=8000, help="SIFT features per image (default 8000)")
-    cmd.add_argument("--registration", choices=("tracking", "global"), default="global",
-                     help="global (default): SIFT of every frame matched against the whole reference; tracking: KLT "
-                          "tracking per camera with SIFT and global matching at keyframes (faster, not yet as "
-                          "accurate)")
-    cmd.add_argument("--max-measurements", type=int, default=0,
-                     help=f"at most this many measurements per camera-frame, spread over the image (0, the "
-                          f"default: keep all; {MAX_MEASUREMENTS} with tracking in benchmarks/configs/tracking.toml)")
-    cmd.add_argument("--points", choices=["all", "reference"], default="all",
-                     help="which 3D points the solver measures: all, or only the reference model's (points "
-                          "triangulated from a body camera carry that camera's pose error; 'reference' in "
-                          "benchmarks/configs/tracking.toml)")
+    cmd.add_argument("--registration", choices=("tracking", "global"), default="tracking",
+                     help="tracking (default): KLT tracking per camera with SIFT and global matching at keyframes; "
+                          "global: SIFT of every frame matched against the whole reference (about 8 times slower, "
+                          "as accurate)")
+    cmd.add_argument("--max-measurements", type=int, default=MAX_MEASUREMENTS,
+                     help=f"at most this many measurements per camera-frame, spread over the image (default "
+                          f"{MAX_MEASUREMENTS}; 0 keeps all)")
+    cmd.add_argument("--points", choices=["all", "reference"], default="reference",
+                     help="which 3D points the solver measures: only the reference model's (the default: points "
+                          "triangulated from a body camera carry that camera's pose error), or all")
     cmd.add_argument("--chunk-frames", type=int, default=CHUNK_FRAMES,
                      help="register each trial in equal chunks of at most this many processed frames, each saved as "
                           f"it is done, so memory does not grow with the trial (default {CHUNK_FRAMES}; 0: the whole "
@@ -139,8 +138,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     and global matching only at keyframes; cached in ``out/tracks/<trial>/``) and hands every third frame it
     leaves to the rounds of relative registration, with SIFT extracted only for them and their neighbours,
     then tracks the others from the frames the rounds registered (a second pass of the rounds takes the rest);
-    "global" (default) extracts SIFT of every frame and matches each against the reference (tracking is
-    about three times as fast on the 10 s walk but not yet as accurate). ``max_measurements`` caps the
+    "global" (this function's default; the commands default to "tracking") extracts SIFT of every frame and
+    matches each against the reference (about 8 times slower than tracking on the 10 s walk, as accurate). ``max_measurements`` caps the
     measurements per camera-frame (:mod:`~.selection`; None keeps all); ``points`` "reference" keeps only the
     measurements of reference-model points (:meth:`~.relative.CaptureRegistration.correspondences`).
 

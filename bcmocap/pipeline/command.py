@@ -27,10 +27,10 @@ FLAGS = {
     "rom_stride": ("frontend.rom_stride", int, "the same for the range-of-motion trial"),
     "max_features": ("frontend.max_features", int, "SIFT features per image"),
     "frames": ("frontend.frames", int, "at most this many frames per camera and trial (0: all)"),
-    "registration": ("frontend.registration", str, "global (default: SIFT of every frame matched against the "
-                                                   "reference) or tracking (KLT + PnP, SIFT at keyframes; faster)"),
+    "registration": ("frontend.registration", str, "tracking (default: KLT + PnP, SIFT at keyframes) or global "
+                                                   "(SIFT of every frame matched against the reference; slower)"),
     "max_measurements": ("frontend.max_measurements", int, "measurements per camera-frame kept for the solver "
-                                                           "(default 0: all)"),
+                                                           "(default 400; 0: all)"),
     "window": ("solver.window", int, "frames per solver window"),
     "overlap": ("solver.overlap", int, "frames shared by consecutive windows"),
     "root_smoothness": ("solver.root_smoothness", float, "λ_O (px² per m² of frame-to-frame root change)"),

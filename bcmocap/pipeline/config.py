@@ -13,10 +13,11 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     max_features = 8000   # SIFT features per image, 100 to 1000000
     frames = 0            # at most this many frames per camera and trial (0: all)
     chunk_frames = 400    # register in chunks of at most this many processed frames, saved as done (0: whole trial)
-    registration = "global"   # global (SIFT + reference matching of every frame) | tracking (KLT + PnP, SIFT at keyframes)
-    max_measurements = 0      # measurements per camera-frame kept for the solver (0: all; e.g. 400 with tracking)
-    points = "all"            # all | reference: the solver measures only the reference model's points (those
-                              # triangulated from a body camera carry its pose error; "reference" with tracking)
+    registration = "tracking" # tracking (KLT + PnP, SIFT at keyframes) | global (SIFT + reference matching of
+                              # every frame: ~8x slower on the 10 s walk, as accurate)
+    max_measurements = 400    # measurements per camera-frame kept for the solver (0: all)
+    points = "reference"      # reference: the solver measures only the reference model's points (those
+                              # triangulated from a body camera carry its pose error) | all
 
     [skeleton]
     root_origin = ["torso"]   # children whose joint centres' mean is the root's origin
@@ -26,8 +27,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     max_centre_std_cm = 5.0   # a joint centre less certain than this (standard error) is an error
     degenerate = "raise"      # a ball joint the ROM trial moved about one axis only: raise | hinge (warn, and
                               # fix its centre on that axis by the straight rest pose, as for a knee)
-    centre_trials = ["rom"]   # trials whose motion fits the joint centres: ["rom"] (the paper) | ["rom", "capture"]
-                              # (all the motion there is; rest pose and virtual cameras stay the ROM trial's)
+    centre_trials = ["rom", "capture"]   # trials whose motion fits the joint centres: ["rom"] (the paper) |
+                              # ["rom", "capture"] (all the motion there is; rest pose and virtual cameras stay
+                              # the ROM trial's)
 
     [solver]
     window = 60               # frames per window, 2 to 100000
@@ -47,7 +49,7 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     estimate_readout = false  # also solve for a correction to the readout (prior σ 10 ms)
     self_calibration = false  # solve for each camera's focal length and centre (prior σ 1 %, 5 px)
     mount_compliance = [0.0, 0.0]   # σ of each camera's per-frame offset on its mount [m, deg]; [0, 0]: rigid
-    registered_pose = [0.0, 0.0]    # σ [m, deg] of a prior holding a registered camera-frame with few measurements
+    registered_pose = [0.02, 1.0]   # σ [m, deg] of a prior holding a registered camera-frame with few measurements
                                     # at its registered pose; [0, 0]: off (bcmocap.residuals.registered_pose)
     registered_pose_below = 20      # ... where it has fewer measurements than this, 1 to 100000
 
@@ -88,9 +90,9 @@ class FrontendConfig:
     max_features: int = 8000
     frames: int = 0
     chunk_frames: int = 400
-    registration: str = "global"
-    max_measurements: int = 0
-    points: str = "all"
+    registration: str = "tracking"
+    max_measurements: int = 400
+    points: str = "reference"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,7 +103,7 @@ class SkeletonConfig:
     up_to: str = "head"
     max_centre_std_cm: float = 5.0
     degenerate: str = "raise"
-    centre_trials: tuple[str, ...] = ("rom",)
+    centre_trials: tuple[str, ...] = ("rom", "capture")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,7 +130,7 @@ class SolverConfig:
     estimate_readout: bool = False
     self_calibration: bool = False
     mount_compliance: tuple[float, ...] = (0.0, 0.0)
-    registered_pose: tuple[float, ...] = (0.0, 0.0)
+    registered_pose: tuple[float, ...] = (0.02, 1.0)
     registered_pose_below: int = 20
     user_terms: tuple[UserTermConfig, ...] = ()
 

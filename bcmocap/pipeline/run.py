@@ -495,14 +495,12 @@ def _user_terms(ctx: RunContext) -> list:
     return [UserTerms(import_term_factory(u.factory), u.settings, u.factory) for u in ctx.config.solver.user_terms]
 
 
-def _stage_solve(ctx: RunContext) -> dict:
-    """The sliding-window solve; each window's measurements are read from the metric store on disk
-    (:class:`~bcmocap.solver.objective.StoredProblem`), so memory does not grow with the trial."""
+def solve_problem(ctx: RunContext):
+    """The solve stage's problem (:class:`~bcmocap.solver.objective.StoredProblem` on the run's metric store,
+    ``DIR/solve/correspondences``, and the estimated model) and its :class:`~bcmocap.solver.SolverOptions`."""
     from ..correspondence_store import CorrespondenceStore
-    from ..io.model_json import rig_to_dict, skeleton_to_dict
-    from ..solver import SolverOptions, refine_model, solve, solve_windows_independently
+    from ..solver import SolverOptions
     from ..solver.objective import StoredProblem
-    from ..solver.solve import window_starts
 
     s = ctx.config.solver
     corr = CorrespondenceStore.open(ctx.path("solve", "correspondences"))
@@ -510,7 +508,19 @@ def _stage_solve(ctx: RunContext) -> dict:
     problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None,
                             extra_terms=_user_terms(ctx), trial_folder=ctx.capture.path / "trials" / "capture",
                             effects=camera_effects(s))
-    options = SolverOptions(window=s.window, overlap=s.overlap)
+    return problem, SolverOptions(window=s.window, overlap=s.overlap)
+
+
+def _stage_solve(ctx: RunContext) -> dict:
+    """The sliding-window solve; each window's measurements are read from the metric store on disk
+    (:class:`~bcmocap.solver.objective.StoredProblem`), so memory does not grow with the trial."""
+    from ..io.model_json import rig_to_dict, skeleton_to_dict
+    from ..solver import refine_model, solve, solve_windows_independently
+    from ..solver.solve import window_starts
+
+    s = ctx.config.solver
+    problem, options = solve_problem(ctx)
+    corr, skeleton, rig = problem.store, problem.skeleton, problem.rig
     initial = load_motion(ctx.path("solve", "initial.npz"))
     checkpoint_path, reports_path = ctx.path("solve", "checkpoint.npz"), ctx.path("solve", "checkpoint.json")
     skip, reports, statics, frame_variables = 0, [], {}, {}
