@@ -30,7 +30,7 @@ FLAGS = {
     "registration": ("frontend.registration", str, "tracking (default: KLT + PnP, SIFT at keyframes) or global "
                                                    "(SIFT of every frame matched against the reference; slower)"),
     "max_measurements": ("frontend.max_measurements", int, "measurements per camera-frame kept for the solver "
-                                                           "(default 400; 0: all)"),
+                                                           "(default 300; 0: all)"),
     "window": ("solver.window", int, "frames per solver window"),
     "overlap": ("solver.overlap", int, "frames shared by consecutive windows"),
     "root_smoothness": ("solver.root_smoothness", float, "λ_O (px² per m² of frame-to-frame root change)"),

@@ -15,7 +15,7 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     chunk_frames = 400    # register in chunks of at most this many processed frames, saved as done (0: whole trial)
     registration = "tracking" # tracking (KLT + PnP, SIFT at keyframes) | global (SIFT + reference matching of
                               # every frame: ~8x slower on the 10 s walk, as accurate)
-    max_measurements = 400    # measurements per camera-frame kept for the solver (0: all)
+    max_measurements = 300    # measurements per camera-frame kept for the solver (0: all)
     points = "reference"      # reference: the solver measures only the reference model's points (those
                               # triangulated from a body camera carry its pose error) | all
 
@@ -91,7 +91,7 @@ class FrontendConfig:
     frames: int = 0
     chunk_frames: int = 400
     registration: str = "tracking"
-    max_measurements: int = 400
+    max_measurements: int = 300
     points: str = "reference"
 
 
