@@ -120,7 +120,7 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
         description="Render a short capture (a 1 s CMU walk and a 2.5 s range-of-motion trial at 30 frames/s through "
                     "the 18-camera rig, as bcmocap simulate does) into OUT/capture and run `bcmocap run` on its "
                     "pixels: reference model, sync, SIFT, registration, skeleton from the range-of-motion trial, "
-                    "solver, outputs, pictures and metrics.json against the rendered truth in OUT (about 6 minutes "
+                    "solver, outputs, pictures and metrics.json against the rendered truth in OUT (about 2 minutes "
                     "on 2 cores; rerunning resumes). --simulated-measurements instead simulates the measurements "
                     "directly (1 px noise, 10 % outliers, 5 % unregistered camera-frames, SfM-like pose noise), "
                     "optimises them with the true skeleton and reports the solver's accuracy (about a minute).")
@@ -138,7 +138,8 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
     full.add_argument("--fps", type=float, default=30.0, help="frame rate of the rendered videos")
     full.add_argument("--reference-photos", type=int, default=24, help="reference photos of the room")
     full.add_argument("--stride", type=int, default=2, help="use every n-th frame of the capture trial")
-    full.add_argument("--rom-stride", type=int, default=2, help="use every n-th frame of the range-of-motion trial")
+    full.add_argument("--rom-stride", type=int, default=3,
+                      help="use every n-th frame of the range-of-motion trial (3, as bcmocap run)")
     full.add_argument("--max-features", type=int, default=3000, help="SIFT features per image")
 
     def run(args: argparse.Namespace) -> int:
