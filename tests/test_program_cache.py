@@ -86,12 +86,14 @@ def test_an_unreadable_program_is_traced_again_and_replaced(setup, folder, monke
         assert np.array_equal(a, b)
 
 
-def test_the_key_covers_settings_shapes_and_unknown_code():
+def test_the_key_covers_settings_shapes_where_arrays_are_and_unknown_code():
     options = ({"max_steps": 50}, SolverOptions())
     key = program_cache.program_key(options, [np.zeros((3, 2))])
     assert key == program_cache.program_key(({"max_steps": 50}, SolverOptions()), [np.zeros((3, 2))])
     assert key != program_cache.program_key(({"max_steps": 51}, SolverOptions()), [np.zeros((3, 2))])
     assert key != program_cache.program_key(options, [np.zeros((3, 3))])
     assert key != program_cache.program_key(options, [np.zeros((3, 2), np.float32)])
+    # an array in the first field and None in the second, or the other way round: the same static part
+    assert program_cache.program_key(None, (np.zeros(2), None)) != program_cache.program_key(None, (None, np.zeros(2)))
     assert program_cache.program_key((KneeLimit(np.ones(2)),), []) is None
     assert program_cache.program_key((lambda x: x,), []) is None

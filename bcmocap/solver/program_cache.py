@@ -29,7 +29,9 @@ import functools
 import hashlib
 import importlib.metadata
 import io
+import os
 import pickle
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -64,9 +66,9 @@ class _KeyPickler(pickle.Pickler):
         return NotImplemented
 
 
-@functools.lru_cache(maxsize=1)
 def _code_digest() -> bytes:
-    """SHA-256 of bcmocap's source and of the versions and settings that change a traced program."""
+    """SHA-256 of bcmocap's source (read at every call: a module edited and reloaded in a notebook changes it),
+    the libraries' versions, Python's, and JAX's and equinox's settings that change a traced program."""
     h = hashlib.sha256()
     package = Path(__file__).resolve().parents[1]
     for path in sorted(package.rglob("*.py")):
@@ -76,22 +78,26 @@ def _code_digest() -> bytes:
             h.update(f"{name}={importlib.metadata.version(name)}\0".encode())
         except importlib.metadata.PackageNotFoundError:
             h.update(f"{name}=?\0".encode())
+    h.update(f"{sys.version}\0{os.environ.get('EQX_ON_ERROR', '')}\0".encode())
+    h.update(repr(sorted(jax.config.values.items())).encode())  # x64, matmul precision, dtype promotion, ...
     return h.digest()
 
 
-def program_key(static, leaves) -> str | None:
-    """File stem of the program for ``static`` (an :func:`equinox.partition` static part) and array ``leaves``,
-    or None when the static part refers to code outside the known packages (or cannot be pickled)."""
+def program_key(static, dynamic) -> str | None:
+    """File stem of the program for ``static`` and ``dynamic`` (the two parts of :func:`equinox.partition`), or None
+    when the static part refers to code outside the known packages (or cannot be pickled). The dynamic part
+    counts by where its arrays are and their shapes, dtypes and weak types (a field holding an array and one
+    holding None look alike in the static part)."""
+    marked = jax.tree.map(lambda a: ("array", tuple(a.shape), str(a.dtype), bool(getattr(a, "weak_type", False))),
+                          dynamic)
     buffer = io.BytesIO()
     try:
-        _KeyPickler(buffer, protocol=5).dump(static)
-    except (_UnknownCode, pickle.PicklingError, TypeError, AttributeError):
+        _KeyPickler(buffer, protocol=5).dump((static, marked))
+    except Exception:  # _UnknownCode, or anything that cannot be pickled: no key, the program is traced
         return None
     h = hashlib.sha256(_code_digest())
-    h.update(f"{jax.default_backend()} x64={jax.config.jax_enable_x64}\0".encode())
+    h.update(f"{jax.default_backend()}\0".encode())
     h.update(buffer.getvalue())
-    for leaf in leaves:
-        h.update(f"{tuple(leaf.shape)}{leaf.dtype}{bool(getattr(leaf, 'weak_type', False))};".encode())
     return h.hexdigest()
 
 
@@ -108,7 +114,7 @@ def cached_call(fn: Callable, *args):
     folder = _folder()
     dynamic, static = eqx.partition((fn, args), eqx.is_array)
     leaves, treedef = jax.tree.flatten(dynamic)
-    key = program_key(static, leaves) if folder is not None else None
+    key = program_key(static, dynamic) if folder is not None else None
     if key is None or key in _not_storable:
         return _jitted(fn)(*args)
     program = _loaded.get(key)
@@ -119,9 +125,16 @@ def cached_call(fn: Callable, *args):
         if program is None:
             _not_storable.add(key)
             return _jitted(fn)(*args)
-    _loaded[key] = program
     flat_out, out_treedef = program
-    return jax.tree.unflatten(out_treedef, flat_out(*leaves))
+    try:
+        out = flat_out(*leaves)
+    except Exception:  # e.g. a stored program this JAX cannot compile: forget it, trace as without the cache
+        _loaded.pop(key, None)
+        _not_storable.add(key)
+        (folder / f"{key}.bin").unlink(missing_ok=True)
+        return _jitted(fn)(*args)
+    _loaded[key] = program
+    return jax.tree.unflatten(out_treedef, out)
 
 
 @functools.lru_cache(maxsize=None)
