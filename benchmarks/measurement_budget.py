@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, write_json  # noqa: E402
 
@@ -60,8 +62,6 @@ def measure(capture: Path, run: Path, config) -> dict:
         corr = store.frames(start, min(start + 50, store.num_frames))
         per = (corr.point_ids >= 0).sum(axis=-1)
         counts.append(per[per > 0])
-    import numpy as np
-
     counts = np.concatenate(counts)
     frames = store.num_frames
     stage = log["stages"]["solve"]["seconds"]

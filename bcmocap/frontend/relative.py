@@ -806,13 +806,12 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         for (t, c), sel in groups:
             states[t][c].point_ids[obs[sel[drop[sel]], 2]] = -1
         rows = np.split(np.arange(len(obs)), np.cumsum(count)[:-1])  # obs are grouped by owner
-        kept_all = np.add.reduceat(keep.astype(np.int64), np.cumsum(count) - count) == count  # tracks kept whole
         for k, pid in enumerate(ids.tolist()):
             if kept[k] < 2:
                 del tracks[pid], points[pid]
                 new_ids.discard(pid)
             else:
-                if not kept_all[k]:  # some observations dropped (a whole track stays as it is)
+                if kept[k] < count[k]:  # some observations dropped (a whole track stays as it is)
                     tracks[pid] = [tuple(o) for o in obs[rows[k][keep[rows[k]]]].tolist()]
                 points[pid] = xyz[k]
         point_ids = np.fromiter(points, np.int64, len(points))

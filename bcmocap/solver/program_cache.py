@@ -46,8 +46,9 @@ _KNOWN_PACKAGES = ("bcmocap", "jax", "jaxlib", "equinox", "optimistix", "lineax"
 _VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy", "jaxlie")
 _FOLDER = "bcmocap_programs"
 
-_loaded: dict[str, Callable] = {}  # key → callable on the flat array arguments, this process
-_not_storable: set[str] = set()  # static-part digests whose programs cannot be exported
+_loaded: dict[str, tuple] = {}  # key → (callable on the flat array arguments, output treedef), this process
+_not_storable: set[str] = set()  # keys whose programs cannot be exported or run
+_source_digests: dict[tuple, bytes] = {}  # bcmocap's files' (path, mtime, size) → SHA-256 of their source
 
 
 class _UnknownCode(Exception):
@@ -66,19 +67,37 @@ class _KeyPickler(pickle.Pickler):
         return NotImplemented
 
 
-def _code_digest() -> bytes:
-    """SHA-256 of bcmocap's source (read at every call: a module edited and reloaded in a notebook changes it),
-    the libraries' versions, Python's, and JAX's and equinox's settings that change a traced program."""
-    h = hashlib.sha256()
+def _source_digest() -> bytes:
+    """SHA-256 of bcmocap's source, read again whenever a file changed (a module edited and reloaded in a
+    notebook changes it)."""
     package = Path(__file__).resolve().parents[1]
-    for path in sorted(package.rglob("*.py")):
-        h.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes() + b"\0")
+    paths = sorted(package.rglob("*.py"))
+    stamp = tuple((str(p), p.stat().st_mtime_ns, p.stat().st_size) for p in paths)
+    if stamp not in _source_digests:
+        h = hashlib.sha256()
+        for path in paths:
+            h.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes() + b"\0")
+        _source_digests[stamp] = h.digest()
+    return _source_digests[stamp]
+
+
+@functools.lru_cache(maxsize=1)
+def _versions() -> bytes:
+    """The libraries' versions and Python's (fixed for a process)."""
+    out = []
     for name in _VERSIONED:
         try:
-            h.update(f"{name}={importlib.metadata.version(name)}\0".encode())
+            out.append(f"{name}={importlib.metadata.version(name)}")
         except importlib.metadata.PackageNotFoundError:
-            h.update(f"{name}=?\0".encode())
-    h.update(f"{sys.version}\0{os.environ.get('EQX_ON_ERROR', '')}\0".encode())
+            out.append(f"{name}=?")
+    return "\0".join([*out, sys.version]).encode()
+
+
+def _code_digest() -> bytes:
+    """SHA-256 of bcmocap's source, the libraries' versions, Python's, and JAX's and equinox's settings that
+    change a traced program."""
+    h = hashlib.sha256(_source_digest() + _versions())
+    h.update(f"\0{os.environ.get('EQX_ON_ERROR', '')}\0".encode())
     h.update(repr(sorted(jax.config.values.items())).encode())  # x64, matmul precision, dtype promotion, ...
     return h.digest()
 

@@ -156,15 +156,11 @@ def static_values(problem: WindowProblem, z: jax.Array | None) -> dict:
     return retract_blocks(problem_static_layout(problem), problem.statics, z)
 
 
+@eqx.filter_jit  # traced once per shape: the solve's tracing calls it ~25 times
 def frame_state(skeleton: Skeleton, rig: Rig | None, reference: Motion, y: jax.Array, statics: dict | None = None,
                 variables: dict | None = None) -> FrameState:
     """State of frames with batch shape ``S`` from motion tangents ``(*S, D)``, static variables (repeated) and
     the frames' own ``variables`` (``{name: (*S, …)}``; :data:`CAMERA_OFFSETS` moves the cameras)."""
-    return _frame_state(skeleton, rig, reference, y, statics, variables)
-
-
-@eqx.filter_jit
-def _frame_state(skeleton, rig, reference, y, statics, variables):
     motion = skeleton.retract(reference, y)
     world_from_segment = forward_kinematics(skeleton, motion)
     variables = dict(variables or {})
