@@ -24,7 +24,9 @@ done first if it is not finished, then ``runs/BASE/frontend`` (both trials' regi
 the reference model; not the tracking cache) is copied into ``runs/NAME/frontend`` and ``bcmocap run`` goes on
 from there: its frontend stage finds each trial's registration with the same settings and reuses it (a copy
 made with other frontend settings, or by another version of the frontend, would be redone, not trusted), and the
-world, skeleton, initial, solve and outputs stages run with the variant's settings. The row's
+world, skeleton, initial, solve and outputs stages run with the variant's settings (with a readout or
+self-calibration the world stage first re-fits both trials' registered poses under that camera model,
+``bcmocap.solver.registered_poses``, so the skeleton and the solve start from them). The row's
 ``frontend_reused_from`` names the base run and ``frontend_seconds_of_base`` its frontend time.
 
 It reports the joint position and joint angle errors (mean, median, max, after the §5.1 similarity alignment,

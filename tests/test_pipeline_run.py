@@ -372,3 +372,43 @@ def test_independent_windows_on_a_local_cluster_equal_those_without_one(simulate
                                    np.asarray(getattr(motions["alone"], field)), atol=1e-7)
     sequential = load_motion(out / "solve" / "motion.npz")
     assert np.max(np.abs(np.asarray(motions["alone"].root_position) - np.asarray(sequential.root_position))) < 0.01
+
+
+def test_a_camera_model_in_the_solver_settings_refits_the_registered_poses(simulated_run, tmp_path):
+    """With a readout or self-calibration the world stage re-fits both trials' registered poses under that model
+    (``DIR/world/registered/``) and the later stages read them; without, the folder goes and the frontend's are used."""
+    import shutil
+
+    from bcmocap.correspondence_store import CorrespondenceStore
+
+    out, _, _, capture, sfm_from_world, fake, config = simulated_run
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    lines = []
+    modelled = config.with_overrides({"solver.rolling_shutter_readout": 0.004, "solver.self_calibration": True})
+    run_pipeline(fake, copy, modelled, log=lines.append, stop_after="initial")
+    assert any("world: settings changed" in line for line in lines)
+    folder = copy / "world" / "registered"
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["rom"]["refined_frames"] == 0  # the fixture's ROM trial has no measurement
+    assert summary["capture"]["refined_frames"] == int(capture.correspondences().registered.sum())
+    assert summary["capture"]["intrinsics_correction"] is None and summary["rom"]["intrinsics_correction"] is not None
+    frontend = CorrespondenceStore.open(copy / "frontend" / "capture" / "correspondences")
+    with np.load(folder / "capture.npz") as refined:
+        refined_poses = refined["world_from_camera"]
+        moved = np.linalg.norm(refined_poses[..., 4:] - frontend.world_from_camera[..., 4:], axis=-1)
+        np.testing.assert_array_equal(refined["registered"], frontend.registered)
+        metric = CorrespondenceStore.open(copy / "solve" / "correspondences")
+        sim = Similarity.from_dict(json.loads((copy / "world" / "similarity.json").read_text()))
+        np.testing.assert_allclose(metric.world_from_camera, sim.poses(refined["world_from_camera"]), atol=1e-12)
+    # the fixture's registered poses carry SfM-like noise (2 cm, 1°) and its measurements are exact but for pixel
+    # noise and outliers: the re-fitted centres are nearer the truth
+    from bcmocap.kinematics.rig import camera_poses
+
+    true = sfm_from_world.poses(np.asarray(camera_poses(capture.skeleton, capture.rig, capture.motion).wxyz_xyz))
+    reg = frontend.registered
+    before = np.linalg.norm(frontend.world_from_camera[..., 4:] - true[..., 4:], axis=-1)[reg]
+    after = np.linalg.norm(refined_poses[..., 4:] - true[..., 4:], axis=-1)[reg]
+    assert np.median(after) < 0.3 * np.median(before) and moved[reg].max() > 0
+    run_pipeline(fake, copy, config, log=lines.append, stop_after="world")
+    assert not folder.exists()

@@ -165,3 +165,7 @@ def test_fingerprints_change_from_the_first_stage_a_setting_affects():
     assert all(base[s] != stride[s] for s in base)
     rom_only = fingerprints(RunConfig().with_overrides({"skeleton.centre_trials": ["rom"]}))
     assert base["frontend"] == rom_only["frontend"] and all(base[s] != rom_only[s] for s in STAGES[1:])
+    # the world stage re-fits the registered poses under the solver's camera model: set, it redoes the world
+    for camera_model in ({"solver.rolling_shutter_readout": 0.015}, {"solver.self_calibration": True}):
+        changed = fingerprints(RunConfig().with_overrides(camera_model))
+        assert base["frontend"] == changed["frontend"] and all(base[s] != changed[s] for s in STAGES[1:])

@@ -24,7 +24,10 @@ def test_variant_shares_its_base_capture_and_frontend(variant):
     config = RunConfig()
     mine, theirs = realism.run_config(variant, config, settings), realism.run_config(source, config, settings)
     assert fingerprints(mine)["frontend"] == fingerprints(theirs)["frontend"]
-    assert fingerprints(mine)["initial"] == fingerprints(theirs)["initial"]
+    # a readout or self-calibration re-fits the registered poses in the world stage; compliance changes the solve only
+    camera_model = mine.solver.rolling_shutter_readout > 0 or mine.solver.self_calibration
+    assert (fingerprints(mine)["world"] == fingerprints(theirs)["world"]) == (not camera_model)
+    assert (fingerprints(mine)["initial"] == fingerprints(theirs)["initial"]) == (not camera_model)
     assert fingerprints(mine)["solve"] != fingerprints(theirs)["solve"]
     a, b = mine.to_dict(), theirs.to_dict()
     assert {k: v for k, v in a.items() if k != "solver"} == {k: v for k, v in b.items() if k != "solver"}

@@ -45,9 +45,11 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     terms = ["reprojection", "homography", "smoothness"]
     refine_rounds = 0         # after the solve, refine bone offsets, mounts and hinge axes with the motion on
                               # the same terms (user terms included), then solve again; 0 to 5 rounds
-    rolling_shutter_readout = 0.0   # s from the first image row to the last (0: global shutter), 0 to 1
+    rolling_shutter_readout = 0.0   # s from the first image row to the last (0: global shutter), 0 to 1; also
+                                    # re-fits the registered camera poses under it (world stage)
     estimate_readout = false  # also solve for a correction to the readout (prior σ 10 ms)
-    self_calibration = false  # solve for each camera's focal length and centre (prior σ 1 %, 5 px)
+    self_calibration = false  # solve for each camera's focal length and centre (prior σ 1 %, 5 px); the world
+                              # stage first estimates them with the range-of-motion trial's registered poses
     mount_compliance = [0.0, 0.0]   # σ of each camera's per-frame offset on its mount [m, deg]; [0, 0]: rigid
     registered_pose = [0.02, 1.0]   # σ [m, deg] of a prior holding a registered camera-frame with few measurements
                                     # at its registered pose; [0, 0]: off (bcmocap.residuals.registered_pose)

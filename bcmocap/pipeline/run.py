@@ -7,7 +7,9 @@ ones after it):
 1. ``frontend`` — reference model, sync, SIFT, registration and homographies of the range-of-motion
    and capture trials (``DIR/frontend/``, the layout of ``bcmocap frontend``; features are cached, a
    finished trial is not redone);
-2. ``world`` — the similarity from the reference model's frame to a metric, Z-up world
+2. ``world`` — with a rolling shutter or self-calibration in the solver's settings, both trials' registered
+   camera poses re-fitted under that camera model (:func:`_refine_registered_poses`;
+   ``DIR/world/registered/``); then the similarity from the reference model's frame to a metric, Z-up world
    (:mod:`.world`; ``DIR/world/similarity.json``);
 3. ``skeleton`` — skeleton and camera mounts from the range-of-motion trial in that world
    (``DIR/model/skeleton.json``, ``rig.json``, ``rom_summary.txt``);
@@ -122,15 +124,23 @@ _LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 
                    "skeleton": {"centre_trials": ["rom"]}}
 
 
+#: ``solver`` settings the ``world`` stage also reads (the camera model it re-fits the registered poses under), with
+#: their defaults: counted in its fingerprint only when set, so a run without them keeps its fingerprints.
+_CAMERA_MODEL = {"rolling_shutter_readout": 0.0, "self_calibration": False}
+
+
 def fingerprints(config: RunConfig) -> dict[str, str]:
     """Per stage, a hash of the settings it and the stages before it depend on."""
     data, out, acc = config.to_dict(), {}, []
+    camera_model = {k: data["solver"][k] for k, default in _CAMERA_MODEL.items() if data["solver"][k] != default}
     for section, defaults in _LATER_DEFAULTS.items():
         for key, value in defaults.items():
             if data[section][key] == value:
                 del data[section][key]
     for stage in STAGES:
         acc += [data[s] for s in _STAGE_SECTIONS[stage]]
+        if stage == "world" and camera_model:
+            acc.append({"camera_model": camera_model})
         out[stage] = hashlib.sha256(json.dumps(acc, sort_keys=True).encode()).hexdigest()[:16]
     return out
 
@@ -317,7 +327,55 @@ def _rom_inputs(ctx: RunContext):
     if rest.sum() < 2:
         raise ValueError(f"rest pose {list(rest_s)} s after the first clap covers {int(rest.sum())} ROM frames "
                          f"at {corr.fps:g} fps; need at least 2")
-    return corr.world_from_camera, corr.registered, rest
+    return *_registered_poses(ctx, "rom", corr), rest
+
+
+def _registered_poses(ctx: RunContext, trial: str, corr) -> tuple[np.ndarray, np.ndarray]:
+    """A trial's registered camera poses ``(T, C, 7)`` (reference model frame) and mask ``(T, C)``: as the
+    ``world`` stage re-fitted them (``DIR/world/registered/<trial>.npz``), else as the frontend registered them
+    (its store ``corr``)."""
+    path = ctx.path("world", "registered", f"{trial}.npz")
+    if not path.is_file():
+        return corr.world_from_camera, corr.registered
+    with np.load(path) as data:
+        return data["world_from_camera"], data["registered"].astype(bool)
+
+
+def _refine_registered_poses(ctx: RunContext) -> None:
+    """Both trials' registered camera poses re-fitted under the solver's camera model
+    (:func:`~bcmocap.solver.registered_poses.refine_registered_poses`: ``solver.rolling_shutter_readout``, and with
+    ``solver.self_calibration`` each camera's intrinsics, estimated on the range-of-motion trial and kept for the
+    capture's and the rig's) into ``DIR/world/registered/`` (``<trial>.npz``, ``intrinsics.npz``,
+    ``summary.json``); with neither, the folder is removed and the frontend's poses are used as they are."""
+    import shutil
+
+    from ..correspondence_store import CorrespondenceStore
+    from ..solver.registered_poses import PoseRefinementOptions, refine_registered_poses
+
+    s = ctx.config.solver
+    folder = ctx.path("world", "registered")
+    shutil.rmtree(folder, ignore_errors=True)
+    if not (s.rolling_shutter_readout > 0 or s.self_calibration):
+        return
+    cameras, correction, summary = _given_intrinsics(ctx), None, {}
+    for trial in ("rom", "capture"):
+        corr = CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences"))
+        options = PoseRefinementOptions(readout=s.rolling_shutter_readout * corr.fps,
+                                        calibrate=s.self_calibration and correction is None)
+        result = refine_registered_poses(corr, cameras if correction is None else correction, options)
+        if options.calibrate:
+            correction = result.corrected_cameras(cameras)
+            _write_npz(folder / "intrinsics.npz", correction=result.intrinsics_correction)
+        _write_npz(folder / f"{trial}.npz", world_from_camera=result.world_from_camera, registered=corr.registered)
+        rms = np.nanmedian(result.rms_px, axis=0) if np.isfinite(result.rms_px).any() else np.full(2, np.nan)
+        summary[trial] = {"refined_frames": int(result.refined.sum()), "registered_frames": int(corr.registered.sum()),
+                          "iterations": result.iterations,
+                          "median_camera_rms_px": {"before": _finite_or_none(rms[0]), "after": _finite_or_none(rms[1])},
+                          "intrinsics_correction": result.intrinsics_correction.tolist() if options.calibrate else None}
+        ctx.log(f"world: {trial}: {int(result.refined.sum())} of {int(corr.registered.sum())} registered camera-frames "
+                f"re-fitted under the solver's camera model in {result.iterations} steps; median camera rms "
+                f"{rms[0]:.2f} → {rms[1]:.2f} px")
+    write_json_atomic(folder / "summary.json", summary)
 
 
 def _more_trials(ctx: RunContext, to_world) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -327,8 +385,8 @@ def _more_trials(ctx: RunContext, to_world) -> list[tuple[np.ndarray, np.ndarray
 
     out = []
     for trial in ctx.config.skeleton.centre_trials[1:]:
-        corr = CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences"))
-        out.append((to_world(corr.world_from_camera), corr.registered))
+        poses, registered = _registered_poses(ctx, trial, CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences")))
+        out.append((to_world(poses), registered))
     return out
 
 
@@ -352,16 +410,36 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest):
                          f"degenerate = {settings.degenerate!r}, centre_trials = {list(settings.centre_trials)})") from None
 
 
-def _stacked_intrinsics(ctx: RunContext):
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def _given_intrinsics(ctx: RunContext):
     from ..cameras import stack_cameras
 
     return stack_cameras([c.intrinsics for c in ctx.capture.cameras])
+
+
+def _stacked_intrinsics(ctx: RunContext):
+    """The rig's intrinsics: the capture's, corrected as the ``world`` stage estimated (self-calibration)."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..residuals.self_calibration import corrected_camera
+
+    cameras = _given_intrinsics(ctx)
+    path = ctx.path("world", "registered", "intrinsics.npz")
+    if not path.is_file():
+        return cameras
+    with np.load(path) as data:
+        return jax.vmap(corrected_camera)(cameras, jnp.asarray(data["correction"]))
 
 
 def _stage_world(ctx: RunContext) -> dict:
     from ..kinematics.ik import motion_from_camera_poses
     from .world import Similarity, scale_from_measurements, upright_frame
 
+    _refine_registered_poses(ctx)
     poses, registered, rest = _rom_inputs(ctx)
     # A provisional scale (a body ~1.7 m across its cameras) only brings the estimator's thresholds, in
     # metres, to the right order; the measurements then fix the scale.
@@ -460,7 +538,8 @@ def _stage_initial(ctx: RunContext) -> dict:
 
     sim = _world(ctx)
     corr = CorrespondenceStore.open(ctx.path("frontend", "capture", "correspondences"))
-    metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses)
+    poses, _ = _registered_poses(ctx, "capture", corr)
+    metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses, world_from_camera=poses)
     skeleton, rig = load_model(ctx.out)
     initial = motion_from_camera_poses(skeleton, rig, metric.world_from_camera, metric.registered, robust=True)
     save_motion(ctx.path("solve", "initial.npz"), initial)
