@@ -218,23 +218,23 @@ class CorrespondenceStore:
         return int(sum((self.block(k)["weights"] > 0).sum() for k in range(len(self.blocks))))
 
     def transformed(self, path: str | Path, points: Callable[[np.ndarray], np.ndarray],
-                    poses: Callable[[np.ndarray], np.ndarray], *,
-                    world_from_camera: np.ndarray | None = None) -> CorrespondenceStore:
+                    poses: Callable[[np.ndarray], np.ndarray], *, world_from_camera: np.ndarray | None = None,
+                    registered: np.ndarray | None = None) -> CorrespondenceStore:
         """A copy at ``path`` with points and camera poses mapped (e.g. by a similarity into the metric
         world); the measurement blocks are copied unchanged, the points mapped in pieces. ``world_from_camera``
-        ``(T, C, 7)``: map these poses instead of the store's (re-fitted ones)."""
-        if world_from_camera is None:
-            world_from_camera = self.world_from_camera
-        elif np.shape(world_from_camera) != self.world_from_camera.shape:
-            raise ValueError(f"{self.path}: world_from_camera {np.shape(world_from_camera)} for a store of poses "
-                             f"{self.world_from_camera.shape}")
+        ``(T, C, 7)`` and ``registered`` ``(T, C)``: these poses instead of the store's (re-fitted ones)."""
+        world_from_camera = self.world_from_camera if world_from_camera is None else np.asarray(world_from_camera)
+        registered = self.registered if registered is None else np.asarray(registered, bool)
+        if world_from_camera.shape != self.world_from_camera.shape or registered.shape != self.registered.shape:
+            raise ValueError(f"{self.path}: world_from_camera {world_from_camera.shape} and registered "
+                             f"{registered.shape} for a store of poses {self.world_from_camera.shape}")
         with _Folder(Path(path)) as tmp:
             for b in self.blocks:
                 shutil.copyfile(self.path / b.file, tmp / b.file)
             with open(tmp / "points.f64", "wb") as dst:
                 for piece in self.iter_points():
                     dst.write(np.ascontiguousarray(points(piece), "<f8").tobytes())
-            np.savez(tmp / "poses.npz", world_from_camera=poses(world_from_camera), registered=self.registered)
+            np.savez(tmp / "poses.npz", world_from_camera=poses(world_from_camera), registered=registered)
             shutil.copyfile(self.path / "index.json", tmp / "index.json")
         return CorrespondenceStore.open(path)
 

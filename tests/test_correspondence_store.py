@@ -100,6 +100,15 @@ def test_transformed_copy_maps_points_and_poses(tmp_path, corr):
     np.testing.assert_allclose(moved.world_from_camera[..., 4:], 2.0 * store.world_from_camera[..., 4:] + 1.0)
     np.testing.assert_array_equal(moved.frames(3, 9).pixels, store.frames(3, 9).pixels)
     np.testing.assert_allclose(np.asarray(store.points), corr.points)  # the source is untouched
+    # other poses and registration (re-fitted ones) mapped in place of the store's
+    poses, registered = store.world_from_camera.copy(), store.registered.copy()
+    poses[..., 4:] += 0.5
+    registered[0] = False
+    other = store.transformed(tmp_path / "c", lambda p: p, lambda q: q, world_from_camera=poses, registered=registered)
+    np.testing.assert_array_equal(other.world_from_camera, poses)
+    np.testing.assert_array_equal(other.registered, registered)
+    with pytest.raises(ValueError, match=r"world_from_camera \(\d+, 7\) and registered"):
+        store.transformed(tmp_path / "d", lambda p: p, lambda q: q, world_from_camera=poses[0])
 
 
 def test_errors_name_the_file_and_a_failed_write_keeps_the_earlier_store(tmp_path, corr):

@@ -373,8 +373,8 @@ def _refine_registered_poses(ctx: RunContext) -> None:
                           "median_camera_rms_px": {"before": _finite_or_none(rms[0]), "after": _finite_or_none(rms[1])},
                           "intrinsics_correction": result.intrinsics_correction.tolist() if options.calibrate else None}
         ctx.log(f"world: {trial}: {int(result.refined.sum())} of {int(corr.registered.sum())} registered camera-frames "
-                f"re-fitted under the solver's camera model in {result.iterations} steps; median camera rms "
-                f"{rms[0]:.2f} → {rms[1]:.2f} px")
+                f"re-fitted under the solver's camera model in {result.iterations} steps (median camera rms {rms[0]:.2f} → "
+                f"{rms[1]:.2f} px); the others have fewer than {options.min_measurements} measurements and keep theirs")
     write_json_atomic(folder / "summary.json", summary)
 
 
@@ -538,8 +538,9 @@ def _stage_initial(ctx: RunContext) -> dict:
 
     sim = _world(ctx)
     corr = CorrespondenceStore.open(ctx.path("frontend", "capture", "correspondences"))
-    poses, _ = _registered_poses(ctx, "capture", corr)
-    metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses, world_from_camera=poses)
+    poses, registered = _registered_poses(ctx, "capture", corr)
+    metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses, world_from_camera=poses,
+                              registered=registered)
     skeleton, rig = load_model(ctx.out)
     initial = motion_from_camera_poses(skeleton, rig, metric.world_from_camera, metric.registered, robust=True)
     save_motion(ctx.path("solve", "initial.npz"), initial)
