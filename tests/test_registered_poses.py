@@ -69,7 +69,7 @@ def test_the_rolling_shutter_poses_are_found_from_perturbed_ones():
     cameras = stack_cameras([fov_camera(), fov_camera(focal=75.0)])
     points, ids, pixels, truth = _scene(0.8, cameras, rng)
     corr = _correspondences(points, ids, pixels, _perturbed(truth, rng))
-    found = refine_registered_poses(corr, cameras, PoseRefinementOptions(readout=0.8, max_iterations=30, min_measurements=20))
+    found = refine_registered_poses(corr, cameras, PoseRefinementOptions(readout=0.8, max_iterations=30, tolerance=1e-9))
     centre, angle = _pose_errors(found.world_from_camera, truth)
     assert centre < 1e-6 and angle < 1e-6
     assert found.refined.all() and np.all(found.rms_px[:, 1] < 1e-5) and np.all(found.rms_px[:, 0] > 0.1)
@@ -88,7 +88,7 @@ def test_the_intrinsics_correction_is_estimated_with_the_poses():
     true_lens = jax.vmap(corrected_camera)(nominal, jnp.asarray(truth_correction))
     points, ids, pixels, truth = _scene(0.0, true_lens, rng)
     corr = _correspondences(points, ids, pixels, _perturbed(truth, rng, 0.005, 0.005))
-    found = refine_registered_poses(corr, nominal, PoseRefinementOptions(calibrate=True, max_iterations=40,
+    found = refine_registered_poses(corr, nominal, PoseRefinementOptions(calibrate=True, max_iterations=40, tolerance=1e-9,
                                                                           intrinsics_sigma=(1.0, 100.0)))
     np.testing.assert_allclose(found.intrinsics_correction[:, 0], truth_correction[:, 0], atol=2e-4)
     np.testing.assert_allclose(found.intrinsics_correction[:, 1:], truth_correction[:, 1:], atol=0.1)

@@ -58,7 +58,8 @@ class PoseRefinementOptions:
         intrinsics_sigma: the correction's prior σ: (log focal scale, principal point px).
         loss_scale: Cauchy loss scale (px).
         max_iterations: Gauss–Newton steps at most.
-        tolerance: stop when no registered pose moves more than this (m, and rad) in a step.
+        tolerance: stop when no pose (nor, with ``calibrate``, correction) moves more than this in a step (the
+            poses' units and rad; log focal scale and px).
         min_measurements: a registered frame with fewer measurements keeps its pose (it still gives its
             neighbours their velocity): too few to fit a pose (the frontend registered it through points the
             measurements do not hold).
@@ -70,7 +71,7 @@ class PoseRefinementOptions:
     intrinsics_sigma: tuple[float, float] = (0.01, 5.0)
     loss_scale: float = 2.0
     max_iterations: int = 12
-    tolerance: float = 1e-5
+    tolerance: float = 1e-4
     min_measurements: int = 20
     block_frames: int = 32
 
@@ -202,6 +203,22 @@ def _block_costs(poses, velocities, corrections, cameras, points, pixels, weight
                                                  readout, loss_scale, deltas)
 
 
+class _BlockReader:
+    """Iterates over :func:`_blocks` of ``source``; keeps them in memory when they take less than ``budget`` bytes
+    (a short trial: the refinement reads it twice a step), else reads them again each time (memory of a block)."""
+
+    def __init__(self, source, block_frames: int, budget: float = 1e9):
+        self.source, self.block_frames, self.kept = source, block_frames, None
+        frames = source.num_frames if hasattr(source, "num_frames") else len(source.point_ids)
+        slots = source.slots if hasattr(source, "slots") else source.point_ids.shape[-1]
+        cameras = source.num_cameras if hasattr(source, "num_cameras") else source.point_ids.shape[1]
+        if 48.0 * (frames + block_frames) * cameras * slots < budget:  # 6 float64 per slot
+            self.kept = list(_blocks(source, block_frames))
+
+    def __iter__(self):
+        return iter(self.kept) if self.kept is not None else _blocks(self.source, self.block_frames)
+
+
 def _blocks(source, block_frames: int):
     """``(start, stop, points (B, C, N, 3), pixels, weights)`` per block of frames of ``source`` (a store or
     in-memory correspondences), padded to ``block_frames`` frames (padding has weight 0)."""
@@ -255,8 +272,10 @@ def refine_registered_poses(source, cameras: CameraModel, options: PoseRefinemen
         raise ValueError(f"refine_registered_poses: world_from_camera has shape {poses0.shape}, expected "
                          f"({num_frames}, {num_cameras}, 7)")
     o = options
+    block = min(o.block_frames, num_frames)
+    blocks = _BlockReader(source, block)
     counts = np.zeros((num_frames, num_cameras), int)
-    for start, stop, _, _, weights in _blocks(source, min(o.block_frames, num_frames)):
+    for start, stop, _, _, weights in blocks:
         counts[start:stop] = (weights[: stop - start] > 0).sum(-1)
     free = registered & (counts >= o.min_measurements)
     safe = np.where(registered[..., None], poses0, np.array([1.0, 0, 0, 0, 0, 0, 0]))
@@ -264,12 +283,12 @@ def refine_registered_poses(source, cameras: CameraModel, options: PoseRefinemen
     correction = np.zeros((num_cameras, 3))
     prior = 1.0 / np.array([o.intrinsics_sigma[0], o.intrinsics_sigma[1], o.intrinsics_sigma[1]]) ** 2
     damping = np.full(num_cameras, 1e-4)
-    block = min(o.block_frames, num_frames)
     readout, scale = jnp.asarray(float(o.readout)), jnp.asarray(float(o.loss_scale))
 
     def costs(cfw, velocities, corr, deltas):
+        """Per camera-frame robust cost after ``deltas`` at ``corr``, and per camera the rms of its inliers."""
         cost, squared, count = np.zeros((num_frames, num_cameras)), np.zeros(num_cameras), np.zeros(num_cameras)
-        for start, stop, xyz, pixels, weights in _blocks(source, block):
+        for start, stop, xyz, pixels, weights in blocks:
             n = stop - start
             c, s, k = _block_costs(_padded(cfw, start, stop, block), _padded(velocities, start, stop, block),
                                    jnp.asarray(corr), cameras, xyz, pixels, weights, readout, scale,
@@ -285,40 +304,44 @@ def refine_registered_poses(source, cameras: CameraModel, options: PoseRefinemen
 
     no_step = np.zeros((num_frames, num_cameras, 6))
     velocities = camera_velocities(cam_from_world, registered) if o.readout > 0 else np.zeros((num_frames, num_cameras, 6))
-    frame_costs, rms_before = costs(cam_from_world, velocities, correction, no_step)
+    rms_before = costs(cam_from_world, velocities, correction, no_step)[1]
     iterations = 0
     for iterations in range(1, o.max_iterations + 1):
         h = np.zeros((num_frames, num_cameras, 9, 9))
         g = np.zeros((num_frames, num_cameras, 9))
-        for start, stop, xyz, pixels, weights in _blocks(source, block):
-            hb, gb, _ = _block_systems(_padded(cam_from_world, start, stop, block), _padded(velocities, start, stop, block),
-                                       jnp.asarray(correction), cameras, xyz, pixels, weights, readout, scale)
-            h[start:stop], g[start:stop] = np.asarray(hb)[: stop - start], np.asarray(gb)[: stop - start]
-        h[~free], g[~free] = 0.0, 0.0
+        frame_costs = np.zeros((num_frames, num_cameras))
+        for start, stop, xyz, pixels, weights in blocks:
+            hb, gb, cb = _block_systems(_padded(cam_from_world, start, stop, block), _padded(velocities, start, stop, block),
+                                        jnp.asarray(correction), cameras, xyz, pixels, weights, readout, scale)
+            n = stop - start
+            h[start:stop], g[start:stop], frame_costs[start:stop] = np.asarray(hb)[:n], np.asarray(gb)[:n], np.asarray(cb)[:n]
+        h[~free], g[~free], frame_costs[~free] = 0.0, 0.0, 0.0
         before = camera_cost(frame_costs, correction)
-        for _ in range(8):  # damping raised until every camera's step is kept or given up
-            deltas, dk = _solve(h, g, free, correction, prior if o.calibrate else None, damping)
-            trial = correction + dk
-            new_costs, _ = costs(cam_from_world, velocities, trial, deltas)
-            after = camera_cost(new_costs, trial)
-            kept = after <= before
-            damping = np.where(kept, np.maximum(damping / 3.0, 1e-9), damping * 10.0)
-            if kept.all() or (damping > 1e6).all():
+        step, dk_kept = np.zeros((num_frames, num_cameras, 6)), np.zeros((num_cameras, 3))
+        after = before.copy()
+        pending = free.any(0)
+        for _ in range(4):  # a camera whose cost rose tries again with more damping (at most 4 times a step)
+            if not pending.any():
                 break
-        step = np.where(kept[None, :, None], deltas, 0.0)
+            deltas, dk = _solve(h, g, free & pending[None], correction, prior if o.calibrate else None, damping)
+            trial_costs = camera_cost(costs(cam_from_world, velocities, correction + dk, deltas)[0], correction + dk)
+            kept = pending & (trial_costs <= before)
+            step[:, kept], dk_kept[kept], after[kept] = deltas[:, kept], dk[kept], trial_costs[kept]
+            damping = np.where(kept, np.maximum(damping / 3.0, 1e-9), np.where(pending, damping * 10.0, damping))
+            pending &= ~kept
         cam_from_world = np.where(free[..., None],
                                   np.asarray((SE3.exp(jnp.asarray(step)) @ SE3(jnp.asarray(cam_from_world))).wxyz_xyz),
                                   cam_from_world)
-        correction = np.where(kept[:, None], trial, correction)
-        moved = np.abs(step).max() if step.size else 0.0
+        correction = correction + dk_kept
+        moved = max(np.abs(step).max(initial=0.0), np.abs(dk_kept).max(initial=0.0) if o.calibrate else 0.0)
         if progress:
-            progress(f"pose refinement step {iterations}: cost {before.sum():.6g} → {camera_cost(np.where(kept[None], new_costs, frame_costs), correction).sum():.6g}, "
-                     f"largest pose step {moved:.2e}")
+            progress(f"pose refinement step {iterations}: cost {before.sum():.6g} → {after.sum():.6g}, "
+                     f"largest step {moved:.2e}")
         if o.readout > 0:
             velocities = camera_velocities(cam_from_world, registered)
-        frame_costs, rms_after = costs(cam_from_world, velocities, correction, no_step)
-        if moved < o.tolerance and not (o.calibrate and np.abs(np.where(kept[:, None], dk, 0.0)).max() > o.tolerance):
+        if moved < o.tolerance:
             break
+    rms_after = costs(cam_from_world, velocities, correction, no_step)[1]
     refined = np.asarray(SE3(jnp.asarray(cam_from_world)).inverse().wxyz_xyz)
     refined = np.where(free[..., None], refined, poses0)
     moved_m = np.where(registered, np.linalg.norm(refined[..., 4:] - safe[..., 4:], axis=-1), 0.0)
