@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..cameras import CameraModel
+from ..correspondence_store import CorrespondenceStore
 from ..geometry import SE3
 from ..residuals.self_calibration import corrected_camera
 
@@ -209,10 +210,8 @@ class _BlockReader:
 
     def __init__(self, source, block_frames: int, budget: float = 1e9):
         self.source, self.block_frames, self.kept = source, block_frames, None
-        frames = source.num_frames if hasattr(source, "num_frames") else len(source.point_ids)
-        slots = source.slots if hasattr(source, "slots") else source.point_ids.shape[-1]
-        cameras = source.num_cameras if hasattr(source, "num_cameras") else source.point_ids.shape[1]
-        if 48.0 * (frames + block_frames) * cameras * slots < budget:  # 6 float64 per slot
+        slots = source.slots if isinstance(source, CorrespondenceStore) else source.point_ids.shape[-1]
+        if 48.0 * (source.num_frames + block_frames) * source.num_cameras * slots < budget:  # 6 float64 per slot
             self.kept = list(_blocks(source, block_frames))
 
     def __iter__(self):
@@ -222,15 +221,10 @@ class _BlockReader:
 def _blocks(source, block_frames: int):
     """``(start, stop, points (B, C, N, 3), pixels, weights)`` per block of frames of ``source`` (a store or
     in-memory correspondences), padded to ``block_frames`` frames (padding has weight 0)."""
-    total = source.num_frames if hasattr(source, "num_frames") else len(source.point_ids)
-    for start in range(0, total, block_frames):
-        stop = min(start + block_frames, total)
-        if hasattr(source, "frames"):
-            part = source.frames(start, stop)
-            ids, pixels, weights, points = part.point_ids, part.pixels, part.weights, part.points
-        else:
-            ids, pixels, weights = (np.asarray(a[start:stop]) for a in (source.point_ids, source.pixels, source.weights))
-            points = np.asarray(source.points)
+    for start in range(0, source.num_frames, block_frames):
+        stop = min(start + block_frames, source.num_frames)
+        part = source.frames(start, stop)  # a store's: only the points these frames measure
+        ids, pixels, weights, points = part.point_ids, part.pixels, part.weights, part.points
         xyz = np.asarray(points)[np.clip(ids, 0, max(len(points) - 1, 0))] if len(points) else np.zeros(ids.shape + (3,))
         weights = np.where(ids >= 0, weights, 0.0)
         pad = block_frames - (stop - start)
