@@ -392,7 +392,13 @@ def test_a_camera_model_in_the_solver_settings_refits_the_registered_poses(simul
     summary = json.loads((folder / "summary.json").read_text())
     assert summary["rom"]["refined_frames"] == 0  # the fixture's ROM trial has no measurement
     assert summary["capture"]["refined_frames"] == int(capture.correspondences().registered.sum())
-    assert summary["capture"]["intrinsics_correction"] is None and summary["rom"]["intrinsics_correction"] is not None
+    # both trials calibrate the lenses together: here the capture alone, the ROM trial measuring nothing
+    correction = np.asarray(summary["intrinsics_correction"])
+    with np.load(folder / "intrinsics.npz") as saved:
+        np.testing.assert_array_equal(saved["correction"], correction)
+    assert correction.shape == (capture.rig.num_cameras, 3) and np.abs(correction[:, 0]).max() < 0.01
+    rig_lens = load_model(copy)[1].intrinsics
+    np.testing.assert_allclose(np.asarray(rig_lens.focal), np.asarray(capture.rig.intrinsics.focal) * np.exp(correction[:, :1]))
     frontend = CorrespondenceStore.open(copy / "frontend" / "capture" / "correspondences")
     with np.load(folder / "capture.npz") as refined:
         refined_poses = refined["world_from_camera"]

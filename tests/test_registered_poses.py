@@ -10,7 +10,7 @@ from bcmocap.correspondences import Correspondences
 from bcmocap.geometry import SE3
 from bcmocap.residuals.self_calibration import corrected_camera
 from bcmocap.solver.registered_poses import (PoseRefinementOptions, _frame_system, _measurement_residual,
-                                             camera_velocities, refine_registered_poses)
+                                             camera_velocities, refine_registered_poses, refine_trials)
 from conftest import fov_camera
 
 T, C, N = 8, 2, 40
@@ -98,6 +98,28 @@ def test_the_intrinsics_correction_is_estimated_with_the_poses():
     np.testing.assert_allclose(np.asarray(corrected.focal), np.asarray(nominal.focal) * np.exp(found.intrinsics_correction[:, :1]))
     fixed_lens = refine_registered_poses(corr, nominal, PoseRefinementOptions(max_iterations=40))
     assert np.all(fixed_lens.rms_px[:, 1] > 5 * found.rms_px[:, 1])
+
+
+def test_trials_share_the_intrinsics_correction():
+    """Two trials of one rig: camera 1 measures nothing in the first, so its correction comes from the second,
+    and both trials' poses are re-fitted through the one correction."""
+    rng = np.random.default_rng(5)
+    nominal = stack_cameras([fov_camera(), fov_camera(focal=75.0)])
+    truth_correction = np.array([[np.log(1.004), 1.0, -1.5], [np.log(0.995), -1.2, 0.8]])
+    true_lens = jax.vmap(corrected_camera)(nominal, jnp.asarray(truth_correction))
+    first, second = _scene(0.0, true_lens, rng), _scene(0.0, true_lens, rng)
+    first[1][:, 1] = -1  # camera 1: no measurement in the first trial
+    trials = [_correspondences(*scene[:3], _perturbed(scene[3], rng, 0.005, 0.005)) for scene in (first, second)]
+    options = PoseRefinementOptions(calibrate=True, max_iterations=40, tolerance=1e-9, intrinsics_sigma=(1.0, 100.0))
+    found = refine_trials(trials, nominal, options)
+    np.testing.assert_array_equal(found[0].intrinsics_correction, found[1].intrinsics_correction)
+    np.testing.assert_allclose(found[0].intrinsics_correction[:, 0], truth_correction[:, 0], atol=2e-4)
+    np.testing.assert_allclose(found[0].intrinsics_correction[:, 1:], truth_correction[:, 1:], atol=0.1)
+    assert not found[0].refined[:, 1].any() and found[1].refined.all()
+    assert _pose_errors(found[0].world_from_camera[:, :1], first[3][:, :1])[0] < 2e-3
+    assert _pose_errors(found[1].world_from_camera, second[3])[0] < 2e-3
+    alone = refine_registered_poses(trials[0], nominal, options)
+    np.testing.assert_array_equal(alone.intrinsics_correction[1], 0.0)  # nothing calibrates camera 1 in trial 0
 
 
 def test_normal_equations_match_finite_differences():

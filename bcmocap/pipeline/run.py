@@ -343,38 +343,38 @@ def _registered_poses(ctx: RunContext, trial: str, corr) -> tuple[np.ndarray, np
 
 def _refine_registered_poses(ctx: RunContext) -> None:
     """Both trials' registered camera poses re-fitted under the solver's camera model
-    (:func:`~bcmocap.solver.registered_poses.refine_registered_poses`: ``solver.rolling_shutter_readout``, and with
-    ``solver.self_calibration`` each camera's intrinsics, estimated on the range-of-motion trial and kept for the
-    capture's and the rig's) into ``DIR/world/registered/`` (``<trial>.npz``, ``intrinsics.npz``,
-    ``summary.json``); with neither, the folder is removed and the frontend's poses are used as they are."""
+    (:func:`~bcmocap.solver.registered_poses.refine_trials`: ``solver.rolling_shutter_readout``, and with
+    ``solver.self_calibration`` each camera's intrinsics, estimated with both trials and kept for the rig) into
+    ``DIR/world/registered/`` (``<trial>.npz``, ``intrinsics.npz``, ``summary.json``); with neither, the folder is
+    removed and the frontend's poses are used as they are."""
     import shutil
 
     from ..correspondence_store import CorrespondenceStore
-    from ..solver.registered_poses import PoseRefinementOptions, refine_registered_poses
+    from ..solver.registered_poses import PoseRefinementOptions, refine_trials
 
     s = ctx.config.solver
     folder = ctx.path("world", "registered")
     shutil.rmtree(folder, ignore_errors=True)
     if not (s.rolling_shutter_readout > 0 or s.self_calibration):
         return
-    cameras, correction, summary = _given_intrinsics(ctx), None, {}
-    for trial in ("rom", "capture"):
-        corr = CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences"))
-        options = PoseRefinementOptions(readout=s.rolling_shutter_readout * corr.fps,
-                                        calibrate=s.self_calibration and correction is None)
-        result = refine_registered_poses(corr, cameras if correction is None else correction, options)
-        if options.calibrate:
-            correction = result.corrected_cameras(cameras)
-            _write_npz(folder / "intrinsics.npz", correction=result.intrinsics_correction)
-        _write_npz(folder / f"{trial}.npz", world_from_camera=result.world_from_camera, registered=corr.registered)
+    trials = ("rom", "capture")
+    stores = [CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences")) for trial in trials]
+    options = PoseRefinementOptions(calibrate=s.self_calibration)
+    results = refine_trials(stores, _given_intrinsics(ctx), options,  # the readout in each trial's frame periods
+                            readouts=[s.rolling_shutter_readout * store.fps for store in stores])
+    if s.self_calibration:
+        _write_npz(folder / "intrinsics.npz", correction=results[0].intrinsics_correction)
+    summary = {}
+    for trial, store, result in zip(trials, stores, results):
+        _write_npz(folder / f"{trial}.npz", world_from_camera=result.world_from_camera, registered=store.registered)
         rms = np.nanmedian(result.rms_px, axis=0) if np.isfinite(result.rms_px).any() else np.full(2, np.nan)
-        summary[trial] = {"refined_frames": int(result.refined.sum()), "registered_frames": int(corr.registered.sum()),
+        summary[trial] = {"refined_frames": int(result.refined.sum()), "registered_frames": int(store.registered.sum()),
                           "iterations": result.iterations,
-                          "median_camera_rms_px": {"before": _finite_or_none(rms[0]), "after": _finite_or_none(rms[1])},
-                          "intrinsics_correction": result.intrinsics_correction.tolist() if options.calibrate else None}
-        ctx.log(f"world: {trial}: {int(result.refined.sum())} of {int(corr.registered.sum())} registered camera-frames "
+                          "median_camera_rms_px": {"before": _finite_or_none(rms[0]), "after": _finite_or_none(rms[1])}}
+        ctx.log(f"world: {trial}: {int(result.refined.sum())} of {int(store.registered.sum())} registered camera-frames "
                 f"re-fitted under the solver's camera model in {result.iterations} steps (median camera rms {rms[0]:.2f} → "
                 f"{rms[1]:.2f} px); the others have fewer than {options.min_measurements} measurements and keep theirs")
+    summary["intrinsics_correction"] = results[0].intrinsics_correction.tolist() if s.self_calibration else None
     write_json_atomic(folder / "summary.json", summary)
 
 

@@ -45,7 +45,7 @@ from ..correspondence_store import CorrespondenceStore
 from ..geometry import SE3
 from ..residuals.self_calibration import corrected_camera
 
-__all__ = ["PoseRefinementOptions", "PoseRefinement", "refine_registered_poses", "camera_velocities"]
+__all__ = ["PoseRefinementOptions", "PoseRefinement", "refine_registered_poses", "refine_trials", "camera_velocities"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -256,93 +256,148 @@ def refine_registered_poses(source, cameras: CameraModel, options: PoseRefinemen
     Returns:
         A :class:`PoseRefinement`.
     """
-    poses0 = np.asarray(source.world_from_camera if world_from_camera is None else world_from_camera, np.float64)
-    registered = np.asarray(source.registered if registered is None else registered, bool)
-    num_frames, num_cameras = registered.shape
-    if cameras.batch_shape != (num_cameras,):
-        raise ValueError(f"refine_registered_poses: {num_cameras} cameras registered, intrinsics for "
-                         f"{cameras.batch_shape}")
-    if poses0.shape != (num_frames, num_cameras, 7):
-        raise ValueError(f"refine_registered_poses: world_from_camera has shape {poses0.shape}, expected "
-                         f"({num_frames}, {num_cameras}, 7)")
+    start = None if world_from_camera is None and registered is None else (world_from_camera, registered)
+    return refine_trials([source], cameras, options, starts=[start], progress=progress)[0]
+
+
+def refine_trials(sources, cameras: CameraModel, options: PoseRefinementOptions = PoseRefinementOptions(), *,
+                  starts=None, readouts=None, progress: Callable[[str], None] | None = None) -> list[PoseRefinement]:
+    """:func:`refine_registered_poses` of several trials of one rig at once: with ``options.calibrate`` they share
+    each camera's intrinsics correction (a camera with too few measurements in one trial is calibrated by the
+    others). ``starts``: per trial None or ``(world_from_camera, registered)`` to start from (None of the pair:
+    the source's); ``readouts``: per trial the readout in its frame periods (trials at different frame rates;
+    default ``options.readout``). Returns one :class:`PoseRefinement` per trial, all with the same correction."""
     o = options
-    block = min(o.block_frames, num_frames)
-    blocks = _BlockReader(source, block)
-    counts = np.zeros((num_frames, num_cameras), int)
-    for start, stop, _, _, weights in blocks:
-        counts[start:stop] = (weights[: stop - start] > 0).sum(-1)
-    free = registered & (counts >= o.min_measurements)
-    safe = np.where(registered[..., None], poses0, np.array([1.0, 0, 0, 0, 0, 0, 0]))
-    cam_from_world = np.asarray(SE3(jnp.asarray(safe)).inverse().wxyz_xyz)
+    starts = [None] * len(sources) if starts is None else list(starts)
+    readouts = [o.readout] * len(sources) if readouts is None else [float(r) for r in readouts]
+    if not (len(starts) == len(readouts) == len(sources)):
+        raise ValueError(f"refine_trials: {len(sources)} trials, {len(starts)} starts and {len(readouts)} readouts")
+    trials = [_Trial(source, cameras, dataclasses.replace(o, readout=readout), *(start or (None, None)))
+              for source, start, readout in zip(sources, starts, readouts)]
+    num_cameras = cameras.batch_shape[0]
     correction = np.zeros((num_cameras, 3))
     prior = 1.0 / np.array([o.intrinsics_sigma[0], o.intrinsics_sigma[1], o.intrinsics_sigma[1]]) ** 2
     damping = np.full(num_cameras, 1e-4)
-    readout, scale = jnp.asarray(float(o.readout)), jnp.asarray(float(o.loss_scale))
-
-    def costs(cfw, velocities, corr, deltas):
-        """Per camera-frame robust cost after ``deltas`` at ``corr``, and per camera the rms of its inliers."""
-        cost, squared, count = np.zeros((num_frames, num_cameras)), np.zeros(num_cameras), np.zeros(num_cameras)
-        for start, stop, xyz, pixels, weights in blocks:
-            n = stop - start
-            c, s, k = _block_costs(_padded(cfw, start, stop, block), _padded(velocities, start, stop, block),
-                                   jnp.asarray(corr), cameras, xyz, pixels, weights, readout, scale,
-                                   _padded(deltas, start, stop, block))
-            mask = free[start:stop]
-            cost[start:stop] = np.where(mask, np.asarray(c)[:n], 0.0)
-            squared += np.where(mask, np.asarray(s)[:n], 0.0).sum(0)
-            count += np.where(mask, np.asarray(k)[:n], 0).sum(0)
-        return cost, np.sqrt(squared / np.where(count > 0, count, np.nan))
+    free = np.concatenate([t.free for t in trials])
 
     def camera_cost(frame_costs, corr):
         return frame_costs.sum(0) + (np.sum(prior * corr ** 2, axis=-1) if o.calibrate else 0.0)
 
-    no_step = np.zeros((num_frames, num_cameras, 6))
-    velocities = camera_velocities(cam_from_world, registered) if o.readout > 0 else np.zeros((num_frames, num_cameras, 6))
-    rms_before = costs(cam_from_world, velocities, correction, no_step)[1]
+    def split(a: np.ndarray) -> list[np.ndarray]:
+        return np.split(a, np.cumsum([t.num_frames for t in trials])[:-1])
+
+    rms_before = [t.rms(correction) for t in trials]
     iterations = 0
     for iterations in range(1, o.max_iterations + 1):
-        h = np.zeros((num_frames, num_cameras, 9, 9))
-        g = np.zeros((num_frames, num_cameras, 9))
-        frame_costs = np.zeros((num_frames, num_cameras))
-        for start, stop, xyz, pixels, weights in blocks:
-            hb, gb, cb = _block_systems(_padded(cam_from_world, start, stop, block), _padded(velocities, start, stop, block),
-                                        jnp.asarray(correction), cameras, xyz, pixels, weights, readout, scale)
-            n = stop - start
-            h[start:stop], g[start:stop], frame_costs[start:stop] = np.asarray(hb)[:n], np.asarray(gb)[:n], np.asarray(cb)[:n]
-        h[~free], g[~free], frame_costs[~free] = 0.0, 0.0, 0.0
+        h, g, frame_costs = (np.concatenate(part) for part in zip(*(t.linearise(correction) for t in trials)))
         before = camera_cost(frame_costs, correction)
-        step, dk_kept = np.zeros((num_frames, num_cameras, 6)), np.zeros((num_cameras, 3))
+        step, dk_kept = np.zeros(h.shape[:2] + (6,)), np.zeros((num_cameras, 3))
         after = before.copy()
         pending = free.any(0)
         for _ in range(4):  # a camera whose cost rose tries again with more damping (at most 4 times a step)
             if not pending.any():
                 break
             deltas, dk = _solve(h, g, free & pending[None], correction, prior if o.calibrate else None, damping)
-            trial_costs = camera_cost(costs(cam_from_world, velocities, correction + dk, deltas)[0], correction + dk)
+            trial_costs = camera_cost(np.concatenate([t.costs(correction + dk, d)[0] for t, d in zip(trials, split(deltas))]),
+                                      correction + dk)
             kept = pending & (trial_costs <= before)
             step[:, kept], dk_kept[kept], after[kept] = deltas[:, kept], dk[kept], trial_costs[kept]
             damping = np.where(kept, np.maximum(damping / 3.0, 1e-9), np.where(pending, damping * 10.0, damping))
             pending &= ~kept
-        cam_from_world = np.where(free[..., None],
-                                  np.asarray((SE3.exp(jnp.asarray(step)) @ SE3(jnp.asarray(cam_from_world))).wxyz_xyz),
-                                  cam_from_world)
+        for t, d in zip(trials, split(step)):
+            t.apply(d)
         correction = correction + dk_kept
         moved = max(np.abs(step).max(initial=0.0), np.abs(dk_kept).max(initial=0.0) if o.calibrate else 0.0)
         if progress:
             progress(f"pose refinement step {iterations}: cost {before.sum():.6g} → {after.sum():.6g}, "
                      f"largest step {moved:.2e}")
-        if o.readout > 0:
-            velocities = camera_velocities(cam_from_world, registered)
         if moved < o.tolerance:
             break
-    rms_after = costs(cam_from_world, velocities, correction, no_step)[1]
-    refined = np.asarray(SE3(jnp.asarray(cam_from_world)).inverse().wxyz_xyz)
-    refined = np.where(free[..., None], refined, poses0)
-    moved_m = np.where(registered, np.linalg.norm(refined[..., 4:] - safe[..., 4:], axis=-1), 0.0)
-    turn = np.abs(np.sum(refined[..., :4] * safe[..., :4], axis=-1)).clip(0.0, 1.0)
-    moved_deg = np.where(registered, np.degrees(2 * np.arccos(turn)), 0.0)
-    return PoseRefinement(refined, correction, np.stack([rms_before, rms_after], axis=-1), iterations, moved_m, moved_deg,
-                          free)
+    return [t.result(correction, before_rms, t.rms(correction), iterations) for t, before_rms in zip(trials, rms_before)]
+
+
+class _Trial:
+    """One trial's state in :func:`refine_trials`: its measurements (read a block at a time), registered and
+    re-fitted frames, current ``cam_from_world`` poses and velocities."""
+
+    def __init__(self, source, cameras: CameraModel, options: PoseRefinementOptions, world_from_camera=None,
+                 registered=None):
+        self.poses0 = np.asarray(source.world_from_camera if world_from_camera is None else world_from_camera, np.float64)
+        self.registered = np.asarray(source.registered if registered is None else registered, bool)
+        self.num_frames, num_cameras = self.registered.shape
+        if cameras.batch_shape != (num_cameras,):
+            raise ValueError(f"refine_registered_poses: {num_cameras} cameras registered, intrinsics for "
+                             f"{cameras.batch_shape}")
+        if self.poses0.shape != (self.num_frames, num_cameras, 7):
+            raise ValueError(f"refine_registered_poses: world_from_camera has shape {self.poses0.shape}, expected "
+                             f"({self.num_frames}, {num_cameras}, 7)")
+        self.options, self.cameras = options, cameras
+        self.block = min(options.block_frames, self.num_frames)
+        self.blocks = _BlockReader(source, self.block)
+        counts = np.zeros((self.num_frames, num_cameras), int)
+        for start, stop, _, _, weights in self.blocks:
+            counts[start:stop] = (weights[: stop - start] > 0).sum(-1)
+        self.free = self.registered & (counts >= options.min_measurements)
+        self.safe = np.where(self.registered[..., None], self.poses0, np.array([1.0, 0, 0, 0, 0, 0, 0]))
+        self.cam_from_world = np.asarray(SE3(jnp.asarray(self.safe)).inverse().wxyz_xyz)
+        self.readout, self.scale = jnp.asarray(float(options.readout)), jnp.asarray(float(options.loss_scale))
+        self._velocities()
+
+    def _velocities(self) -> None:
+        self.velocities = (camera_velocities(self.cam_from_world, self.registered) if self.options.readout > 0
+                           else np.zeros(self.cam_from_world.shape[:2] + (6,)))
+
+    def _padded(self, a: np.ndarray, start: int, stop: int) -> np.ndarray:
+        return _padded(a, start, stop, self.block)
+
+    def linearise(self, correction: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(T, C, 9, 9)`` ``JᵀWJ``, ``(T, C, 9)`` ``−JᵀWr`` and ``(T, C)`` robust costs (zero where not re-fitted)."""
+        shape = self.cam_from_world.shape[:2]
+        h, g, cost = np.zeros(shape + (9, 9)), np.zeros(shape + (9,)), np.zeros(shape)
+        for start, stop, xyz, pixels, weights in self.blocks:
+            n = stop - start
+            hb, gb, cb = _block_systems(self._padded(self.cam_from_world, start, stop),
+                                        self._padded(self.velocities, start, stop), jnp.asarray(correction),
+                                        self.cameras, xyz, pixels, weights, self.readout, self.scale)
+            h[start:stop], g[start:stop], cost[start:stop] = np.asarray(hb)[:n], np.asarray(gb)[:n], np.asarray(cb)[:n]
+        h[~self.free], g[~self.free], cost[~self.free] = 0.0, 0.0, 0.0
+        return h, g, cost
+
+    def costs(self, correction: np.ndarray, deltas: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per camera-frame robust cost after the pose increments ``deltas`` ``(T, C, 6)`` at ``correction``, and per
+        camera the weighted squared error and count of its inliers (within 5 loss scales)."""
+        shape = self.cam_from_world.shape[:2]
+        deltas = np.zeros(shape + (6,)) if deltas is None else deltas
+        cost, squared, count = np.zeros(shape), np.zeros(shape[1]), np.zeros(shape[1])
+        for start, stop, xyz, pixels, weights in self.blocks:
+            n = stop - start
+            c, s, k = _block_costs(self._padded(self.cam_from_world, start, stop), self._padded(self.velocities, start, stop),
+                                   jnp.asarray(correction), self.cameras, xyz, pixels, weights, self.readout, self.scale,
+                                   self._padded(deltas, start, stop))
+            mask = self.free[start:stop]
+            cost[start:stop] = np.where(mask, np.asarray(c)[:n], 0.0)
+            squared += np.where(mask, np.asarray(s)[:n], 0.0).sum(0)
+            count += np.where(mask, np.asarray(k)[:n], 0).sum(0)
+        return cost, squared, count
+
+    def rms(self, correction: np.ndarray) -> np.ndarray:
+        _, squared, count = self.costs(correction)
+        return np.sqrt(squared / np.where(count > 0, count, np.nan))
+
+    def apply(self, step: np.ndarray) -> None:
+        """Move the re-fitted frames by the left increments ``step`` ``(T, C, 6)``; recompute the velocities."""
+        moved = np.asarray((SE3.exp(jnp.asarray(step)) @ SE3(jnp.asarray(self.cam_from_world))).wxyz_xyz)
+        self.cam_from_world = np.where(self.free[..., None], moved, self.cam_from_world)
+        self._velocities()
+
+    def result(self, correction: np.ndarray, rms_before: np.ndarray, rms_after: np.ndarray, iterations: int) -> PoseRefinement:
+        refined = np.asarray(SE3(jnp.asarray(self.cam_from_world)).inverse().wxyz_xyz)
+        refined = np.where(self.free[..., None], refined, self.poses0)
+        moved_m = np.where(self.registered, np.linalg.norm(refined[..., 4:] - self.safe[..., 4:], axis=-1), 0.0)
+        turn = np.abs(np.sum(refined[..., :4] * self.safe[..., :4], axis=-1)).clip(0.0, 1.0)
+        moved_deg = np.where(self.registered, np.degrees(2 * np.arccos(turn)), 0.0)
+        return PoseRefinement(refined, correction, np.stack([rms_before, rms_after], axis=-1), iterations, moved_m,
+                              moved_deg, self.free)
 
 
 def _solve(h: np.ndarray, g: np.ndarray, registered: np.ndarray, correction: np.ndarray, prior: np.ndarray | None,
