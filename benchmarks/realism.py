@@ -117,8 +117,10 @@ def capture_settings(condition: str, base: StudioSettings) -> StudioSettings:
     return dataclasses.replace(base, **{k: getattr(preset, k) for k in DEGRADATIONS[condition]})
 
 
-#: The skeleton stage's limit on a joint centre's standard error (cm) in every row (see run_config).
-MAX_CENTRE_STD_CM = 10.0
+#: The skeleton stage's limit on a joint centre's standard error (cm) in every row (see run_config): it only stops a
+#: run (it changes no estimate), and with the tracking frontend of 2026-11-27 the rolling-shutter row's right ankle
+#: comes to 13.3 cm from the global-shutter poses; the table is to measure what follows.
+MAX_CENTRE_STD_CM = 20.0
 
 
 def run_config(condition: str, base: RunConfig, settings: StudioSettings) -> RunConfig:
