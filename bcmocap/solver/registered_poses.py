@@ -26,8 +26,9 @@ camera's step is kept only when its cost falls.
 
 The measurements are read a block of frames at a time from a
 :class:`~bcmocap.correspondence_store.CorrespondenceStore` (or taken from in-memory
-:class:`~bcmocap.correspondences.Correspondences`), so memory is a block's whatever the trial's length; each
-iteration reads the trial twice (linearisation, then the cost of the step).
+:class:`~bcmocap.correspondences.Correspondences`; a short trial's blocks are kept in memory): the Jacobians are a
+block's, the normal equations ``(T, C, 9, 9)`` the whole trial's (about 0.7 kB per camera-frame); each step reads
+the trial two to five times (linearisation, then the cost of each damped try).
 """
 
 from __future__ import annotations
@@ -311,7 +312,7 @@ def refine_trials(sources, cameras: CameraModel, options: PoseRefinementOptions 
         if progress:
             progress(f"pose refinement step {iterations}: cost {before.sum():.6g} → {after.sum():.6g}, "
                      f"largest step {moved:.2e}")
-        if moved < o.tolerance:
+        if moved < o.tolerance and not pending.any():  # converged, not merely every step refused
             break
     return [t.result(correction, before_rms, t.rms(correction), iterations) for t, before_rms in zip(trials, rms_before)]
 
@@ -404,6 +405,8 @@ def _solve(h: np.ndarray, g: np.ndarray, registered: np.ndarray, correction: np.
            damping: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The damped Gauss–Newton step: ``(T, C, 6)`` pose increments and ``(C, 3)`` intrinsics increments (zero
     without ``prior``), the intrinsics eliminated per camera by a Schur complement."""
+    h = np.where(registered[..., None, None], h, 0.0)  # camera-frames left out (not re-fitted, or not pending)
+    g = np.where(registered[..., None], g, 0.0)
     lam = damping[None, :, None]
     a = h[..., :6, :6]
     a = a + np.einsum("...i,ij->...ij", lam * np.diagonal(a, axis1=-2, axis2=-1) + 1e-9, np.eye(6))
