@@ -422,17 +422,14 @@ def _given_intrinsics(ctx: RunContext):
 
 def _stacked_intrinsics(ctx: RunContext):
     """The rig's intrinsics: the capture's, corrected as the ``world`` stage estimated (self-calibration)."""
-    import jax
-    import jax.numpy as jnp
-
-    from ..residuals.self_calibration import corrected_camera
+    from ..residuals.self_calibration import corrected_cameras
 
     cameras = _given_intrinsics(ctx)
     path = ctx.path("world", "registered", "intrinsics.npz")
     if not path.is_file():
         return cameras
     with np.load(path) as data:
-        return jax.vmap(corrected_camera)(cameras, jnp.asarray(data["correction"]))
+        return corrected_cameras(cameras, data["correction"])
 
 
 def _stage_world(ctx: RunContext) -> dict:

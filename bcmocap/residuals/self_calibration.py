@@ -35,6 +35,12 @@ def corrected_camera(camera: CameraModel, correction: jax.Array) -> CameraModel:
                        (camera.focal * jnp.exp(correction[0]), camera.principal_point + correction[1:]))
 
 
+def corrected_cameras(cameras: CameraModel, corrections) -> CameraModel:
+    """A rig's stacked ``cameras`` (``C``) each corrected by its row of ``corrections`` ``(C, 3)`` (as
+    :func:`corrected_camera`)."""
+    return jax.vmap(corrected_camera)(cameras, jnp.asarray(corrections))
+
+
 class SelfCalibratingReprojection(Reprojection):
     """:class:`Reprojection` through each camera's corrected intrinsics (:data:`INTRINSICS_CORRECTION`).
 

@@ -44,7 +44,7 @@ import numpy as np
 from ..cameras import CameraModel
 from ..correspondence_store import CorrespondenceStore
 from ..geometry import SE3
-from ..residuals.self_calibration import corrected_camera
+from ..residuals.self_calibration import corrected_camera, corrected_cameras
 
 __all__ = ["PoseRefinementOptions", "PoseRefinement", "refine_registered_poses", "refine_trials", "camera_velocities"]
 
@@ -112,7 +112,7 @@ class PoseRefinement:
 
     def corrected_cameras(self, cameras: CameraModel) -> CameraModel:
         """The stacked ``cameras`` with :attr:`intrinsics_correction` applied."""
-        return jax.vmap(corrected_camera)(cameras, jnp.asarray(self.intrinsics_correction))
+        return corrected_cameras(cameras, self.intrinsics_correction)
 
 
 def camera_velocities(cam_from_world: np.ndarray, registered: np.ndarray) -> np.ndarray:
@@ -187,10 +187,12 @@ def _frame_cost(pose, velocity, correction, camera, points, pixels, weights, rea
     return jnp.sum(c2 * jnp.log1p(e / c2)), jnp.sum(jnp.where(inlier, e, 0.0)), jnp.sum(inlier)
 
 
-def _over_frames_and_cameras(fn):
-    """``fn`` mapped over ``(B, C)`` camera-frames, the camera (and its correction) shared along frames."""
-    per_camera = jax.vmap(fn, in_axes=(0, 0, 0, 0, 0, 0, 0, None, None) + ((0,) if fn is _frame_cost else ()))
-    return jax.vmap(per_camera, in_axes=(0, 0, None, None, 0, 0, 0, None, None) + ((0,) if fn is _frame_cost else ()))
+def _over_frames_and_cameras(fn, per_frame_tail: int = 0):
+    """``fn`` mapped over ``(B, C)`` camera-frames, the camera (and its correction) shared along frames; its
+    ``per_frame_tail`` last arguments are per camera-frame too."""
+    tail = (0,) * per_frame_tail
+    per_camera = jax.vmap(fn, in_axes=(0, 0, 0, 0, 0, 0, 0, None, None) + tail)
+    return jax.vmap(per_camera, in_axes=(0, 0, None, None, 0, 0, 0, None, None) + tail)
 
 
 @eqx.filter_jit
@@ -201,8 +203,8 @@ def _block_systems(poses, velocities, corrections, cameras, points, pixels, weig
 
 @eqx.filter_jit
 def _block_costs(poses, velocities, corrections, cameras, points, pixels, weights, readout, loss_scale, deltas):
-    return _over_frames_and_cameras(_frame_cost)(SE3(poses), velocities, corrections, cameras, points, pixels, weights,
-                                                 readout, loss_scale, deltas)
+    return _over_frames_and_cameras(_frame_cost, per_frame_tail=1)(SE3(poses), velocities, corrections, cameras, points,
+                                                                   pixels, weights, readout, loss_scale, deltas)
 
 
 class _BlockReader:
