@@ -12,22 +12,26 @@ Rows:
   ``vignetting``, ``sensor_noise`` (shot noise), ``compression`` (H.264 at an action camera's bit rate),
   ``calibration`` (focal length and centre errors in the intrinsics given);
 - ``realistic``: all of them (the preset), the paper's terms only;
-- ``realistic+terms``: the same capture with ``[solver] rolling_shutter_readout`` (the rendered readout),
-  ``estimate_readout``, ``self_calibration`` and ``mount_compliance`` (the preset's wobble RMS) on;
-- one solver variant per modelled degradation, on that degradation's capture with the term that models it:
-  ``mount_wobble+compliance`` (``mount_compliance`` at the capture's wobble RMS), ``rolling_shutter+readout``
-  (``rolling_shutter_readout`` at the rendered readout), ``calibration+self_calibration`` (``self_calibration``).
+- ``realistic+terms``: the same capture with every model on: the frames corrected for the rolling shutter by the
+  cameras' gyros (``[frontend] rolling_shutter_readout``, the rendered readout), ``[solver] self_calibration`` and
+  ``mount_compliance`` (the preset's wobble RMS);
+- one variant per modelled degradation, on that degradation's capture with the model of it on:
+  ``mount_wobble+compliance`` (``mount_compliance`` at the capture's wobble RMS), ``rolling_shutter+readout`` (the
+  solver's rolling-shutter projection, ``[solver] rolling_shutter_readout`` at the rendered readout),
+  ``rolling_shutter+gyro`` (the frontend's gyro correction of the frames, ``[frontend] rolling_shutter_readout``),
+  ``calibration+self_calibration`` (``self_calibration``).
 
-A solver variant (``realistic+terms`` and the ``+`` rows, :data:`VARIANTS`) changes only the stages after the
-frontend, so it reuses its base condition's frontend instead of redoing it (tens of minutes): the base's run is
-done first if it is not finished, then ``runs/BASE/frontend`` (both trials' registrations and correspondences and
-the reference model; not the tracking cache) is copied into ``runs/NAME/frontend`` and ``bcmocap run`` goes on
-from there: its frontend stage finds each trial's registration with the same settings and reuses it (a copy
-made with other frontend settings, or by another version of the frontend, would be redone, not trusted), and the
-world, skeleton, initial, solve and outputs stages run with the variant's settings (with a readout or
-self-calibration the world stage first re-fits both trials' registered poses under that camera model,
-``bcmocap.solver.registered_poses``, so the skeleton and the solve start from them). The row's
-``frontend_reused_from`` names the base run and ``frontend_seconds_of_base`` its frontend time.
+A variant (:data:`VARIANTS`) that changes only ``[solver]`` settings changes only the stages after the frontend, so
+it reuses its base condition's frontend instead of redoing it (tens of minutes): the base's run is done first if
+it is not finished, then ``runs/BASE/frontend`` (both trials' registrations and correspondences and the reference
+model; not the tracking cache) is copied into ``runs/NAME/frontend`` and ``bcmocap run`` goes on from there: its
+frontend stage finds each trial's registration with the same settings and reuses it (a copy made with other
+frontend settings, or by another version of the frontend, would be redone, not trusted), and the world, skeleton,
+initial, solve and outputs stages run with the variant's settings (with a readout or self-calibration the world
+stage first re-fits both trials' registered poses under that camera model, ``bcmocap.solver.registered_poses``, so
+the skeleton and the solve start from them). The row's ``frontend_reused_from`` names the base run and
+``frontend_seconds_of_base`` its frontend time. A variant with ``[frontend]`` settings (the gyro correction) runs
+the whole chain on its base's capture.
 
 It reports the joint position and joint angle errors (mean, median, max, after the §5.1 similarity alignment,
 from the run's ``metrics.json``) and the registered fraction of frames per trial, and writes JSON
@@ -82,21 +86,25 @@ DEGRADATIONS = {
 }
 
 def _readout(settings: StudioSettings) -> dict:
-    return {"rolling_shutter_readout": settings.readout_ms / 1000.0}
+    return {"solver.rolling_shutter_readout": settings.readout_ms / 1000.0}
+
+
+def _gyro(settings: StudioSettings) -> dict:
+    return {"frontend.rolling_shutter_readout": settings.readout_ms / 1000.0}
 
 
 def _compliance(settings: StudioSettings) -> dict:
-    return {"mount_compliance": [settings.mount_wobble_mm / 1000.0, settings.mount_wobble_deg]}
+    return {"solver.mount_compliance": [settings.mount_wobble_mm / 1000.0, settings.mount_wobble_deg]}
 
 
-#: Solver variants: name → (the condition whose capture and frontend it reuses, its ``[solver]`` settings from the
-#: capture's studio settings). They differ from their base in the stages after the frontend only.
+#: Modelling variants: name → (the condition whose capture it reuses, its settings (dotted keys) from the capture's
+#: studio settings). A variant that changes only ``solver`` settings reuses its base's frontend (:func:`condition`).
 VARIANTS = {
     "mount_wobble+compliance": ("mount_wobble", _compliance),
     "rolling_shutter+readout": ("rolling_shutter", _readout),
-    "calibration+self_calibration": ("calibration", lambda settings: {"self_calibration": True}),
-    MODELLED: (PRESET, lambda settings: {**_readout(settings), "estimate_readout": True, "self_calibration": True,
-                                         **_compliance(settings)}),
+    "rolling_shutter+gyro": ("rolling_shutter", _gyro),
+    "calibration+self_calibration": ("calibration", lambda settings: {"solver.self_calibration": True}),
+    MODELLED: (PRESET, lambda settings: {**_gyro(settings), "solver.self_calibration": True, **_compliance(settings)}),
 }
 CONDITIONS = ("clean", *DEGRADATIONS, PRESET, *VARIANTS)
 
@@ -134,9 +142,14 @@ def run_config(condition: str, base: RunConfig, settings: StudioSettings) -> Run
     # (a looser limit, such a wrist as a hinge). Rows whose joints are all well determined are unchanged by this.
     data["skeleton"]["max_centre_std_cm"] = max(data["skeleton"]["max_centre_std_cm"], MAX_CENTRE_STD_CM)
     data["skeleton"]["degenerate"] = "hinge"
-    if condition in VARIANTS:
-        data["solver"].update(VARIANTS[condition][1](settings))
-    return RunConfig.from_dict(data)
+    config = RunConfig.from_dict(data)
+    return config.with_overrides(VARIANTS[condition][1](settings)) if condition in VARIANTS else config
+
+
+def own_frontend(condition: str) -> bool:
+    """True when a variant changes frontend settings, so it registers its capture itself instead of starting from
+    a copy of its base's frontend."""
+    return condition in VARIANTS and any(k.startswith("frontend.") for k in VARIANTS[condition][1](StudioSettings()))
 
 
 #: What a solver variant copies of its base run's frontend (``DIR/frontend/``): the trials' registrations and
@@ -215,14 +228,14 @@ def condition(name: str, out: Path, base: StudioSettings, config: RunConfig) -> 
         print(f"{name}: finished run in {run}, read back", flush=True)
         return read_back(run)
     extra: dict = {}
-    if name in VARIANTS:
+    if name in VARIANTS and not own_frontend(name):
         base_row = condition(source, out, base, config)
         seed_frontend(out / "runs" / source, run)
         extra = {"frontend_reused_from": str(out / "runs" / source),
                  "frontend_seconds_of_base": base_row["stage_seconds"]["frontend"],
                  "render_seconds": base_row.get("render_seconds")}
         print(f"{name}: frontend of {out / 'runs' / source} in {run / 'frontend'}", flush=True)
-    else:
+    else:  # a condition, or a variant with frontend settings of its own, on its (base's) capture
         timings: dict = {}
         clock = time.perf_counter()
         write_capture(capture, settings, progress=False, timings=timings)

@@ -1,6 +1,6 @@
-"""benchmarks/realism.py's solver variants (issue 20 item 3): a variant renders its base condition's capture, differs
-from it in the ``[solver]`` settings only (so the frontend's settings fingerprint is the base's), and starts from a
-copy of the base run's finished frontend, which ``bcmocap run`` then reuses."""
+"""benchmarks/realism.py's modelling variants (issue 20 item 3): a variant renders its base condition's capture; one
+that differs from it in ``[solver]`` settings only (so the frontend's settings fingerprint is the base's) starts from
+a copy of the base run's finished frontend, which ``bcmocap run`` then reuses."""
 
 import json
 from pathlib import Path
@@ -16,32 +16,38 @@ BASE = StudioSettings(seconds=2.0, rom_seconds=3.0, seed=3, reference_width=640,
 
 
 @pytest.mark.parametrize("variant", list(realism.VARIANTS))
-def test_variant_shares_its_base_capture_and_frontend(variant):
+def test_variant_shares_its_base_capture_and_frontend_unless_it_changes_it(variant):
     source = realism.VARIANTS[variant][0]
     assert realism.base_condition(variant) == source and source in realism.CONDITIONS
     settings = realism.capture_settings(variant, BASE)
     assert settings == realism.capture_settings(source, BASE)
     config = RunConfig()
     mine, theirs = realism.run_config(variant, config, settings), realism.run_config(source, config, settings)
-    assert fingerprints(mine)["frontend"] == fingerprints(theirs)["frontend"]
+    own = mine.frontend != theirs.frontend
+    assert realism.own_frontend(variant) == own == (variant in ("rolling_shutter+gyro", realism.MODELLED))
+    assert (fingerprints(mine)["frontend"] == fingerprints(theirs)["frontend"]) == (not own)
     # a readout or self-calibration re-fits the registered poses in the world stage; compliance changes the solve only
-    camera_model = mine.solver.rolling_shutter_readout > 0 or mine.solver.self_calibration
+    camera_model = own or mine.solver.rolling_shutter_readout > 0 or mine.solver.self_calibration
     assert (fingerprints(mine)["world"] == fingerprints(theirs)["world"]) == (not camera_model)
     assert (fingerprints(mine)["initial"] == fingerprints(theirs)["initial"]) == (not camera_model)
     assert fingerprints(mine)["solve"] != fingerprints(theirs)["solve"]
     a, b = mine.to_dict(), theirs.to_dict()
-    assert {k: v for k, v in a.items() if k != "solver"} == {k: v for k, v in b.items() if k != "solver"}
+    assert {k: v for k, v in a.items() if k not in ("solver", "frontend")} == \
+        {k: v for k, v in b.items() if k not in ("solver", "frontend")}
 
 
 def test_modelled_terms_follow_the_capture():
     settings = realism.capture_settings(realism.MODELLED, BASE)
-    s = realism.run_config(realism.MODELLED, RunConfig(), settings).solver
-    assert s.rolling_shutter_readout == pytest.approx(settings.readout_ms / 1000) and s.estimate_readout
-    assert s.self_calibration
+    config = realism.run_config(realism.MODELLED, RunConfig(), settings)
+    assert settings.readout_ms > 0 and config.frontend.rolling_shutter_readout == pytest.approx(settings.readout_ms / 1000)
+    s = config.solver
+    assert s.rolling_shutter_readout == 0 and s.self_calibration
     assert s.mount_compliance == pytest.approx((settings.mount_wobble_mm / 1000, settings.mount_wobble_deg))
     wobble = realism.run_config("mount_wobble+compliance", RunConfig(), realism.capture_settings("mount_wobble", BASE))
     assert wobble.solver.mount_compliance == pytest.approx((0.003, 1.5))
     assert wobble.solver.rolling_shutter_readout == 0 and not wobble.solver.self_calibration
+    readout = realism.run_config("rolling_shutter+readout", RunConfig(), realism.capture_settings("rolling_shutter", BASE))
+    assert readout.solver.rolling_shutter_readout > 0 and readout.frontend.rolling_shutter_readout == 0
 
 
 def _base_run(tmp_path: Path, frontend_finished: bool = True) -> Path:

@@ -128,6 +128,9 @@ class Capture:
             (``None`` without ``reference/camera.json``; the pinhole ``.yml`` beside it is not read).
         videos: ``{(trial, camera): TrialVideo}`` where ``rig.json`` places a video elsewhere than
             ``trials/<trial>/<camera>.mp4`` or gives only a stretch of it.
+        corrections: ``{trial: correction}``: every frame of the trial that :meth:`frames` decodes is passed through
+            ``correction(camera index, frame index, image)`` (e.g. :class:`~.rolling_shutter.GyroUnwarp`; its
+            ``settings`` join the frame caches' keys, :meth:`correction_settings`). Set by :meth:`corrected`.
     """
 
     path: Path
@@ -140,6 +143,17 @@ class Capture:
     reference_photos: tuple[Path, ...]
     reference_camera: CameraModel | None
     videos: dict = dataclasses.field(default_factory=dict)
+    corrections: dict = dataclasses.field(default_factory=dict)
+
+    def corrected(self, trial: str, correction) -> Capture:
+        """This capture with every decoded frame of ``trial`` passed through ``correction`` (see ``corrections``)."""
+        return dataclasses.replace(self, corrections={**self.corrections, self._trial(trial): correction})
+
+    def correction_settings(self, trial: str) -> dict:
+        """What the trial's frames depend on besides the videos: ``{}`` without a correction, else the
+        correction's ``settings``; caches of anything computed from frames include it in their keys."""
+        correction = self.corrections.get(trial)
+        return {} if correction is None else dict(correction.settings)
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -230,7 +244,8 @@ class Capture:
     def frames(self, trial: str, camera: str | int, *, stride: int = 1, start: int = 0, stop: int | None = None,
                gray: bool = False) -> Iterator[tuple[int, np.ndarray]]:
         """Decode one camera's video lazily: ``(frame index, image)`` for ``start, start + stride, …``
-        before ``stop`` (BGR ``uint8 (H, W, 3)``, or ``(H, W)`` with ``gray``).
+        before ``stop`` (BGR ``uint8 (H, W, 3)``, or ``(H, W)`` with ``gray``), through the trial's correction if it
+        has one (``corrections``).
 
         Frames in between are grabbed without being decoded to images. The video is opened when
         iteration begins and closed when it ends. Indices count from the trial's first frame (frame
@@ -247,6 +262,7 @@ class Capture:
         source = self.trial_video(trial, camera)
         if source.num_frames is not None:
             stop = source.num_frames if stop is None else min(stop, source.num_frames)
+        correction, camera_index = self.corrections.get(trial), self.camera_index(camera)
         path, video = self._open(trial, camera)
         try:
             for skipped in range(source.first_frame):  # exact: OpenCV's seeking may land near, not on, a frame
@@ -264,7 +280,9 @@ class Capture:
                     ok, image = video.retrieve()
                     if not ok:
                         raise ValueError(f"{path}: frame {index} could not be decoded")
-                    yield index, (cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if gray else image)
+                    if gray:
+                        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+                    yield index, (image if correction is None else correction(camera_index, index, image))
                 index += 1
         finally:
             video.release()

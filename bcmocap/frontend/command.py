@@ -76,6 +76,9 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
                      help="register each trial in equal chunks of at most this many processed frames, each saved as "
                           f"it is done, so memory does not grow with the trial (default {CHUNK_FRAMES}; 0: the whole "
                           "trial at once)")
+    cmd.add_argument("--rolling-shutter-readout", type=float, default=0.0, metavar="SECONDS",
+                     help="correct every frame for a rolling shutter with this readout (s from the first row to the "
+                          "last) by the cameras' gyros (trials/<trial>/imu.npz); default 0: global shutter")
 
     def run(args: argparse.Namespace) -> int:
         if args.stride < 1:
@@ -132,7 +135,7 @@ def prepare_reference(capture, ref_dir, log=print):
 def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
                   max_features: int = 8000, offsets=None, homographies: bool = True, chunk_frames: int = 0,
                   registration: str = "global", max_measurements: int | None = None, points: str = "all",
-                  log=print, map_tasks=None) -> dict:
+                  rolling_shutter_readout: float = 0.0, log=print, map_tasks=None) -> dict:
     """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
     are given), through sync, features, registration and homographies, written under ``out``.
 
@@ -143,7 +146,10 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     "global" (this function's default; the commands default to "tracking") extracts SIFT of every frame and
     matches each against the reference (about 8 times slower than tracking on the 10 s walk, as accurate). ``max_measurements`` caps the
     measurements per camera-frame (:mod:`~.selection`; None keeps all); ``points`` "reference" keeps only the
-    measurements of reference-model points (:meth:`~.relative.CaptureRegistration.correspondences`).
+    measurements of reference-model points (:meth:`~.relative.CaptureRegistration.correspondences`). With
+    ``rolling_shutter_readout`` > 0 (s, first row to last), every frame is first corrected for the rolling shutter
+    by the cameras' gyros (``trials/<trial>/imu.npz``; :mod:`~.rolling_shutter`), so the poses and measurements are
+    those of a global shutter at the frame times (the camera's translation across the readout aside).
 
     With ``chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
     frames (:func:`chunk_bounds`), one after the other: a chunk's points, tracks and matches are dropped
@@ -169,12 +175,17 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
         available = min(available, int(round(sync.duration_s * capture.fps)) + 1)
     frames = available if frames is None else min(available, frames)
     log(f"{trial}: first clap at video frames {starts.tolist()}; {frames} frames per camera up to the second clap")
+    if rolling_shutter_readout > 0:
+        from .rolling_shutter import gyro_unwarp
+
+        capture = capture.corrected(trial, gyro_unwarp(capture, trial, starts, rolling_shutter_readout))
+        log(f"{trial}: frames corrected for a {1e3 * rolling_shutter_readout:g} ms rolling-shutter readout by the gyros")
     if registration not in ("tracking", "global"):
         raise ValueError(f"registration must be 'tracking' or 'global', got {registration!r}")
     clock = time.perf_counter()
     settings = {"first_clap_frames": starts.tolist(), "stride": stride, "max_features": max_features,
                 "homographies": homographies, "registration": registration, "max_measurements": max_measurements,
-                **({} if points == "all" else {"points": points})}
+                **({} if points == "all" else {"points": points}), **capture.correction_settings(trial)}
     job = TrialRegistration(capture, index, trial, Path(out), starts, frames, stride, max_features, homographies,
                             registration, max_measurements, points, settings)
     state = job.per_camera(log, map_tasks)
@@ -222,7 +233,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     report["points"] = points
     report["settings"] = trial_settings(stride=stride, frames=requested_frames, max_features=max_features,
                                         homographies=homographies, chunk_frames=chunk_frames,
-                                        registration=registration, max_measurements=max_measurements, points=points)
+                                        registration=registration, max_measurements=max_measurements, points=points,
+                                        rolling_shutter_readout=rolling_shutter_readout)
     for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
                 "tracked_after_rounds", "points", "new_points", "filled_by_homographies", "homography_pairs"):
         report[key] = int(sum(c.get(key, 0) for c in chunks))
@@ -239,7 +251,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
 
 
 def trial_settings(*, stride: int, frames: int | None, max_features: int, homographies: bool, chunk_frames: int,
-                   registration: str, max_measurements: int | None, points: str = "all") -> dict:
+                   registration: str, max_measurements: int | None, points: str = "all",
+                   rolling_shutter_readout: float = 0.0) -> dict:
     """The settings of :func:`process_trial` that its result depends on, as saved in ``registration.json``
     (``"settings"``): a saved registration is reused only when they are all the same."""
     from .tracking import ROUND_PARTNERS
@@ -248,7 +261,8 @@ def trial_settings(*, stride: int, frames: int | None, max_features: int, homogr
             "homographies": bool(homographies), "chunk_frames": int(chunk_frames), "registration": str(registration),
             "max_measurements": None if max_measurements is None else int(max_measurements), "version": SETTINGS_VERSION,
             **({} if points == "all" else {"points": str(points)}),  # registrations saved before the setting: "all"
-            **({"round_partners": ROUND_PARTNERS} if registration == "tracking" else {})}
+            **({"round_partners": ROUND_PARTNERS} if registration == "tracking" else {}),
+            **({"rolling_shutter_readout": float(rolling_shutter_readout)} if rolling_shutter_readout > 0 else {})}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -480,6 +494,9 @@ def run_frontend(args: argparse.Namespace) -> int:
         unknown = [t for t in trials if t not in capture.trials]
         if unknown:
             raise ValueError(f"{args.capture}: no trial {unknown[0]!r} (trials: {', '.join(capture.trials)})")
+        if not 0.0 <= args.rolling_shutter_readout <= 1.0 / capture.fps:
+            raise ValueError(f"--rolling-shutter-readout {args.rolling_shutter_readout} s must lie in [0, "
+                             f"{1.0 / capture.fps:.6g}] (one frame period at {capture.fps:g} fps)")
         offsets = None
         if args.offsets:
             offsets = [int(v) for v in args.offsets.split(",")]
@@ -495,5 +512,6 @@ def run_frontend(args: argparse.Namespace) -> int:
             process_trial(capture, index, trial, out, stride=args.stride, frames=args.frames,
                           max_features=args.max_features, offsets=offsets, chunk_frames=args.chunk_frames,
                           registration=args.registration, max_measurements=args.max_measurements or None,
-                          points=args.points, log=lambda m: print(m, flush=True))
+                          points=args.points, rolling_shutter_readout=args.rolling_shutter_readout,
+                          log=lambda m: print(m, flush=True))
     return 0

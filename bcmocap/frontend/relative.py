@@ -307,7 +307,7 @@ def _camera_features(capture, trial: str, stride: int, num_frames: int, max_feat
         feats = list(sift_frames())
     else:
         settings = {"start": int(start), "stride": int(stride), "num_frames": int(num_frames),
-                    "max_features": int(max_features)}
+                    "max_features": int(max_features), **capture.correction_settings(trial)}
         folder = Path(cache_dir) / name
         feats = read_camera_features(folder, settings)
         if feats is not None:

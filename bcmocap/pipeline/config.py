@@ -18,6 +18,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     max_measurements = 300    # measurements per camera-frame kept for the solver (0: all)
     points = "reference"      # reference: the solver measures only the reference model's points (those
                               # triangulated from a body camera carry its pose error) | all
+    rolling_shutter_readout = 0.0   # s from the first row to the last, at most a frame period: every frame is
+                              # corrected for it by the cameras' gyros (trials/<trial>/imu.npz) before
+                              # registration; 0: global shutter (bcmocap.frontend.rolling_shutter)
 
     [skeleton]
     root_origin = ["torso"]   # children whose joint centres' mean is the root's origin
@@ -95,6 +98,7 @@ class FrontendConfig:
     registration: str = "tracking"
     max_measurements: int = 300
     points: str = "reference"
+    rolling_shutter_readout: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -176,6 +180,11 @@ class RunConfig:
                f.registration)
         _check(f.max_measurements >= 0, "frontend.max_measurements", "must be ≥ 0", f.max_measurements)
         _check(f.points in ("all", "reference"), "frontend.points", "must be 'all' or 'reference'", f.points)
+        _check(0.0 <= f.rolling_shutter_readout <= 1.0, "frontend.rolling_shutter_readout", "must be in [0, 1] s",
+               f.rolling_shutter_readout)
+        _check(not (f.rolling_shutter_readout > 0 and s.rolling_shutter_readout > 0), "solver.rolling_shutter_readout",
+               "must be 0 when frontend.rolling_shutter_readout corrects the frames by the gyros (the measurements are "
+               "a global shutter's then)", s.rolling_shutter_readout)
         _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)

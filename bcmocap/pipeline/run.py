@@ -121,7 +121,7 @@ class RunLog:
 #: Settings added after runs were made, left out of the fingerprints at these (default) values, so that those
 #: runs stay reusable.
 _LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 0.0], "registered_pose_below": 20},
-                   "skeleton": {"centre_trials": ["rom"]}}
+                   "skeleton": {"centre_trials": ["rom"]}, "frontend": {"rolling_shutter_readout": 0.0}}
 
 
 #: ``solver`` settings the ``world`` stage also reads (the camera model it re-fits the registered poses under), with
@@ -256,7 +256,8 @@ def _stage_frontend(ctx: RunContext) -> dict:
         done = folder / trial / "registration.json"
         settings = trial_settings(stride=stride, frames=f.frames or None, max_features=f.max_features,
                                   homographies=homographies, chunk_frames=f.chunk_frames, registration=f.registration,
-                                  max_measurements=f.max_measurements or None, points=f.points)
+                                  max_measurements=f.max_measurements or None, points=f.points,
+                                  rolling_shutter_readout=f.rolling_shutter_readout)
         if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
             report = _read_json(done)
             if report.get("settings") == settings:
@@ -272,8 +273,8 @@ def _stage_frontend(ctx: RunContext) -> dict:
             return process_trial(ctx.capture, index, trial, folder, stride=stride, frames=f.frames or None,
                                  max_features=f.max_features, homographies=homographies,
                                  chunk_frames=f.chunk_frames, registration=f.registration,
-                                 max_measurements=f.max_measurements or None, points=f.points, log=ctx.log,
-                                 map_tasks=map_tasks)
+                                 max_measurements=f.max_measurements or None, points=f.points,
+                                 rolling_shutter_readout=f.rolling_shutter_readout, log=ctx.log, map_tasks=map_tasks)
 
         with ThreadPoolExecutor(max_workers=len(todo) if map_tasks is not None else 1) as pool:
             for (trial, *_), report in zip(todo, pool.map(lambda job: register(*job), todo)):

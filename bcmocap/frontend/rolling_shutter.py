@@ -1,0 +1,178 @@
+"""Rolling-shutter correction of body-camera frames by the cameras' gyros (issue 20; beyond the paper).
+
+A rolling shutter exposes row ``y`` of an ``H``-row frame at ``τ(y) = (y / (H − 1) − ½) · readout`` after the
+frame's time (the convention of :mod:`bcmocap.sim.render` and :mod:`bcmocap.residuals.rolling_shutter`). A body
+camera turns at up to hundreds of degrees per second, so its view turns by degrees across a 15 ms readout: the
+frame is sheared, and registration (PnP), triangulation and tracking, which take all rows as exposed at once,
+place the camera centimetres off (about 6 cm at 120–240°/s on the realism captures). The camera's translation
+across the readout matters far less (2 m/s × 7.5 ms = 1.5 cm, against scene points metres away).
+
+Action cameras carry a gyro, and so do the studio's (``trials/<trial>/imu.npz``, :mod:`bcmocap.io.sensors`).
+With the camera's mean angular velocity ``ω`` over the frame's readout (integrated from the gyro and turned into
+the camera frame by the IMU's mount), the row exposed ``τ`` after the frame time saw the world through
+``R(t + τ) = R(t) · exp(τ [ω]×)``: a direction with bearing ``b`` in the camera at the frame time appears at bearing
+``exp(−τ [ω]×) b``. :class:`GyroUnwarp` resamples each frame into the image a global shutter would have taken
+at the frame time, under the rotation alone: every output pixel is unprojected through the camera's lens,
+turned to the time of the row it falls in (a fixed point: that row depends on where it falls; 3 iterations),
+projected, and the frame is sampled there (``cv2.remap``, bicubic, edges replicated). The map is computed on a
+grid every ``grid_px`` pixels and interpolated bilinearly in between (the displacement is smooth).
+
+Frame times: video frame ``i`` of camera ``c`` shows the synchronised time ``(i − offsets[c]) / fps`` (``offsets``:
+each camera's video frame of the first clap, :mod:`~.sync`), on the clock of ``imu.npz`` (0 at the first clap).
+Frames outside the gyro's time span take the nearest span's angular velocity.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import matrix_from_quat, quat_log
+from ..io.sensors import IMU_FILE, ImuRecording, integrate_gyro, read_imu
+
+__all__ = ["GyroUnwarp", "gyro_unwarp"]
+
+#: Fixed-point iterations for the row an output pixel falls in (the row moves by the displacement's
+#: vertical part, a few pixels: 3 iterations leave it to well below 0.01 px).
+ROW_ITERATIONS = 3
+
+
+def _rotate(rotvec: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotations ``rotvec (..., 3)`` applied to vectors ``v (..., 3)``."""
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    safe = np.where(angle > 1e-12, angle, 1.0)
+    k = rotvec / safe
+    cos, sin = np.cos(angle), np.sin(angle)
+    return v * cos + np.cross(k, v) * sin + k * np.sum(k * v, axis=-1, keepdims=True) * (1.0 - cos)
+
+
+def _interpolation_matrix(coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:
+    """``(len(fine), len(coarse))`` weights of linear interpolation from the increasing ``coarse`` samples."""
+    k = np.clip(np.searchsorted(coarse, fine, side="right") - 1, 0, len(coarse) - 2)
+    w = (fine - coarse[k]) / (coarse[k + 1] - coarse[k])
+    m = np.zeros((len(fine), len(coarse)))
+    m[np.arange(len(fine)), k] = 1.0 - w
+    m[np.arange(len(fine)), k + 1] = w
+    return m
+
+
+@dataclasses.dataclass(frozen=True)
+class GyroUnwarp:
+    """The rolling-shutter correction of one trial's frames (module docstring).
+
+    Attributes:
+        lenses: per capture camera, its :class:`~bcmocap.cameras.CameraModel` (the image size is the frame's).
+        imu: the trial's gyro recording.
+        imu_index: ``(C,)`` each capture camera's sensor in ``imu`` (every camera must carry one).
+        offsets: ``(C,)`` each camera's video frame of the first clap.
+        fps: video frame rate (Hz).
+        readout_s: time from the first row to the last (s), in ``(0, 1 / fps]``.
+        grid_px: spacing of the grid the map is computed on (px).
+    """
+
+    lenses: tuple
+    imu: ImuRecording
+    imu_index: tuple[int, ...]
+    offsets: tuple[int, ...]
+    fps: float
+    readout_s: float
+    grid_px: int = 8
+
+    def __post_init__(self):
+        if not 0.0 < self.readout_s <= 1.0 / self.fps:
+            raise ValueError(f"rolling-shutter readout {self.readout_s} s must lie in (0, {1.0 / self.fps:.6g}] s "
+                             f"(one frame period at {self.fps:g} fps)")
+        if not len(self.lenses) == len(self.imu_index) == len(self.offsets):
+            raise ValueError(f"GyroUnwarp: {len(self.lenses)} lenses, {len(self.imu_index)} IMU indices and "
+                             f"{len(self.offsets)} offsets; expected one of each per camera")
+        if self.grid_px < 2:
+            raise ValueError(f"GyroUnwarp: grid_px must be at least 2, got {self.grid_px}")
+
+    @property
+    def settings(self) -> dict:
+        """What the corrected frames depend on besides the videos and the gyro (for caches)."""
+        return {"gyro_unwarp": {"readout_s": float(self.readout_s), "grid_px": int(self.grid_px),
+                                "iterations": ROW_ITERATIONS}}
+
+    def frame_time(self, camera: int, index: int) -> float:
+        """Synchronised time (s) of video frame ``index`` of camera ``camera``."""
+        return (int(index) - int(self.offsets[camera])) / self.fps
+
+    def angular_velocity(self, camera: int, index: int) -> np.ndarray:
+        """``(3,)`` mean angular velocity of the camera over the frame's readout, in the camera frame (rad/s)."""
+        time = self.imu.time
+        half = 0.5 * self.readout_s
+        t = float(np.clip(self.frame_time(camera, index), time[0] + half, time[-1] - half))
+        s = self.imu_index[camera]
+        q = integrate_gyro(time, self.imu.gyro[:, s:s + 1], t - half, t + half)[0]  # (4,) IMU frame
+        camera_from_imu = matrix_from_quat(self.imu.camera_from_imu[s, :4])
+        return camera_from_imu @ quat_log(q) / self.readout_s
+
+    def _grid(self, camera: int) -> tuple[np.ndarray, np.ndarray]:
+        lens = self.lenses[camera]
+        width, height = int(lens.width), int(lens.height)
+        xs = np.unique(np.r_[np.arange(0, width - 1, self.grid_px), width - 1]).astype(np.float64)
+        ys = np.unique(np.r_[np.arange(0, height - 1, self.grid_px), height - 1]).astype(np.float64)
+        return xs, ys
+
+    def source_pixels(self, camera: int, index: int) -> np.ndarray:
+        """``(H, W, 2)`` float32: where output pixel ``(x, y)`` of video frame ``index`` of ``camera`` lies in the
+        rolling-shutter frame (OpenCV pixels), for ``cv2.remap``."""
+        lens = self.lenses[camera]
+        width, height = int(lens.width), int(lens.height)
+        xs, ys = self._grid(camera)
+        grid = np.stack(np.meshgrid(xs, ys), axis=-1)  # (gh, gw, 2)
+        bearing = np.asarray(lens.unproject(grid), np.float64)
+        omega = self.angular_velocity(camera, index)
+        source = grid
+        for _ in range(ROW_ITERATIONS):
+            tau = (source[..., 1:2] / max(height - 1, 1) - 0.5) * self.readout_s
+            seen = _rotate(-tau * omega, bearing)
+            projected, valid = lens.project(seen)
+            source = np.where(np.asarray(valid)[..., None], np.asarray(projected, np.float64), grid)
+        shift = source - grid
+        ay = _interpolation_matrix(ys, np.arange(height, dtype=np.float64))
+        ax = _interpolation_matrix(xs, np.arange(width, dtype=np.float64))
+        full = np.stack([ay @ shift[..., k] @ ax.T for k in range(2)], axis=-1)
+        full[..., 0] += np.arange(width)[None, :]
+        full[..., 1] += np.arange(height)[:, None]
+        return full.astype(np.float32)
+
+    def __call__(self, camera: int, index: int, image: np.ndarray) -> np.ndarray:
+        """Video frame ``index`` of ``camera`` (``(H, W)`` or ``(H, W, 3)`` uint8) as a global shutter at the frame
+        time would have taken it (rotation only)."""
+        import cv2
+
+        lens = self.lenses[camera]
+        if image.shape[:2] != (int(lens.height), int(lens.width)):
+            raise ValueError(f"GyroUnwarp: camera {camera}'s frame is {image.shape[1]}x{image.shape[0]} px, its "
+                             f"intrinsics say {int(lens.width)}x{int(lens.height)}")
+        source = self.source_pixels(camera, index)
+        return cv2.remap(image, source[..., 0], source[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+
+
+def gyro_unwarp(capture, trial: str, offsets, readout_s: float, *, grid_px: int = 8) -> GyroUnwarp:
+    """The :class:`GyroUnwarp` of a capture's trial, from ``trials/<trial>/imu.npz`` and the cameras' intrinsics.
+
+    Raises:
+        ValueError: naming the file when the trial has no gyro recording, or the camera that carries no IMU.
+    """
+    if not 0.0 < readout_s <= 1.0 / capture.fps:
+        raise ValueError(f"frontend.rolling_shutter_readout (--rolling-shutter-readout) {readout_s} s must lie in "
+                         f"(0, {1.0 / capture.fps:.6g}] s: at most one frame period at {capture.fps:g} fps")
+    path = Path(capture.path) / "trials" / trial / IMU_FILE
+    if not path.is_file():
+        raise ValueError(f"{path}: missing; frontend.rolling_shutter_readout corrects the rolling shutter with the "
+                         f"cameras' gyros (set it to 0 for a capture without them)")
+    imu = read_imu(path)
+    index = []
+    for camera in capture.cameras:
+        if camera.name not in imu.cameras:
+            raise ValueError(f"{path}: no IMU for camera {camera.name!r} (IMUs: {list(imu.cameras)}); "
+                             f"frontend.rolling_shutter_readout needs one in every camera")
+        index.append(imu.cameras.index(camera.name))
+    offsets = tuple(int(o) for o in np.asarray(offsets).ravel())
+    return GyroUnwarp(tuple(c.intrinsics for c in capture.cameras), imu, tuple(index), offsets, float(capture.fps),
+                      float(readout_s), grid_px)
