@@ -96,3 +96,17 @@ def test_clear_errors(capture_dir, tmp_path):
     (broken / "capture.json").write_text('{"format": "other"}')
     with pytest.raises(ValueError, match="format is 'other'"):
         read_capture(broken)
+
+
+def test_with_lenses_replaces_the_intrinsics_and_changes_the_lens_fingerprint(capture_dir):
+    from bcmocap.residuals.self_calibration import corrected_camera
+
+    cap = read_capture(capture_dir)
+    head, foot = (c.intrinsics for c in cap.cameras)
+    moved = corrected_camera(foot, np.array([0.01, 0.5, 0.0]))
+    other = cap.with_lenses([head, moved])
+    assert other.cameras[1].intrinsics is moved and other.cameras[0].intrinsics is head
+    assert [c.name for c in other.cameras] == list(CAMERAS) and cap.cameras[1].intrinsics is foot
+    assert cap.lens_fingerprint() == read_capture(capture_dir).lens_fingerprint() != other.lens_fingerprint()
+    with pytest.raises(ValueError, match="1 lenses for 2 cameras"):
+        cap.with_lenses([head])

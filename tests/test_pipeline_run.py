@@ -418,3 +418,54 @@ def test_a_camera_model_in_the_solver_settings_refits_the_registered_poses(simul
     assert np.median(after) < 0.3 * np.median(before) and moved[reg].max() > 0
     run_pipeline(fake, copy, config, log=lines.append, stop_after="world")
     assert not folder.exists()
+
+
+def test_frontend_self_calibration_registers_again_through_the_corrected_lenses(simulated_run, tmp_path, monkeypatch):
+    """``frontend.self_calibration``: the first registration (here the fixture's, made through the true lenses while
+    the capture's files are 1 % and 2 px off) gives each camera's correction, the trials are registered again
+    through the corrected lenses, and the later stages start from those."""
+    import shutil
+
+    import bcmocap.frontend.command as frontend_command
+    from bcmocap.cameras import camera_at
+    from bcmocap.residuals.self_calibration import corrected_cameras
+
+    out, _, _, capture, _, fake, config = simulated_run
+    copy = tmp_path / "out"
+    shutil.copytree(out / "frontend", copy / "frontend" / "calibration_pass")
+    error = np.array([np.log(1.01), 2.0, -2.0])  # the capture's files: focal 1 % long, centre moved by (2, -2) px
+    wrong = corrected_cameras(capture.rig.intrinsics, np.tile(error, (capture.rig.num_cameras, 1)))
+    given = fake.with_lenses([camera_at(wrong, i) for i in range(capture.rig.num_cameras)])
+    registered_through = []
+
+    def register_again(capture_, index, trial, folder, *, extra_settings, **kwargs):  # the fixture's stores again
+        registered_through.append(np.array([np.asarray(cam.intrinsics.focal)[0] for cam in capture_.cameras]))
+        shutil.copytree(copy / "frontend" / "calibration_pass" / trial, folder / trial, dirs_exist_ok=True)
+        report = json.loads((folder / trial / "registration.json").read_text())
+        report["settings"] = {**report["settings"], **extra_settings}
+        (folder / trial / "registration.json").write_text(json.dumps(report))
+        return report
+
+    monkeypatch.setattr(frontend_command, "process_trial", register_again)
+    monkeypatch.setattr(frontend_command, "prepare_reference", lambda *args, **kwargs: None)
+    monkeypatch.setattr("bcmocap.frontend.register.reference_index", lambda model: None)
+    calibrated = config.with_overrides({"frontend.self_calibration": True})
+    lines = []
+    run_pipeline(given, copy, calibrated, log=lines.append, stop_after="skeleton")
+    assert sum("registration found" in line for line in lines) == 2  # the first pass: reused
+    with np.load(copy / "frontend" / "intrinsics.npz") as saved:
+        correction = saved["correction"]
+        assert [str(n) for n in saved["cameras"]] == list(capture.rig.names)
+    np.testing.assert_allclose(correction[:, 0], -error[0], atol=2e-3)  # the capture trial alone measures (ROM: none)
+    np.testing.assert_allclose(correction[:, 1:], -np.tile(error[1:], (capture.rig.num_cameras, 1)), atol=0.3)
+    true_focal = np.asarray(capture.rig.intrinsics.focal)[:, 0]
+    assert len(registered_through) == 2  # both trials registered again, through lenses near the true ones
+    np.testing.assert_allclose(registered_through[0], true_focal, rtol=2e-3)
+    report = json.loads((copy / "frontend" / "capture" / "registration.json").read_text())
+    assert report["settings"]["lens_correction"] == np.round(correction, 9).tolist()
+    np.testing.assert_allclose(np.asarray(load_model(copy)[1].intrinsics.focal)[:, 0], true_focal, rtol=2e-3)
+    (copy / "frontend" / "intrinsics.npz").unlink()  # a finished frontend without its correction is done again
+    lines.clear()
+    run_pipeline(given, copy, calibrated, log=lines.append, stop_after="frontend")
+    assert any("intrinsics.npz is missing, redoing it" in line for line in lines)
+    assert (copy / "frontend" / "intrinsics.npz").is_file()

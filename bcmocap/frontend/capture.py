@@ -155,6 +155,26 @@ class Capture:
         correction = self.corrections.get(trial)
         return {} if correction is None else dict(correction.settings)
 
+    def lens_fingerprint(self) -> str:
+        """A hash of every camera's intrinsics (class, size, parameters): caches of registrations include it."""
+        import hashlib
+
+        import jax
+
+        text = repr([(type(c.intrinsics).__name__, int(c.intrinsics.width), int(c.intrinsics.height),
+                      [np.round(np.asarray(x, np.float64), 9).tolist() for x in jax.tree.leaves(c.intrinsics)])
+                     for c in self.cameras])
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def with_lenses(self, lenses) -> Capture:
+        """This capture with each camera's intrinsics replaced by ``lenses`` (one per camera, in order; e.g. the
+        self-calibrated ones)."""
+        lenses = list(lenses)
+        if len(lenses) != len(self.cameras):
+            raise ValueError(f"with_lenses: {len(lenses)} lenses for {len(self.cameras)} cameras")
+        return dataclasses.replace(self, cameras=tuple(dataclasses.replace(c, intrinsics=lens)
+                                                       for c, lens in zip(self.cameras, lenses)))
+
     @property
     def camera_names(self) -> tuple[str, ...]:
         return tuple(c.name for c in self.cameras)

@@ -135,7 +135,8 @@ def prepare_reference(capture, ref_dir, log=print):
 def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
                   max_features: int = 8000, offsets=None, homographies: bool = True, chunk_frames: int = 0,
                   registration: str = "global", max_measurements: int | None = None, points: str = "all",
-                  rolling_shutter_readout: float = 0.0, log=print, map_tasks=None) -> dict:
+                  rolling_shutter_readout: float = 0.0, extra_settings: dict | None = None, log=print,
+                  map_tasks=None) -> dict:
     """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
     are given), through sync, features, registration and homographies, written under ``out``.
 
@@ -150,6 +151,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     ``rolling_shutter_readout`` > 0 (s, first row to last), every frame is first corrected for the rolling shutter
     by the cameras' gyros (``trials/<trial>/imu.npz``; :mod:`~.rolling_shutter`), so the poses and measurements are
     those of a global shutter at the frame times (the camera's translation across the readout aside).
+    ``extra_settings`` join the settings saved with the result (e.g. the lens correction a caller applied to
+    ``capture``), so a saved registration is reused only with them.
 
     With ``chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
     frames (:func:`chunk_bounds`), one after the other: a chunk's points, tracks and matches are dropped
@@ -185,7 +188,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     clock = time.perf_counter()
     settings = {"first_clap_frames": starts.tolist(), "stride": stride, "max_features": max_features,
                 "homographies": homographies, "registration": registration, "max_measurements": max_measurements,
-                **({} if points == "all" else {"points": points}), **capture.correction_settings(trial)}
+                **({} if points == "all" else {"points": points}), **capture.correction_settings(trial),
+                **(extra_settings or {})}
     job = TrialRegistration(capture, index, trial, Path(out), starts, frames, stride, max_features, homographies,
                             registration, max_measurements, points, settings)
     state = job.per_camera(log, map_tasks)
@@ -234,7 +238,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     report["settings"] = trial_settings(stride=stride, frames=requested_frames, max_features=max_features,
                                         homographies=homographies, chunk_frames=chunk_frames,
                                         registration=registration, max_measurements=max_measurements, points=points,
-                                        rolling_shutter_readout=rolling_shutter_readout)
+                                        rolling_shutter_readout=rolling_shutter_readout) | (extra_settings or {})
     for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
                 "tracked_after_rounds", "points", "new_points", "filled_by_homographies", "homography_pairs"):
         report[key] = int(sum(c.get(key, 0) for c in chunks))

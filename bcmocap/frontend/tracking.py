@@ -595,7 +595,7 @@ def _track_one_camera(capture, trial: str, index: ReferenceIndex, starts: np.nda
         feats = list(steps())
         return tracker.result(), feats
     settings = {"start": start, "stride": int(stride), "num_frames": int(num_frames), "tracking": options.to_dict(),
-                **capture.correction_settings(trial)}
+                "lenses": capture.lens_fingerprint(), **capture.correction_settings(trial)}
     folder = Path(cache_dir) / name
     feats = read_camera_features(folder, settings)
     if feats is not None and (folder / "track.npz").is_file():

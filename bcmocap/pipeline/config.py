@@ -21,6 +21,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     rolling_shutter_readout = 0.0   # s from the first row to the last, at most a frame period: every frame is
                               # corrected for it by the cameras' gyros (trials/<trial>/imu.npz) before
                               # registration; 0: global shutter (bcmocap.frontend.rolling_shutter)
+    self_calibration = false  # register both trials, estimate each camera's focal length and centre from them
+                              # (reference points fixed), then register again through the corrected lenses,
+                              # which the later stages start from (DIR/frontend/intrinsics.npz); twice the time
 
     [skeleton]
     root_origin = ["torso"]   # children whose joint centres' mean is the root's origin
@@ -99,6 +102,7 @@ class FrontendConfig:
     max_measurements: int = 300
     points: str = "reference"
     rolling_shutter_readout: float = 0.0
+    self_calibration: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

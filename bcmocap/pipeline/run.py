@@ -62,6 +62,13 @@ STAGE_OUTPUTS = {
 RUN_FORMAT = "bcmocap-run"
 
 
+def _expected_outputs(stage: str, config: RunConfig) -> tuple[str, ...]:
+    """:data:`STAGE_OUTPUTS` of a stage, with what its settings add (the frontend's lens correction)."""
+    if stage == "frontend" and config.frontend.self_calibration:
+        return (*STAGE_OUTPUTS[stage], "frontend/intrinsics.npz")
+    return STAGE_OUTPUTS[stage]
+
+
 def _write_npz(path: Path, **arrays) -> None:
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, **arrays)
@@ -121,7 +128,8 @@ class RunLog:
 #: Settings added after runs were made, left out of the fingerprints at these (default) values, so that those
 #: runs stay reusable.
 _LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 0.0], "registered_pose_below": 20},
-                   "skeleton": {"centre_trials": ["rom"]}, "frontend": {"rolling_shutter_readout": 0.0}}
+                   "skeleton": {"centre_trials": ["rom"]},
+                   "frontend": {"rolling_shutter_readout": 0.0, "self_calibration": False}}
 
 
 #: ``solver`` settings the ``world`` stage also reads (the camera model it re-fits the registered poses under), with
@@ -216,7 +224,7 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
     prints = fingerprints(config)
     redo = False
     for i, stage in enumerate(STAGES, start=1):
-        missing = [name for name in STAGE_OUTPUTS[stage] if not (out / name).exists()]
+        missing = [name for name in _expected_outputs(stage, config) if not (out / name).exists()]
         if not redo and run_log.finished(stage, prints[stage]) and not missing:
             say(f"[{i}/{len(STAGES)}] {stage}: done before, reused")
         else:
@@ -240,24 +248,43 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
 # ---- stages -------------------------------------------------------------------------------------
 def _stage_frontend(ctx: RunContext) -> dict:
     """Both trials registered (reused when saved with the same settings); on a cluster side by side, each
-    handing its cameras and chunks to the cluster as tasks."""
+    handing its cameras and chunks to the cluster as tasks. With ``frontend.self_calibration`` a first
+    registration (``DIR/frontend/calibration_pass/``) gives each camera's lens correction
+    (``DIR/frontend/intrinsics.npz``), and the trials are registered again through the corrected lenses."""
+    f = ctx.config.frontend
+    missing = [t for t in ("rom", "capture") if t not in ctx.capture.trials]
+    if missing:
+        raise ValueError(f"{ctx.capture.path}: no trial {missing[0]!r} (bcmocap run needs 'rom' and 'capture')")
+    correction_path = ctx.path("frontend", "intrinsics.npz")
+    if not f.self_calibration:
+        correction_path.unlink(missing_ok=True)
+        reports = _register_trials(ctx, ctx.capture, ctx.path("frontend"))
+    else:
+        _register_trials(ctx, ctx.capture, ctx.path("frontend", "calibration_pass"))
+        correction = _lens_correction(ctx, ctx.path("frontend", "calibration_pass"))
+        _write_npz(correction_path, correction=correction, cameras=np.array(ctx.capture.camera_names))
+        reports = _register_trials(ctx, _frontend_capture(ctx), ctx.path("frontend"),
+                                   {"lens_correction": np.round(correction, 9).tolist()})
+    return {trial: {"registered_fraction": reports[trial]["registered_fraction"], "frames": reports[trial]["frames"]}
+            for trial in ("rom", "capture")}
+
+
+def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None = None) -> dict:
+    """Both trials of ``capture`` registered into ``folder`` (each reused when saved there with the same settings,
+    ``extra`` included): the trials' registration reports."""
     from concurrent.futures import ThreadPoolExecutor
 
     from ..frontend.command import prepare_reference, process_trial, trial_settings
     from ..frontend.register import reference_index
 
     f = ctx.config.frontend
-    missing = [t for t in ("rom", "capture") if t not in ctx.capture.trials]
-    if missing:
-        raise ValueError(f"{ctx.capture.path}: no trial {missing[0]!r} (bcmocap run needs 'rom' and 'capture')")
-    folder = ctx.path("frontend")
     reports, todo = {}, []
     for trial, stride, homographies in (("rom", f.rom_stride, False), ("capture", f.stride, True)):
         done = folder / trial / "registration.json"
         settings = trial_settings(stride=stride, frames=f.frames or None, max_features=f.max_features,
                                   homographies=homographies, chunk_frames=f.chunk_frames, registration=f.registration,
                                   max_measurements=f.max_measurements or None, points=f.points,
-                                  rolling_shutter_readout=f.rolling_shutter_readout)
+                                  rolling_shutter_readout=f.rolling_shutter_readout) | (extra or {})
         if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
             report = _read_json(done)
             if report.get("settings") == settings:
@@ -266,21 +293,59 @@ def _stage_frontend(ctx: RunContext) -> dict:
                 continue
         todo.append((trial, stride, homographies))
     if todo:
-        index = reference_index(prepare_reference(ctx.capture, folder / "reference", log=ctx.log))
+        index = reference_index(prepare_reference(capture, folder / "reference", log=ctx.log))
         map_tasks = ctx.executor.map if ctx.executor.distributed else None
 
         def register(trial: str, stride: int, homographies: bool) -> dict:
-            return process_trial(ctx.capture, index, trial, folder, stride=stride, frames=f.frames or None,
+            return process_trial(capture, index, trial, folder, stride=stride, frames=f.frames or None,
                                  max_features=f.max_features, homographies=homographies,
                                  chunk_frames=f.chunk_frames, registration=f.registration,
                                  max_measurements=f.max_measurements or None, points=f.points,
-                                 rolling_shutter_readout=f.rolling_shutter_readout, log=ctx.log, map_tasks=map_tasks)
+                                 rolling_shutter_readout=f.rolling_shutter_readout, extra_settings=extra, log=ctx.log,
+                                 map_tasks=map_tasks)
 
         with ThreadPoolExecutor(max_workers=len(todo) if map_tasks is not None else 1) as pool:
             for (trial, *_), report in zip(todo, pool.map(lambda job: register(*job), todo)):
                 reports[trial] = report
-    return {trial: {"registered_fraction": reports[trial]["registered_fraction"], "frames": reports[trial]["frames"]}
-            for trial in ("rom", "capture")}
+    return reports
+
+
+def _lens_correction(ctx: RunContext, folder: Path) -> np.ndarray:
+    """``(C, 3)`` each camera's lens correction (log focal scale, Δcx, Δcy px) from both trials registered in
+    ``folder``: their registered poses and the lenses re-fitted together, the reference points held
+    (:func:`~bcmocap.solver.registered_poses.refine_trials`; the solver's readout, if any, modelled)."""
+    from ..correspondence_store import CorrespondenceStore
+    from ..solver.registered_poses import PoseRefinementOptions, refine_trials
+
+    stores = [CorrespondenceStore.open(folder / trial / "correspondences") for trial in ("rom", "capture")]
+    readout = ctx.config.solver.rolling_shutter_readout
+    results = refine_trials(stores, _given_intrinsics(ctx, corrected=False), PoseRefinementOptions(calibrate=True),
+                            readouts=[readout * store.fps for store in stores])
+    correction = np.asarray(results[0].intrinsics_correction, np.float64)
+    ctx.log("frontend: lens correction from the first registration: focal scale "
+            f"{100 * (np.exp(correction[:, 0].min()) - 1):+.2f} to {100 * (np.exp(correction[:, 0].max()) - 1):+.2f} %, "
+            f"centre moved up to {np.abs(correction[:, 1:]).max():.2f} px; registering again through the corrected lenses")
+    return correction
+
+
+def _frontend_capture(ctx: RunContext):
+    """The capture as the frontend registered it: with the lenses it corrected (``frontend.self_calibration``),
+    else as given."""
+    from ..cameras import camera_at
+    from ..residuals.self_calibration import corrected_cameras
+
+    path = ctx.path("frontend", "intrinsics.npz")
+    if not ctx.config.frontend.self_calibration:
+        return ctx.capture
+    if not path.is_file():
+        raise ValueError(f"{path}: missing: the lens correction of frontend.self_calibration (delete DIR/run.json's "
+                         "frontend stage, or the whole run, to redo it)")
+    with np.load(path) as data:
+        correction, names = data["correction"], [str(n) for n in data["cameras"]]
+    if names != list(ctx.capture.camera_names):
+        raise ValueError(f"{path}: lens corrections of cameras {names}, the capture has {list(ctx.capture.camera_names)}")
+    lenses = corrected_cameras(_given_intrinsics(ctx, corrected=False), correction)
+    return ctx.capture.with_lenses([camera_at(lenses, i) for i in range(len(names))])
 
 
 def _subject(ctx: RunContext) -> dict:
@@ -415,10 +480,13 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def _given_intrinsics(ctx: RunContext):
+def _given_intrinsics(ctx: RunContext, corrected: bool = True):
+    """The cameras' stacked intrinsics the frontend registered through (the capture's, corrected by the frontend
+    with ``frontend.self_calibration``; the capture's own with ``corrected=False``)."""
     from ..cameras import stack_cameras
 
-    return stack_cameras([c.intrinsics for c in ctx.capture.cameras])
+    capture = _frontend_capture(ctx) if corrected else ctx.capture
+    return stack_cameras([c.intrinsics for c in capture.cameras])
 
 
 def _stacked_intrinsics(ctx: RunContext):
