@@ -13,13 +13,14 @@ Rows:
   ``calibration`` (focal length and centre errors in the intrinsics given);
 - ``realistic``: all of them (the preset), the paper's terms only;
 - ``realistic+terms``: the same capture with every model on: the frames corrected for the rolling shutter by the
-  cameras' gyros (``[frontend] rolling_shutter_readout``, the rendered readout), ``[solver] self_calibration`` and
-  ``mount_compliance`` (the preset's wobble RMS);
+  cameras' gyros (``[frontend] rolling_shutter_readout``, the rendered readout), self-calibration (``[frontend]
+  self_calibration``: registered again through the lenses the first registration corrected; ``[solver]
+  self_calibration``) and ``mount_compliance`` (the preset's wobble RMS);
 - one variant per modelled degradation, on that degradation's capture with the model of it on:
   ``mount_wobble+compliance`` (``mount_compliance`` at the capture's wobble RMS), ``rolling_shutter+readout`` (the
   solver's rolling-shutter projection, ``[solver] rolling_shutter_readout`` at the rendered readout),
   ``rolling_shutter+gyro`` (the frontend's gyro correction of the frames, ``[frontend] rolling_shutter_readout``),
-  ``calibration+self_calibration`` (``self_calibration``).
+  ``calibration+self_calibration`` (``self_calibration`` in the frontend and the solver).
 
 A variant (:data:`VARIANTS`) that changes only ``[solver]`` settings changes only the stages after the frontend, so
 it reuses its base condition's frontend instead of redoing it (tens of minutes): the base's run is done first if
@@ -30,8 +31,8 @@ frontend settings, or by another version of the frontend, would be redone, not t
 initial, solve and outputs stages run with the variant's settings (with a readout or self-calibration the world
 stage first re-fits both trials' registered poses under that camera model, ``bcmocap.solver.registered_poses``, so
 the skeleton and the solve start from them). The row's ``frontend_reused_from`` names the base run and
-``frontend_seconds_of_base`` its frontend time. A variant with ``[frontend]`` settings (the gyro correction) runs
-the whole chain on its base's capture.
+``frontend_seconds_of_base`` its frontend time. A variant with ``[frontend]`` settings (the gyro correction,
+self-calibration) runs the whole chain on its base's capture.
 
 It reports the joint position and joint angle errors (mean, median, max, after the §5.1 similarity alignment,
 from the run's ``metrics.json``) and the registered fraction of frames per trial, and writes JSON
@@ -60,6 +61,8 @@ import shutil
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -97,14 +100,17 @@ def _compliance(settings: StudioSettings) -> dict:
     return {"solver.mount_compliance": [settings.mount_wobble_mm / 1000.0, settings.mount_wobble_deg]}
 
 
+#: Self-calibration: in the frontend (register, correct the lenses, register again) and in the solve.
+SELF_CALIBRATION = {"frontend.self_calibration": True, "solver.self_calibration": True}
+
 #: Modelling variants: name → (the condition whose capture it reuses, its settings (dotted keys) from the capture's
 #: studio settings). A variant that changes only ``solver`` settings reuses its base's frontend (:func:`condition`).
 VARIANTS = {
     "mount_wobble+compliance": ("mount_wobble", _compliance),
     "rolling_shutter+readout": ("rolling_shutter", _readout),
     "rolling_shutter+gyro": ("rolling_shutter", _gyro),
-    "calibration+self_calibration": ("calibration", lambda settings: {"solver.self_calibration": True}),
-    MODELLED: (PRESET, lambda settings: {**_gyro(settings), "solver.self_calibration": True, **_compliance(settings)}),
+    "calibration+self_calibration": ("calibration", lambda settings: dict(SELF_CALIBRATION)),
+    MODELLED: (PRESET, lambda settings: {**_gyro(settings), **SELF_CALIBRATION, **_compliance(settings)}),
 }
 CONDITIONS = ("clean", *DEGRADATIONS, PRESET, *VARIANTS)
 
@@ -203,12 +209,38 @@ def row(run: Path) -> dict:
     }
 
 
+def lens_errors(capture: Path, run: Path) -> dict | None:
+    """For a run whose frontend self-calibrated (``DIR/frontend/intrinsics.npz``): how far the lenses given in
+    ``capture/intrinsics/`` and the corrected ones are from the rendered ones (``ground_truth/rig.json``), as the
+    largest focal-length error (%) and centre error (px) over the cameras; None otherwise. (Every studio lens model's
+    parameters start with fx, fy, cx, cy.)"""
+    path = run / "frontend" / "intrinsics.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as saved:
+        correction, names = saved["correction"], [str(n) for n in saved["cameras"]]
+    truth = {c["name"]: c["intrinsics"]["params"] for c in json.loads((capture / "ground_truth" / "rig.json").read_text())["cameras"]}
+    given = {n: json.loads((capture / "intrinsics" / f"{n}.json").read_text())["params"] for n in names}
+    out = {}
+    for name, scale, shift in (("given", np.zeros(len(names)), np.zeros((len(names), 2))),
+                               ("corrected", correction[:, 0], correction[:, 1:])):
+        focal = [100 * abs(given[n][0] * np.exp(k) / truth[n][0] - 1) for n, k in zip(names, scale)]
+        centre = [float(np.hypot(given[n][2] + d[0] - truth[n][2], given[n][3] + d[1] - truth[n][3]))
+                  for n, d in zip(names, shift)]
+        out[name] = {"focal_error_pct_max": float(max(focal)), "focal_error_pct_mean": float(np.mean(focal)),
+                     "centre_error_px_max": max(centre), "centre_error_px_mean": float(np.mean(centre))}
+    return out
+
+
 def read_back(run: Path) -> dict:
     """A finished run's row with what :func:`condition` saved beside it (``benchmark.json``) and the settings its
     capture was rendered with (``OUT/captures/BASE/capture.json``)."""
     result = row(run)
     capture = run.parent.parent / "captures" / base_condition(run.name) / "capture.json"
     result["capture_settings"] = json.loads(capture.read_text())["settings"]
+    lenses = lens_errors(capture.parent, run)
+    if lenses is not None:
+        result["frontend_lens_errors"] = lenses
     extra = json.loads((run / "benchmark.json").read_text()) if (run / "benchmark.json").is_file() else {}
     result["render_seconds"] = extra.get("render_seconds")
     for key in ("frontend_reused_from", "frontend_seconds_of_base", "load_average"):

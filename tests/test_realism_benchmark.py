@@ -24,7 +24,8 @@ def test_variant_shares_its_base_capture_and_frontend_unless_it_changes_it(varia
     config = RunConfig()
     mine, theirs = realism.run_config(variant, config, settings), realism.run_config(source, config, settings)
     own = mine.frontend != theirs.frontend
-    assert realism.own_frontend(variant) == own == (variant in ("rolling_shutter+gyro", realism.MODELLED))
+    assert realism.own_frontend(variant) == own == (variant in ("rolling_shutter+gyro", "calibration+self_calibration",
+                                                               realism.MODELLED))
     assert (fingerprints(mine)["frontend"] == fingerprints(theirs)["frontend"]) == (not own)
     # a readout or self-calibration re-fits the registered poses in the world stage; compliance changes the solve only
     camera_model = own or mine.solver.rolling_shutter_readout > 0 or mine.solver.self_calibration
@@ -41,7 +42,7 @@ def test_modelled_terms_follow_the_capture():
     config = realism.run_config(realism.MODELLED, RunConfig(), settings)
     assert settings.readout_ms > 0 and config.frontend.rolling_shutter_readout == pytest.approx(settings.readout_ms / 1000)
     s = config.solver
-    assert s.rolling_shutter_readout == 0 and s.self_calibration
+    assert s.rolling_shutter_readout == 0 and s.self_calibration and config.frontend.self_calibration
     assert s.mount_compliance == pytest.approx((settings.mount_wobble_mm / 1000, settings.mount_wobble_deg))
     wobble = realism.run_config("mount_wobble+compliance", RunConfig(), realism.capture_settings("mount_wobble", BASE))
     assert wobble.solver.mount_compliance == pytest.approx((0.003, 1.5))
@@ -87,3 +88,25 @@ def test_seed_frontend_leaves_a_started_run_and_refuses_an_unfinished_base(tmp_p
     with pytest.raises(ValueError, match="frontend stage has not finished"):
         realism.seed_frontend(unfinished, tmp_path / "runs" / "fresh")
     assert not (tmp_path / "runs" / "fresh").exists()
+
+
+def test_lens_errors_compare_the_given_and_corrected_lenses_with_the_rendered_ones(tmp_path):
+    import numpy as np
+
+    capture, run = tmp_path / "capture", tmp_path / "run"
+    (capture / "ground_truth").mkdir(parents=True)
+    (capture / "intrinsics").mkdir()
+    (run / "frontend").mkdir(parents=True)
+    true = {"a": [200.0, 200.0, 320.0, 180.0, 1.2], "b": [250.0, 250.0, 319.5, 179.5, 1.2]}
+    given = {"a": [202.0, 202.0, 323.0, 176.0, 1.2], "b": [250.0, 250.0, 319.5, 179.5, 1.2]}
+    (capture / "ground_truth" / "rig.json").write_text(json.dumps(
+        {"cameras": [{"name": n, "intrinsics": {"model": "FOV", "params": p}} for n, p in true.items()]}))
+    for n, p in given.items():
+        (capture / "intrinsics" / f"{n}.json").write_text(json.dumps({"model": "FOV", "params": p}))
+    assert realism.lens_errors(capture, run) is None  # no self-calibration in this run
+    np.savez(run / "frontend" / "intrinsics.npz", correction=np.array([[np.log(200 / 202), -3.0, 4.0], [0.0, 0.0, 0.0]]),
+             cameras=np.array(["a", "b"]))
+    errors = realism.lens_errors(capture, run)
+    assert errors["given"]["focal_error_pct_max"] == pytest.approx(1.0) and errors["given"]["centre_error_px_max"] == 5.0
+    assert errors["corrected"]["focal_error_pct_max"] == pytest.approx(0.0, abs=1e-9)
+    assert errors["corrected"]["centre_error_px_max"] == pytest.approx(0.0, abs=1e-9)
