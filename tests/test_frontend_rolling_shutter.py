@@ -1,5 +1,6 @@
 """Tests for the gyro rolling-shutter correction of frames (bcmocap.frontend.rolling_shutter)."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -8,7 +9,8 @@ from test_frontend_capture import CAMERAS, make_capture
 
 from bcmocap.cameras import OpenCVFisheyeCamera
 from bcmocap.frontend import read_capture
-from bcmocap.frontend.rolling_shutter import GyroUnwarp, gyro_unwarp
+from bcmocap.frontend.command import trial_settings
+from bcmocap.frontend.rolling_shutter import GyroUnwarp, gyro_fingerprint, gyro_unwarp
 from bcmocap.geometry import matrix_from_quat, quat_exp
 from bcmocap.io.sensors import ImuRecording, write_imu
 from bcmocap.pipeline.config import RunConfig
@@ -145,6 +147,21 @@ def test_gyro_unwarp_needs_a_gyro_in_every_camera(capture_dir):
     write_imu(capture_dir / "trials" / "rom" / "imu.npz", two)
     unwarp = gyro_unwarp(capture, "rom", [3, 5], 1 / 60)
     assert unwarp.offsets == (3, 5) and unwarp.imu_index == (0, 1) and unwarp.settings["gyro_unwarp"]["readout_s"] == 1 / 60
+    fingerprint = gyro_fingerprint(capture, "rom")
+    # the corrected frames depend on the lenses and the gyro: both are in the settings the caches are keyed on
+    other_lens = gyro_unwarp(capture.with_lenses([_lens(), _lens()]), "rom", [3, 5], 1 / 60)
+    assert other_lens.settings["gyro_unwarp"]["lenses"] != unwarp.settings["gyro_unwarp"]["lenses"]
+    write_imu(capture_dir / "trials" / "rom" / "imu.npz", dataclasses.replace(two, gyro=two.gyro + 0.01))
+    other_gyro = gyro_unwarp(capture, "rom", [3, 5], 1 / 60)
+    assert other_gyro.settings["gyro_unwarp"]["gyro"] != unwarp.settings["gyro_unwarp"]["gyro"]
+    assert gyro_fingerprint(capture, "rom") != fingerprint
+    assert trial_settings(stride=1, frames=None, max_features=100, homographies=False, chunk_frames=0,
+                          registration="tracking", max_measurements=None, rolling_shutter_readout=1 / 60,
+                          gyro=fingerprint)["gyro"] == fingerprint
+    short = ImuRecording(two.time[:3], two.rate, CAMERAS, two.camera_from_imu, two.gyro[:3], two.accel[:3])
+    write_imu(capture_dir / "trials" / "rom" / "imu.npz", short)
+    with pytest.raises(ValueError, match="less than one"):
+        gyro_unwarp(capture, "rom", [0, 0], 1 / 60)
     (capture_dir / "trials" / "rom" / "imu.npz").unlink()
 
 

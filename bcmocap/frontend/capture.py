@@ -156,7 +156,8 @@ class Capture:
         return {} if correction is None else dict(correction.settings)
 
     def lens_fingerprint(self) -> str:
-        """A hash of every camera's intrinsics (class, size, parameters): caches of registrations include it."""
+        """A hash of every camera's intrinsics (class, size, parameters): the tracking cache's key includes it, and
+        the pipeline's frontend self-calibration records the given lenses' in its saved registrations."""
         import hashlib
 
         import jax

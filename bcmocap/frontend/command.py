@@ -235,10 +235,14 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     report["registration"] = registration
     report["max_measurements"] = max_measurements
     report["points"] = points
+    from .rolling_shutter import gyro_fingerprint
+
     report["settings"] = trial_settings(stride=stride, frames=requested_frames, max_features=max_features,
                                         homographies=homographies, chunk_frames=chunk_frames,
                                         registration=registration, max_measurements=max_measurements, points=points,
-                                        rolling_shutter_readout=rolling_shutter_readout) | (extra_settings or {})
+                                        rolling_shutter_readout=rolling_shutter_readout,
+                                        gyro=gyro_fingerprint(capture, trial) if rolling_shutter_readout > 0 else None
+                                        ) | (extra_settings or {})
     for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
                 "tracked_after_rounds", "points", "new_points", "filled_by_homographies", "homography_pairs"):
         report[key] = int(sum(c.get(key, 0) for c in chunks))
@@ -256,7 +260,7 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
 
 def trial_settings(*, stride: int, frames: int | None, max_features: int, homographies: bool, chunk_frames: int,
                    registration: str, max_measurements: int | None, points: str = "all",
-                   rolling_shutter_readout: float = 0.0) -> dict:
+                   rolling_shutter_readout: float = 0.0, gyro: str | None = None) -> dict:
     """The settings of :func:`process_trial` that its result depends on, as saved in ``registration.json``
     (``"settings"``): a saved registration is reused only when they are all the same."""
     from .tracking import ROUND_PARTNERS
@@ -266,7 +270,8 @@ def trial_settings(*, stride: int, frames: int | None, max_features: int, homogr
             "max_measurements": None if max_measurements is None else int(max_measurements), "version": SETTINGS_VERSION,
             **({} if points == "all" else {"points": str(points)}),  # registrations saved before the setting: "all"
             **({"round_partners": ROUND_PARTNERS} if registration == "tracking" else {}),
-            **({"rolling_shutter_readout": float(rolling_shutter_readout)} if rolling_shutter_readout > 0 else {})}
+            **({"rolling_shutter_readout": float(rolling_shutter_readout), "gyro": gyro}
+               if rolling_shutter_readout > 0 else {})}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -25,14 +25,17 @@ Frames outside the gyro's time span take the nearest span's angular velocity.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from ..geometry import matrix_from_quat, quat_log
 from ..io.sensors import IMU_FILE, ImuRecording, integrate_gyro, read_imu
 
-__all__ = ["GyroUnwarp", "gyro_unwarp"]
+__all__ = ["GyroUnwarp", "gyro_file", "gyro_fingerprint", "gyro_unwarp"]
 
 #: Fixed-point iterations for the row an output pixel falls in (the row moves by the displacement's
 #: vertical part, a few pixels: 3 iterations leave it to well below 0.01 px).
@@ -58,7 +61,7 @@ def _interpolation_matrix(coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:
     return m
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class GyroUnwarp:
     """The rolling-shutter correction of one trial's frames (module docstring).
 
@@ -90,11 +93,19 @@ class GyroUnwarp:
         if self.grid_px < 2:
             raise ValueError(f"GyroUnwarp: grid_px must be at least 2, got {self.grid_px}")
 
-    @property
+    @functools.cached_property
     def settings(self) -> dict:
-        """What the corrected frames depend on besides the videos and the gyro (for caches)."""
+        """What the corrected frames depend on besides the videos (for caches and saved registrations): the readout,
+        the map's grid, and hashes of the lenses and of the gyro recording."""
+        lenses = hashlib.sha256(repr([(type(lens).__name__, int(lens.width), int(lens.height),
+                                       [np.round(np.asarray(x, np.float64), 9).tolist() for x in jax.tree.leaves(lens)])
+                                      for lens in self.lenses]).encode()).hexdigest()[:16]
+        gyro = hashlib.sha256()
+        for array in (self.imu.time, self.imu.gyro, self.imu.camera_from_imu, np.asarray(self.imu_index),
+                      np.asarray(self.offsets)):
+            gyro.update(np.ascontiguousarray(array, np.float64).tobytes())
         return {"gyro_unwarp": {"readout_s": float(self.readout_s), "grid_px": int(self.grid_px),
-                                "iterations": ROW_ITERATIONS}}
+                                "iterations": ROW_ITERATIONS, "lenses": lenses, "gyro": gyro.hexdigest()[:16]}}
 
     def frame_time(self, camera: int, index: int) -> float:
         """Synchronised time (s) of video frame ``index`` of camera ``camera``."""
@@ -106,7 +117,11 @@ class GyroUnwarp:
         half = 0.5 * self.readout_s
         t = float(np.clip(self.frame_time(camera, index), time[0] + half, time[-1] - half))
         s = self.imu_index[camera]
-        q = integrate_gyro(time, self.imu.gyro[:, s:s + 1], t - half, t + half)[0]  # (4,) IMU frame
+        # the samples around the readout only (the integration reads the 4 nearest to each instant): the cost of a
+        # frame does not grow with the recording's length
+        lo = max(int(np.searchsorted(time, t - half)) - 4, 0)
+        hi = min(int(np.searchsorted(time, t + half)) + 4, len(time))
+        q = integrate_gyro(time[lo:hi], self.imu.gyro[lo:hi, s:s + 1], t - half, t + half)[0]  # (4,) IMU frame
         camera_from_imu = matrix_from_quat(self.imu.camera_from_imu[s, :4])
         return camera_from_imu @ quat_log(q) / self.readout_s
 
@@ -153,6 +168,20 @@ class GyroUnwarp:
         return cv2.remap(image, source[..., 0], source[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
 
 
+def gyro_file(capture, trial: str) -> Path:
+    """``trials/<trial>/imu.npz`` of a capture, which must exist (ValueError naming it otherwise)."""
+    path = Path(capture.path) / "trials" / trial / IMU_FILE
+    if not path.is_file():
+        raise ValueError(f"{path}: missing; frontend.rolling_shutter_readout corrects the rolling shutter with the "
+                         f"cameras' gyros (set it to 0 for a capture without them)")
+    return path
+
+
+def gyro_fingerprint(capture, trial: str) -> str:
+    """A hash of the trial's gyro file (saved registrations made with the correction record it)."""
+    return hashlib.sha256(gyro_file(capture, trial).read_bytes()).hexdigest()[:16]
+
+
 def gyro_unwarp(capture, trial: str, offsets, readout_s: float, *, grid_px: int = 8) -> GyroUnwarp:
     """The :class:`GyroUnwarp` of a capture's trial, from ``trials/<trial>/imu.npz`` and the cameras' intrinsics.
 
@@ -162,11 +191,11 @@ def gyro_unwarp(capture, trial: str, offsets, readout_s: float, *, grid_px: int 
     if not 0.0 < readout_s <= 1.0 / capture.fps:
         raise ValueError(f"frontend.rolling_shutter_readout (--rolling-shutter-readout) {readout_s} s must lie in "
                          f"(0, {1.0 / capture.fps:.6g}] s: at most one frame period at {capture.fps:g} fps")
-    path = Path(capture.path) / "trials" / trial / IMU_FILE
-    if not path.is_file():
-        raise ValueError(f"{path}: missing; frontend.rolling_shutter_readout corrects the rolling shutter with the "
-                         f"cameras' gyros (set it to 0 for a capture without them)")
+    path = gyro_file(capture, trial)
     imu = read_imu(path)
+    if imu.time[-1] - imu.time[0] < readout_s:
+        raise ValueError(f"{path}: the gyro recording lasts {imu.time[-1] - imu.time[0]:.4g} s, less than one "
+                         f"{readout_s:g} s readout")
     index = []
     for camera in capture.cameras:
         if camera.name not in imu.cameras:

@@ -255,16 +255,21 @@ def _stage_frontend(ctx: RunContext) -> dict:
     missing = [t for t in ("rom", "capture") if t not in ctx.capture.trials]
     if missing:
         raise ValueError(f"{ctx.capture.path}: no trial {missing[0]!r} (bcmocap run needs 'rom' and 'capture')")
+    if f.rolling_shutter_readout > 1.0 / ctx.capture.fps:
+        raise ValueError(f"frontend.rolling_shutter_readout = {f.rolling_shutter_readout:g} s is longer than a frame "
+                         f"period ({1.0 / ctx.capture.fps:.6g} s at {ctx.capture.fps:g} fps)")
     correction_path = ctx.path("frontend", "intrinsics.npz")
     if not f.self_calibration:
         correction_path.unlink(missing_ok=True)
         reports = _register_trials(ctx, ctx.capture, ctx.path("frontend"))
     else:
-        _register_trials(ctx, ctx.capture, ctx.path("frontend", "calibration_pass"))
+        given = {"given_lenses": ctx.capture.lens_fingerprint()}  # edited intrinsics files redo both passes
+        _register_trials(ctx, ctx.capture, ctx.path("frontend", "calibration_pass"), given)
         correction = _lens_correction(ctx, ctx.path("frontend", "calibration_pass"))
         _write_npz(correction_path, correction=correction, cameras=np.array(ctx.capture.camera_names))
+        # the correction rounded: a redone fit may differ in the last bits, which should not redo the registration
         reports = _register_trials(ctx, _frontend_capture(ctx), ctx.path("frontend"),
-                                   {"lens_correction": np.round(correction, 9).tolist()})
+                                   {**given, "lens_correction": np.round(correction, 6).tolist()})
     return {trial: {"registered_fraction": reports[trial]["registered_fraction"], "frames": reports[trial]["frames"]}
             for trial in ("rom", "capture")}
 
@@ -276,6 +281,7 @@ def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None 
 
     from ..frontend.command import prepare_reference, process_trial, trial_settings
     from ..frontend.register import reference_index
+    from ..frontend.rolling_shutter import gyro_fingerprint
 
     f = ctx.config.frontend
     reports, todo = {}, []
@@ -284,7 +290,9 @@ def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None 
         settings = trial_settings(stride=stride, frames=f.frames or None, max_features=f.max_features,
                                   homographies=homographies, chunk_frames=f.chunk_frames, registration=f.registration,
                                   max_measurements=f.max_measurements or None, points=f.points,
-                                  rolling_shutter_readout=f.rolling_shutter_readout) | (extra or {})
+                                  rolling_shutter_readout=f.rolling_shutter_readout,
+                                  gyro=gyro_fingerprint(capture, trial) if f.rolling_shutter_readout > 0 else None
+                                  ) | (extra or {})
         if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
             report = _read_json(done)
             if report.get("settings") == settings:
