@@ -253,6 +253,9 @@ def test_extract_trial_features_reads_every_camera_from_its_start(studio, tmp_pa
     class FakeCapture:
         camera_names = ("a", "b")
 
+        def correction_settings(self, trial):  # no correction of the frames
+            return {}
+
         def video_info(self, trial, name):
             return types.SimpleNamespace(num_frames={"a": 5, "b": 7}[name])
 
@@ -304,7 +307,8 @@ def test_a_trial_registered_in_chunks_is_saved_chunk_by_chunk_and_resumed(studio
     names = ("a", "b", "c")
     capture = types.SimpleNamespace(
         camera_names=names, fps=60.0, cameras=[types.SimpleNamespace(name=n, intrinsics=studio.fisheye) for n in names],
-        video_info=lambda trial, name: types.SimpleNamespace(num_frames=2))
+        video_info=lambda trial, name: types.SimpleNamespace(num_frames=2), correction_settings=lambda trial: {},
+        lens_fingerprint=lambda: "lenses")
     monkeypatch.setattr(relative, "extract_trial_features", lambda *args, **kwargs: features)
     quiet = dict(offsets=[0, 0, 0], homographies=False, registration="global", log=lambda line: None)
     whole = process_trial(capture, studio.index, "capture", tmp_path / "whole", **quiet)

@@ -162,7 +162,8 @@ def test_process_trial_with_tracking_registers_every_frame_and_caps_the_measurem
     reading = {"again": False}
     capture = types.SimpleNamespace(
         camera_names=names, fps=30.0, cameras=[types.SimpleNamespace(name=n, intrinsics=studio.fisheye) for n in names],
-        video_info=lambda trial, name: types.SimpleNamespace(num_frames=16), frames=frames_of)
+        video_info=lambda trial, name: types.SimpleNamespace(num_frames=16), frames=frames_of,
+        correction_settings=lambda trial: {}, lens_fingerprint=lambda: "lenses")
 
     def frames_after_tracking(*args, **kwargs):  # the second reading of b's video sees the true images
         reading["again"] = True
