@@ -169,3 +169,14 @@ def test_fingerprints_change_from_the_first_stage_a_setting_affects():
     for camera_model in ({"solver.rolling_shutter_readout": 0.015}, {"solver.self_calibration": True}):
         changed = fingerprints(RunConfig().with_overrides(camera_model))
         assert base["frontend"] == changed["frontend"] and all(base[s] != changed[s] for s in STAGES[1:])
+
+
+def test_a_readout_longer_than_two_processed_frames_names_the_setting():
+    import types
+
+    from bcmocap.pipeline.run import readouts_in_frames
+
+    stores = [types.SimpleNamespace(fps=20.0), types.SimpleNamespace(fps=30.0)]
+    assert readouts_in_frames(0.015, stores) == pytest.approx([0.3, 0.45])
+    with pytest.raises(ValueError, match=r"solver.rolling_shutter_readout = 0.08 s spans 2.4 frame periods of the 30 fps"):
+        readouts_in_frames(0.08, stores)

@@ -318,6 +318,21 @@ def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None 
     return reports
 
 
+def readouts_in_frames(readout_s: float, stores) -> list[float]:
+    """``solver.rolling_shutter_readout`` (s) in each trial's frame periods (the processed frames: fps / stride).
+
+    Raises:
+        ValueError: naming the setting, when it spans more than 2 of a trial's frame periods (the camera's velocity
+            is taken from the neighbouring frames, which then no longer bracket the rows' times).
+    """
+    out = [readout_s * store.fps for store in stores]
+    for store, frames in zip(stores, out):
+        if frames > 2.0:
+            raise ValueError(f"solver.rolling_shutter_readout = {readout_s:g} s spans {frames:.3g} frame periods of "
+                             f"the {store.fps:g} fps processed frames (frontend stride); at most 2 are modelled")
+    return out
+
+
 def _lens_correction(ctx: RunContext, folder: Path) -> np.ndarray:
     """``(C, 3)`` each camera's lens correction (log focal scale, Δcx, Δcy px) from both trials registered in
     ``folder``: their registered poses and the lenses re-fitted together, the reference points held
@@ -328,7 +343,7 @@ def _lens_correction(ctx: RunContext, folder: Path) -> np.ndarray:
     stores = [CorrespondenceStore.open(folder / trial / "correspondences") for trial in ("rom", "capture")]
     readout = ctx.config.solver.rolling_shutter_readout
     results = refine_trials(stores, _given_intrinsics(ctx, corrected=False), PoseRefinementOptions(calibrate=True),
-                            readouts=[readout * store.fps for store in stores])
+                            readouts=readouts_in_frames(readout, stores))
     correction = np.asarray(results[0].intrinsics_correction, np.float64)
     ctx.log("frontend: lens correction from the first registration: focal scale "
             f"{100 * (np.exp(correction[:, 0].min()) - 1):+.2f} to {100 * (np.exp(correction[:, 0].max()) - 1):+.2f} %, "
@@ -435,7 +450,7 @@ def _refine_registered_poses(ctx: RunContext) -> None:
     stores = [CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences")) for trial in trials]
     options = PoseRefinementOptions(calibrate=s.self_calibration)
     results = refine_trials(stores, _given_intrinsics(ctx), options,  # the readout in each trial's frame periods
-                            readouts=[s.rolling_shutter_readout * store.fps for store in stores])
+                            readouts=readouts_in_frames(s.rolling_shutter_readout, stores))
     if s.self_calibration:
         _write_npz(folder / "intrinsics.npz", correction=results[0].intrinsics_correction)
     summary = {}
