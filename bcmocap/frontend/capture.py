@@ -42,6 +42,17 @@ MAX_AUDIO_RATE = 1_000_000  # samples/s
 MAX_IMAGE_SIDE = 100_000  # px
 
 
+def lens_fingerprint(lenses) -> str:
+    """A hash of camera models (class, image size, parameters to 1e-9) for cache keys."""
+    import hashlib
+
+    import jax
+
+    text = repr([(type(lens).__name__, int(lens.width), int(lens.height),
+                  [np.round(np.asarray(x, np.float64), 9).tolist() for x in jax.tree.leaves(lens)]) for lens in lenses])
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 def _load_json(path: Path) -> dict:
     if not path.is_file():
         raise ValueError(f"{path}: missing (expected by the capture folder layout)")
@@ -156,16 +167,9 @@ class Capture:
         return {} if correction is None else dict(correction.settings)
 
     def lens_fingerprint(self) -> str:
-        """A hash of every camera's intrinsics (class, size, parameters): the tracking cache's key includes it, and
-        the pipeline's frontend self-calibration records the given lenses' in its saved registrations."""
-        import hashlib
-
-        import jax
-
-        text = repr([(type(c.intrinsics).__name__, int(c.intrinsics.width), int(c.intrinsics.height),
-                      [np.round(np.asarray(x, np.float64), 9).tolist() for x in jax.tree.leaves(c.intrinsics)])
-                     for c in self.cameras])
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
+        """:func:`lens_fingerprint` of the cameras' intrinsics: the tracking cache's key includes it, and the
+        pipeline's frontend self-calibration records the given lenses' in its saved registrations."""
+        return lens_fingerprint(c.intrinsics for c in self.cameras)
 
     def with_lenses(self, lenses) -> Capture:
         """This capture with each camera's intrinsics replaced by ``lenses`` (one per camera, in order; e.g. the

@@ -503,9 +503,10 @@ def run_frontend(args: argparse.Namespace) -> int:
         unknown = [t for t in trials if t not in capture.trials]
         if unknown:
             raise ValueError(f"{args.capture}: no trial {unknown[0]!r} (trials: {', '.join(capture.trials)})")
-        if not 0.0 <= args.rolling_shutter_readout <= 1.0 / capture.fps:
-            raise ValueError(f"--rolling-shutter-readout {args.rolling_shutter_readout} s must lie in [0, "
-                             f"{1.0 / capture.fps:.6g}] (one frame period at {capture.fps:g} fps)")
+        if args.rolling_shutter_readout != 0:
+            from .rolling_shutter import check_readout
+
+            check_readout(args.rolling_shutter_readout, capture.fps)
         offsets = None
         if args.offsets:
             offsets = [int(v) for v in args.offsets.split(",")]

@@ -29,26 +29,17 @@ import functools
 import hashlib
 from pathlib import Path
 
-import jax
 import numpy as np
 
-from ..geometry import matrix_from_quat, quat_log
+from ..geometry import matrix_from_quat, quat_exp, quat_log
 from ..io.sensors import IMU_FILE, ImuRecording, integrate_gyro, read_imu
+from .capture import lens_fingerprint
 
-__all__ = ["GyroUnwarp", "gyro_file", "gyro_fingerprint", "gyro_unwarp"]
+__all__ = ["GyroUnwarp", "check_readout", "gyro_file", "gyro_fingerprint", "gyro_unwarp"]
 
 #: Fixed-point iterations for the row an output pixel falls in (the row moves by the displacement's
 #: vertical part, a few pixels: 3 iterations leave it to well below 0.01 px).
 ROW_ITERATIONS = 3
-
-
-def _rotate(rotvec: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotations ``rotvec (..., 3)`` applied to vectors ``v (..., 3)``."""
-    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    safe = np.where(angle > 1e-12, angle, 1.0)
-    k = rotvec / safe
-    cos, sin = np.cos(angle), np.sin(angle)
-    return v * cos + np.cross(k, v) * sin + k * np.sum(k * v, axis=-1, keepdims=True) * (1.0 - cos)
 
 
 def _interpolation_matrix(coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:
@@ -97,15 +88,13 @@ class GyroUnwarp:
     def settings(self) -> dict:
         """What the corrected frames depend on besides the videos (for caches and saved registrations): the readout,
         the map's grid, and hashes of the lenses and of the gyro recording."""
-        lenses = hashlib.sha256(repr([(type(lens).__name__, int(lens.width), int(lens.height),
-                                       [np.round(np.asarray(x, np.float64), 9).tolist() for x in jax.tree.leaves(lens)])
-                                      for lens in self.lenses]).encode()).hexdigest()[:16]
         gyro = hashlib.sha256()
         for array in (self.imu.time, self.imu.gyro, self.imu.camera_from_imu, np.asarray(self.imu_index),
                       np.asarray(self.offsets)):
             gyro.update(np.ascontiguousarray(array, np.float64).tobytes())
         return {"gyro_unwarp": {"readout_s": float(self.readout_s), "grid_px": int(self.grid_px),
-                                "iterations": ROW_ITERATIONS, "lenses": lenses, "gyro": gyro.hexdigest()[:16]}}
+                                "iterations": ROW_ITERATIONS, "lenses": lens_fingerprint(self.lenses),
+                                "gyro": gyro.hexdigest()[:16]}}
 
     def frame_time(self, camera: int, index: int) -> float:
         """Synchronised time (s) of video frame ``index`` of camera ``camera``."""
@@ -144,7 +133,7 @@ class GyroUnwarp:
         source = grid
         for _ in range(ROW_ITERATIONS):
             tau = (source[..., 1:2] / max(height - 1, 1) - 0.5) * self.readout_s
-            seen = _rotate(-tau * omega, bearing)
+            seen = np.einsum("...ij,...j->...i", matrix_from_quat(quat_exp(-tau * omega)), bearing)
             projected, valid = lens.project(seen)
             source = np.where(np.asarray(valid)[..., None], np.asarray(projected, np.float64), grid)
         shift = source - grid
@@ -168,6 +157,13 @@ class GyroUnwarp:
         return cv2.remap(image, source[..., 0], source[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
 
 
+def check_readout(readout_s: float, fps: float) -> None:
+    """ValueError naming ``frontend.rolling_shutter_readout`` unless ``0 < readout_s ≤ 1 / fps`` (a frame period)."""
+    if not 0.0 < readout_s <= 1.0 / fps:
+        raise ValueError(f"frontend.rolling_shutter_readout (--rolling-shutter-readout) {readout_s:g} s must lie in "
+                         f"(0, {1.0 / fps:.6g}] s: at most one frame period at {fps:g} fps")
+
+
 def gyro_file(capture, trial: str) -> Path:
     """``trials/<trial>/imu.npz`` of a capture, which must exist (ValueError naming it otherwise)."""
     path = Path(capture.path) / "trials" / trial / IMU_FILE
@@ -188,9 +184,7 @@ def gyro_unwarp(capture, trial: str, offsets, readout_s: float, *, grid_px: int 
     Raises:
         ValueError: naming the file when the trial has no gyro recording, or the camera that carries no IMU.
     """
-    if not 0.0 < readout_s <= 1.0 / capture.fps:
-        raise ValueError(f"frontend.rolling_shutter_readout (--rolling-shutter-readout) {readout_s} s must lie in "
-                         f"(0, {1.0 / capture.fps:.6g}] s: at most one frame period at {capture.fps:g} fps")
+    check_readout(readout_s, capture.fps)
     path = gyro_file(capture, trial)
     imu = read_imu(path)
     if imu.time[-1] - imu.time[0] < readout_s:

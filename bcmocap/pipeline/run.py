@@ -255,9 +255,10 @@ def _stage_frontend(ctx: RunContext) -> dict:
     missing = [t for t in ("rom", "capture") if t not in ctx.capture.trials]
     if missing:
         raise ValueError(f"{ctx.capture.path}: no trial {missing[0]!r} (bcmocap run needs 'rom' and 'capture')")
-    if f.rolling_shutter_readout > 1.0 / ctx.capture.fps:
-        raise ValueError(f"frontend.rolling_shutter_readout = {f.rolling_shutter_readout:g} s is longer than a frame "
-                         f"period ({1.0 / ctx.capture.fps:.6g} s at {ctx.capture.fps:g} fps)")
+    if f.rolling_shutter_readout > 0:  # before anything runs
+        from ..frontend.rolling_shutter import check_readout
+
+        check_readout(f.rolling_shutter_readout, ctx.capture.fps)
     correction_path = ctx.path("frontend", "intrinsics.npz")
     if not f.self_calibration:
         correction_path.unlink(missing_ok=True)
