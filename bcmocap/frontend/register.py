@@ -29,6 +29,7 @@ import numpy as np
 
 from ..cameras import CameraModel
 from ..io.colmap import to_pycolmap
+from .poses import world_from_camera_wxyz_xyz
 from .reference import DescriptorIndex, ReferenceModel, extract_sift
 
 __all__ = ["ReferenceIndex", "FrameRegistration", "RegistrationOptions", "TrialRegistration",
@@ -145,12 +146,6 @@ def reference_index(model: ReferenceModel) -> ReferenceIndex:
     return ReferenceIndex(np.ascontiguousarray(np.concatenate(desc)), point_ids, xyz)
 
 
-def _pose_wxyz_xyz(cam_from_world) -> np.ndarray:
-    world_from_cam = cam_from_world.inverse()
-    x, y, z, w = np.asarray(world_from_cam.rotation.quat, np.float64)  # Eigen order xyzw
-    return np.concatenate([[w, x, y, z], np.asarray(world_from_cam.translation, np.float64)])
-
-
 def _failed(num_matches: int, num_inliers: int = 0, error: float = np.inf, pose=None) -> FrameRegistration:
     pose = np.full(7, np.nan) if pose is None else pose
     return FrameRegistration(False, pose, np.zeros((0, 2)), np.zeros(0, np.int64), num_matches, num_inliers, error)
@@ -192,7 +187,7 @@ def register_frame(image: np.ndarray, camera: CameraModel | object, index: Refer
     proj = np.asarray(cam.img_from_cam(np.asarray(cam_from_world * xyz[inl])), np.float64)
     errors = np.linalg.norm(proj - xy[inl], axis=1)
     mean_error = float(np.nanmean(errors)) if len(errors) else np.inf
-    pose = _pose_wxyz_xyz(cam_from_world)
+    pose = world_from_camera_wxyz_xyz(cam_from_world)
     ok = int(inl.sum()) > options.min_inliers and mean_error < options.max_mean_error_px
     if not ok:
         return _failed(len(query), int(inl.sum()), mean_error, pose)

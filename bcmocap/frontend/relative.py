@@ -1,7 +1,8 @@
 """Registration of a whole trial: absolute registration, new points, relative registration rounds
 (§4.1, issue 5 items 4–5).
 
-:func:`register_capture` works on the frames of all cameras of one trial at once:
+:func:`register_capture` (a :class:`CaptureRegistrar`: its state, and a method per step) works on the frames
+of all cameras of one trial at once:
 
 1. SIFT features of every frame (:func:`extract_trial_features`);
 2. **absolute registration** of each frame to the reference model (:func:`register_features`, as
@@ -43,12 +44,13 @@ import numpy as np
 from ..cameras import CameraModel
 from ..io.colmap import to_pycolmap
 from .features import read_camera_features, write_camera_features
+from .poses import estimate_pose, nearest_point, world_from_camera_wxyz_xyz
 from .reference import DescriptorIndex, extract_sift, match_descriptors, uint8_descriptors
-from .register import ReferenceIndex, RegistrationOptions, _pose_wxyz_xyz, match_to_reference
+from .register import ReferenceIndex, RegistrationOptions, match_to_reference
 from .threads import default_threads
 
-__all__ = ["FrameState", "RelativeOptions", "CaptureRegistration", "RegistrationCheckpoint", "extract_trial_features",
-           "register_features", "register_capture", "triangulate_rays"]
+__all__ = ["FrameState", "RelativeOptions", "CaptureRegistration", "CaptureRegistrar", "RegistrationCheckpoint",
+           "extract_trial_features", "register_features", "register_capture", "triangulate_rays"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -339,27 +341,6 @@ def _workers(workers: int | None) -> int:
     return max(1, int(workers) if workers is not None else default_threads())
 
 
-def _estimate_pose(xy: np.ndarray, xyz: np.ndarray, cam, options: RegistrationOptions):
-    """pycolmap LO-RANSAC + refinement; returns ``(cam_from_world, inlier mask, mean error)`` or None."""
-    import pycolmap
-
-    if len(xy) < 4:
-        return None
-    est = pycolmap.AbsolutePoseEstimationOptions()
-    est.ransac.max_error = options.ransac_max_error_px
-    est.ransac.random_seed = 0  # the same matches give the same pose (COLMAP's default, -1, seeds at random)
-    result = pycolmap.estimate_and_refine_absolute_pose(xy + 0.5, xyz, cam, est)
-    if result is None:
-        return None
-    inl = np.asarray(result["inlier_mask"], bool).reshape(-1)
-    pose = result["cam_from_world"]
-    proj = np.asarray(cam.img_from_cam(np.asarray(pose * xyz[inl])), np.float64) - 0.5
-    err = float(np.nanmean(np.linalg.norm(proj - xy[inl], axis=1))) if inl.any() else np.inf
-    if not (int(inl.sum()) > options.min_inliers and err < options.max_mean_error_px):
-        return None
-    return pose, inl, err
-
-
 def register_features(keypoints: np.ndarray, descriptors: np.ndarray, cam, index: ReferenceIndex,
                       options: RegistrationOptions = RegistrationOptions()):
     """Absolute registration of one frame's features (pycolmap camera ``cam``) to the reference index.
@@ -370,28 +351,20 @@ def register_features(keypoints: np.ndarray, descriptors: np.ndarray, cam, index
     if len(descriptors) < 2:
         return None
     query, rows = match_to_reference(descriptors, index, options.ratio, options.checks)
-    found = _estimate_pose(keypoints[query], index.xyz[rows], cam, options)
+    found = estimate_pose(keypoints[query], index.xyz[rows], cam, options)
     if found is None:
         return None
     pose, inl, _ = found
     ids = np.full(len(keypoints), -1, np.int64)
     ids[query[inl]] = index.point3D_ids[rows[inl]]
-    return _pose_wxyz_xyz(pose), ids
+    return world_from_camera_wxyz_xyz(pose), ids
 
 
 def triangulate_rays(centres: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """The point nearest (least squares) to ``K`` rays: ``centres (..., K, 3)``, unit ``directions (..., K, 3)``;
     NaN where the rays are parallel (e.g. a camera that did not move between two frames)."""
     proj = np.eye(3) - directions[..., :, None] * directions[..., None, :]  # (..., K, 3, 3)
-    return _nearest_point(proj.sum(-3), np.einsum("...kij,...kj->...i", proj, centres))
-
-
-def _nearest_point(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve the rays' normal equations ``a (..., 3, 3) x = b (..., 3)`` (``a`` the sum of the rays'
-    orthogonal projectors); NaN where the rays are parallel (two rays at angle θ: det a = 2 sin²θ)."""
-    ok = np.linalg.det(a) > 1e-12
-    x = np.linalg.solve(np.where(ok[..., None, None], a, np.eye(3)), b[..., None])[..., 0]
-    return np.where(ok[..., None], x, np.nan)
+    return nearest_point(proj.sum(-3), np.einsum("...kij,...kj->...i", proj, centres))
 
 
 def pixel_rays(cam, pixels: np.ndarray) -> np.ndarray:
@@ -572,7 +545,7 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
                      leave: np.ndarray | None = None, checkpoint: RegistrationCheckpoint | None = None,
                      progress: Callable[[str, int, int], None] | None = None) -> CaptureRegistration:
     """Register every frame of a trial (module docstring): absolute, then rounds of new points and relative
-    registration.
+    registration (a :class:`CaptureRegistrar` run once).
 
     Args:
         features: ``features[t][c] = (keypoints (N, 2), descriptors (N, 128))`` (:func:`extract_trial_features`).
@@ -589,193 +562,329 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
             the same inputs continues from it (the result is the same as without it).
         progress: called as ``progress(stage, done, total)``.
     """
-    num_t = len(features)
-    num_c = len(cameras)
-    if num_t and len(features[0]) != num_c:
-        raise ValueError(f"register_capture: features hold {len(features[0])} cameras per frame, cameras {num_c}")
-    cams = [to_pycolmap(c) if isinstance(c, CameraModel) else c for c in cameras]
-    geo = _Geometry(cams)
-    reg = options.registration
-    states = [[FrameState(np.asarray(kp, np.float64).reshape(-1, 2),
-                          uint8_descriptors(d),
-                          np.full(len(kp), -1, np.int64), np.full(7, np.nan)) for kp, d in row] for row in features]
-    if initial is not None:
-        if len(initial) != num_t or any(len(row) != num_c for row in initial):
-            raise ValueError(f"register_capture: initial must hold {num_t} frames of {num_c} cameras")
-        for row, init_row in zip(states, initial):
-            for s, (pose, point_ids, how) in zip(row, init_row):
-                if len(point_ids) != len(s.keypoints):
-                    raise ValueError(f"register_capture: initial point ids ({len(point_ids)}) and keypoints "
-                                     f"({len(s.keypoints)}) differ")
-                if how:
-                    s.world_from_camera, s.point_ids, s.how, s.round = np.asarray(pose, np.float64), \
-                        np.asarray(point_ids, np.int64).copy(), how, 0
-    points = {int(i): np.asarray(x, np.float64) for i, x in zip(index.point3D_ids, index.xyz)}
-    points.update({int(i): np.asarray(x, np.float64) for i, x in (initial_points or {}).items()})
-    next_id = max(points, default=-1) + 1
-    new_ids: set[int] = set()
-    tracks: dict[int, list[tuple[int, int, int]]] = {}  # new point -> [(t, c, keypoint)]
-    leave = np.zeros((num_t, num_c), bool) if leave is None else np.asarray(leave, bool)
-    if leave.shape != (num_t, num_c):
-        raise ValueError(f"register_capture: leave has shape {leave.shape}, expected {(num_t, num_c)}")
+    return CaptureRegistrar(features, cameras, index, options, frames=frames, initial=initial,
+                            initial_points=initial_points, leave=leave, checkpoint=checkpoint,
+                            progress=progress).run()
 
-    frames = np.arange(num_t) if frames is None else np.asarray(frames)
-    digest = _inputs_digest(states, initial, initial_points, leave, frames) if checkpoint is not None else ""
-    resumed = checkpoint.last_round(digest) if checkpoint is not None else None
-    matched: set = set()
-    pair_matches: dict = {}  # (a, b) with a < b -> (K, 2) int32; mutual matching is symmetric, rounds reuse it
 
-    # 2. absolute registration, frames in threads (FLANN searches release the GIL); given frames skip it
-    todo = [(t, c) for t in range(num_t) for c in range(num_c)] if initial is None and resumed is None else []
+class CaptureRegistrar:
+    """One :func:`register_capture` call: its state, explicit, and its phases, one method each.
 
-    def absolute(tc):
-        s = states[tc[0]][tc[1]]
-        return register_features(s.keypoints, s.descriptors, cams[tc[1]], index, reg)
+    :meth:`run` runs them in order: :meth:`register_absolute`, :meth:`start_rounds`, then rounds
+    (:meth:`run_round`: :meth:`add_points`, :meth:`adjust`, :meth:`register_relative`) until one registers
+    nothing new or ``max_rounds`` ran. The phases update the state in place; an instance is run once.
 
-    def keep_absolute(tc, found) -> None:
-        s = states[tc[0]][tc[1]]
+    Attributes:
+        num_t, num_c: frames ``T`` and cameras ``C``.
+        cams: ``(C,)`` ``pycolmap.Camera``; geo: their :class:`_Geometry`.
+        options: the :class:`RelativeOptions`; reg: its ``registration`` thresholds; index: the reference index.
+        states: ``states[t][c]`` :class:`FrameState` (poses ``world_from_camera`` wxyz_xyz in the reference
+            model's frame, keypoints' point ids).
+        points: ``{point id: (3,) position}`` of the reference's and the new points (its order orders later work).
+        next_id: the id the next new point gets; new_ids: ids of the points triangulated here.
+        tracks: ``{new point id: [(t, c, keypoint)]}``, the observations of each new point.
+        leave: ``(T, C)`` bool, unregistered frames the rounds neither register nor match around.
+        frames: ``(T,)`` frame numbers to report.
+        checkpoint: the :class:`RegistrationCheckpoint` or None; digest: the inputs' digest there ("" without);
+            resumed: the state after the last round it saved, or None.
+        has_initial: an initial registration was given (absolute registration is skipped).
+        matched: frame pairs ``(a, b)``, ``a < b``, already matched for new points.
+        pair_matches: ``{(a, b) with a < b: (K, 2) int32}`` mutual matches of whole frames (symmetric; rounds
+            reuse them).
+        point_matches: ``{(a, b): (rows of b searched (M_b,) bool, their matches (K, 2) int64)}``
+            (:meth:`match_to_points`).
+        indexes: the frames' FLANN indexes (:class:`_IndexCache`).
+        rounds: per round ``{"registered": frames registered, "new_points": points added}`` (round 0: before
+            the rounds).
+        progress: ``progress(stage, done, total)`` or None.
+    """
+
+    def __init__(self, features: list, cameras, index: ReferenceIndex, options: RelativeOptions = RelativeOptions(),
+                 *, frames: np.ndarray | None = None, initial: list | None = None,
+                 initial_points: dict | None = None, leave: np.ndarray | None = None,
+                 checkpoint: RegistrationCheckpoint | None = None,
+                 progress: Callable[[str, int, int], None] | None = None):
+        """Check the inputs (those of :func:`register_capture`) and set the state up; registers nothing."""
+        self.num_t = num_t = len(features)
+        self.num_c = num_c = len(cameras)
+        if num_t and len(features[0]) != num_c:
+            raise ValueError(f"register_capture: features hold {len(features[0])} cameras per frame, cameras {num_c}")
+        self.cams = [to_pycolmap(c) if isinstance(c, CameraModel) else c for c in cameras]
+        self.geo = _Geometry(self.cams)
+        self.options, self.reg, self.index = options, options.registration, index
+        self.states = self._frame_states(features, initial, num_c)
+        self.points = {int(i): np.asarray(x, np.float64) for i, x in zip(index.point3D_ids, index.xyz)}
+        self.points.update({int(i): np.asarray(x, np.float64) for i, x in (initial_points or {}).items()})
+        self.next_id = max(self.points, default=-1) + 1
+        self.new_ids: set[int] = set()
+        self.tracks: dict[int, list[tuple[int, int, int]]] = {}  # new point -> [(t, c, keypoint)]
+        leave = np.zeros((num_t, num_c), bool) if leave is None else np.asarray(leave, bool)
+        if leave.shape != (num_t, num_c):
+            raise ValueError(f"register_capture: leave has shape {leave.shape}, expected {(num_t, num_c)}")
+        self.leave = leave
+        self.frames = np.arange(num_t) if frames is None else np.asarray(frames)
+        self.checkpoint, self.progress = checkpoint, progress
+        self.digest = _inputs_digest(self.states, initial, initial_points, leave, self.frames) \
+            if checkpoint is not None else ""
+        self.resumed = checkpoint.last_round(self.digest) if checkpoint is not None else None
+        self.has_initial = initial is not None
+        self.matched: set = set()
+        self.pair_matches: dict = {}  # (a, b) with a < b -> (K, 2) int32; mutual matching is symmetric, rounds reuse it
+        self.point_matches: dict = {}  # (a, b) -> (rows of b searched (M_b,) bool, their matches (K, 2) int64)
+        self.indexes = _IndexCache(self.states, self.reg.checks, (2 * options.max_time_gap + 2) * num_c)
+        self.rounds: list = []
+
+    @staticmethod
+    def _frame_states(features: list, initial: list | None, num_c: int) -> list:
+        """``states[t][c]`` of the features, unregistered, or registered where ``initial`` says so."""
+        num_t = len(features)
+        states = [[FrameState(np.asarray(kp, np.float64).reshape(-1, 2),
+                              uint8_descriptors(d),
+                              np.full(len(kp), -1, np.int64), np.full(7, np.nan)) for kp, d in row] for row in features]
+        if initial is not None:
+            if len(initial) != num_t or any(len(row) != num_c for row in initial):
+                raise ValueError(f"register_capture: initial must hold {num_t} frames of {num_c} cameras")
+            for row, init_row in zip(states, initial):
+                for s, (pose, point_ids, how) in zip(row, init_row):
+                    if len(point_ids) != len(s.keypoints):
+                        raise ValueError(f"register_capture: initial point ids ({len(point_ids)}) and keypoints "
+                                         f"({len(s.keypoints)}) differ")
+                    if how:
+                        s.world_from_camera, s.point_ids, s.how, s.round = np.asarray(pose, np.float64), \
+                            np.asarray(point_ids, np.int64).copy(), how, 0
+        return states
+
+    def run(self) -> CaptureRegistration:
+        """Every phase in order (the class docstring); returns the result."""
+        self.register_absolute()
+        first_round = self.start_rounds()
+        finished = self.resumed is not None and (self.rounds[-1]["registered"] == 0
+                                                 or first_round > self.options.max_rounds)
+        for round_no in range(first_round, self.options.max_rounds + 1):
+            if finished:
+                break
+            if self.run_round(round_no) == 0:
+                break
+        return self.result()
+
+    # ---- absolute registration ----------------------------------------------------------------------------
+
+    def register_absolute(self) -> None:
+        """Absolute registration of every frame to the reference, frames in threads (FLANN searches release
+        the GIL), their results applied in frame order; the parts the checkpoint saved are read back instead,
+        and the parts done are saved there. Skipped with an initial registration or a saved round."""
+        checkpoint, progress = self.checkpoint, self.progress
+        todo = [(t, c) for t in range(self.num_t) for c in range(self.num_c)] \
+            if not self.has_initial and self.resumed is None else []
+        saved = []
+        if checkpoint is not None and todo:
+            for tc, found in zip(todo, checkpoint.absolute(self.digest, len(todo))):
+                if found is not None:
+                    ids = np.full(len(self.states[tc[0]][tc[1]].keypoints), -1, np.int64)
+                    ids[found[1]] = found[2]
+                    found = (np.asarray(found[0], np.float64), ids)
+                self._keep_absolute(tc, found)
+                saved.append(tc)
+        with ThreadPoolExecutor(max_workers=_workers(self.options.workers)) as pool:
+            rest, batch = todo[len(saved):], []
+            for k, (tc, found) in enumerate(zip(rest, pool.map(self._absolute_pose, rest)), start=len(saved)):
+                self._keep_absolute(tc, found)
+                batch.append(found)
+                if checkpoint is not None and (len(batch) == checkpoint.every or k + 1 == len(todo)):
+                    checkpoint.save_absolute(self.digest, k + 1 - len(batch), batch)
+                    batch = []
+                if progress is not None:
+                    progress("absolute", k + 1, len(todo))
+
+    def _absolute_pose(self, tc: tuple):
+        """:func:`register_features` of frame ``tc = (t, c)`` (reads states only; called from threads)."""
+        s = self.states[tc[0]][tc[1]]
+        return register_features(s.keypoints, s.descriptors, self.cams[tc[1]], self.index, self.reg)
+
+    def _keep_absolute(self, tc: tuple, found) -> None:
+        """Apply an absolute registration ``(world_from_camera (7,), point_ids (N,))`` (None: not found)."""
+        s = self.states[tc[0]][tc[1]]
         if found is not None:
             s.world_from_camera, s.point_ids = found
             s.how, s.round = "absolute", 0
 
-    saved = []
-    if checkpoint is not None and todo:
-        for tc, found in zip(todo, checkpoint.absolute(digest, len(todo))):
-            if found is not None:
-                ids = np.full(len(states[tc[0]][tc[1]].keypoints), -1, np.int64)
-                ids[found[1]] = found[2]
-                found = (np.asarray(found[0], np.float64), ids)
-            keep_absolute(tc, found)
-            saved.append(tc)
-    with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
-        rest, batch = todo[len(saved):], []
-        for k, (tc, found) in enumerate(zip(rest, pool.map(absolute, rest)), start=len(saved)):
-            keep_absolute(tc, found)
-            batch.append(found)
-            if checkpoint is not None and (len(batch) == checkpoint.every or k + 1 == len(todo)):
-                checkpoint.save_absolute(digest, k + 1 - len(batch), batch)
-                batch = []
-            if progress is not None:
-                progress("absolute", k + 1, len(todo))
-    rounds = [{"registered": int(sum(s.registered for row in states for s in row)), "new_points": 0}]
-    first_round = 1
-    if resumed is not None:
-        next_id, first_round, rounds = _restore_round(resumed, states, points, new_ids, tracks, matched)
+    def start_rounds(self) -> int:
+        """Round 0's count (the frames registered so far), or, when resuming, the state after the last round
+        the checkpoint saved put back; returns the first round to run."""
+        self.rounds = [{"registered": int(sum(s.registered for row in self.states for s in row)), "new_points": 0}]
+        if self.resumed is None:
+            return 1
+        self.next_id, first_round, self.rounds = _restore_round(self.resumed, self.states, self.points, self.new_ids,
+                                                                self.tracks, self.matched)
+        return first_round
 
-    indexes = _IndexCache(states, reg.checks, (2 * options.max_time_gap + 2) * num_c)
+    # ---- a round ------------------------------------------------------------------------------------------
 
-    def match(a, b):
+    def run_round(self, round_no: int) -> int:
+        """New points, bundle adjustment, relative registration; the state saved in the checkpoint after it.
+        Returns the frames it registered."""
+        added = self.add_points(round_no)
+        self.adjust()
+        count = self.register_relative(round_no)
+        self.rounds.append({"registered": count, "new_points": added})
+        if self.checkpoint is not None:
+            self.checkpoint.save_round(self.digest, round_no, **_round_state(self.states, self.points, self.new_ids,
+                                                                             self.tracks, self.matched, self.next_id,
+                                                                             self.rounds))
+        return count
+
+    def match(self, a: tuple, b: tuple) -> np.ndarray:
+        """``(K, 2)`` int64 mutual matches (keypoint of ``a``, keypoint of ``b``) of frames ``a = (t, c)`` and
+        ``b``, matched once per pair (:attr:`pair_matches`)."""
+        reg, states = self.reg, self.states
         key = (min(a, b), max(a, b))
-        m = pair_matches.get(key)
+        m = self.pair_matches.get(key)
         if m is None:
             sa, sb = states[key[0][0]][key[0][1]], states[key[1][0]][key[1][1]]
-            m = pair_matches[key] = match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio,
-                                                      checks=reg.checks, index_a=indexes(key[0]),
-                                                      index_b=indexes(key[1])).astype(np.int32)
+            m = self.pair_matches[key] = match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio,
+                                                           checks=reg.checks, index_a=self.indexes(key[0]),
+                                                           index_b=self.indexes(key[1])).astype(np.int32)
         return (m if key[0] == a else m[:, ::-1]).astype(np.int64)
 
-    point_matches: dict = {}  # (a, b) -> (rows of b searched (M_b,) bool, their matches (K, 2) int64)
-
-    def match_to_points(a, b):
+    def match_to_points(self, a: tuple, b: tuple) -> np.ndarray:
         """The rows of ``match(a, b)`` whose keypoint of ``b`` observes a 3D point now, in the same order (what
         relative registration of ``a`` uses; the order decides RANSAC's samples). Unless the pair is matched
         already, they are found from those keypoints alone: the matches of a set of rows are those of the whole
         matching on them, so each round searches only the keypoints that gained a point since the last (none,
         mostly). Called from threads, each pair by one of them."""
+        reg, states = self.reg, self.states
         sb = states[b[0]][b[1]]
-        if (min(a, b), max(a, b)) in pair_matches:
-            m = match(a, b)
+        if (min(a, b), max(a, b)) in self.pair_matches:
+            m = self.match(a, b)
             return m[sb.point_ids[m[:, 1]] >= 0]
         has = sb.point_ids[: len(sb.descriptors)] >= 0
-        done, m = point_matches.get((a, b), (np.zeros(len(has), bool), np.zeros((0, 2), np.int64)))
+        done, m = self.point_matches.get((a, b), (np.zeros(len(has), bool), np.zeros((0, 2), np.int64)))
         rows = np.flatnonzero(has & ~done)
         if len(rows):
             sa = states[a[0]][a[1]]
             more = match_descriptors(sa.descriptors, sb.descriptors, ratio=reg.ratio, checks=reg.checks,
-                                     index_a=indexes(a), index_b=indexes(b), rows_b=rows).astype(np.int64)
+                                     index_a=self.indexes(a), index_b=self.indexes(b), rows_b=rows).astype(np.int64)
             m = np.concatenate([m, more])  # in the order of match(a, b): by the keypoints of the earlier frame
             m = m[np.argsort(m[:, 0 if a < b else 1], kind="stable")]
-            point_matches[(a, b)] = (done | has, m)
+            self.point_matches[(a, b)] = (done | has, m)
         return m[sb.point_ids[m[:, 1]] >= 0]
 
-    def neighbours(t, c):
-        return _neighbours(t, c, num_t, num_c, options.max_time_gap, states, options.max_view_angle_deg,
-                           options.max_other_cameras)
+    def neighbours(self, t: int, c: int):
+        """The frames :func:`_neighbours` offers frame ``(t, c)`` now (registered other cameras by view)."""
+        o = self.options
+        return _neighbours(t, c, self.num_t, self.num_c, o.max_time_gap, self.states, o.max_view_angle_deg,
+                           o.max_other_cameras)
 
-    def add_points(round_no: int) -> int:
-        nonlocal next_id
+    # ---- new points ---------------------------------------------------------------------------------------
+
+    def add_points(self, round_no: int) -> int:
+        """New points: the pairs of registered frames not matched yet (:meth:`pairs_for_new_points`) are matched
+        (in threads, their matches used in order) to extend tracks and triangulate new points. Returns the
+        points added."""
+        pairs = self.pairs_for_new_points()
         added = 0
-        if options.new_points_everywhere:
-            near = {(t, c) for t in range(num_t) for c in range(num_c)}
-        else:  # registered frames that relative registration of some unregistered frame will match
-            near = {n for t in range(num_t) for c in range(num_c) if not states[t][c].registered and not leave[t, c]
-                    for n in neighbours(t, c)}
-        found = set()
-        for a in near:
-            if states[a[0]][a[1]].registered:
-                for n in neighbours(*a):
-                    if states[n[0]][n[1]].registered and (options.second_order_pairs or n in near):
-                        pair = (min(a, n), max(a, n))
-                        if pair not in matched:
-                            found.add(pair)
-        pairs = sorted(found)
         # FLANN releases the GIL: pairs are matched in threads while their matches are used in order.
-        pool = ThreadPoolExecutor(max_workers=_workers(options.workers))
+        pool = ThreadPoolExecutor(max_workers=_workers(self.options.workers))
         try:
-            for k, ((a, b), m) in enumerate(zip(pairs, pool.map(lambda ab: match(*ab), pairs))):
-                if progress is not None:
-                    progress(f"new points round {round_no}", k + 1, len(pairs))
-                matched.add((a, b))
+            for k, ((a, b), m) in enumerate(zip(pairs, pool.map(lambda ab: self.match(*ab), pairs))):
+                if self.progress is not None:
+                    self.progress(f"new points round {round_no}", k + 1, len(pairs))
+                self.matched.add((a, b))
                 if not len(m):
                     continue
-                sa, sb = states[a[0]][a[1]], states[b[0]][b[1]]
-                pa, pb = sa.point_ids[m[:, 0]], sb.point_ids[m[:, 1]]
-                # Track extension: one side has a point, the other none.
-                for src, dst, i_src, i_dst, s_dst, cd in ((pa, pb, m[:, 0], m[:, 1], sb, b[1]),
-                                                           (pb, pa, m[:, 1], m[:, 0], sa, a[1])):
-                    sel = (src >= 0) & (dst < 0)
-                    if sel.any():
-                        xyz = np.array([points[int(p)] for p in src[sel]])
-                        err = np.linalg.norm(geo.reproject(cd, s_dst.world_from_camera, xyz) - s_dst.keypoints[i_dst[sel]], axis=1)
-                        ok = err < options.max_reprojection_error_px
-                        for p, i in zip(src[sel][ok], i_dst[sel][ok]):
-                            if s_dst.point_ids[i] < 0:
-                                s_dst.point_ids[i] = p
-                                if int(p) in tracks:
-                                    tracks[int(p)].append((*(b if s_dst is sb else a), int(i)))
-                # New points: neither side has one.
-                sel = (sa.point_ids[m[:, 0]] < 0) & (sb.point_ids[m[:, 1]] < 0)
-                if not sel.any():
-                    continue
-                ia, ib = m[sel, 0], m[sel, 1]
-                ra = geo.rays(a[1], sa.world_from_camera, sa.keypoints[ia])
-                rb = geo.rays(b[1], sb.world_from_camera, sb.keypoints[ib])
-                ca, cb = sa.world_from_camera[4:], sb.world_from_camera[4:]
-                centres = np.stack([np.broadcast_to(ca, ra.shape), np.broadcast_to(cb, rb.shape)], 1)
-                xyz = triangulate_rays(centres, np.stack([ra, rb], 1))
-                angle = np.degrees(np.arccos(np.clip(np.sum(ra * rb, 1), -1, 1)))
-                ea = np.linalg.norm(geo.reproject(a[1], sa.world_from_camera, xyz) - sa.keypoints[ia], axis=1)
-                eb = np.linalg.norm(geo.reproject(b[1], sb.world_from_camera, xyz) - sb.keypoints[ib], axis=1)
-                ok = (angle >= options.min_triangulation_angle_deg) & (ea < options.max_reprojection_error_px) \
-                    & (eb < options.max_reprojection_error_px)
-                for x, i, j in zip(xyz[ok], ia[ok], ib[ok]):
-                    points[next_id] = x
-                    new_ids.add(next_id)
-                    tracks[next_id] = [(a[0], a[1], int(i)), (b[0], b[1], int(j))]
-                    sa.point_ids[i] = sb.point_ids[j] = next_id
-                    next_id += 1
-                    added += 1
+                self._extend_tracks(a, b, m)
+                added += self._triangulate_new_points(a, b, m)
         finally:
             pool.shutdown(cancel_futures=True)
         return added
 
-    def adjust() -> None:
-        """Block coordinate descent on the reprojection error, reference points fixed: new points
-        re-triangulated, then the poses of the frames that observe new points refined."""
-        import pycolmap
+    def pairs_for_new_points(self) -> list:
+        """Sorted pairs ``(a, b)``, ``a < b``, of registered neighbouring frames not matched yet: around every
+        frame with ``new_points_everywhere``, else around the registered frames that relative registration
+        of some unregistered frame (not left) will match."""
+        o, states, num_t, num_c = self.options, self.states, self.num_t, self.num_c
+        if o.new_points_everywhere:
+            near = {(t, c) for t in range(num_t) for c in range(num_c)}
+        else:  # registered frames that relative registration of some unregistered frame will match
+            near = {n for t in range(num_t) for c in range(num_c)
+                    if not states[t][c].registered and not self.leave[t, c] for n in self.neighbours(t, c)}
+        found = set()
+        for a in near:
+            if states[a[0]][a[1]].registered:
+                for n in self.neighbours(*a):
+                    if states[n[0]][n[1]].registered and (o.second_order_pairs or n in near):
+                        pair = (min(a, n), max(a, n))
+                        if pair not in self.matched:
+                            found.add(pair)
+        return sorted(found)
 
-        if not tracks:
+    def _extend_tracks(self, a: tuple, b: tuple, m: np.ndarray) -> None:
+        """Track extension: a match ``m`` (K, 2) of a keypoint with a point to one without gives it that point
+        when the point reprojects there within ``max_reprojection_error_px``."""
+        sa, sb = self.states[a[0]][a[1]], self.states[b[0]][b[1]]
+        pa, pb = sa.point_ids[m[:, 0]], sb.point_ids[m[:, 1]]
+        # Track extension: one side has a point, the other none.
+        for src, dst, i_src, i_dst, s_dst, cd in ((pa, pb, m[:, 0], m[:, 1], sb, b[1]),
+                                                   (pb, pa, m[:, 1], m[:, 0], sa, a[1])):
+            sel = (src >= 0) & (dst < 0)
+            if sel.any():
+                xyz = np.array([self.points[int(p)] for p in src[sel]])
+                err = np.linalg.norm(self.geo.reproject(cd, s_dst.world_from_camera, xyz) - s_dst.keypoints[i_dst[sel]],
+                                     axis=1)
+                ok = err < self.options.max_reprojection_error_px
+                for p, i in zip(src[sel][ok], i_dst[sel][ok]):
+                    if s_dst.point_ids[i] < 0:
+                        s_dst.point_ids[i] = p
+                        if int(p) in self.tracks:
+                            self.tracks[int(p)].append((*(b if s_dst is sb else a), int(i)))
+
+    def _triangulate_new_points(self, a: tuple, b: tuple, m: np.ndarray) -> int:
+        """New points: matches ``m`` (K, 2) of two keypoints without a point are triangulated (two rays) and kept
+        when both reproject within ``max_reprojection_error_px`` and the rays meet at
+        ``min_triangulation_angle_deg`` or more. Returns the points added."""
+        o, geo = self.options, self.geo
+        sa, sb = self.states[a[0]][a[1]], self.states[b[0]][b[1]]
+        # New points: neither side has one.
+        sel = (sa.point_ids[m[:, 0]] < 0) & (sb.point_ids[m[:, 1]] < 0)
+        if not sel.any():
+            return 0
+        ia, ib = m[sel, 0], m[sel, 1]
+        ra = geo.rays(a[1], sa.world_from_camera, sa.keypoints[ia])
+        rb = geo.rays(b[1], sb.world_from_camera, sb.keypoints[ib])
+        ca, cb = sa.world_from_camera[4:], sb.world_from_camera[4:]
+        centres = np.stack([np.broadcast_to(ca, ra.shape), np.broadcast_to(cb, rb.shape)], 1)
+        xyz = triangulate_rays(centres, np.stack([ra, rb], 1))
+        angle = np.degrees(np.arccos(np.clip(np.sum(ra * rb, 1), -1, 1)))
+        ea = np.linalg.norm(geo.reproject(a[1], sa.world_from_camera, xyz) - sa.keypoints[ia], axis=1)
+        eb = np.linalg.norm(geo.reproject(b[1], sb.world_from_camera, xyz) - sb.keypoints[ib], axis=1)
+        ok = (angle >= o.min_triangulation_angle_deg) & (ea < o.max_reprojection_error_px) \
+            & (eb < o.max_reprojection_error_px)
+        added = 0
+        for x, i, j in zip(xyz[ok], ia[ok], ib[ok]):
+            self.points[self.next_id] = x
+            self.new_ids.add(self.next_id)
+            self.tracks[self.next_id] = [(a[0], a[1], int(i)), (b[0], b[1], int(j))]
+            sa.point_ids[i] = sb.point_ids[j] = self.next_id
+            self.next_id += 1
+            added += 1
+        return added
+
+    # ---- bundle adjustment with the reference fixed -------------------------------------------------------
+
+    def adjust(self) -> None:
+        """Block coordinate descent on the reprojection error, reference points fixed: new points
+        re-triangulated (:meth:`retriangulate`), then the poses of the frames that observe new points refined
+        (:meth:`refine_poses`)."""
+        if not self.tracks:
             return
+        self.refine_poses(self.retriangulate())
+
+    def retriangulate(self) -> list:
+        """Every new point re-triangulated from all its observations (least squares over their rays); the
+        observations reprojecting ``max_reprojection_error_px`` or more away are dropped, and the points left
+        with fewer than two. Returns the frames ``(t, c)`` observing new points (whose points moved), in
+        order."""
+        states, tracks, points, geo, num_c = self.states, self.tracks, self.points, self.geo, self.num_c
         ids = np.array(list(tracks), np.int64)
         count = np.array([len(tracks[int(p)]) for p in ids])
         owner = np.repeat(np.arange(len(ids)), count)
@@ -795,12 +904,12 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         b_sum = np.zeros((len(ids), 3))
         np.add.at(a_sum, owner, proj)
         np.add.at(b_sum, owner, np.einsum("kij,kj->ki", proj, centres))
-        xyz = _nearest_point(a_sum, b_sum)  # NaN for parallel rays: the point is dropped below
+        xyz = nearest_point(a_sum, b_sum)  # NaN for parallel rays: the point is dropped below
         err = np.full(len(obs), np.inf)
         for (t, c), sel in groups:
             uv = geo.reproject(c, states[t][c].world_from_camera, xyz[owner[sel]])
             err[sel] = np.linalg.norm(uv - states[t][c].keypoints[obs[sel, 2]], axis=1)
-        keep = err < options.max_reprojection_error_px  # NaN (behind the camera, no point) is dropped too
+        keep = err < self.options.max_reprojection_error_px  # NaN (behind the camera, no point) is dropped too
         kept = np.bincount(owner[keep], minlength=len(ids))
         drop = ~keep | (kept[owner] < 2)
         for (t, c), sel in groups:
@@ -809,74 +918,54 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
         for k, pid in enumerate(ids.tolist()):
             if kept[k] < 2:
                 del tracks[pid], points[pid]
-                new_ids.discard(pid)
+                self.new_ids.discard(pid)
             else:
                 if kept[k] < count[k]:  # some observations dropped (a whole track stays as it is)
                     tracks[pid] = [tuple(o) for o in obs[rows[k][keep[rows[k]]]].tolist()]
                 points[pid] = xyz[k]
+        return [tc for tc, _ in groups]  # only these frames' points moved
+
+    def refine_poses(self, frames_moved: list) -> None:
+        """The pose of each registered frame of ``frames_moved`` with 4 points or more refined on its reference
+        and new points (``pycolmap.refine_absolute_pose``; frames in threads, results applied in order)."""
+        points = self.points
         point_ids = np.fromiter(points, np.int64, len(points))
         by_id = np.argsort(point_ids)
         point_ids, point_xyz = point_ids[by_id], np.array(list(points.values()), np.float64).reshape(-1, 3)[by_id]
-
-        def refine(tc):
-            """The frame's pose refined on its points (reads only; pycolmap releases the GIL)."""
-            t, c = tc
-            s = states[t][c]
-            has = np.flatnonzero(s.point_ids >= 0)
-            if not s.registered or len(has) < 4:
-                return None
-            xyz_frame = point_xyz[np.searchsorted(point_ids, s.point_ids[has])]
-            rot, centre = geo.rotation_centre(s.world_from_camera)
-            cfw = pycolmap.Rigid3d(pycolmap.Rotation3d(rot.T), -rot.T @ centre)
-            return pycolmap.refine_absolute_pose(cfw, s.keypoints[has] + 0.5, xyz_frame, np.ones(len(has), bool),
-                                                 cams[c])
-
-        frames_moved = [tc for tc, _ in groups]  # only these frames' points moved
-        with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
-            for (t, c), out in zip(frames_moved, pool.map(refine, frames_moved)):
+        with ThreadPoolExecutor(max_workers=_workers(self.options.workers)) as pool:
+            for (t, c), out in zip(frames_moved,
+                                   pool.map(lambda tc: self._refined_pose(tc, point_ids, point_xyz), frames_moved)):
                 if out is not None:
-                    states[t][c].world_from_camera = _pose_wxyz_xyz(out["cam_from_world"])
+                    self.states[t][c].world_from_camera = world_from_camera_wxyz_xyz(out["cam_from_world"])
 
-    def relative_pose(t: int, c: int):
-        """Match frame ``(t, c)`` to its registered neighbours and estimate its pose (reads states only)."""
-        s = states[t][c]
-        xy, pid, kp_idx = [], [], []
-        for n in neighbours(t, c):
-            sn = states[n[0]][n[1]]
-            if not sn.registered:
-                continue
-            m = match_to_points((t, c), n)
-            if not len(m):
-                continue
-            p = sn.point_ids[m[:, 1]]
-            sel = p >= 0
-            if options.min_track_length > 2:
-                sel &= np.array([int(q) not in tracks or len(tracks[int(q)]) >= options.min_track_length for q in p])
-            xy.append(s.keypoints[m[sel, 0]])
-            pid.append(p[sel])
-            kp_idx.append(m[sel, 0])
-            if sum(len(q) for q in pid) >= options.enough_correspondences:
-                break
-        if not xy:
-            return None
-        xy, pid, kp_idx = np.concatenate(xy), np.concatenate(pid), np.concatenate(kp_idx)
-        _, first = np.unique(pid, return_index=True)
-        xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
-        _, first = np.unique(kp_idx, return_index=True)
-        xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
-        found = _estimate_pose(xy, np.array([points[int(p)] for p in pid]).reshape(-1, 3), cams[c], reg)
-        if found is None:
-            return None
-        pose, inl, _ = found
-        return _pose_wxyz_xyz(pose), kp_idx[inl], pid[inl]
+    def _refined_pose(self, tc: tuple, point_ids: np.ndarray, point_xyz: np.ndarray):
+        """The frame's pose refined on its points (``point_ids`` sorted, ``point_xyz`` their positions); the
+        ``pycolmap.refine_absolute_pose`` output or None. Reads only (pycolmap releases the GIL)."""
+        import pycolmap
 
-    def register_relative(round_no: int) -> int:
-        """Every frame unregistered at the start of the round is tried against the frames registered then
-        (in threads; the results are applied afterwards in frame order, so they do not depend on timing)."""
-        todo = [(t, c) for t in range(num_t) for c in range(num_c) if not states[t][c].registered and not leave[t, c]]
-        with ThreadPoolExecutor(max_workers=_workers(options.workers)) as pool:
+        t, c = tc
+        s = self.states[t][c]
+        has = np.flatnonzero(s.point_ids >= 0)
+        if not s.registered or len(has) < 4:
+            return None
+        xyz_frame = point_xyz[np.searchsorted(point_ids, s.point_ids[has])]
+        rot, centre = self.geo.rotation_centre(s.world_from_camera)
+        cfw = pycolmap.Rigid3d(pycolmap.Rotation3d(rot.T), -rot.T @ centre)
+        return pycolmap.refine_absolute_pose(cfw, s.keypoints[has] + 0.5, xyz_frame, np.ones(len(has), bool),
+                                             self.cams[c])
+
+    # ---- relative registration ----------------------------------------------------------------------------
+
+    def register_relative(self, round_no: int) -> int:
+        """Every frame unregistered (and not left) at the start of the round is tried against the frames
+        registered then (in threads; the results are applied afterwards in frame order, so they do not depend
+        on timing). Returns the frames registered."""
+        states, tracks, progress = self.states, self.tracks, self.progress
+        todo = [(t, c) for t in range(self.num_t) for c in range(self.num_c)
+                if not states[t][c].registered and not self.leave[t, c]]
+        with ThreadPoolExecutor(max_workers=_workers(self.options.workers)) as pool:
             found = []
-            for k, result in enumerate(pool.map(lambda tc: relative_pose(*tc), todo)):
+            for k, result in enumerate(pool.map(lambda tc: self.relative_pose(*tc), todo)):
                 found.append(result)
                 if progress is not None:
                     progress(f"relative round {round_no}", k + 1, len(todo))
@@ -895,20 +984,48 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
             count += 1
         return count
 
-    finished = resumed is not None and (rounds[-1]["registered"] == 0 or first_round > options.max_rounds)
-    for round_no in range(first_round, options.max_rounds + 1):
-        if finished:
-            break
-        added = add_points(round_no)
-        adjust()
-        count = register_relative(round_no)
-        rounds.append({"registered": count, "new_points": added})
-        if checkpoint is not None:
-            checkpoint.save_round(digest, round_no, **_round_state(states, points, new_ids, tracks, matched, next_id,
-                                                                   rounds))
-        if count == 0:
-            break
-    return CaptureRegistration(frames, states, points, new_ids, rounds, cams, frozenset(int(i) for i in index.point3D_ids))
+    def relative_pose(self, t: int, c: int):
+        """Match frame ``(t, c)`` to its registered neighbours and estimate its pose (reads states only).
+
+        Returns:
+            ``(world_from_camera (7,), keypoint indices (K,), their point ids (K,))`` of the inliers, or None.
+        """
+        o, states, tracks = self.options, self.states, self.tracks
+        s = states[t][c]
+        xy, pid, kp_idx = [], [], []
+        for n in self.neighbours(t, c):
+            sn = states[n[0]][n[1]]
+            if not sn.registered:
+                continue
+            m = self.match_to_points((t, c), n)
+            if not len(m):
+                continue
+            p = sn.point_ids[m[:, 1]]
+            sel = p >= 0
+            if o.min_track_length > 2:
+                sel &= np.array([int(q) not in tracks or len(tracks[int(q)]) >= o.min_track_length for q in p])
+            xy.append(s.keypoints[m[sel, 0]])
+            pid.append(p[sel])
+            kp_idx.append(m[sel, 0])
+            if sum(len(q) for q in pid) >= o.enough_correspondences:
+                break
+        if not xy:
+            return None
+        xy, pid, kp_idx = np.concatenate(xy), np.concatenate(pid), np.concatenate(kp_idx)
+        _, first = np.unique(pid, return_index=True)
+        xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
+        _, first = np.unique(kp_idx, return_index=True)
+        xy, pid, kp_idx = xy[first], pid[first], kp_idx[first]
+        found = estimate_pose(xy, np.array([self.points[int(p)] for p in pid]).reshape(-1, 3), self.cams[c], self.reg)
+        if found is None:
+            return None
+        pose, inl, _ = found
+        return world_from_camera_wxyz_xyz(pose), kp_idx[inl], pid[inl]
+
+    def result(self) -> CaptureRegistration:
+        """The registration as it stands."""
+        return CaptureRegistration(self.frames, self.states, self.points, self.new_ids, self.rounds, self.cams,
+                                   frozenset(int(i) for i in self.index.point3D_ids))
 
 
 class _IndexCache:

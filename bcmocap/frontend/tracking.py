@@ -40,8 +40,9 @@ from collections.abc import Callable, Iterable
 import numpy as np
 
 from ..geometry import matrix_from_quat
+from .poses import estimate_pose, nearest_point, world_from_camera_wxyz_xyz
 from .reference import extract_sift
-from .register import ReferenceIndex, RegistrationOptions
+from .register import ReferenceIndex, RegistrationOptions, match_to_reference
 from .threads import default_threads
 
 __all__ = ["CameraTrack", "TrackingOptions", "frames_for_rounds", "map_index", "predict_pose", "relocalise", "retrack",
@@ -270,8 +271,6 @@ class _Tracker:
     def _track(self, gray: np.ndarray):
         """KLT of the previous frame's inliers and candidates, and PnP: ``(pose, pixels, ids)`` or None (the
         candidates are moved along, or dropped when the frame is lost)."""
-        from .relative import _estimate_pose, _pose_wxyz_xyz
-
         if self.prev_gray is None or not self.how or not self.how[-1] or len(self.point_ids[-1]) < 4:
             self._clear_candidates()
             return None
@@ -289,12 +288,12 @@ class _Tracker:
         self._keep_candidates(ok[k:])
         moved, ok = moved[:k], ok[:k]
         reg = dataclasses.replace(self.options.registration, ransac_max_error_px=self.options.tracking_max_error_px)
-        found = _estimate_pose(moved[ok], xyz[ok], self.cam, reg) if ok.sum() >= 4 else None
+        found = estimate_pose(moved[ok], xyz[ok], self.cam, reg) if ok.sum() >= 4 else None
         if found is None:
             self._clear_candidates()
             return None
         cfw, inl, _ = found
-        return _pose_wxyz_xyz(cfw), moved[ok][inl], ids[ok][inl]
+        return world_from_camera_wxyz_xyz(cfw), moved[ok][inl], ids[ok][inl]
 
     def _needs_keyframe(self, tracked) -> bool:
         o = self.options
@@ -321,9 +320,7 @@ class _Tracker:
         ready = np.flatnonzero(angle >= o.min_triangulation_angle_deg)
         if not len(ready):
             return
-        from .relative import _nearest_point
-
-        xyz = _nearest_point(self.cand_a[ready], self.cand_b[ready])
+        xyz = nearest_point(self.cand_a[ready], self.cand_b[ready])
         err_now = np.linalg.norm(_project(self.cam, pose, xyz) - self.cand_px[ready], axis=1)
         err_first = np.full(len(ready), np.inf)
         for t0 in np.unique(self.cand_t0[ready]):
@@ -422,8 +419,6 @@ class _Tracker:
     def step(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Register the next frame (gray uint8); returns its SIFT ``(keypoints (N, 2), descriptors (N, 128))``,
         empty unless it is a keyframe."""
-        from .relative import _estimate_pose, _pose_wxyz_xyz, match_to_reference
-
         reg = self.options.registration
         t = len(self.poses)
         self.prev_shape = gray.shape[:2]
@@ -451,10 +446,10 @@ class _Tracker:
                     kp_rows, kp_ids = kp_rows[first], kp_ids[first]
                     _, first = np.unique(kp_rows, return_index=True)
                     kp_rows, kp_ids = kp_rows[first], kp_ids[first]
-                found = _estimate_pose(keypoints[kp_rows], self.xyz_of(kp_ids), self.cam, reg)
+                found = estimate_pose(keypoints[kp_rows], self.xyz_of(kp_ids), self.cam, reg)
             if found is not None:
                 cfw, inl, _ = found
-                key_pose = _pose_wxyz_xyz(cfw)
+                key_pose = world_from_camera_wxyz_xyz(cfw)
                 new_ids, new_px, new_kpi = kp_ids[inl], keypoints[kp_rows[inl]], kp_rows[inl]
                 if kind:  # tracked points the keyframe did not find again, if its pose agrees with them
                     extra = np.flatnonzero(~np.isin(ids, new_ids))
@@ -756,9 +751,6 @@ def relocalise(tracks: list, keyframe_features: list, cams: list, index: Referen
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from .register import match_to_reference
-    from .relative import _estimate_pose, _pose_wxyz_xyz
-
     num_c = len(tracks)
     affinity = np.zeros((num_c, num_c), np.int64)
     todo = [(t, c) for t in range(first, stop) for c, track in enumerate(tracks)
@@ -774,13 +766,13 @@ def relocalise(tracks: list, keyframe_features: list, cams: list, index: Referen
             return None, np.zeros(num_c, np.int64)
         query, rows = match_to_reference(desc, extended, registration.ratio, registration.checks)
         votes = np.bincount(owners[rows][owners[rows] >= 0], minlength=num_c)
-        found = _estimate_pose(np.asarray(kp, np.float64)[query], extended.xyz[rows], cams[c], registration)
+        found = estimate_pose(np.asarray(kp, np.float64)[query], extended.xyz[rows], cams[c], registration)
         if found is None:
             return None, votes
         cfw, inl, _ = found
         ids = np.full(len(kp), -1, np.int64)
         ids[query[inl]] = extended.point3D_ids[rows[inl]]
-        return (_pose_wxyz_xyz(cfw), ids), votes
+        return (world_from_camera_wxyz_xyz(cfw), ids), votes
 
     count = workers if workers is not None else default_threads()
     registered = {}
