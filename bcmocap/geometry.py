@@ -107,6 +107,38 @@ def quat_conjugate(q: np.ndarray) -> np.ndarray:
     return np.concatenate([q[..., :1], -q[..., 1:]], -1)
 
 
+# ---- rigid transforms in numpy ------------------------------------------------------------------
+# Host-side preprocessing (the range-of-motion solve, virtual cameras) runs on arrays whose sizes
+# change with every segment and joint; jaxlie's eager ops would compile anew for each shape, so
+# these wxyz_xyz operations are written in numpy.
+
+
+def rotate_by_quat(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Vectors ``(..., 3)`` rotated by unit wxyz quaternions ``(..., 4)`` (numpy, broadcasting)."""
+    w, u = q[..., :1], q[..., 1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def compose_poses(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` for wxyz_xyz rigid transforms ``(..., 7)`` (numpy, broadcasting): ``a_from_c`` of
+    ``a_from_b`` and ``b_from_c``."""
+    rotation = quat_multiply(a[..., :4], b[..., :4])
+    return np.concatenate([rotation, rotate_by_quat(a[..., :4], b[..., 4:]) + a[..., 4:]], -1)
+
+
+def invert_pose(a: np.ndarray) -> np.ndarray:
+    """Inverses ``(..., 7)`` of wxyz_xyz rigid transforms ``(..., 7)`` with unit quaternions (numpy):
+    ``b_from_a`` of ``a_from_b``."""
+    q = quat_conjugate(a[..., :4])
+    return np.concatenate([q, -rotate_by_quat(q, a[..., 4:])], -1)
+
+
+def apply_pose(a: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Points ``(..., 3)`` mapped by wxyz_xyz rigid transforms ``(..., 7)``, ``R p + t`` (numpy, broadcasting)."""
+    return rotate_by_quat(a[..., :4], p) + a[..., 4:]
+
+
 def quat_exp(rotvec: np.ndarray) -> np.ndarray:
     """wxyz unit quaternions ``(..., 4)`` of rotation vectors ``(..., 3)`` (rad; numpy)."""
     v = np.asarray(rotvec, np.float64)

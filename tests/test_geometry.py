@@ -10,14 +10,18 @@ from conftest import quat_distance, quat_matrix, quat_multiply, random_quaternio
 from scipy.spatial.transform import Rotation
 
 from bcmocap.geometry import (
+    apply_pose,
     average_quaternions,
     canonical_quat,
+    compose_poses,
     euler_to_matrix,
+    invert_pose,
     kabsch,
     matrix_from_quat,
     quat_from_matrix,
     quat_identity,
     rotation_angle,
+    rotate_by_quat,
     rotation_from_covariance,
     similarity,
     slerp,
@@ -225,3 +229,73 @@ def test_rotation_from_covariance_is_the_same_in_numpy_and_jax_and_batched():
     for k in range(4):  # R maximises tr(Rᵀ M) over rotations: no random rotation does better
         best = np.trace(r[k].T @ m[k])
         assert all(np.trace(q.T @ m[k]) <= best + 1e-12 for q in Rotation.random(200, random_state=k).as_matrix())
+
+
+# ---- numpy rigid transforms (wxyz_xyz) ------------------------------------------------------------
+
+
+def random_poses(rng: np.random.Generator, shape) -> np.ndarray:
+    """wxyz_xyz poses ``(*shape, 7)``: random unit quaternions (either sign) and translations."""
+    return np.concatenate([random_quaternions(rng, shape), rng.normal(size=(*shape, 3))], axis=-1)
+
+
+def pose_matrix(pose: np.ndarray) -> np.ndarray:
+    """``(..., 4, 4)`` homogeneous matrices of wxyz_xyz poses (through scipy, an independent reference)."""
+    out = np.broadcast_to(np.eye(4), (*pose.shape[:-1], 4, 4)).copy()
+    out[..., :3, :3] = Rotation.from_quat(pose[..., [1, 2, 3, 0]].reshape(-1, 4)).as_matrix().reshape(*pose.shape[:-1], 3, 3)
+    out[..., :3, 3] = pose[..., 4:]
+    return out
+
+
+def test_rotate_by_quat_matches_scipy_and_matrix_from_quat_with_broadcasting():
+    rng = np.random.default_rng(11)
+    q = random_quaternions(rng, (5, 1))
+    v = rng.normal(size=(1, 6, 3))
+    out = rotate_by_quat(q, v)
+    assert out.shape == (5, 6, 3)
+    want = np.einsum("aij,abj->abi", Rotation.from_quat(q[:, 0, [1, 2, 3, 0]]).as_matrix(), np.broadcast_to(v, (5, 6, 3)))
+    np.testing.assert_allclose(out, want, atol=1e-12)
+    np.testing.assert_allclose(out, np.einsum("...ij,...j->...i", matrix_from_quat(q), v), atol=1e-12)
+    # the quaternion's sign does not matter
+    np.testing.assert_allclose(rotate_by_quat(-q, v), out, atol=1e-12)
+
+
+def test_matrix_from_quat_columns_are_the_rotated_axes():
+    """kinematics.rom relies on this: the matrix is the basis rotated by rotate_by_quat, bit for bit."""
+    q = random_quaternions(np.random.default_rng(12), (200,))
+    columns = np.stack([rotate_by_quat(q, e) for e in np.eye(3)], axis=-1)
+    np.testing.assert_array_equal(matrix_from_quat(q), columns)
+
+
+def test_apply_pose_is_rotation_then_translation():
+    rng = np.random.default_rng(13)
+    pose = random_poses(rng, (4, 1))
+    points = rng.normal(size=(4, 7, 3))
+    out = apply_pose(pose, points)
+    np.testing.assert_allclose(out, np.einsum("...ij,...j->...i", matrix_from_quat(pose[..., :4]), points) + pose[..., 4:],
+                               atol=1e-12)
+    homogeneous = np.einsum("...ij,...j->...i", pose_matrix(pose), np.concatenate([points, np.ones((4, 7, 1))], -1))
+    np.testing.assert_allclose(out, homogeneous[..., :3], atol=1e-12)
+
+
+def test_compose_poses_is_the_matrix_product():
+    rng = np.random.default_rng(14)
+    a, b = random_poses(rng, (3, 1)), random_poses(rng, (1, 5))
+    ab = compose_poses(a, b)
+    assert ab.shape == (3, 5, 7)
+    np.testing.assert_allclose(pose_matrix(ab), pose_matrix(a) @ pose_matrix(b), atol=1e-12)
+    p = rng.normal(size=3)
+    np.testing.assert_allclose(apply_pose(ab, p), apply_pose(a, apply_pose(b, p)), atol=1e-12)
+
+
+def test_invert_pose_undoes_a_pose_from_either_side():
+    rng = np.random.default_rng(15)
+    pose = random_poses(rng, (6,))
+    inverse = invert_pose(pose)
+    np.testing.assert_allclose(pose_matrix(inverse), np.linalg.inv(pose_matrix(pose)), atol=1e-12)
+    for both in (compose_poses(pose, inverse), compose_poses(inverse, pose)):
+        np.testing.assert_allclose(both[:, 4:], 0.0, atol=1e-12)
+        np.testing.assert_allclose(np.abs(both[:, 0]), 1.0, atol=1e-12)  # identity rotation, up to the sign of q
+        np.testing.assert_allclose(both[:, 1:4], 0.0, atol=1e-12)
+    points = rng.normal(size=(6, 3))
+    np.testing.assert_allclose(apply_pose(inverse, apply_pose(pose, points)), points, atol=1e-12)

@@ -220,3 +220,19 @@ def test_lazy_problem_windows_equal_the_in_memory_problem(capture, corr):
                 np.testing.assert_array_equal(np.asarray(g.data[key]), np.asarray(e.data[key]))
         for g in got[2:]:  # smoothness pairs: the sequence's first pair is dropped, later windows keep theirs
             assert np.asarray(g.data)[0] == (0.0 if start == 0 else 1.0)
+
+
+def test_segment_distance_squared_matches_a_dense_sampling():
+    from bcmocap.sim.observe import segment_distance_squared
+
+    rng = np.random.default_rng(3)
+    p1, q1, p2, q2 = rng.normal(size=(4, 20, 3))
+    q2[0] = p2[0]  # a degenerate segment counts as its point
+    q1[1] = p1[1] + 2.0 * (q2[1] - p2[1])  # parallel segments
+    got = np.asarray(segment_distance_squared(p1, q1, p2, q2))
+    s = np.linspace(0.0, 1.0, 801)
+    a = p1[:, None] + s[None, :, None] * (q1 - p1)[:, None]  # (20, S, 3)
+    b = p2[:, None] + s[None, :, None] * (q2 - p2)[:, None]
+    brute = np.min(np.sum((a[:, :, None] - b[:, None]) ** 2, -1), axis=(1, 2))
+    assert got.shape == (20,)
+    assert np.all(got <= brute + 1e-9) and np.allclose(got, brute, atol=2e-4)

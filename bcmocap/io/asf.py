@@ -170,6 +170,18 @@ def _check_order(where: str, line: int, order: str) -> str:
 _LIMIT = re.compile(r"\(\s*([^\s()]+)\s+([^\s()]+)\s*\)")
 
 
+@dataclasses.dataclass
+class _AsfSections:
+    """The sections of an ASF file that bcmocap uses, as tokens with their line numbers (not yet interpreted)."""
+
+    name: str = ""
+    units: dict[str, str] = dataclasses.field(default_factory=dict)
+    units_line: dict[str, int] = dataclasses.field(default_factory=dict)
+    root: dict[str, tuple[int, list[str]]] = dataclasses.field(default_factory=dict)
+    bones: list[dict] = dataclasses.field(default_factory=list)  # as from _finish_bone
+    hierarchy: list[tuple[int, str, list[str]]] = dataclasses.field(default_factory=list)  # (line, parent, children)
+
+
 def read_asf(
     path: str | os.PathLike,
     *,
@@ -196,13 +208,38 @@ def read_asf(
     path = Path(path)
     where = str(path)
     basis = world_from_file(up_axis)
+    asf = _read_asf_sections(path, where)
+    angle_unit, to_rad, length_unit_m = _asf_units(where, asf, length_unit_m)
+    root_order, root_pos, root_c = _asf_root(where, asf.root, to_rad)
+    by_name, children, parent_of, order = _asf_bone_order(where, asf.bones, asf.hierarchy)
+    seg_names, parents, offsets, types, axes, bone_records = _asf_segments(
+        order, by_name, children, parent_of, root_pos, length_unit_m, to_rad, end_sites
+    )
+    skeleton = Skeleton(
+        seg_names,
+        parents,
+        np.array(offsets) @ basis.T,
+        joint_types=types,
+        hinge_axes=np.array(axes) @ basis.T,
+    )
+    return AsfData(
+        skeleton=skeleton,
+        bones=tuple(bone_records),
+        root_order=root_order,
+        root_axis_matrix=_readonly(root_c),
+        root_position=tuple(root_pos),
+        length_unit_m=float(length_unit_m),
+        angle_unit=angle_unit,
+        up_axis=up_axis.lower(),
+        name=asf.name,
+        path=where,
+    )
 
-    units: dict[str, str] = {}
-    units_line: dict[str, int] = {}
-    root: dict[str, tuple[int, list[str]]] = {}
-    bones: list[dict] = []
-    hierarchy: list[tuple[int, str, list[str]]] = []
-    name = ""
+
+def _read_asf_sections(path: Path, where: str) -> _AsfSections:
+    """Split an ASF file into its sections, checking the structure (bones begun and ended, the sections
+    bcmocap needs present); each bone's fields are checked by :func:`_finish_bone`."""
+    out = _AsfSections()
     section = None
     bone: dict | None = None
     in_hierarchy = False
@@ -222,14 +259,14 @@ def read_asf(
             section = tokens[0][1:].lower()
             seen_sections.add(section)
             if section == "name":
-                name = " ".join(tokens[1:])
+                out.name = " ".join(tokens[1:])
             in_hierarchy = False
             continue
         if section == "units":
             if len(tokens) != 2:
                 raise ValueError(f"{where}:{n}: expected '<quantity> <value>' in :units, found '{text}'")
-            units[tokens[0].lower()] = tokens[1]
-            units_line[tokens[0].lower()] = n
+            out.units[tokens[0].lower()] = tokens[1]
+            out.units_line[tokens[0].lower()] = n
         elif section == "root":
             key = tokens[0].lower()
             if key not in ("order", "axis", "position", "orientation"):
@@ -237,39 +274,9 @@ def read_asf(
                     f"{where}:{n}: expected 'order', 'axis', 'position' or 'orientation' in :root, found "
                     f"'{tokens[0]}'"
                 )
-            root[key] = (n, tokens[1:])
+            out.root[key] = (n, tokens[1:])
         elif section == "bonedata":
-            key = tokens[0].lower()
-            if bone is None:
-                if key != "begin":
-                    raise ValueError(f"{where}:{n}: expected 'begin' to start a bone in :bonedata, found '{tokens[0]}'")
-                bone = {"line": n, "limits": []}
-                last_key = None
-            elif key == "begin":
-                raise ValueError(
-                    f"{where}:{n}: expected 'end' to close the bone begun on line {bone['line']}, found "
-                    "'begin'"
-                )
-            elif key == "end":
-                bones.append(_finish_bone(where, n, bone))
-                bone = None
-            elif text.startswith("("):
-                if last_key != "limits":
-                    raise ValueError(f"{where}:{n}: a '(low high)' pair must follow a 'limits' line")
-                bone["limits"].append((n, text))
-            elif key in ("id", "name", "direction", "length", "axis", "dof", "limits", "bodymass", "cofmass"):
-                if key in bone and key != "limits":
-                    raise ValueError(f"{where}:{n}: bone begun on line {bone['line']} has a second '{key}' line")
-                if key == "limits":
-                    bone["limits"].append((n, " ".join(tokens[1:])))
-                else:
-                    bone[key] = (n, tokens[1:])
-                last_key = key
-            else:
-                raise ValueError(
-                    f"{where}:{n}: unknown bone field '{tokens[0]}' (expected id, name, direction, length, axis, dof, "
-                    "limits or end)"
-                )
+            bone, last_key = _bonedata_line(where, n, text, tokens, bone, last_key, out.bones)
         elif section == "hierarchy":
             key = tokens[0].lower()
             if key == "begin" and not in_hierarchy:
@@ -279,7 +286,7 @@ def read_asf(
             elif not in_hierarchy:
                 raise ValueError(f"{where}:{n}: expected 'begin' in :hierarchy, found '{tokens[0]}'")
             else:
-                hierarchy.append((n, tokens[0], tokens[1:]))
+                out.hierarchy.append((n, tokens[0], tokens[1:]))
         # Other sections (:version, :documentation, :skin …) carry nothing bcmocap uses.
     if bone is not None:
         raise ValueError(
@@ -291,8 +298,49 @@ def read_asf(
     for needed in ("root", "bonedata", "hierarchy"):
         if needed not in seen_sections:
             raise ValueError(f"{where}:{last_line}: expected a ':{needed}' section, the file has none")
+    return out
 
-    # ---- units ----
+
+def _bonedata_line(where: str, n: int, text: str, tokens: list[str], bone: dict | None, last_key: str | None,
+                   bones: list[dict]) -> tuple[dict | None, str | None]:
+    """Read line ``n`` of :bonedata into ``bone``, the bone being read (None between bones; its ``end``
+    appends it, finished, to ``bones``). Returns the bone being read after this line and its last field."""
+    key = tokens[0].lower()
+    if bone is None:
+        if key != "begin":
+            raise ValueError(f"{where}:{n}: expected 'begin' to start a bone in :bonedata, found '{tokens[0]}'")
+        return {"line": n, "limits": []}, None
+    if key == "begin":
+        raise ValueError(
+            f"{where}:{n}: expected 'end' to close the bone begun on line {bone['line']}, found "
+            "'begin'"
+        )
+    if key == "end":
+        bones.append(_finish_bone(where, n, bone))
+        return None, last_key
+    if text.startswith("("):
+        if last_key != "limits":
+            raise ValueError(f"{where}:{n}: a '(low high)' pair must follow a 'limits' line")
+        bone["limits"].append((n, text))
+        return bone, last_key
+    if key in ("id", "name", "direction", "length", "axis", "dof", "limits", "bodymass", "cofmass"):
+        if key in bone and key != "limits":
+            raise ValueError(f"{where}:{n}: bone begun on line {bone['line']} has a second '{key}' line")
+        if key == "limits":
+            bone["limits"].append((n, " ".join(tokens[1:])))
+        else:
+            bone[key] = (n, tokens[1:])
+        return bone, key
+    raise ValueError(
+        f"{where}:{n}: unknown bone field '{tokens[0]}' (expected id, name, direction, length, axis, dof, "
+        "limits or end)"
+    )
+
+
+def _asf_units(where: str, asf: _AsfSections, length_unit_m: float | None) -> tuple[str, float, float]:
+    """The angle unit ("deg" or "rad"), radians per file angle unit and metres per file length unit
+    (``length_unit_m`` if given, else from ``:units``)."""
+    units, units_line = asf.units, asf.units_line
     angle_unit = units.get("angle", "deg").lower()
     if angle_unit not in ("deg", "rad"):
         raise ValueError(
@@ -316,8 +364,12 @@ def read_asf(
             length_unit_m = _INCH_M
     elif not length_unit_m > 0:
         raise ValueError(f"read_asf: length_unit_m must be positive, got {length_unit_m}")
+    return angle_unit, to_rad, length_unit_m
 
-    # ---- root ----
+
+def _asf_root(where: str, root: dict[str, tuple[int, list[str]]], to_rad: float
+              ) -> tuple[tuple[str, ...], list[float], np.ndarray]:
+    """The :root section: the AMC channel order, the position (file units) and the axis matrix ``C_root``."""
     if "order" in root:
         line, toks = root["order"]
         root_order = tuple(t.upper() for t in toks)
@@ -333,8 +385,12 @@ def read_asf(
     root_pos = _floats(where, *root["position"], 3, "position") if "position" in root else [0.0, 0.0, 0.0]
     root_ori = _floats(where, *root["orientation"], 3, "orientation") if "orientation" in root else [0.0, 0.0, 0.0]
     root_c = _axis_matrix(np.array(root_ori) * to_rad, root_axis)
+    return root_order, root_pos, root_c
 
-    # ---- hierarchy → depth-first segment order ----
+
+def _asf_bone_order(where: str, bones: list[dict], hierarchy: list[tuple[int, str, list[str]]]):
+    """The bones by name, each bone's children and parent (by name, "root" for the root), and the
+    depth-first order of the tree from "root"."""
     by_name = {}
     for b in bones:
         if b["name"] in by_name or b["name"].lower() == "root":
@@ -365,8 +421,13 @@ def read_asf(
         raise ValueError(
             f"{where}:{by_name[missing[0]]['line']}: bone(s) {missing} are not reachable from the root in :hierarchy"
         )
+    return by_name, children, parent_of, order
 
-    # ---- segments ----
+
+def _asf_segments(order, by_name, children, parent_of, root_pos, length_unit_m: float, to_rad: float, end_sites: bool):
+    """Segments in the file's frame (m): names, parent indices, offsets, joint types and hinge axes, one per
+    bone of ``order`` (with a FIXED ``<bone>_end`` after each leaf bone when ``end_sites``), and the
+    :class:`AsfBone` records."""
     seg_names: list[str] = []
     parents: list[int] = []
     offsets: list[np.ndarray] = []
@@ -426,26 +487,7 @@ def read_asf(
             offsets.append(np.array(rec["direction"]) * rec["length"] * length_unit_m)
             types.append(JointType.FIXED)
             axes.append(np.zeros(3))
-
-    skeleton = Skeleton(
-        seg_names,
-        parents,
-        np.array(offsets) @ basis.T,
-        joint_types=types,
-        hinge_axes=np.array(axes) @ basis.T,
-    )
-    return AsfData(
-        skeleton=skeleton,
-        bones=tuple(bone_records),
-        root_order=root_order,
-        root_axis_matrix=_readonly(root_c),
-        root_position=tuple(root_pos),
-        length_unit_m=float(length_unit_m),
-        angle_unit=angle_unit,
-        up_axis=up_axis.lower(),
-        name=name,
-        path=where,
-    )
+    return seg_names, parents, offsets, types, axes, bone_records
 
 
 def _finish_bone(where: str, end_line: int, bone: dict) -> dict:

@@ -314,8 +314,38 @@ def read_bvh(
     if motion_at is None:
         raise ValueError(f"{where}:{len(lines)}: expected a 'MOTION' line after the hierarchy, found none")
     nodes = _parse_hierarchy(_Tokens(where, lines, 0, motion_at))
+    num_frames, frames_line, frame_time, time_line = _read_motion_header(where, lines, motion_at)
+    joints = [k for k, node in enumerate(nodes) if not node.is_end]
+    num_channels = sum(len(nodes[k].channels) for k in joints)
+    values = _read_frames(where, lines, num_frames, num_channels, frames_line, time_line)
 
-    # ---- MOTION header ----
+    keep = [k for k, node in enumerate(nodes) if end_sites or not node.is_end]
+    names = _segment_names(where, nodes, keep)
+    seg_of_node = {k: s for s, k in enumerate(keep)}
+    parents = [seg_of_node[nodes[k].parent] if nodes[k].parent >= 0 else -1 for k in keep]
+    offsets, types, axes, channels, orders, rot_file, root_position = _segments_and_motion(nodes, keep, joints, values)
+
+    rotations = basis @ rot_file @ basis.T
+    skeleton = Skeleton(
+        names,
+        parents,
+        offsets @ basis.T * length_unit_m,
+        joint_types=types,
+        hinge_axes=axes @ basis.T,
+    )
+    motion = Motion(root_position @ basis.T * length_unit_m, quat_from_matrix(rotations))
+    return BvhData(
+        skeleton=skeleton,
+        motion=motion,
+        frame_time_s=float(frame_time),
+        channels=tuple(channels),
+        euler_orders=tuple(orders),
+    )
+
+
+def _read_motion_header(where: str, lines: Sequence[str], motion_at: int) -> tuple[int, int, float, int]:
+    """``Frames:`` and ``Frame Time:`` after the ``MOTION`` line (0-based ``motion_at``): the frame count, its
+    1-based line, the frame time (s) and its 1-based line."""
     n = motion_at + 1
     num_frames, frames_line = _header_value(where, lines, n, ("FRAMES",), int, "'Frames: <count>'")
     frame_time, time_line = _header_value(
@@ -327,9 +357,13 @@ def read_bvh(
         raise ValueError(f"{where}:{frames_line}: 'Frames: {num_frames}' but the file has only {len(lines)} lines")
     if not (np.isfinite(frame_time) and frame_time > 0):
         raise ValueError(f"{where}:{time_line}: expected a positive, finite frame time, found {frame_time}")
+    return num_frames, frames_line, frame_time, time_line
 
-    joints = [k for k, node in enumerate(nodes) if not node.is_end]
-    num_channels = sum(len(nodes[k].channels) for k in joints)
+
+def _read_frames(where: str, lines: Sequence[str], num_frames: int, num_channels: int, frames_line: int,
+                 time_line: int) -> np.ndarray:
+    """``(num_frames, num_channels)`` channel values of the frame lines after the ``Frame Time:`` line
+    (1-based ``time_line``), exactly ``num_frames`` non-blank lines of finite numbers."""
     values = np.zeros((num_frames, num_channels))
     frame = 0
     last_line = time_line
@@ -364,10 +398,12 @@ def read_bvh(
             f"{where}:{frame_lines[int(f_bad)]}: value {int(c_bad) + 1} of the frame is not a finite "
             "number"
         )
+    return values
 
-    # ---- segments ----
-    keep = [k for k, node in enumerate(nodes) if end_sites or not node.is_end]
-    seg_of_node = {k: s for s, k in enumerate(keep)}
+
+def _segment_names(where: str, nodes: list[_Node], keep: list[int]) -> list[str]:
+    """Segment names of the ``keep`` nodes: a joint's own (unique), ``<parent>_end`` for an End Site (numbered
+    where that name is taken)."""
     names: list[str] = []
     for k in keep:
         node = nodes[k]
@@ -381,8 +417,14 @@ def read_bvh(
             if name in names:
                 raise ValueError(f"{where}:{node.line}: duplicate joint name '{name}'")
         names.append(name)
-    parents = [seg_of_node[nodes[k].parent] if nodes[k].parent >= 0 else -1 for k in keep]
+    return names
 
+
+def _segments_and_motion(nodes: list[_Node], keep: list[int], joints: list[int], values: np.ndarray):
+    """Per segment (the ``keep`` nodes), in the file's frame and units: offsets ``(J, 3)``, joint types, hinge
+    axes ``(J, 3)``, channel names and rotation orders; and from the channel ``values`` ``(F, channels)`` of
+    the ``joints`` nodes, the local rotations ``(F, J, 3, 3)`` and root positions ``(F, 3)``."""
+    num_frames = len(values)
     offsets = np.zeros((len(keep), 3))
     types: list[JointType] = []
     axes = np.zeros((len(keep), 3))
@@ -424,24 +466,7 @@ def read_bvh(
             types.append(JointType.BALL)
         if order:
             rot_file[:, s] = euler_to_matrix(np.deg2rad(values[:, rot_cols]), order)
-
-    rotations = basis @ rot_file @ basis.T
-    skeleton = Skeleton(
-        names,
-        parents,
-        offsets @ basis.T * length_unit_m,
-        joint_types=types,
-        hinge_axes=axes @ basis.T,
-    )
-    motion = Motion(root_position @ basis.T * length_unit_m, quat_from_matrix(rotations))
-    return BvhData(
-        skeleton=skeleton,
-        motion=motion,
-        frame_time_s=float(frame_time),
-        channels=tuple(channels),
-        euler_orders=tuple(orders),
-    )
-
+    return offsets, types, axes, channels, orders, rot_file, root_position
 
 def _is_float(text: str) -> bool:
     try:

@@ -50,18 +50,21 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ..cameras import CameraModel
-from ..geometry import quat_conjugate, quat_multiply
+from ..geometry import (
+    apply_pose,
+    compose_poses,
+    invert_pose,
+    matrix_from_quat,
+    quat_conjugate,
+    quat_multiply,
+    rotate_by_quat,
+)
 from ..precision import require_float64
 from .rig import Rig
 from .skeleton import JointType, Skeleton
 from .virtual import (
     TUKEY_CUTOFF,
     VirtualCamera,
-    _apply,
-    _compose,
-    _inverse,
-    _qmatrix,
-    _qrot,
     estimate_virtual_camera,
     robust_average_poses,
 )
@@ -237,7 +240,7 @@ def _solve_centre(parent_from_child: np.ndarray, drop: int, options: RomOptions,
         y ``(6,)``, eigenvectors ``(6, 6)`` (columns, ascending), normalised singular values ``(6,)``
         ascending, the covariance of y ``(6, 6)`` (m²), residual norms ``(N,)`` and Tukey weights ``(N,)``.
     """
-    rot = _qmatrix(parent_from_child[:, :4])
+    rot = matrix_from_quat(parent_from_child[:, :4])
     a = np.concatenate([rot, -np.broadcast_to(np.eye(3), rot.shape)], axis=2)  # (N, 3, 6)
     b = -parent_from_child[:, 4:]
     base = _pose_density_weights(parent_from_child[:, :4], np.deg2rad(options.pose_radius_deg))
@@ -407,13 +410,29 @@ def skeleton_from_range_of_motion(
     world_from_camera = np.asarray(world_from_camera, dtype=np.float64)
     registered = np.asarray(registered, dtype=bool)
     seg_cams = _check_assignment(topology, pairs, world_from_camera, registered, options)
-    num_frames, n = registered.shape[0], len(topology.names)
-    rest = np.zeros(num_frames, bool)
+    rest = np.zeros(registered.shape[0], bool)
     rest[rest_frames] = True
     if not rest.any():
         raise ValueError("skeleton_from_range_of_motion: rest_frames selects no frame")
 
-    # ---- virtual cameras: one trajectory per segment --------------------------------------------
+    vcs, pooled = _segment_virtual_cameras(topology, pairs, seg_cams, world_from_camera, registered, more_trials, options)
+    world_v, known = pooled[0]
+    joints, families = _estimate_joint_centres(topology, pooled, more_trials, options)
+    world_from_v_rest = _rest_pose(topology, joints, families, world_v, known, rest)
+    skeleton, seg_from_v = _segment_frames(topology, joints, world_from_v_rest, world_from_rest, root_origin, world_v, known)
+    camera_segments = tuple(topology.index(s) for _, s in pairs)
+    mounts = np.zeros((len(pairs), 7))
+    for j, cams in enumerate(seg_cams):
+        vc = vcs[topology.names[j]]
+        mounts[cams] = compose_poses(seg_from_v[j], vc.virtual_from_camera)
+    names = tuple(c for c, _ in pairs)
+    rig = None if intrinsics is None else Rig(names, camera_segments, mounts, intrinsics)
+    return RomEstimate(skeleton, rig, mounts, names, camera_segments, joints, vcs, seg_from_v)
+
+
+def _segment_virtual_cameras(topology, pairs, seg_cams, world_from_camera, registered, more_trials, options):
+    """One virtual camera per segment from the range-of-motion trial, and the ``(world_v, known)`` virtual-camera
+    poses of that trial and of each of ``more_trials`` (in that order; see :func:`_virtual_poses`)."""
     vcs: dict[str, VirtualCamera] = {
         topology.names[j]: estimate_virtual_camera(
             [pairs[i][0] for i in cams], world_from_camera[:, cams], registered[:, cams], name=topology.names[j],
@@ -429,15 +448,23 @@ def skeleton_from_range_of_motion(
             )
     pooled = [_virtual_poses(vcs, topology, seg_cams, poses, reg, options)
               for poses, reg in [(world_from_camera, registered), *more_trials]]
-    world_v, known = pooled[0]
+    return vcs, pooled
 
-    # ---- joint centres (Eqs. 12-14, 16) ---------------------------------------------------------
+
+def _estimate_joint_centres(topology, pooled, more_trials, options):
+    """Joint centres (Eqs. 12-14, 16) from the parent→child virtual-camera poses of all ``pooled`` trials.
+
+    Returns the :class:`JointEstimate` per child segment name and the hinge-like ``families`` (name →
+    ``(y, null)``: a centre fixed only up to a line, placed on it by the rest pose, see :func:`_rest_pose`).
+    Raises ValueError for a joint the trials did not exercise; warns for a hinge whose rotations are not
+    about one axis and for a ball joint regularised as a hinge.
+    """
     joints: dict[str, JointEstimate] = {}
     families: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for j in range(1, n):
+    for j in range(1, len(topology.names)):
         name, p = topology.names[j], topology.parents[j]
         pname, jtype = topology.names[p], topology.joint_types[j]
-        rel = np.concatenate([_compose(_inverse(wv[kn[:, j] & kn[:, p], p]), wv[kn[:, j] & kn[:, p], j])
+        rel = np.concatenate([compose_poses(invert_pose(wv[kn[:, j] & kn[:, p], p]), wv[kn[:, j] & kn[:, p], j])
                               for wv, kn in pooled])
         trials = "trial" if not more_trials else f"{1 + len(more_trials)} trials"
         if len(rel) < options.min_frames:
@@ -460,14 +487,14 @@ def skeleton_from_range_of_motion(
                 warnings.warn(
                     f"{what}: its rotations are not about a single axis (spreads {est.spread[0]:.3f} and "
                     f"{est.spread[1]:.3f}); it is estimated as a hinge about the least-moving axis",
-                    stacklevel=2,
+                    stacklevel=3,
                 )
         elif weak or est.std_m > options.max_centre_std_m:
             if weak == 1 and options.degenerate == "hinge":
                 warnings.warn(
                     f"{what}: the trial exercised it about one axis only (spread {est.spread[0]:.4f} < "
                     f"{options.min_spread}); its centre is fixed on that axis by the straight rest pose",
-                    stacklevel=2,
+                    stacklevel=3,
                 )
                 est = _joint_estimate(name, pname, jtype, rel, 1, options, families)
             else:
@@ -479,10 +506,14 @@ def skeleton_from_range_of_motion(
                 raise ValueError(f"{what}: the {trials} do{'es' * (not more_trials)} not determine its centre: {why}; exercise the joint about "
                                  "more axes, or declare it a hinge")
         joints[name] = est
+    return joints, families
 
-    # ---- rest pose: segment orientations, hinge centres on their axes (Eq. 17) -------------------
-    world_from_v_rest = np.zeros((n, 4))
-    for j in range(n):
+
+def _rest_pose(topology, joints, families, world_v, known, rest) -> np.ndarray:
+    """Rest pose (Eq. 17): ``(J, 4)`` world_from_virtual orientations of the segments in the ``rest`` frames
+    ``(T,)``; places each hinge-like family's centre on its axis, updating ``joints`` in place."""
+    world_from_v_rest = np.zeros((len(topology.names), 4))
+    for j in range(len(topology.names)):
         ok = rest & known[:, j]
         if not ok.any():
             raise ValueError(f"segment '{topology.names[j]}': none of its cameras is registered in the rest frames")
@@ -493,8 +524,13 @@ def skeleton_from_range_of_motion(
     for _ in range(1 if len(families) < 2 else 10):
         for name, (y0, null) in families.items():
             joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None])
+    return world_from_v_rest
 
-    # ---- segment frames, bone vectors (Eq. 15), mounts (Eq. 5) -----------------------------------
+
+def _segment_frames(topology, joints, world_from_v_rest, world_from_rest, root_origin, world_v, known):
+    """Segment frames, bone vectors (Eq. 15) and hinge axes: the :class:`Skeleton` and ``(J, 7)``
+    segment_from_virtual (wxyz_xyz) of each segment's virtual camera."""
+    n = len(topology.names)
     rest_q = np.array([1.0, 0, 0, 0]) if world_from_rest is None else np.asarray(world_from_rest, dtype=np.float64)
     seg_from_v_rot = quat_multiply(quat_conjugate(rest_q / np.linalg.norm(rest_q)), world_from_v_rest)
     origin = np.zeros((n, 3))
@@ -507,7 +543,7 @@ def skeleton_from_range_of_motion(
         origin[0] = np.mean([joints[topology.names[k]].centre_in_parent for k in chosen], axis=0)
     for j in range(1, n):
         origin[j] = joints[topology.names[j]].centre_in_child
-    rot_sv = _qmatrix(seg_from_v_rot)  # (J, 3, 3)
+    rot_sv = matrix_from_quat(seg_from_v_rot)  # (J, 3, 3)
     seg_from_v = np.concatenate([seg_from_v_rot, -np.einsum("jab,jb->ja", rot_sv, origin)], axis=1)
     offsets = np.zeros((n, 3))
     axes = np.zeros((n, 3))
@@ -518,14 +554,7 @@ def skeleton_from_range_of_motion(
             axes[j] = rot_sv[j] @ est.axis_in_child
             axes[j] *= _flexion_sign(world_v, known, j, p, seg_from_v_rot, axes[j])
     skeleton = Skeleton(topology.names, topology.parents, offsets, topology.joint_types, axes)
-    camera_segments = tuple(topology.index(s) for _, s in pairs)
-    mounts = np.zeros((len(pairs), 7))
-    for j, cams in enumerate(seg_cams):
-        vc = vcs[topology.names[j]]
-        mounts[cams] = _compose(seg_from_v[j], vc.virtual_from_camera)
-    names = tuple(c for c, _ in pairs)
-    rig = None if intrinsics is None else Rig(names, camera_segments, mounts, intrinsics)
-    return RomEstimate(skeleton, rig, mounts, names, camera_segments, joints, vcs, seg_from_v)
+    return skeleton, seg_from_v
 
 
 def _virtual_poses(vcs, topology, seg_cams, world_from_camera, registered, options):
@@ -546,7 +575,7 @@ def _check_neighbouring_axes(topology, families, world_from_v_rest, max_angle_de
     axes = {}
     for name, (_, null) in families.items():
         j = topology.index(name)
-        axes[name] = _qrot(world_from_v_rest[j][None], (null[:3] / np.linalg.norm(null[:3]))[None])[0]
+        axes[name] = rotate_by_quat(world_from_v_rest[j][None], (null[:3] / np.linalg.norm(null[:3]))[None])[0]
     for name in families:
         j = topology.index(name)
         for other in (topology.names[topology.parents[j]], *(topology.names[k] for k in topology.children(j))):
@@ -582,13 +611,13 @@ def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known) -> J
         raise ValueError(f"joint '{name}': its segments are never all known in the rest frames")
     wv = world_v[ok]
     wp, wc = wv[:, p], wv[:, j]
-    upper, lower = (_apply(wv[:, seg], centre) for seg, centre in zip(segments, centres))
+    upper, lower = (apply_pose(wv[:, seg], centre) for seg, centre in zip(segments, centres))
     d = upper - lower
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rows, rhs = [], []
     for pose, base, step in ((wc, y0[:3], null[:3]), (wp, y0[3:], null[3:])):
-        k0 = _apply(pose, base)
-        dk = _qrot(pose[:, :4], step)
+        k0 = apply_pose(pose, base)
+        dk = rotate_by_quat(pose[:, :4], step)
         rows.append(np.cross(d, dk).ravel())
         rhs.append(-np.cross(d, k0 - lower).ravel())
     rows, rhs = np.concatenate(rows), np.concatenate(rhs)

@@ -27,45 +27,12 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..geometry import average_quaternions, quat_conjugate, quat_multiply
+from ..geometry import average_quaternions, compose_poses, invert_pose, quat_conjugate, quat_multiply
 from .rig import Rig
 
 #: Tukey biweight cut-off, in multiples of the median residual of the sample (for a χ-distributed
 #: 3-D error norm the median is ≈ 1.54 σ, so inliers are kept out to ≈ 6 σ).
 TUKEY_CUTOFF = 4.0
-
-
-# ---- rigid transforms in numpy ------------------------------------------------------------------
-# The range-of-motion preprocessing runs once on host arrays whose sizes change with every segment
-# and joint; jaxlie's eager ops would compile anew for each shape (minutes in total), so these few
-# wxyz_xyz operations are written in numpy.
-
-
-def _qrot(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate vectors ``(..., 3)`` by unit quaternions ``(..., 4)``."""
-    w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
-def _qmatrix(q: np.ndarray) -> np.ndarray:
-    """``(..., 3, 3)`` rotation matrices of unit quaternions."""
-    return np.stack([_qrot(q, e) for e in np.eye(3)], axis=-1)
-
-
-def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b`` for wxyz_xyz transforms (broadcasting)."""
-    return np.concatenate([quat_multiply(a[..., :4], b[..., :4]), _qrot(a[..., :4], b[..., 4:]) + a[..., 4:]], -1)
-
-
-def _inverse(a: np.ndarray) -> np.ndarray:
-    q = quat_conjugate(a[..., :4])
-    return np.concatenate([q, -_qrot(q, a[..., 4:])], -1)
-
-
-def _apply(a: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Transform points ``(..., 3)`` by wxyz_xyz transforms."""
-    return _qrot(a[..., :4], p) + a[..., 4:]
 
 
 def _tukey_weights(normalised: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -172,7 +139,7 @@ class VirtualCamera:
 
     def camera_from_virtual(self) -> np.ndarray:
         """``(K, 7)`` inverse mounts (Eq. 7: ``camera_from_virtual = reference_from_camera⁻¹`` up to where V sits)."""
-        return _inverse(self.virtual_from_camera)
+        return invert_pose(self.virtual_from_camera)
 
     def world_from_virtual(
         self, world_from_camera: np.ndarray, registered: np.ndarray, *, robust: bool = True
@@ -198,14 +165,14 @@ class VirtualCamera:
                 f"cameras {list(self.cameras)}, got {world_from_camera.shape} and {registered.shape}"
             )
         safe = np.where(registered[..., None], world_from_camera, np.array([1.0, 0, 0, 0, 0, 0, 0]))
-        each = _compose(safe, self.camera_from_virtual()[None])
+        each = compose_poses(safe, self.camera_from_virtual()[None])
         mean, _ = robust_average_poses(each, registered, robust=robust)
         known = registered.any(axis=1)
         return np.where(known[:, None], mean, np.nan), known
 
     def camera_poses(self, world_from_virtual: np.ndarray) -> np.ndarray:
         """``(..., K, 7)`` physical camera poses implied by virtual poses ``(..., 7)`` (Fig. 5b)."""
-        return _compose(np.asarray(world_from_virtual, dtype=np.float64)[..., None, :], self.virtual_from_camera)
+        return compose_poses(np.asarray(world_from_virtual, dtype=np.float64)[..., None, :], self.virtual_from_camera)
 
 
 def estimate_virtual_camera(
@@ -273,14 +240,14 @@ def estimate_virtual_camera(
                 f"{frames[i]} frames (< {min_frames}); its mount is poorly determined",
                 stacklevel=2,
             )
-        rel = _compose(_inverse(world_from_camera[both, ref]), world_from_camera[both, i])
+        rel = compose_poses(invert_pose(world_from_camera[both, ref]), world_from_camera[both, i])
         ref_from_cam[i], w = robust_average_poses(rel)  # Eq. (6), f_a robust
         inliers[i] = float(np.mean(w > 0))
     if centred:
         centre = np.concatenate([average_quaternions(ref_from_cam[:, :4]), ref_from_cam[:, 4:].mean(axis=0)])
     else:
         centre = ref_from_cam[ref]
-    virtual_from_cam = _compose(_inverse(centre), ref_from_cam)
+    virtual_from_cam = compose_poses(invert_pose(centre), ref_from_cam)
     return VirtualCamera(name, cameras, virtual_from_cam, cameras[ref], frames, inliers)
 
 
@@ -308,12 +275,12 @@ def reparameterise_rig(rig: Rig, virtual_cameras: Sequence[VirtualCamera], virtu
         segs = {rig.segments[i] for i in idx}
         if len(segs) != 1:
             raise ValueError(f"reparameterise_rig: the cameras of virtual camera '{vc.name}' are on different segments {sorted(segs)}")
-        mounts[idx] = _compose(np.asarray(virtual_mounts[vc.name], dtype=np.float64), vc.virtual_from_camera)
+        mounts[idx] = compose_poses(np.asarray(virtual_mounts[vc.name], dtype=np.float64), vc.virtual_from_camera)
     return Rig(rig.names, rig.segments, mounts, rig.intrinsics)
 
 
 def segment_from_virtual(rig: Rig, vc: VirtualCamera) -> np.ndarray:
     """``(7,)`` where a rig's mounts put the virtual camera on its segment (robust mean over its cameras)."""
     idx = [rig.index(c) for c in vc.cameras]
-    each = _compose(np.asarray(rig.segment_from_camera)[idx], _inverse(vc.virtual_from_camera))
+    each = compose_poses(np.asarray(rig.segment_from_camera)[idx], invert_pose(vc.virtual_from_camera))
     return robust_average_poses(each)[0]

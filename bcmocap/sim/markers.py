@@ -21,7 +21,7 @@ import numpy as np
 from ..geometry import SO3, quat_from_matrix
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.skeleton import JointType, Motion, Skeleton
-from .observe import _segment_distance2, body_capsules
+from .observe import body_capsules, segment_distance_squared
 
 __all__ = [
     "MarkerNoise",
@@ -277,8 +277,8 @@ def camera_ring(occlusion: Occlusion, centre_xy) -> tuple[np.ndarray, np.ndarray
 @jax.jit
 def _ray_capsule_distance2(points, cameras, ends):
     """``(B, M, N, K)`` squared distances between the rays from ``N`` cameras to ``(B, M)`` markers and ``(B, K)`` capsule axes."""
-    return _segment_distance2(points[:, :, None, None], cameras[None, None, :, None],
-                              ends[:, None, None, :, 0], ends[:, None, None, :, 1])
+    return segment_distance_squared(points[:, :, None, None], cameras[None, None, :, None],
+                                    ends[:, None, None, :, 0], ends[:, None, None, :, 1])
 
 
 def occlusion_margins(
@@ -302,8 +302,8 @@ def occlusion_margins(
     rest = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
     rest_marker = np.array([rest[skeleton.index(m.segment)] + np.asarray(m.offset) for m in markers])  # (M, 3)
     rest_ends = ends + rest[seg][:, None]
-    rest_dist = np.sqrt(np.asarray(_segment_distance2(rest_marker[:, None], rest_marker[:, None],
-                                                      rest_ends[None, :, 0], rest_ends[None, :, 1])))
+    rest_dist = np.sqrt(np.asarray(segment_distance_squared(rest_marker[:, None], rest_marker[:, None],
+                                                            rest_ends[None, :, 0], rest_ends[None, :, 1])))
     cap = rest_dist - occlusion.skin_m  # (M, K)
     if occlusion.centre_xy is None:
         centre = np.asarray(motion.root_position)[:, :2].mean(0)

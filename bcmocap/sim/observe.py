@@ -80,8 +80,17 @@ def body_capsules(skeleton: Skeleton) -> tuple[Capsule, ...]:
     return tuple(caps)
 
 
-def _segment_distance2(p1, q1, p2, q2):
-    """Squared distance between segments [p1, q1] and [p2, q2] (broadcasting over leading axes)."""
+def segment_distance_squared(p1, q1, p2, q2):
+    """Squared shortest distance between line segments ``[p1, q1]`` and ``[p2, q2]``.
+
+    Args:
+        p1, q1, p2, q2: ``(..., 3)`` end points (JAX or numpy; leading axes broadcast). A degenerate
+            segment (equal ends) counts as its point.
+
+    Returns:
+        ``(...)`` squared distances (JAX array), e.g. to test a ray against a capsule of radius ``r``
+        by ``d² < r²``.
+    """
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
     a = jnp.sum(d1 * d1, -1)
     e = jnp.maximum(jnp.sum(d2 * d2, -1), 1e-12)
@@ -113,7 +122,7 @@ def _visibility(rig: Rig, points, cam_from_world, capsule_ends, radii, noise: No
     start = centers[:, None] + 0.05 * direction  # skip the camera's own mount surface
     occluded = jnp.zeros(visible.shape, bool)
     for k in range(capsule_ends.shape[0]):
-        d2 = _segment_distance2(start, points[None], capsule_ends[k, 0], capsule_ends[k, 1])
+        d2 = segment_distance_squared(start, points[None], capsule_ends[k, 0], capsule_ends[k, 1])
         occluded = occluded | (d2 < radii[k] ** 2)
     return uv, visible & ~occluded
 

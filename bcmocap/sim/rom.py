@@ -17,10 +17,9 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import SE3, SO3, quat_conjugate, quat_multiply
+from ..geometry import SE3, SO3, apply_pose, invert_pose, quat_conjugate, quat_multiply
 from ..kinematics.rig import Rig, camera_poses
 from ..kinematics.rom import RomEstimate, RomOptions, Topology, skeleton_from_range_of_motion
-from ..kinematics.virtual import _apply, _inverse
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 from .rig import standard_rig
 
@@ -254,7 +253,7 @@ def skeleton_errors(truth: Skeleton, truth_rig: Rig, estimate: Skeleton, estimat
     true_mounts = np.asarray(truth_rig.segment_from_camera)
     if est_mounts.shape != true_mounts.shape:
         raise ValueError(f"skeleton_errors: {est_mounts.shape[0]} estimated mounts for {truth_rig.num_cameras} cameras")
-    est_cam, true_cam = _inverse(est_mounts), _inverse(true_mounts)
+    est_cam, true_cam = invert_pose(est_mounts), invert_pose(true_mounts)
     centre = {}
     for j in range(1, truth.num_segments):
         p = truth.parents[j]
@@ -264,7 +263,7 @@ def skeleton_errors(truth: Skeleton, truth_rig: Rig, estimate: Skeleton, estimat
                 continue
             est_pt = np.zeros(3) if s == j else np.asarray(estimate.offsets[j])
             true_pt = np.zeros(3) if s == j else np.asarray(truth.offsets[j])
-            errs.append(np.linalg.norm(_apply(est_cam[c], est_pt) - _apply(true_cam[c], true_pt)))
+            errs.append(np.linalg.norm(apply_pose(est_cam[c], est_pt) - apply_pose(true_cam[c], true_pt)))
         centre[truth.names[j]] = float(np.mean(errs)) if errs else float("nan")
     est_rest, true_rest = _joint_world_rest(estimate), _joint_world_rest(truth)
     bones = {}

@@ -26,6 +26,28 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
         "action camera's bit rate, calibration error; sources in bcmocap.sim.studio.REALISTIC), and each "
         "degradation has its own option (which overrides the preset's value).",
     )
+    _add_capture_arguments(cmd)
+    _add_degradation_arguments(cmd.add_argument_group("degradations (off unless given or set by --preset)"))
+    _add_mode_arguments(cmd)
+
+    def run(args: argparse.Namespace) -> int:
+        # "--motion run DIR": --motion takes one or two values, so it swallowed the folder; give it back.
+        if args.capture_dir is None and len(args.motion) > 1 and not args.motion[-1].lower().endswith(".amc"):
+            args.capture_dir = args.motion.pop()
+        if args.capture_dir is None:
+            print("bcmocap simulate: CAPTURE_DIR is required (the folder to write)", file=sys.stderr)
+            return 2
+        if args.board_videos:
+            return _add_board_videos(args)
+        if args.sensors_only:
+            return _add_sensor_files(args)
+        return _simulate_capture(cmd, args)
+
+    cmd.set_defaults(run=run)
+
+
+def _add_capture_arguments(cmd: argparse.ArgumentParser) -> None:
+    """The capture folder, the motion, the trials' lengths and the rendering (cameras, reference photos, preset)."""
     cmd.add_argument("capture_dir", metavar="CAPTURE_DIR", nargs="?",
                      help="new or empty folder, or an unfinished capture to resume")
     cmd.add_argument("--motion", nargs="+", default=["walk"], metavar="MOTION",
@@ -51,7 +73,10 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--preset", choices=list(PRESETS),
                      help="realistic: every degradation below on, at values from camera data sheets and the literature "
                           "(bcmocap.sim.studio.REALISTIC)")
-    deg = cmd.add_argument_group("degradations (off unless given or set by --preset)")
+
+
+def _add_degradation_arguments(deg) -> None:
+    """The degradations' options (group ``deg``), each overriding the preset's value."""
     deg.add_argument("--motion-blur", action=argparse.BooleanOptionalAction, default=None,
                      help="render motion blur over the exposure (default: no blur)")
     deg.add_argument("--exposure-ms", type=float, help="shutter time for motion blur (ms; default half a frame period)")
@@ -79,6 +104,10 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
                      help="calibration given to the user: focal lengths off by 0.3-1 times this (%%; default 0)")
     deg.add_argument("--centre-error-px", type=float,
                      help="calibration given to the user: centres off by 0.3-1 times this (px; default 0)")
+
+
+def _add_mode_arguments(cmd: argparse.ArgumentParser) -> None:
+    """No progress bar, and the modes that only add files to an existing capture."""
     cmd.add_argument("--no-progress", action="store_true", help="no progress bar")
     cmd.add_argument("--board-videos", action="store_true",
                      help="only add calibration videos to the existing capture CAPTURE_DIR: calibration/lens_K.mp4, a "
@@ -88,81 +117,77 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
                      help="only add trials/<trial>/imu.npz and contacts.npz to the existing capture CAPTURE_DIR from its "
                      "ground truth (nothing rendered; the other options are ignored)")
 
-    def run(args: argparse.Namespace) -> int:
-        from .studio import MAX_FPS, MAX_SECONDS, StudioSettings, preset_settings, write_capture
 
-        # "--motion run DIR": --motion takes one or two values, so it swallowed the folder; give it back.
-        if args.capture_dir is None and len(args.motion) > 1 and not args.motion[-1].lower().endswith(".amc"):
-            args.capture_dir = args.motion.pop()
-        if args.capture_dir is None:
-            print("bcmocap simulate: CAPTURE_DIR is required (the folder to write)", file=sys.stderr)
+def _add_board_videos(args: argparse.Namespace) -> int:
+    """``--board-videos``: add the calibration board videos to the capture ``args.capture_dir``; the exit code."""
+    from .board_video import write_board_videos
+
+    start = time.perf_counter()
+    try:
+        lenses = write_board_videos(args.capture_dir, progress=lambda name: print(f"rendering {name} ...", flush=True))
+    except ValueError as err:
+        print(f"bcmocap simulate: {err}", file=sys.stderr)
+        return 2
+    for name, cameras in lenses.items():
+        print(f"{Path(args.capture_dir) / 'calibration' / name}.mp4: {', '.join(cameras)}")
+    print(f"wrote {len(lenses)} calibration videos in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def _add_sensor_files(args: argparse.Namespace) -> int:
+    """``--sensors-only``: add the IMU and contact files to the capture ``args.capture_dir``; the exit code."""
+    from .sensors import write_sensor_data
+
+    start = time.perf_counter()
+    try:
+        written = write_sensor_data(args.capture_dir)
+    except ValueError as err:
+        print(f"bcmocap simulate: {err}", file=sys.stderr)
+        return 2
+    for trial, paths in written.items():
+        print(f"{trial}: " + ", ".join(str(p) for p in paths))
+    print(f"wrote the sensor files of {len(written)} trials in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def _simulate_capture(cmd: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """Render (or resume) the capture ``args.capture_dir`` with the settings the options give; the exit code."""
+    from .studio import MAX_FPS, MAX_SECONDS, StudioSettings, preset_settings, write_capture
+
+    try:
+        ref_w, ref_h = (int(x) for x in args.reference_size.lower().split("x"))
+    except ValueError:
+        cmd.error(f"--reference-size must look like 1024x768, got {args.reference_size!r}")
+    for flag, value, most in (("--seconds", args.seconds, MAX_SECONDS),
+                              ("--rom-seconds", args.rom_seconds, MAX_SECONDS), ("--fps", args.fps, MAX_FPS)):
+        if not 0 < value <= most:  # also refuses NaN
+            print(f"bcmocap simulate: {flag} must be in (0, {most:g}], got {value}", file=sys.stderr)
             return 2
-
-        if args.board_videos:
-            from .board_video import write_board_videos
-
-            start = time.perf_counter()
-            try:
-                lenses = write_board_videos(args.capture_dir, progress=lambda name: print(f"rendering {name} ...",
-                                                                                        flush=True))
-            except ValueError as err:
-                print(f"bcmocap simulate: {err}", file=sys.stderr)
-                return 2
-            for name, cameras in lenses.items():
-                print(f"{Path(args.capture_dir) / 'calibration' / name}.mp4: {', '.join(cameras)}")
-            print(f"wrote {len(lenses)} calibration videos in {time.perf_counter() - start:.1f} s")
-            return 0
-
-        if args.sensors_only:
-            from .sensors import write_sensor_data
-
-            start = time.perf_counter()
-            try:
-                written = write_sensor_data(args.capture_dir)
-            except ValueError as err:
-                print(f"bcmocap simulate: {err}", file=sys.stderr)
-                return 2
-            for trial, paths in written.items():
-                print(f"{trial}: " + ", ".join(str(p) for p in paths))
-            print(f"wrote the sensor files of {len(written)} trials in {time.perf_counter() - start:.1f} s")
-            return 0
-
-        try:
-            ref_w, ref_h = (int(x) for x in args.reference_size.lower().split("x"))
-        except ValueError:
-            cmd.error(f"--reference-size must look like 1024x768, got {args.reference_size!r}")
-        for flag, value, most in (("--seconds", args.seconds, MAX_SECONDS),
-                                  ("--rom-seconds", args.rom_seconds, MAX_SECONDS), ("--fps", args.fps, MAX_FPS)):
-            if not 0 < value <= most:  # also refuses NaN
-                print(f"bcmocap simulate: {flag} must be in (0, {most:g}], got {value}", file=sys.stderr)
-                return 2
-        motion = _motion_argument(args.motion)
-        if isinstance(motion, ValueError):
-            print(f"bcmocap simulate: {motion}", file=sys.stderr)
-            return 2
-        fields = dict(
-            motion=motion, motion_fps=args.motion_fps, motion_unit_m=args.motion_unit_m, seconds=args.seconds,
-            rom_seconds=args.rom_seconds, rom_tempo=args.rom_tempo, seed=args.seed, fps=args.fps, width=args.width, height=args.height,
-            lens=args.lens, reference_photos=args.reference_photos, reference_width=ref_w, reference_height=ref_h,
-        )
-        fields.update({name: getattr(args, name) for name in DEGRADATIONS if getattr(args, name) is not None})
-        try:
-            settings = preset_settings(args.preset, **fields) if args.preset else StudioSettings(**fields)
-        except ValueError as err:
-            print(f"bcmocap simulate: {_flag_names(str(err))}", file=sys.stderr)
-            return 2
-        enable_compilation_cache()
-        start = time.perf_counter()
-        try:
-            folder = write_capture(args.capture_dir, settings, progress=not args.no_progress)
-        except FileExistsError as err:
-            print(f"bcmocap simulate: {err}", file=sys.stderr)
-            return 2
-        print(f"wrote {folder} in {time.perf_counter() - start:.1f} s "
-              f"(ground truth: bcmocap.sim.studio.load_ground_truth('{folder}'))")
-        return 0
-
-    cmd.set_defaults(run=run)
+    motion = _motion_argument(args.motion)
+    if isinstance(motion, ValueError):
+        print(f"bcmocap simulate: {motion}", file=sys.stderr)
+        return 2
+    fields = dict(
+        motion=motion, motion_fps=args.motion_fps, motion_unit_m=args.motion_unit_m, seconds=args.seconds,
+        rom_seconds=args.rom_seconds, rom_tempo=args.rom_tempo, seed=args.seed, fps=args.fps, width=args.width, height=args.height,
+        lens=args.lens, reference_photos=args.reference_photos, reference_width=ref_w, reference_height=ref_h,
+    )
+    fields.update({name: getattr(args, name) for name in DEGRADATIONS if getattr(args, name) is not None})
+    try:
+        settings = preset_settings(args.preset, **fields) if args.preset else StudioSettings(**fields)
+    except ValueError as err:
+        print(f"bcmocap simulate: {_flag_names(str(err))}", file=sys.stderr)
+        return 2
+    enable_compilation_cache()
+    start = time.perf_counter()
+    try:
+        folder = write_capture(args.capture_dir, settings, progress=not args.no_progress)
+    except FileExistsError as err:
+        print(f"bcmocap simulate: {err}", file=sys.stderr)
+        return 2
+    print(f"wrote {folder} in {time.perf_counter() - start:.1f} s "
+          f"(ground truth: bcmocap.sim.studio.load_ground_truth('{folder}'))")
+    return 0
 
 
 #: Settings with an option of the same name that --preset may set.
