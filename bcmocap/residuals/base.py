@@ -39,7 +39,7 @@ layout from per-camera data.
 from __future__ import annotations
 
 import abc
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -88,6 +88,15 @@ class Term(eqx.Module):
     loss: RobustLoss = eqx.field(default_factory=TrivialLoss, kw_only=True)
     name: str = eqx.field(default="", static=True, kw_only=True)
 
+    #: The term's footprint, which picks the solver's adapter for it (class attributes of the five kinds):
+    #: ``"frame"``, ``"pair"``, ``"span"``, ``"camera"`` or ``"camera_pair"``.
+    kind: ClassVar[str] = ""
+    #: How many consecutive frames one residual block spans (1, 2, or a multi-frame term's ``span``).
+    span: ClassVar[int] = 1
+    #: Whether the data is per camera (leading axes ``(T, C)`` or camera slots) and the residual a function of one
+    #: camera's pose(s) rather than of the frame state.
+    per_camera: ClassVar[bool] = False
+
     @property
     def label(self) -> str:
         return self.name or type(self).__name__
@@ -106,7 +115,7 @@ class Term(eqx.Module):
 
         Raises ValueError if the term's camera slots (``data["camera"]``) are malformed.
         """
-        if not isinstance(self, (CameraTerm, CameraPairTerm)):
+        if not self.per_camera:
             return (num_frames,)
         slots = slot_cameras(self.data)
         if slots is None:
@@ -233,6 +242,8 @@ def camera_slots(data: dict, weights_key: str = "weights", multiple: int = 4, co
 class FrameTerm(Term):
     """A residual on one frame's variables (priors, joint limits, contacts)."""
 
+    kind = "frame"
+
     @abc.abstractmethod
     def residual(self, state: FrameState, data: Any) -> tuple[jax.Array, jax.Array]:
         """Args: one frame's state and data slice. Returns ``(r (n, k), valid (n,))``."""
@@ -240,6 +251,9 @@ class FrameTerm(Term):
 
 class PairTerm(Term):
     """A residual on two consecutive frames (smoothness). ``data[t]`` belongs to the pair ``(t-1, t)``."""
+
+    kind = "pair"
+    span = 2
 
     @abc.abstractmethod
     def residual(self, prev: FrameState, curr: FrameState, data: Any) -> tuple[jax.Array, jax.Array]:
@@ -257,6 +271,7 @@ class MultiFrameTerm(Term):
         span: the number of frames (class attribute, ≥ 2; a static property of the term's kind).
     """
 
+    kind = "span"
     span = 3
 
     @abc.abstractmethod
@@ -272,6 +287,9 @@ class CameraTerm(Term):
     world point ``i`` may say so by returning those points from :meth:`world_points` and implementing
     :meth:`residual_in_camera`; the solver then differentiates the lens with 3 tangents instead of 6.
     """
+
+    kind = "camera"
+    per_camera = True
 
     @abc.abstractmethod
     def residual(self, cam_from_world: SE3, camera: CameraModel, data: Any) -> tuple[jax.Array, jax.Array]:
@@ -294,6 +312,9 @@ class CameraPairTerm(Term):
     the solver then differentiates with respect to the 3 rotation tangents of each pose, not all 6.
     """
 
+    kind = "camera_pair"
+    span = 2
+    per_camera = True
     rotation_only = False
 
     @abc.abstractmethod

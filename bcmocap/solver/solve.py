@@ -22,7 +22,7 @@ import numpy as np
 
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
-from ..residuals.base import CameraPairTerm, CameraTerm, Term
+from ..residuals.base import Term
 from ..precision import require_float64
 from .levenberg_marquardt import FINITE, NON_FINITE_MESSAGES, Convergence, levenberg_marquardt
 from .model_parameters import MODEL, ModelParameters, reaxis
@@ -64,7 +64,7 @@ class Problem:
         counts = {t.label: t.num_frames() for t in self.terms}
         if len(set(counts.values())) != 1:
             raise ValueError(f"Problem: terms cover different numbers of frames: {counts}")
-        uses_cameras = any(isinstance(t, (CameraTerm, CameraPairTerm)) for t in self.terms)
+        uses_cameras = any(t.per_camera for t in self.terms)
         if uses_cameras and self.rig is None:
             raise ValueError("Problem: camera terms need a rig")
         if self.rig is not None:
@@ -429,7 +429,7 @@ def sequence_cost(
 
 
 def _check_window_has_observations(terms: Sequence[Term], start: int, stop: int) -> None:
-    camera_terms = [t for t in terms if isinstance(t, (CameraTerm, CameraPairTerm))]
+    camera_terms = [t for t in terms if t.per_camera]
     if not camera_terms:
         return
     total = 0.0

@@ -26,7 +26,7 @@ from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
 from .levenberg_marquardt import NormalEquations
 from .model_parameters import MODEL, ModelParameters, reaxis
-from ..residuals.base import CameraPairTerm, CameraTerm, FrameState, FrameTerm, MultiFrameTerm, PairTerm, Term, slot_cameras
+from ..residuals.base import CameraTerm, FrameState, Term, slot_cameras
 from ..residuals.variables import CAMERA_OFFSETS, Euclidean, PerCamera, Variable, as_variable, retract_blocks
 
 
@@ -85,7 +85,7 @@ def window_history(terms: Sequence[Term]) -> int:
 
     It is also the bandwidth of the normal equations: frames up to ``H`` apart are coupled.
     """
-    return max([2, *(t.span for t in terms if isinstance(t, MultiFrameTerm))]) - 1
+    return max([2, *(t.span for t in terms)]) - 1
 
 
 def _declared_layout(terms: Sequence[Term], declared, kind: str) -> tuple[tuple[str, Variable], ...]:
@@ -123,7 +123,7 @@ def frame_layout(terms: Sequence[Term]) -> tuple[tuple[str, Variable], ...]:
         ValueError: two terms declare one name differently, or a camera term declares any.
     """
     for term in terms:
-        if isinstance(term, (CameraTerm, CameraPairTerm)) and term.frame_variables():
+        if term.per_camera and term.frame_variables():
             raise ValueError(f"{term.label}: camera terms cannot declare per-frame variables; they see "
                              f"{CAMERA_OFFSETS!r} through the camera poses")
     return _declared_layout(terms, lambda t: t.frame_variables(), "per-frame")
@@ -294,53 +294,6 @@ def _camera_statics_args(own: _CameraTermStatics | None, z: jax.Array) -> tuple:
     return (None, None) if own is None else (own.values, z[own.columns])
 
 
-def residuals(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) -> tuple[jax.Array, ...]:
-    """All finished residual blocks of the window, one array per term (shapes ``(W, ..., k)``), at frame
-    variables ``y`` ``(W, D + E)`` and static-variable tangents ``z`` ``(S,)`` (None: 0)."""
-    h = problem.history
-    at = static_values(problem, z)
-    z = jnp.zeros(problem.num_statics) if z is None else z
-    states = model_state(problem, problem.extended_reference(), _extended(problem, y), at)
-    prev_states = jax.tree.map(lambda a: a[h - 1 : -1], states)
-    curr_states = jax.tree.map(lambda a: a[h:], states)
-    out = []
-    cam_from_world = states.world_from_camera.inverse() if problem.rig is not None else None
-    for term in problem.terms:
-        if isinstance(term, FrameTerm):
-            r, v = jax.vmap(term.residual)(curr_states, term.data)
-        elif isinstance(term, PairTerm):
-            r, v = jax.vmap(term.residual)(prev_states, curr_states, term.data)
-            v = _pair_valid(problem, v)
-        elif isinstance(term, MultiFrameTerm):
-            spans = jax.tree.map(lambda a: a[_span_index(problem, term.span)], states)
-            r, v = jax.vmap(term.residual)(spans, term.data)
-            v = v & _span_ok(problem, term.span).reshape(-1, *([1] * (v.ndim - 1)))
-        elif isinstance(term, CameraTerm):
-            own = _camera_term_statics(problem, term)
-            fn = lambda pose, cam, data, values, z_own, term=term, own=own: term.residual(
-                SE3(pose), cam, data, *_statics_arg(own, values, z_own))
-            cams, cam_axis = _slot_intrinsics(term, problem.rig)
-            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0, 0)), in_axes=(0, cam_axis, 0, 0, 0))(
-                _slot_gather(term, cam_from_world.wxyz_xyz[h:]), cams, term.data, *_camera_statics_args(own, z)
-            )
-        elif isinstance(term, CameraPairTerm):
-            own = _camera_term_statics(problem, term)
-            fn = lambda prev, pose, cam, data, values, z_own, term=term, own=own: term.residual(
-                SE3(prev), SE3(pose), cam, data, *_statics_arg(own, values, z_own))
-            cams, cam_axis = _slot_intrinsics(term, problem.rig)
-            r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0, 0, 0)), in_axes=(0, 0, cam_axis, 0, 0, 0))(
-                _slot_gather(term, cam_from_world.wxyz_xyz[h - 1 : -1]), _slot_gather(term, cam_from_world.wxyz_xyz[h:]),
-                cams, term.data, *_camera_statics_args(own, z),
-            )
-            v = _pair_valid(problem, v)
-        else:
-            raise TypeError(f"{term.label}: {_KINDS}")
-        out.append(term.finish(r, v))
-    if problem.model_parameters is not None:  # the prior on the skeleton and rig
-        out.append(problem.model_parameters.prior_residual(at[MODEL]))
-    return tuple(out)
-
-
 def _statics_arg(own: _CameraTermStatics | None, values: dict | None, z_own: jax.Array | None) -> tuple:
     """The extra argument of a camera term's residual: its static values, if it declares any."""
     return () if own is None else (own.at(values, z_own),)
@@ -412,146 +365,6 @@ def _camera_measurement_jacobians(residual_fn, poses: tuple[jax.Array, ...], rot
     return r, jac
 
 
-def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) -> NormalEquations:
-    """Assemble the block-banded Gauss–Newton system of the window at frame variables ``y`` ``(W, D + E)`` and
-    static-variable tangents ``z`` ``(S,)`` (None: 0).
-
-    ``grad`` is the exact gradient of the window's cost; ``diag``/``bands`` are the IRLS Gauss–Newton
-    matrix ``Σ λ ρ'(s) JᵀJ`` (exactly ``JᵀJ`` of the residuals when no robust loss is used). The
-    bandwidth is the window's history ``H`` (1 unless a multi-frame term spans more than two frames).
-    """
-    w, d = y.shape
-    h = problem.history
-    n_static = problem.num_statics
-    z = jnp.zeros(n_static) if z is None else z
-    y_ext = _extended(problem, y)
-    reference = problem.extended_reference()
-    frames = lambda index: jax.tree.map(lambda a: a[index], reference)  # noqa: E731  (reference of some frames)
-    diag = jnp.zeros((h + w, d, d))  # extended: the H fixed frames first (discarded)
-    bands = [jnp.zeros((h + w, d, d)) for _ in range(h)]  # bands[k-1][u] couples extended frames u and u+k
-    grad = jnp.zeros((h + w, d))
-    statics = _StaticBlocks(jnp.zeros((h + w, d, n_static)), jnp.zeros((n_static, n_static)), jnp.zeros(n_static))
-    with_z = lambda v: jnp.concatenate([v, jnp.broadcast_to(z, (v.shape[0], n_static))], axis=1)  # (W, n) → (W, n + S)
-    needs_cameras = any(isinstance(t, (CameraTerm, CameraPairTerm)) for t in problem.terms)
-    if needs_cameras:
-        cam_poses, pose_jac = _camera_pose_jacobians(problem, y_ext, z)  # (H+W, C, 6, D [+ S])
-    frame_terms = [t for t in problem.terms if isinstance(t, FrameTerm)]
-    pair_terms = [t for t in problem.terms if isinstance(t, PairTerm)]
-    # Frame, pair and multi-frame terms are differentiated w.r.t. their frames' tangents and z together.
-    if frame_terms:  # one differentiation of the frame state serves every frame term
-        def frame_residuals(v, ref_t, data):
-            state = model_state(problem, ref_t, v[:d], static_values(problem, v[d:]))
-            return tuple(t.masked(*t.residual(state, dt)) for t, dt in zip(frame_terms, data))
-
-        args = (with_z(y), frames(slice(h, None)), tuple(t.data for t in frame_terms))
-        rs, jacs = jax.vmap(frame_residuals)(*args), jax.vmap(_jacobian(frame_residuals, args))(*args)
-        for term, r, jac in zip(frame_terms, rs, jacs):
-            r, jac = _irls_rows(term, r, jac)  # jac: (W, m, D + S)
-            diag, bands, grad, statics = _add_span_blocks(diag, bands, grad, statics, r, jac[..., None, :d], jac[..., d:], h)
-    if pair_terms:  # likewise one differentiation of both frames of each pair
-        def pair_residuals(v, ref_prev, ref_curr, data, ok):
-            at = static_values(problem, v[2 * d :])
-            prev = model_state(problem, ref_prev, v[:d], at)
-            curr = model_state(problem, ref_curr, v[d : 2 * d], at)
-            return tuple(t.masked(*_and_valid(t.residual(prev, curr, dt), ok)) for t, dt in zip(pair_terms, data))
-
-        pairs = jnp.concatenate([y_ext[h - 1 : -1], y_ext[h:]], axis=1)  # (W, 2D)
-        args = (with_z(pairs), frames(slice(h - 1, -1)), frames(slice(h, None)), tuple(t.data for t in pair_terms),
-                _span_ok(problem, 2))
-        rs, jacs = jax.vmap(pair_residuals)(*args), jax.vmap(_jacobian(pair_residuals, args))(*args)
-        for term, r, jac in zip(pair_terms, rs, jacs):  # jac: (W, n, k, 2D + S)
-            r, jac = _irls_rows(term, r, jac)
-            jy = jac[..., : 2 * d].reshape(*jac.shape[:2], 2, d)
-            diag, bands, grad, statics = _add_span_blocks(diag, bands, grad, statics, r, jy, jac[..., 2 * d :], h)
-    for term in problem.terms:
-        if isinstance(term, (FrameTerm, PairTerm)):
-            continue
-        if isinstance(term, MultiFrameTerm):
-            span = term.span
-
-            def span_residuals(v, ref_span, data, ok, term=term, span=span):
-                states = model_state(problem, ref_span, v[: span * d].reshape(span, d), static_values(problem, v[span * d :]))
-                return term.masked(*_and_valid(term.residual(states, data), ok))
-
-            index = _span_index(problem, span)
-            args = (with_z(y_ext[index].reshape(w, span * d)), frames(index), term.data, _span_ok(problem, span))
-            r, jac = jax.vmap(span_residuals)(*args), jax.vmap(_jacobian(span_residuals, args))(*args)
-            r, jac = _irls_rows(term, r, jac)  # jac: (W, n, k, span·D + S) → (W, m, span·D + S)
-            jy = jac[..., : span * d].reshape(*jac.shape[:2], span, d)
-            diag, bands, grad, statics = _add_span_blocks(diag, bands, grad, statics, r, jy, jac[..., span * d :], h)
-        elif isinstance(term, CameraTerm):
-            own = _camera_term_statics(problem, term)
-            own_size = 0 if own is None else own.size
-
-            def cam_blocks(pose, cam, data, values, z_own, term=term, own=own):
-                if own is not None:
-                    fn = lambda p, delta: term.masked(*term.residual(p, cam, data, own.at(values, z_own + delta)))
-                    r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,), static_size=own.size))
-                elif term.world_points(data) is None:
-                    fn = lambda p: term.masked(*term.residual(p, cam, data))
-                    r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,)))
-                else:
-                    r, jac = _irls_rows(term, *_point_measurement_jacobians(term, SE3(pose), cam, data))
-                return jac.T @ jac, jac.T @ r
-
-            cams, cam_axis = _slot_intrinsics(term, problem.rig)
-            hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0, 0, 0)), in_axes=(0, cam_axis, 0, 0, 0))(
-                _slot_gather(term, cam_poses[h:]), cams, term.data, *_camera_statics_args(own, z)
-            )  # (W, C, 6 + k, 6 + k), (W, C, 6 + k) (C: cameras or slots; k: the term's own static tangents)
-            jp = _slot_gather(term, pose_jac[h:])
-            jy = jp[..., :d]
-            diag = diag.at[h:].add(jnp.einsum("tcai,tcab,tcbj->tij", jy, hess[..., :6, :6], jy))
-            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jy, g[..., :6]))
-            if jp.shape[-1] > d or own_size:  # the poses depend on z (variable model), or the term reads z itself
-                jz = _camera_static_jacobian(jp[..., d:], own, n_static)
-                statics = _add_camera_statics(statics, [(h, _with_zero_rows(jy, own_size))], jz, hess, g)
-        elif isinstance(term, CameraPairTerm):
-            own = _camera_term_statics(problem, term)
-            own_size = 0 if own is None else own.size
-
-            def cam_pair_blocks(prev, pose, cam, data, values, z_own, ok, term=term, own=own, own_size=own_size):
-                if own is not None:
-                    fn = lambda p0, p1, delta: term.masked(*_and_valid(
-                        term.residual(p0, p1, cam, data, own.at(values, z_own + delta)), ok))
-                else:
-                    fn = lambda p0, p1: term.masked(*_and_valid(term.residual(p0, p1, cam, data), ok))
-                r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (prev, pose), term.rotation_only, own_size))
-                return jac.T @ jac, jac.T @ r
-
-            cams, cam_axis = _slot_intrinsics(term, problem.rig)
-            hess, g = jax.vmap(jax.vmap(cam_pair_blocks, in_axes=(0, 0, 0, 0, 0, 0, None)),
-                               in_axes=(0, 0, cam_axis, 0, 0, 0, 0))(
-                _slot_gather(term, cam_poses[h - 1 : -1]), _slot_gather(term, cam_poses[h:]), cams, term.data,
-                *_camera_statics_args(own, z), _span_ok(problem, 2),
-            )  # (W, C, 12 + k, 12 + k), (W, C, 12 + k) (C: cameras or slots)
-            jp_prev, jp_curr = _slot_gather(term, pose_jac[h - 1 : -1]), _slot_gather(term, pose_jac[h:])
-            if jp_curr.shape[-1] > d or own_size:  # the poses depend on z (variable model), or the term reads z itself
-                jz = _camera_static_jacobian(jnp.concatenate([jp_prev[..., d:], jp_curr[..., d:]], axis=2), own,
-                                             n_static)  # (W, C, 12 + k, S)
-                zero = jnp.zeros_like(jp_curr[..., :d])
-                blocks = [(h - 1, _with_zero_rows(jnp.concatenate([jp_prev[..., :d], zero], axis=2), own_size)),
-                          (h, _with_zero_rows(jnp.concatenate([zero, jp_curr[..., :d]], axis=2), own_size))]
-                statics = _add_camera_statics(statics, blocks, jz, hess, g)
-                jp_prev, jp_curr = jp_prev[..., :d], jp_curr[..., :d]
-            h00 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, :6], jp_prev)
-            h11 = jnp.einsum("tcai,tcab,tcbj->tij", jp_curr, hess[:, :, 6:12, 6:12], jp_curr)
-            h01 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, 6:12], jp_curr)
-            diag = diag.at[h - 1 : -1].add(h00).at[h:].add(h11)
-            bands[0] = bands[0].at[h - 1 : -1].add(h01)
-            grad = grad.at[h - 1 : -1].add(jnp.einsum("tcai,tca->ti", jp_prev, g[:, :, :6]))
-            grad = grad.at[h:].add(jnp.einsum("tcai,tca->ti", jp_curr, g[:, :, 6:12]))
-        else:
-            raise TypeError(f"{term.label}: {_KINDS}")
-    if problem.model_parameters is not None:  # the prior ½ Σ (θ/σ)² on the model's variables
-        block = _model_block(problem)
-        precision = problem.model_parameters.sqrt_precision ** 2
-        values = static_values(problem, z)[MODEL]
-        statics = _StaticBlocks(statics.coupling, statics.matrix.at[block, block].add(jnp.diag(precision)),
-                                statics.grad.at[block].add(precision * values))
-    return NormalEquations(diag[h:], tuple(band[h : h + w - k] for k, band in enumerate(bands, start=1)), grad[h:],
-                           statics.coupling[h:], statics.matrix, statics.grad)
-
-
 class _StaticBlocks(eqx.Module):
     """Accumulators of the static variables' blocks: coupling ``(H + W, D, S)`` (extended), matrix ``(S, S)``,
     grad ``(S,)``."""
@@ -561,7 +374,299 @@ class _StaticBlocks(eqx.Module):
     grad: jax.Array
 
 
-_KINDS = "a term must subclass FrameTerm, PairTerm, MultiFrameTerm, CameraTerm or CameraPairTerm"
+def residuals(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) -> tuple[jax.Array, ...]:
+    """All finished residual blocks of the window, one array per term (shapes ``(W, ..., k)``), at frame
+    variables ``y`` ``(W, D + E)`` and static-variable tangents ``z`` ``(S,)`` (None: 0)."""
+    at = static_values(problem, z)
+    point = _Point(problem, y, jnp.zeros(problem.num_statics) if z is None else z, at)
+    out = []
+    for term in problem.terms:
+        r, v = term_kind(term).residuals(problem, term, point)
+        out.append(term.finish(r, v))
+    if problem.model_parameters is not None:  # the prior on the skeleton and rig
+        out.append(problem.model_parameters.prior_residual(at[MODEL]))
+    return tuple(out)
+
+
+class _Point:
+    """What every kind's residuals read at one point ``(y, z)`` of a window: the extended frames' states, those of
+    the pairs ``(t − 1, t)``, the cameras' ``cam_from_world`` and the static tangents ``z``."""
+
+    def __init__(self, problem: WindowProblem, y: jax.Array, z: jax.Array, statics: dict):
+        h = problem.history
+        self.z = z
+        self.states = model_state(problem, problem.extended_reference(), _extended(problem, y), statics)
+        self.prev_states = jax.tree.map(lambda a: a[h - 1 : -1], self.states)
+        self.curr_states = jax.tree.map(lambda a: a[h:], self.states)
+        self.cam_from_world = self.states.world_from_camera.inverse() if problem.rig is not None else None
+
+
+class _System:
+    """The normal equations being assembled (extended arrays, the ``H`` fixed frames first) and what every kind's
+    linearisation reads: frame variables ``y``, their extended ``y_ext``, static tangents ``z``, and (when a term
+    needs them) the cameras' poses and their Jacobians w.r.t. the frames' variables."""
+
+    def __init__(self, problem: WindowProblem, y: jax.Array, z: jax.Array):
+        self.w, self.d = y.shape
+        self.h, self.n_static = problem.history, problem.num_statics
+        self.y, self.z = y, z
+        self.y_ext = _extended(problem, y)
+        self.reference = problem.extended_reference()
+        h, d, n_static = self.h, self.d, self.n_static
+        self.diag = jnp.zeros((h + self.w, d, d))
+        self.bands = [jnp.zeros((h + self.w, d, d)) for _ in range(h)]  # bands[k-1][u] couples frames u and u+k
+        self.grad = jnp.zeros((h + self.w, d))
+        self.statics = _StaticBlocks(jnp.zeros((h + self.w, d, n_static)), jnp.zeros((n_static, n_static)),
+                                     jnp.zeros(n_static))
+        if any(t.per_camera for t in problem.terms):
+            self.cam_poses, self.pose_jac = _camera_pose_jacobians(problem, self.y_ext, z)  # (H+W, C, 6, D [+ S])
+
+    def frames(self, index):
+        """The reference (motion, per-frame values) of some extended frames."""
+        return jax.tree.map(lambda a: a[index], self.reference)
+
+    def with_z(self, v: jax.Array) -> jax.Array:
+        """``(W, n)`` → ``(W, n + S)``: each row followed by the static tangents."""
+        return jnp.concatenate([v, jnp.broadcast_to(self.z, (v.shape[0], self.n_static))], axis=1)
+
+    def add_span_rows(self, r, jy, jz) -> None:
+        """Add IRLS rows of frames ``t − N + 1 … t`` (:func:`_add_span_blocks`)."""
+        self.diag, self.bands, self.grad, self.statics = _add_span_blocks(self.diag, self.bands, self.grad,
+                                                                          self.statics, r, jy, jz, self.h)
+
+
+def normal_equations(problem: WindowProblem, y: jax.Array, z: jax.Array | None = None) -> NormalEquations:
+    """Assemble the block-banded Gauss–Newton system of the window at frame variables ``y`` ``(W, D + E)`` and
+    static-variable tangents ``z`` ``(S,)`` (None: 0).
+
+    ``grad`` is the exact gradient of the window's cost; ``diag``/``bands`` are the IRLS Gauss–Newton
+    matrix ``Σ λ ρ'(s) JᵀJ`` (exactly ``JᵀJ`` of the residuals when no robust loss is used). The
+    bandwidth is the window's history ``H`` (1 unless a multi-frame term spans more than two frames).
+    Each term is linearised by the adapter of its kind (:func:`term_kind`); the kinds that share one
+    differentiation of the frame state (frame terms, pair terms) are linearised together, first.
+    """
+    system = _System(problem, y, jnp.zeros(problem.num_statics) if z is None else z)
+    kinds = [term_kind(t) for t in problem.terms]
+    for kind in _GROUPED:
+        group = [t for t, k in zip(problem.terms, kinds) if k is kind]
+        if group:
+            kind.linearise(problem, group, system)
+    for term, kind in zip(problem.terms, kinds):
+        if kind not in _GROUPED:
+            kind.linearise(problem, [term], system)
+    statics = system.statics
+    if problem.model_parameters is not None:  # the prior ½ Σ (θ/σ)² on the model's variables
+        block = _model_block(problem)
+        precision = problem.model_parameters.sqrt_precision ** 2
+        values = static_values(problem, system.z)[MODEL]
+        statics = _StaticBlocks(statics.coupling, statics.matrix.at[block, block].add(jnp.diag(precision)),
+                                statics.grad.at[block].add(precision * values))
+    h, w = system.h, system.w
+    return NormalEquations(system.diag[h:], tuple(band[h : h + w - k] for k, band in enumerate(system.bands, start=1)),
+                           system.grad[h:], statics.coupling[h:], statics.matrix, statics.grad)
+
+
+# ---- the five kinds of term: one adapter each ------------------------------------------------------------------
+
+
+class _TermKind:
+    """How the solver evaluates and linearises the terms of one kind (their footprint: see
+    :mod:`bcmocap.residuals.base`). ``residuals`` gives a term's raw blocks ``(r (W, …, k), valid)``; ``linearise``
+    adds the terms' IRLS Gauss–Newton blocks to the system."""
+
+    def residuals(self, problem: WindowProblem, term: Term, point: _Point) -> tuple[jax.Array, jax.Array]:
+        raise NotImplementedError
+
+    def linearise(self, problem: WindowProblem, terms: list[Term], system: _System) -> None:
+        raise NotImplementedError
+
+
+class _FrameKind(_TermKind):
+    """One frame's state: ``term.residual(state, data[t])``."""
+
+    def residuals(self, problem, term, point):
+        return jax.vmap(term.residual)(point.curr_states, term.data)
+
+    def linearise(self, problem, terms, system):  # one differentiation of the frame state serves every frame term
+        d, h = system.d, system.h
+
+        def frame_residuals(v, ref_t, data):
+            state = model_state(problem, ref_t, v[:d], static_values(problem, v[d:]))
+            return tuple(t.masked(*t.residual(state, dt)) for t, dt in zip(terms, data))
+
+        args = (system.with_z(system.y), system.frames(slice(h, None)), tuple(t.data for t in terms))
+        rs, jacs = jax.vmap(frame_residuals)(*args), jax.vmap(_jacobian(frame_residuals, args))(*args)
+        for term, r, jac in zip(terms, rs, jacs):
+            r, jac = _irls_rows(term, r, jac)  # jac: (W, m, D + S)
+            system.add_span_rows(r, jac[..., None, :d], jac[..., d:])
+
+
+class _PairKind(_TermKind):
+    """Consecutive frames: ``term.residual(prev, curr, data[t])``; the pair before a sequence's first frame is dropped."""
+
+    def residuals(self, problem, term, point):
+        r, v = jax.vmap(term.residual)(point.prev_states, point.curr_states, term.data)
+        return r, _pair_valid(problem, v)
+
+    def linearise(self, problem, terms, system):  # likewise one differentiation of both frames of each pair
+        d, h = system.d, system.h
+
+        def pair_residuals(v, ref_prev, ref_curr, data, ok):
+            at = static_values(problem, v[2 * d :])
+            prev = model_state(problem, ref_prev, v[:d], at)
+            curr = model_state(problem, ref_curr, v[d : 2 * d], at)
+            return tuple(t.masked(*_and_valid(t.residual(prev, curr, dt), ok)) for t, dt in zip(terms, data))
+
+        pairs = jnp.concatenate([system.y_ext[h - 1 : -1], system.y_ext[h:]], axis=1)  # (W, 2D)
+        args = (system.with_z(pairs), system.frames(slice(h - 1, -1)), system.frames(slice(h, None)),
+                tuple(t.data for t in terms), _span_ok(problem, 2))
+        rs, jacs = jax.vmap(pair_residuals)(*args), jax.vmap(_jacobian(pair_residuals, args))(*args)
+        for term, r, jac in zip(terms, rs, jacs):  # jac: (W, n, k, 2D + S)
+            r, jac = _irls_rows(term, r, jac)
+            jy = jac[..., : 2 * d].reshape(*jac.shape[:2], 2, d)
+            system.add_span_rows(r, jy, jac[..., 2 * d :])
+
+
+class _SpanKind(_TermKind):
+    """Frames ``t − span + 1 … t``: ``term.residual(states, data[t])`` with states of leading axis ``span``."""
+
+    def residuals(self, problem, term, point):
+        spans = jax.tree.map(lambda a: a[_span_index(problem, term.span)], point.states)
+        r, v = jax.vmap(term.residual)(spans, term.data)
+        return r, v & _span_ok(problem, term.span).reshape(-1, *([1] * (v.ndim - 1)))
+
+    def linearise(self, problem, terms, system):
+        (term,) = terms
+        d, w, span = system.d, system.w, term.span
+
+        def span_residuals(v, ref_span, data, ok):
+            states = model_state(problem, ref_span, v[: span * d].reshape(span, d), static_values(problem, v[span * d :]))
+            return term.masked(*_and_valid(term.residual(states, data), ok))
+
+        index = _span_index(problem, span)
+        args = (system.with_z(system.y_ext[index].reshape(w, span * d)), system.frames(index), term.data,
+                _span_ok(problem, span))
+        r, jac = jax.vmap(span_residuals)(*args), jax.vmap(_jacobian(span_residuals, args))(*args)
+        r, jac = _irls_rows(term, r, jac)  # jac: (W, n, k, span·D + S) → (W, m, span·D + S)
+        jy = jac[..., : span * d].reshape(*jac.shape[:2], span, d)
+        system.add_span_rows(r, jy, jac[..., span * d :])
+
+
+class _CameraKind(_TermKind):
+    """One camera at one frame: ``term.residual(cam_from_world, camera, data[t, c][, statics])``, differentiated
+    w.r.t. the camera's pose (and its own static blocks), then chained with the pose's Jacobian."""
+
+    def residuals(self, problem, term, point):
+        h = problem.history
+        own = _camera_term_statics(problem, term)
+        fn = lambda pose, cam, data, values, z_own: term.residual(SE3(pose), cam, data, *_statics_arg(own, values, z_own))
+        cams, cam_axis = _slot_intrinsics(term, problem.rig)
+        return jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0, 0)), in_axes=(0, cam_axis, 0, 0, 0))(
+            _slot_gather(term, point.cam_from_world.wxyz_xyz[h:]), cams, term.data, *_camera_statics_args(own, point.z))
+
+    def linearise(self, problem, terms, system):
+        (term,) = terms
+        d, h, n_static = system.d, system.h, system.n_static
+        own = _camera_term_statics(problem, term)
+        own_size = 0 if own is None else own.size
+
+        def cam_blocks(pose, cam, data, values, z_own):
+            if own is not None:
+                fn = lambda p, delta: term.masked(*term.residual(p, cam, data, own.at(values, z_own + delta)))
+                r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,), static_size=own.size))
+            elif term.world_points(data) is None:
+                fn = lambda p: term.masked(*term.residual(p, cam, data))
+                r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,)))
+            else:
+                r, jac = _irls_rows(term, *_point_measurement_jacobians(term, SE3(pose), cam, data))
+            return jac.T @ jac, jac.T @ r
+
+        cams, cam_axis = _slot_intrinsics(term, problem.rig)
+        hess, g = jax.vmap(jax.vmap(cam_blocks, in_axes=(0, 0, 0, 0, 0)), in_axes=(0, cam_axis, 0, 0, 0))(
+            _slot_gather(term, system.cam_poses[h:]), cams, term.data, *_camera_statics_args(own, system.z)
+        )  # (W, C, 6 + k, 6 + k), (W, C, 6 + k) (C: cameras or slots; k: the term's own static tangents)
+        jp = _slot_gather(term, system.pose_jac[h:])
+        jy = jp[..., :d]
+        system.diag = system.diag.at[h:].add(jnp.einsum("tcai,tcab,tcbj->tij", jy, hess[..., :6, :6], jy))
+        system.grad = system.grad.at[h:].add(jnp.einsum("tcai,tca->ti", jy, g[..., :6]))
+        if jp.shape[-1] > d or own_size:  # the poses depend on z (variable model), or the term reads z itself
+            jz = _camera_static_jacobian(jp[..., d:], own, n_static)
+            system.statics = _add_camera_statics(system.statics, [(h, _with_zero_rows(jy, own_size))], jz, hess, g)
+
+
+class _CameraPairKind(_TermKind):
+    """One camera at frames ``t − 1`` and ``t``: ``term.residual(prev, curr, camera, data[t, c][, statics])``,
+    differentiated w.r.t. both poses (their rotations only, for a ``rotation_only`` term)."""
+
+    def residuals(self, problem, term, point):
+        h = problem.history
+        own = _camera_term_statics(problem, term)
+        fn = lambda prev, pose, cam, data, values, z_own: term.residual(
+            SE3(prev), SE3(pose), cam, data, *_statics_arg(own, values, z_own))
+        cams, cam_axis = _slot_intrinsics(term, problem.rig)
+        poses = point.cam_from_world.wxyz_xyz
+        r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0, 0, 0)), in_axes=(0, 0, cam_axis, 0, 0, 0))(
+            _slot_gather(term, poses[h - 1 : -1]), _slot_gather(term, poses[h:]), cams, term.data,
+            *_camera_statics_args(own, point.z),
+        )
+        return r, _pair_valid(problem, v)
+
+    def linearise(self, problem, terms, system):
+        (term,) = terms
+        d, h, n_static = system.d, system.h, system.n_static
+        own = _camera_term_statics(problem, term)
+        own_size = 0 if own is None else own.size
+
+        def cam_pair_blocks(prev, pose, cam, data, values, z_own, ok):
+            if own is not None:
+                fn = lambda p0, p1, delta: term.masked(*_and_valid(
+                    term.residual(p0, p1, cam, data, own.at(values, z_own + delta)), ok))
+            else:
+                fn = lambda p0, p1: term.masked(*_and_valid(term.residual(p0, p1, cam, data), ok))
+            r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (prev, pose), term.rotation_only, own_size))
+            return jac.T @ jac, jac.T @ r
+
+        cams, cam_axis = _slot_intrinsics(term, problem.rig)
+        hess, g = jax.vmap(jax.vmap(cam_pair_blocks, in_axes=(0, 0, 0, 0, 0, 0, None)),
+                           in_axes=(0, 0, cam_axis, 0, 0, 0, 0))(
+            _slot_gather(term, system.cam_poses[h - 1 : -1]), _slot_gather(term, system.cam_poses[h:]), cams, term.data,
+            *_camera_statics_args(own, system.z), _span_ok(problem, 2),
+        )  # (W, C, 12 + k, 12 + k), (W, C, 12 + k) (C: cameras or slots)
+        jp_prev, jp_curr = _slot_gather(term, system.pose_jac[h - 1 : -1]), _slot_gather(term, system.pose_jac[h:])
+        if jp_curr.shape[-1] > d or own_size:  # the poses depend on z (variable model), or the term reads z itself
+            jz = _camera_static_jacobian(jnp.concatenate([jp_prev[..., d:], jp_curr[..., d:]], axis=2), own,
+                                         n_static)  # (W, C, 12 + k, S)
+            zero = jnp.zeros_like(jp_curr[..., :d])
+            blocks = [(h - 1, _with_zero_rows(jnp.concatenate([jp_prev[..., :d], zero], axis=2), own_size)),
+                      (h, _with_zero_rows(jnp.concatenate([zero, jp_curr[..., :d]], axis=2), own_size))]
+            system.statics = _add_camera_statics(system.statics, blocks, jz, hess, g)
+            jp_prev, jp_curr = jp_prev[..., :d], jp_curr[..., :d]
+        h00 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, :6], jp_prev)
+        h11 = jnp.einsum("tcai,tcab,tcbj->tij", jp_curr, hess[:, :, 6:12, 6:12], jp_curr)
+        h01 = jnp.einsum("tcai,tcab,tcbj->tij", jp_prev, hess[:, :, :6, 6:12], jp_curr)
+        system.diag = system.diag.at[h - 1 : -1].add(h00).at[h:].add(h11)
+        system.bands[0] = system.bands[0].at[h - 1 : -1].add(h01)
+        system.grad = system.grad.at[h - 1 : -1].add(jnp.einsum("tcai,tca->ti", jp_prev, g[:, :, :6]))
+        system.grad = system.grad.at[h:].add(jnp.einsum("tcai,tca->ti", jp_curr, g[:, :, 6:12]))
+
+
+_KINDS = {"frame": _FrameKind(), "pair": _PairKind(), "span": _SpanKind(), "camera": _CameraKind(),
+          "camera_pair": _CameraPairKind()}
+#: Kinds whose terms are linearised together (one differentiation of the frame state serves them all), first.
+_GROUPED = (_KINDS["frame"], _KINDS["pair"])
+
+
+def term_kind(term: Term) -> _TermKind:
+    """The solver's adapter for ``term``'s kind (``term.kind``: see :mod:`bcmocap.residuals.base`).
+
+    Raises:
+        TypeError: a term that is none of the five kinds.
+    """
+    kind = _KINDS.get(getattr(term, "kind", None))
+    if kind is None:
+        raise TypeError(f"{getattr(term, 'label', type(term).__name__)}: a term must subclass FrameTerm, PairTerm, "
+                        "MultiFrameTerm, CameraTerm or CameraPairTerm (or be made by bcmocap.residuals.residual_term)")
+    return kind
 
 
 def _jacobian(fn, batched_args):
