@@ -57,7 +57,8 @@ from bcmocap.frontend.register import reference_index  # noqa: E402
 from bcmocap.geometry import similarity  # noqa: E402
 from bcmocap.frontend.homography import fill_with_homographies  # noqa: E402
 from bcmocap.frontend.relative import extract_trial_features, register_capture  # noqa: E402
-from bcmocap.sim.studio import StudioSettings, load_ground_truth, write_capture  # noqa: E402
+from bcmocap.io.capture_folder import load_ground_truth  # noqa: E402
+from bcmocap.sim.studio import StudioSettings, write_capture  # noqa: E402
 
 SCEAUX = Path(__file__).resolve().parents[2] / "shared" / "data" / "images" / "SceauxCastle" / "images"
 NOT_BUILT: list[str] = []

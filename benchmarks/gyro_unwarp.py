@@ -27,7 +27,7 @@ from bcmocap.frontend.capture import read_capture  # noqa: E402
 from bcmocap.frontend.rolling_shutter import gyro_unwarp  # noqa: E402
 from bcmocap.geometry import matrix_from_quat, slerp  # noqa: E402
 from bcmocap.precision import enable_float64  # noqa: E402
-from bcmocap.sim.studio import load_ground_truth  # noqa: E402
+from bcmocap.io.capture_folder import load_ground_truth  # noqa: E402
 
 FAST_DEG_S = 120.0
 

@@ -101,7 +101,7 @@ def _fake_capture(root: Path):
     from bcmocap.pipeline import RunConfig, Similarity
     from bcmocap.sim import standard_capture
     from bcmocap.sim.rom import range_of_motion_trial
-    from bcmocap.sim.studio import subject_record
+    from bcmocap.sim.studio import studio_subject
 
     capture = standard_capture("walk", seconds=1.5, fps=FPS, seed=2)
     skeleton, rig = capture.skeleton, capture.rig
@@ -119,7 +119,7 @@ def _fake_capture(root: Path):
     trials = {trial: dataclasses.replace(corr, points=sfm_from_world.points(corr.points),
                                          world_from_camera=sfm_from_world.poses(corr.world_from_camera))
               for trial, corr in (("rom", rom_corr), ("capture", capture.correspondences()))}
-    subject = subject_record(skeleton, 0, FPS)
+    subject = studio_subject(skeleton, 0, FPS)
     subject["rest"] = {"trial": "rom", "after_first_clap_s": [0.0, 0.9]}
     cameras = tuple(CaptureCamera(n, skeleton.names[s], camera_at(rig.intrinsics, i), None)
                     for i, (n, s) in enumerate(zip(rig.names, rig.segments)))

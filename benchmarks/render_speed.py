@@ -35,7 +35,8 @@ from bcmocap.precision import enable_float64  # noqa: E402
 from bcmocap.sim import load_body_motion, standard_rig  # noqa: E402
 from bcmocap.sim.render import Renderer  # noqa: E402
 from bcmocap.sim.scene import make_textured_scene  # noqa: E402
-from bcmocap.sim.studio import StudioSettings, capsule_ends, load_ground_truth, write_capture  # noqa: E402
+from bcmocap.io.capture_folder import load_ground_truth  # noqa: E402
+from bcmocap.sim.studio import StudioSettings, capsule_ends, write_capture  # noqa: E402
 
 
 def sift_inliers(camera, image_a, image_b, sift) -> int:

@@ -465,7 +465,7 @@ def studio(tmp_path_factory) -> Path:
 def test_init_on_muxed_camera_files_reproduces_the_studio_capture(studio, tmp_path, capsys):
     """Each rendered video and its WAV muxed into one camera file named like an action camera's (GX01NNNN.MP4,
     one per trial, the rig file saying which is which); `bcmocap init` then gives the studio's folder."""
-    from bcmocap.sim.studio import load_ground_truth
+    from bcmocap.io.capture_folder import load_ground_truth
 
     shoot = tmp_path / "shoot"
     (shoot / "videos").mkdir(parents=True)
@@ -491,7 +491,7 @@ def test_init_on_muxed_camera_files_reproduces_the_studio_capture(studio, tmp_pa
 
 @pytest.mark.slow
 def test_the_studio_writes_h264_with_aac_inside_and_init_reads_it_back(studio, tmp_path_factory, capsys):
-    from bcmocap.sim.studio import load_ground_truth
+    from bcmocap.io.capture_folder import load_ground_truth
 
     root = tmp_path_factory.mktemp("studio_aac")
     folder = root / "capture"

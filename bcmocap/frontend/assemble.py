@@ -3,7 +3,7 @@
 A shoot comes back with one video per camera (or one per camera and trial) whose audio is inside it, a
 calibration per camera or per lens model (what ``bcmocap calibrate`` writes), reference photos, and the
 rig file (:mod:`.rig_file`). :func:`assemble_capture` checks all of it before writing anything, then
-writes the folder :func:`~.capture.read_capture` reads (the studio's layout, :mod:`bcmocap.sim.studio`)::
+writes the folder :func:`~.capture.read_capture` reads (the layout of :mod:`bcmocap.io.capture_folder`)::
 
     capture.json        manifest: fps, audio rate, cameras, trials, the subject (from the rig file), where
                         the videos came from, the claps found in each trial
@@ -29,7 +29,6 @@ expected failure is a ``ValueError`` naming the file and the field.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import re
 import shutil
@@ -39,12 +38,27 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.capture_folder import (
+    intrinsics_path,
+    manifest_path,
+    new_manifest,
+    reference_camera_path,
+    reference_photo_path,
+    relative_name,
+    rig_path,
+    shared_video_path,
+    subject_record,
+    trial_audio_path,
+    trial_video_path,
+    write_json,
+    write_manifest,
+)
 from ..io.media import probe_media, read_audio_track
 from ..io.names import checked_name
 from ..io.opencv_calibration import read_opencv_fisheye_calibration
 from ..io.wav import read_wav
-from .capture import CAPTURE_FORMAT, read_camera_json, read_capture
-from .rig_file import RigFile, subject_record
+from .capture import read_camera_json, read_capture
+from .rig_file import RigFile
 from .sync import clap_candidates, common_claps, synchronize_tracks
 
 __all__ = ["VIDEO_SUFFIXES", "CameraFile", "TrialStretch", "assemble_capture"]
@@ -52,7 +66,6 @@ __all__ = ["VIDEO_SUFFIXES", "CameraFile", "TrialStretch", "assemble_capture"]
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv", ".avi")
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 CALIBRATION_SUFFIXES = (".json", ".yml", ".yaml", ".xml")
-CAPTURE_VERSION = 1
 _EXTRA_CANDIDATES = 8  # clap candidates kept per camera beyond the claps expected
 
 
@@ -385,7 +398,7 @@ def assemble_capture(capture_dir: str | os.PathLike, videos: str | os.PathLike, 
     capture_dir.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{capture_dir.name}.init-", dir=capture_dir.parent))
     try:
-        placed: dict[Path, str] = {}  # source file -> its path in the capture
+        placed: dict[Path, tuple[Path, Path]] = {}  # source file -> its path in the capture, and its WAV's
         entries = []
         for cam in rig.cameras:
             entry = {"name": cam.name, "segment": cam.segment}
@@ -394,49 +407,53 @@ def assemble_capture(capture_dir: str | os.PathLike, videos: str | os.PathLike, 
             if cam.lens:
                 entry["lens_model"] = cam.lens
             for file in lenses[cam.name]:
-                rel = f"intrinsics/{cam.name}{file.suffix}"
-                _place(file, work / rel, copy=True)
-                entry["lens" if file.suffix == ".json" else "intrinsics"] = rel
+                target = intrinsics_path(work, cam.name, file.suffix)
+                _place(file, target, copy=True)
+                entry["lens" if file.suffix == ".json" else "intrinsics"] = relative_name(work, target)
             entry["video"], audio = {}, {}
             for trial in rig.trials:
                 s = stretches[(trial, cam.name)]
                 if s.source.path not in placed:
-                    folder = "videos" if len(s.source.trials) > 1 else f"trials/{trial}"
-                    rel = f"{folder}/{cam.name}{_suffix(s.source.path)}"
-                    _place(s.source.path, work / rel, copy)
+                    suffix = _suffix(s.source.path)
+                    if len(s.source.trials) > 1:  # videos/<camera>.<ext>, cut by the stretches in rig.json
+                        target = shared_video_path(work, cam.name, suffix)
+                        wav = shared_video_path(work, cam.name, ".wav")
+                    else:
+                        target = trial_video_path(work, trial, cam.name, suffix)
+                        wav = trial_audio_path(work, trial, cam.name)
+                    _place(s.source.path, target, copy)
                     if s.source.wav is not None:
-                        _place(s.source.wav, work / f"{folder}/{cam.name}.wav", copy)
-                    placed[s.source.path] = rel
-                rel = placed[s.source.path]
-                entry["video"][trial] = {"file": rel, "first_frame": s.first_frame, "num_frames": s.num_frames}
+                        _place(s.source.wav, wav, copy)
+                    placed[s.source.path] = (target, wav)
+                target, wav = placed[s.source.path]
+                entry["video"][trial] = {"file": relative_name(work, target), "first_frame": s.first_frame,
+                                         "num_frames": s.num_frames}
                 if s.source.wav is not None:
-                    audio[trial] = f"{rel.rsplit('/', 1)[0]}/{cam.name}.wav"
+                    audio[trial] = relative_name(work, wav)
             if audio:
                 entry["audio"] = audio
             entries.append(entry)
         for photo in photos:
-            _place(photo, work / "reference" / photo.name, copy)
+            _place(photo, reference_photo_path(work, photo.name), copy)
         for file in photo_cameras:
-            _place(file, work / "reference" / file.name, copy=True)
-        (work / "rig.json").write_text(json.dumps({"cameras": entries, "segments": list(rig.segment_names)}, indent=1) + "\n")
-        manifest = {
-            "format": CAPTURE_FORMAT,
-            "version": CAPTURE_VERSION,
-            "fps": first.fps,
-            "audio_rate": first.audio_rate,
-            "cameras": [c.name for c in rig.cameras],
-            "trials": list(rig.trials),
-            "subject": subject_record(rig),
-            "made_by": {"command": "bcmocap init", "videos": str(videos.resolve()),
-                        "rig": str(rig.path.resolve()) if rig.path else None, "copied": copy, "split": rig.split,
-                        "margin_s": rig.margin_s},
-            "claps": claps,
-            "complete": True,
-        }
-        (work / "capture.json").write_text(json.dumps(manifest, indent=1) + "\n")
+            _place(file, reference_camera_path(work, file.suffix), copy=True)
+        write_json(rig_path(work), {"cameras": entries, "segments": list(rig.segment_names)})
+        manifest = new_manifest(
+            fps=first.fps,
+            audio_rate=first.audio_rate,
+            cameras=[c.name for c in rig.cameras],
+            trials=list(rig.trials),
+            subject=subject_record(rig.segments, rig.measurements, rig.rest),
+            made_by={"command": "bcmocap init", "videos": str(videos.resolve()),
+                     "rig": str(rig.path.resolve()) if rig.path else None, "copied": copy, "split": rig.split,
+                     "margin_s": rig.margin_s},
+            claps=claps,
+            complete=True,
+        )
+        write_manifest(work, manifest)
         read_capture(work)  # what the frontend will read: any inconsistency fails here, before the rename
         if capture_dir.exists():  # an empty folder the user made: filled, the manifest last
-            for child in sorted(work.iterdir(), key=lambda p: p.name == "capture.json"):
+            for child in sorted(work.iterdir(), key=lambda p: p == manifest_path(work)):
                 os.rename(child, capture_dir / child.name)
             work.rmdir()
         else:

@@ -1,15 +1,13 @@
 """Reading a capture folder: manifest, rig, intrinsics, trials, videos (decoded lazily) and soundtracks.
 
-The layout is the one :mod:`bcmocap.sim.studio` writes (and a real shoot is arranged into)::
+The layout is specified in :mod:`bcmocap.io.capture_folder` (what :mod:`bcmocap.sim.studio` writes, and a real
+shoot is arranged into by ``bcmocap init``)::
 
     capture.json, rig.json, intrinsics/<camera>.yml|.json, reference/photo_*.jpg, reference/camera.json|.yml,
     trials/<trial>/<camera>.mp4, trials/<trial>/<camera>.wav
 
-A camera's entry in ``rig.json`` may say where its videos are instead (what ``bcmocap init`` writes for
-a shoot whose cameras recorded several trials in one file): ``"video": {trial: "path"}`` or
-``{trial: {"file": "path", "first_frame": F, "num_frames": N}}``, a stretch of a longer file that the
-trial's frame 0 starts, and ``"audio": {trial: "path"}`` for its WAV (paths relative to the capture,
-staying inside it). A trial's soundtrack is the WAV when it exists (cut to the stretch), else the audio
+A camera's entry in ``rig.json`` may say where its videos are instead (a stretch of a longer file; see
+:mod:`bcmocap.io.capture_folder`). A trial's soundtrack is the WAV when it exists (cut to the stretch), else the audio
 track inside the video itself (read with PyAV, :func:`bcmocap.io.media.read_audio_track`); sample 0 is
 the time of the trial's first video frame either way.
 
@@ -21,7 +19,6 @@ never has to fit in memory. Errors are ``ValueError`` naming the file and what w
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 from collections.abc import Iterator
@@ -30,15 +27,24 @@ from pathlib import Path
 import numpy as np
 
 from ..cameras import CameraModel
+from ..io.capture_folder import (
+    intrinsics_path,
+    lens_path,
+    read_json,
+    read_manifest,
+    reference_camera_path,
+    reference_dir,
+    relative_name,
+    rig_path,
+    trial_audio_path,
+    trial_video_path,
+)
 from ..io.colmap import from_pycolmap
 from ..io.names import checked_name, checked_relative_path
 from ..io.opencv_calibration import read_opencv_fisheye_calibration
 
 __all__ = ["Capture", "CaptureCamera", "TrialVideo", "VideoInfo", "read_capture", "read_camera_json"]
 
-CAPTURE_FORMAT = "bcmocap-capture"
-MAX_FPS = 10_000.0  # Hz; a faster video is a corrupt header, not a camera
-MAX_AUDIO_RATE = 1_000_000  # samples/s
 MAX_IMAGE_SIDE = 100_000  # px
 
 
@@ -53,25 +59,13 @@ def lens_fingerprint(lenses) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def _load_json(path: Path) -> dict:
-    if not path.is_file():
-        raise ValueError(f"{path}: missing (expected by the capture folder layout)")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object, got {type(data).__name__}")
-    return data
-
-
 def read_camera_json(path: str | os.PathLike) -> CameraModel:
     """A lens file ``{"model": "FOV" | "OPENCV_FISHEYE" | "PINHOLE", "width", "height", "params"}``
     (OpenCV pixel convention) as a camera model."""
     import pycolmap
 
     path = Path(path)
-    data = _load_json(path)
+    data = read_json(path)
     try:
         params = [float(x) for x in data["params"]]
         width, height, model = int(data["width"]), int(data["height"]), str(data["model"])
@@ -202,7 +196,7 @@ class Capture:
     def trial_video(self, trial: str, camera: str | int) -> TrialVideo:
         """Where the camera's video of the trial is (the file, the stretch of it, the WAV beside it)."""
         name = self.cameras[self.camera_index(camera)].name
-        default = self.path / "trials" / self._trial(trial) / f"{name}.mp4"
+        default = trial_video_path(self.path, self._trial(trial), name)
         return self.videos.get((trial, name), TrialVideo(default))
 
     def video_path(self, trial: str, camera: str | int) -> Path:
@@ -213,7 +207,7 @@ class Capture:
         source = self.trial_video(trial, camera)
         if source.audio is not None:
             return source.audio
-        return self.path / "trials" / trial / f"{self.cameras[self.camera_index(camera)].name}.wav"
+        return trial_audio_path(self.path, trial, self.cameras[self.camera_index(camera)].name)
 
     def soundtrack(self, trial: str, camera: str | int) -> tuple[np.ndarray, int]:
         """The camera's audio of the trial: ``(samples (N,) float64 in [-1, 1], rate)``, sample 0 at the trial's
@@ -327,53 +321,28 @@ def read_capture(path: str | os.PathLike, *, check_files: bool = True) -> Captur
         ValueError: naming the missing or malformed file (and field).
     """
     folder = Path(path)
-    if not folder.is_dir():
-        raise ValueError(f"{folder}: capture folder does not exist")
-    manifest_path = folder / "capture.json"
-    manifest = _load_json(manifest_path)
-    if manifest.get("format") != CAPTURE_FORMAT:
-        raise ValueError(f"{manifest_path}: format is {manifest.get('format')!r}, expected {CAPTURE_FORMAT!r}")
-    if manifest.get("complete") is False:
-        raise ValueError(f"{manifest_path}: the capture is marked incomplete (still being written?)")
-    settings = manifest.get("settings", {})
-    if not isinstance(settings, dict):
-        raise ValueError(f"{manifest_path}: field 'settings' must be an object, got {type(settings).__name__}")
-    fps = manifest.get("fps", settings.get("fps"))
-    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 < fps <= MAX_FPS:
-        raise ValueError(f"{manifest_path}: missing or invalid frame rate (field 'fps' or 'settings.fps'), got {fps!r}; "
-                         f"expected a number in (0, {MAX_FPS}] Hz")
-    audio_rate = manifest.get("audio_rate", settings.get("audio_rate"))
-    if audio_rate is not None:
-        if (isinstance(audio_rate, bool) or not isinstance(audio_rate, (int, float))
-                or not 0 < audio_rate <= MAX_AUDIO_RATE or audio_rate != int(audio_rate)):
-            raise ValueError(f"{manifest_path}: field 'audio_rate' must be a whole number of samples/s in "
-                             f"(0, {MAX_AUDIO_RATE}], got {audio_rate!r}")
-        audio_rate = int(audio_rate)
-    trials = manifest.get("trials")
-    if not isinstance(trials, list) or not trials:
-        raise ValueError(f"{manifest_path}: field 'trials' must be a non-empty list of names, got {trials!r}")
-    trials = [checked_name(t, f"trials[{i}]", manifest_path) for i, t in enumerate(trials)]
-    if len(set(trials)) != len(trials):
-        raise ValueError(f"{manifest_path}: field 'trials' names a trial twice: {trials}")
+    checked = read_manifest(folder, require_complete=True, require_fps=True)
+    manifest, manifest_path, trials = checked.data, checked.path, list(checked.trials)
 
-    rig_path = folder / "rig.json"
-    rig = _load_json(rig_path)
+    rig_file = rig_path(folder)
+    rig = read_json(rig_file)
     entries = rig.get("cameras")
     if not isinstance(entries, list) or not entries:
-        raise ValueError(f"{rig_path}: field 'cameras' must be a non-empty list")
+        raise ValueError(f"{rig_file}: field 'cameras' must be a non-empty list")
     cameras = []
     videos: dict[tuple[str, str], TrialVideo] = {}
     for i, entry in enumerate(entries):
         if not isinstance(entry, dict) or "name" not in entry or "segment" not in entry:
-            raise ValueError(f"{rig_path}: cameras[{i}] needs fields 'name' and 'segment'")
-        name = checked_name(entry["name"], f"cameras[{i}].name", rig_path)
-        videos.update(_trial_videos(folder, entry, i, name, trials, rig_path))
+            raise ValueError(f"{rig_file}: cameras[{i}] needs fields 'name' and 'segment'")
+        name = checked_name(entry["name"], f"cameras[{i}].name", rig_file)
+        videos.update(_trial_videos(folder, entry, i, name, trials, rig_file))
         segment = entry["segment"]
         if not isinstance(segment, str) or not segment:
-            raise ValueError(f"{rig_path}: cameras[{i}].segment must be a segment name, got {segment!r}")
-        lens = folder / checked_relative_path(entry.get("lens", f"intrinsics/{name}.json"), f"cameras[{i}].lens", rig_path)
-        calib = folder / checked_relative_path(entry.get("intrinsics", f"intrinsics/{name}.yml"),
-                                               f"cameras[{i}].intrinsics", rig_path)
+            raise ValueError(f"{rig_file}: cameras[{i}].segment must be a segment name, got {segment!r}")
+        lens = (folder / checked_relative_path(entry["lens"], f"cameras[{i}].lens", rig_file) if "lens" in entry
+                else lens_path(folder, name))
+        calib = (folder / checked_relative_path(entry["intrinsics"], f"cameras[{i}].intrinsics", rig_file)
+                 if "intrinsics" in entry else intrinsics_path(folder, name))
         if lens.is_file():
             cameras.append(CaptureCamera(name, segment, read_camera_json(lens), lens))
         elif calib.is_file():
@@ -382,52 +351,52 @@ def read_capture(path: str | os.PathLike, *, check_files: bool = True) -> Captur
             raise ValueError(f"{calib}: intrinsics of camera {name!r} missing (nor {lens.name} beside it)")
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
-        raise ValueError(f"{rig_path}: field 'cameras' names a camera twice: {names}")
+        raise ValueError(f"{rig_file}: field 'cameras' names a camera twice: {names}")
     if "cameras" in manifest:
         listed = manifest["cameras"]
         if not isinstance(listed, list) or listed != names:
-            raise ValueError(f"{rig_path}: cameras {names} differ from those in {manifest_path}: {listed!r}")
+            raise ValueError(f"{rig_file}: cameras {names} differ from those in {manifest_path}: {listed!r}")
 
     if check_files:
         from ..io.media import probe_media
 
         for trial in trials:
             for name in names:
-                source = videos.get((trial, name), TrialVideo(folder / "trials" / trial / f"{name}.mp4"))
+                source = videos.get((trial, name), TrialVideo(trial_video_path(folder, trial, name)))
                 if not source.file.is_file():
                     raise ValueError(f"{source.file}: missing (video of camera {name!r} in trial {trial!r})")
-                wav = source.audio or folder / "trials" / trial / f"{name}.wav"
+                wav = source.audio or trial_audio_path(folder, trial, name)
                 if not wav.is_file() and not probe_media(source.file).has_audio:
                     raise ValueError(f"{wav}: missing (soundtrack of camera {name!r} in trial {trial!r}), and the "
                                      f"video {source.file.name} has no audio track of its own")
 
-    ref = folder / "reference"
+    ref = reference_dir(folder)
     photos = tuple(sorted(p for p in ref.glob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png"))) if ref.is_dir() else ()
-    if (ref / "camera.json").is_file():
-        ref_camera = read_camera_json(ref / "camera.json")
+    if reference_camera_path(folder).is_file():
+        ref_camera = read_camera_json(reference_camera_path(folder))
     else:
         ref_camera = None
     segments = rig.get("segments", [])
     if not isinstance(segments, list) or not all(isinstance(s, str) for s in segments):
-        raise ValueError(f"{rig_path}: field 'segments' must be a list of names, got {segments!r}")
-    return Capture(folder, manifest, float(fps), audio_rate, tuple(cameras), tuple(segments), tuple(trials), photos,
-                   ref_camera, videos)
+        raise ValueError(f"{rig_file}: field 'segments' must be a list of names, got {segments!r}")
+    return Capture(folder, manifest, checked.fps, checked.audio_rate, tuple(cameras), tuple(segments), tuple(trials),
+                   photos, ref_camera, videos)
 
 
 def _trial_videos(folder: Path, entry: dict, i: int, name: str, trials: list[str],
-                  rig_path: Path) -> dict[tuple[str, str], TrialVideo]:
-    """The ``video`` and ``audio`` fields of camera ``i``'s entry in ``rig.json`` (module docstring)."""
+                  rig_file: Path) -> dict[tuple[str, str], TrialVideo]:
+    """The ``video`` and ``audio`` fields of camera ``i``'s entry in ``rig.json`` (:mod:`bcmocap.io.capture_folder`)."""
     where = f"cameras[{i}]"
     found = {}
     video, audio = entry.get("video", {}), entry.get("audio", {})
     for field, value in (("video", video), ("audio", audio)):
         if not isinstance(value, dict):
-            raise ValueError(f"{rig_path}: {where}.{field} must map trial names to files, got {value!r}")
+            raise ValueError(f"{rig_file}: {where}.{field} must map trial names to files, got {value!r}")
         unknown = sorted(set(value) - set(trials))
         if unknown:
-            raise ValueError(f"{rig_path}: {where}.{field} names trials {unknown} that capture.json does not list")
+            raise ValueError(f"{rig_file}: {where}.{field} names trials {unknown} that capture.json does not list")
     for trial in trials:
-        spec = video.get(trial, f"trials/{trial}/{name}.mp4")
+        spec = video.get(trial, relative_name(folder, trial_video_path(folder, trial, name)))
         first, count = 0, None
         if isinstance(spec, dict):
             first, count = spec.get("first_frame", 0), spec.get("num_frames")
@@ -435,11 +404,11 @@ def _trial_videos(folder: Path, entry: dict, i: int, name: str, trials: list[str
                 if value is None and key == "num_frames":
                     continue
                 if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                    raise ValueError(f"{rig_path}: {where}.video.{trial}.{key} must be a whole number >= {least}, "
+                    raise ValueError(f"{rig_file}: {where}.video.{trial}.{key} must be a whole number >= {least}, "
                                      f"got {value!r}")
             spec = spec.get("file")
-        file = folder / checked_relative_path(spec, f"{where}.video.{trial}", rig_path)
-        wav = (folder / checked_relative_path(audio[trial], f"{where}.audio.{trial}", rig_path)
+        file = folder / checked_relative_path(spec, f"{where}.video.{trial}", rig_file)
+        wav = (folder / checked_relative_path(audio[trial], f"{where}.audio.{trial}", rig_file)
                if trial in audio else None)
         if trial in video or wav is not None:
             found[(trial, name)] = TrialVideo(file, first, count, wav)

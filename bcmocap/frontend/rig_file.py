@@ -41,9 +41,10 @@ import re
 import tomllib
 from pathlib import Path, PurePosixPath
 
+from ..io.capture_folder import TRIALS
 from ..io.names import checked_name, checked_relative_path
 
-__all__ = ["JOINTS", "RigCamera", "RigFile", "TEMPLATE", "format_rig_file", "read_rig_file", "subject_record"]
+__all__ = ["JOINTS", "RigCamera", "RigFile", "TEMPLATE", "format_rig_file", "read_rig_file"]
 
 JOINTS = ("free", "ball", "hinge", "fixed")
 SPLITS = ("claps", "times")
@@ -81,13 +82,14 @@ class RigFile:
         trials: trial names in recording order; split: "claps" or "times"; margin_s: video kept around a
             trial's claps (s); times: ``{trial: (start_s, end_s)}`` in each video's clock.
         rest: ``{"trial": name, "after_first_clap_s": [from, to]}`` or None.
-        measurements: ``({"from", "to", "metres"}, …)`` between joint centres, rest pose.
+        measurements: ``({"from", "to", "metres"}, …)`` between joint centres, rest pose (with ``segments`` and
+            ``rest``, the manifest's subject: :func:`bcmocap.io.capture_folder.subject_record`).
         path: the file it was read from (None for one built in code).
     """
 
     segments: tuple[tuple[str, str | None, str], ...]
     cameras: tuple[RigCamera, ...]
-    trials: tuple[str, ...] = ("rom", "capture")
+    trials: tuple[str, ...] = TRIALS
     split: str = "claps"
     margin_s: float = 1.0
     times: dict[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
@@ -165,7 +167,7 @@ def _parse(data: dict, path) -> RigFile:
 
     trials_table = _table(data.get("trials", {}), "[trials]", path)
     _unknown(trials_table, ("names", "split", "margin_s", "times"), "[trials]", path)
-    names = trials_table.get("names", ["rom", "capture"])
+    names = trials_table.get("names", list(TRIALS))
     if not isinstance(names, list) or not names:
         raise ValueError(f"{path}: trials.names must be a non-empty list of names, got {names!r}")
     trials = tuple(checked_name(t, f"trials.names[{i}]", path) for i, t in enumerate(names))
@@ -253,14 +255,6 @@ def _parse(data: dict, path) -> RigFile:
             raise ValueError(f"{path}: {where}.metres must be positive, got {metres}")
         checked.append({"from": m["from"], "to": m["to"], "metres": metres})
     return RigFile(tuple(segments), tuple(cameras), trials, split, margin, times, rest, tuple(checked), path)
-
-
-def subject_record(rig: RigFile) -> dict:
-    """The ``"subject"`` entry of ``capture.json`` (as :func:`bcmocap.sim.studio.subject_record` writes it)."""
-    record = {"topology": [list(s) for s in rig.segments], "measurements": [dict(m) for m in rig.measurements]}
-    if rig.rest is not None:
-        record["rest"] = dict(rig.rest)
-    return record
 
 
 # ---------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ import time
 from ..atomic import write_json_atomic
 from ..compilation_cache import enable_compilation_cache
 from ..io.output_folder import output_folder
+from . import files
 
 _DESCRIPTION = """\
 Reconstruct the 3-D motion of a kinematic chain (a person, an animal, a robot arm) from its 2-D joints in
@@ -125,14 +126,14 @@ def run_kcs(args: argparse.Namespace) -> int:
     fps = args.fps or data.fps or 30.0
 
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "joints_3d.csv", "w", newline="", encoding="utf-8") as f:
+    with open(out / files.JOINTS_CSV, "w", newline="", encoding="utf-8") as f:
         writer = csv.writer(f)
         writer.writerow(["frame", "joint", "x", "y", "z"])
         for k in range(frames):
             for j, name in enumerate(chain.names):
                 writer.writerow([k, name, *(f"{v:.6f}" for v in joints_3d[k, j])])
     np.savez(
-        out / "result.npz",
+        out / files.RESULT,
         joints=joints_3d,
         joints_camera=np.asarray(result.joints_camera),
         camera_rotation=np.asarray(result.cameras.rotation),
@@ -143,7 +144,7 @@ def run_kcs(args: argparse.Namespace) -> int:
         names=np.array(chain.names),
         parents=np.array(chain.parents),
     )
-    write_bvh(out / "motion.bvh", skeleton, motion, 1.0 / fps)
+    write_bvh(out / files.MOTION_BVH, skeleton, motion, 1.0 / fps)
     report = {
         "frames": frames,
         "joints": list(chain.names),
@@ -157,8 +158,8 @@ def run_kcs(args: argparse.Namespace) -> int:
         "fps": fps,
         "options": options.__dict__,
     }
-    write_json_atomic(out / "report.json", report)
+    write_json_atomic(out / files.REPORT, report)
     print(f"{int(result.iterations)} iterations ({'converged' if report['converged'] else 'stopped at the limit'}), "
           f"reprojection error {history[0]:.3f} -> {history[-1]:.3f} px RMS, {seconds:.1f} s")
-    print(f"wrote {out / 'joints_3d.csv'}, {out / 'result.npz'}, {out / 'motion.bvh'} and {out / 'report.json'}")
+    print(f"wrote {out / files.JOINTS_CSV}, {out / files.RESULT}, {out / files.MOTION_BVH} and {out / files.REPORT}")
     return 0

@@ -22,6 +22,7 @@ import numpy as np
 from ..kinematics.fk import joint_positions
 from ..kinematics.skeleton import Motion, Skeleton
 from ..precision import require_float64
+from . import files
 from .identities import IdentityMerge, concurrent_labels, merge_identities
 from .ik import IkResult, initial_motion, solve_ik
 from .joints import MIN_COVERAGE, MIN_FRAMES, JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
@@ -253,12 +254,8 @@ class MarkerSkeleton:
 
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        paths = {
-            "bvh": folder / "skeleton.bvh",
-            "json": folder / "skeleton.json",
-            "poses": folder / "poses.npz",
-            "report": folder / "report.txt",
-        }
+        paths = {"bvh": folder / files.SKELETON_BVH, "json": folder / files.SKELETON_JSON,
+                 "poses": folder / files.POSES, "report": folder / files.REPORT}
         write_bvh(paths["bvh"], self.skeleton, self.motion, 1.0 / self.fps)
         paths["json"].write_text(json.dumps(self.to_dict(), indent=2) + "\n")
         np.savez_compressed(

@@ -29,6 +29,8 @@ import re
 import time
 from collections.abc import Callable, Iterable, Iterator
 
+from .worker_setup import worker_setup
+
 #: Environment of each local worker process: numeric libraries on one thread (one task = one core).
 WORKER_ENVIRONMENT = {
     "OMP_NUM_THREADS": "1",
@@ -193,30 +195,6 @@ def _timed(fn: Callable, item) -> tuple[object, float, float]:
     clock, cpu = time.perf_counter(), time.process_time()
     result = fn(item)
     return result, time.perf_counter() - clock, time.process_time() - cpu
-
-
-def worker_setup() -> None:
-    """What every task needs in a worker process (idempotent; cheap after the first call): float64 JAX, the
-    persistent compilation cache, OpenCV on one thread."""
-    from ..compilation_cache import enable_compilation_cache
-    from ..precision import enable_float64
-
-    enable_float64()
-    enable_compilation_cache()
-    if _in_worker():
-        import cv2
-
-        cv2.setNumThreads(1)
-
-
-def _in_worker() -> bool:
-    try:
-        from distributed import get_worker
-
-        get_worker()
-        return True
-    except (ImportError, ValueError):
-        return False
 
 
 @contextlib.contextmanager

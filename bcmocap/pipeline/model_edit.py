@@ -6,7 +6,7 @@ is the model the ``skeleton`` stage estimated (snapshotted on the first save, or
 files differ from the last version, e.g. after the stage was redone), then one version per save. Saving
 holds the run folder's lock (:func:`~bcmocap.io.output_folder.locked_output`), so it never races a
 ``bcmocap run`` writing there, and forgets the ``initial`` stage and those after it in ``DIR/run.json``
-(:meth:`~bcmocap.pipeline.run.RunLog.forget_from`) and the solver's checkpoint, so the next
+(:meth:`~bcmocap.io.run_folder.RunLog.forget_from`) and the solver's checkpoint, so the next
 ``bcmocap run`` reuses frontend, world and skeleton and redoes ``initial``, ``solve`` and ``outputs``
 with the edit. A changed ``skeleton`` setting re-estimates the model and so replaces the edit (the
 versions stay).
@@ -22,9 +22,8 @@ from pathlib import Path
 from ..atomic import write_json_atomic
 from ..io.model_json import rig_to_dict, skeleton_to_dict
 from ..io.output_folder import locked_output
-from .run import RUN_FORMAT, STAGES, RunLog, _read_json
+from ..io.run_folder import MODEL_FILES, STAGES, RunLog, read_json, read_run_log
 
-MODEL_FILES = ("skeleton.json", "rig.json")
 #: The stage an edited model makes stale, with every stage after it.
 STALE_FROM = "initial"
 
@@ -42,7 +41,7 @@ def model_versions(run_dir: str | Path) -> list[dict]:
     path = Path(run_dir) / "model" / "versions.json"
     if not path.exists():
         return []
-    entries = _read_json(path).get("versions")
+    entries = read_json(path).get("versions")
     if not isinstance(entries, list):
         raise ValueError(f"{path}: field 'versions' must be a list")
     for entry in entries:  # the folder names are read back: nothing may lead out of model/versions/
@@ -61,12 +60,7 @@ def save_model_version(run_dir: str | Path, skeleton, rig, note: str = "edited i
         ValueError: not a run folder, another command writing to it, or a path leading outside it.
     """
     run_dir = Path(run_dir)
-    run_json = run_dir / "run.json"
-    if not run_json.is_file():
-        raise ValueError(f"{run_dir}: not a bcmocap run folder (no run.json)")
-    data = _read_json(run_json)
-    if data.get("format") != RUN_FORMAT or not isinstance(data.get("capture"), str):
-        raise ValueError(f"{run_json}: not a bcmocap run log")
+    data = read_run_log(run_dir)
     with locked_output(run_dir):
         model = _inside(run_dir, run_dir / "model")
         versions_dir = _inside(run_dir, model / "versions")

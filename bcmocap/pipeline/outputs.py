@@ -31,9 +31,10 @@ from ..correspondence_store import CorrespondenceStore
 from ..geometry import quat_log, rotation_angle, similarity
 from ..io import write_bvh
 from ..io.ply import write_camera_paths_ply, write_ply_pieces
+from ..io.run_folder import load_model, load_motion
 from ..kinematics.fk import joint_positions
 from ..kinematics.rig import camera_poses
-from .world import Similarity, transform_model
+from .world import Similarity, load_similarity, transform_model
 
 
 def rotation_vectors_deg(rotations: np.ndarray) -> np.ndarray:
@@ -56,8 +57,6 @@ _PICTURE_POINTS = 200_000  # about this many scene points are kept for the pictu
 
 def write_outputs(ctx) -> dict:
     """Write every output of a finished solve; returns a summary for the run log."""
-    from .run import _world, load_model, load_motion
-
     out = ctx.out
     skeleton, rig = load_model(out, "solve")  # refined in the solve, if it was
     motion = load_motion(out / "solve" / "motion.npz")
@@ -92,7 +91,7 @@ def write_outputs(ctx) -> dict:
     scene = np.concatenate(sample or [np.zeros((0, 3))]).reshape(-1, 3)
     after = _camera_centres(skeleton, rig, motion)
     write_camera_paths_ply(out / "camera_paths.ply", after)
-    _write_reference(ctx, _world(ctx))
+    _write_reference(ctx, load_similarity(out))
 
     summary = {"frames": int(motion.num_frames), "scene_points": int(used.sum())}
     truth = _truth(ctx, corr)
@@ -138,7 +137,7 @@ def capture_truth(capture_path: Path, corr):
     """:func:`_truth` of the capture folder ``capture_path`` (also read by ``bcmocap view``)."""
     if not (Path(capture_path) / "ground_truth").is_dir():
         return None
-    from ..sim.studio import load_ground_truth
+    from ..io.capture_folder import load_ground_truth
 
     gt = load_ground_truth(capture_path)
     trial = gt.trials["capture"]

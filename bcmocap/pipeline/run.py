@@ -42,24 +42,15 @@ import numpy as np
 
 from ..atomic import atomic_path, write_json_atomic
 from ..io.output_folder import check_outside, locked_output
+from ..io.run_folder import (SIMILARITY, STAGE_OUTPUTS, STAGES, RunLog, load_model, load_motion, load_solved_variables,
+                             read_json, save_motion, solved_variables, write_npz)
 from .cluster import Executor, open_executor
 from .config import RunConfig
 
-STAGES = ("frontend", "world", "skeleton", "initial", "solve", "outputs")
 #: Config sections each stage depends on (a change redoes the stage and every later one).
 _STAGE_SECTIONS = {"frontend": ("frontend",), "world": ("skeleton",), "skeleton": ("skeleton",),
                    "initial": (), "solve": ("solver",), "outputs": ("outputs",)}
-#: What each stage writes (relative to DIR): a finished stage whose outputs were deleted is done again.
-STAGE_OUTPUTS = {
-    "frontend": ("frontend/rom/registration.json", "frontend/rom/correspondences/index.json",
-                 "frontend/capture/registration.json", "frontend/capture/correspondences/index.json"),
-    "world": ("world/similarity.json",),
-    "skeleton": ("model/skeleton.json", "model/rig.json"),
-    "initial": ("solve/initial.npz", "solve/correspondences/index.json"),
-    "solve": ("solve/motion.npz",),
-    "outputs": ("motion.bvh", "motion.npz", "joint_angles.csv", "joint_positions.csv", "scene.ply", "camera_paths.ply"),
-}
-RUN_FORMAT = "bcmocap-run"
+
 
 
 def _expected_outputs(stage: str, config: RunConfig) -> tuple[str, ...]:
@@ -67,18 +58,6 @@ def _expected_outputs(stage: str, config: RunConfig) -> tuple[str, ...]:
     if stage == "frontend" and config.frontend.self_calibration:
         return (*STAGE_OUTPUTS[stage], "frontend/intrinsics.npz")
     return STAGE_OUTPUTS[stage]
-
-
-def _write_npz(path: Path, **arrays) -> None:
-    with atomic_path(path, suffix=".npz") as tmp:
-        np.savez(tmp, **arrays)
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as exc:  # ValueError: not UTF-8 or not JSON
-        raise ValueError(f"{path}: cannot read ({exc})") from None
 
 
 @dataclasses.dataclass
@@ -93,36 +72,6 @@ class RunContext:
 
     def path(self, *parts: str) -> Path:
         return self.out.joinpath(*parts)
-
-
-class RunLog:
-    """``DIR/run.json``: the capture, and per finished stage its settings fingerprint, time and seconds."""
-
-    def __init__(self, out: Path, capture_path: Path):
-        self.path = out / "run.json"
-        self.data = {"format": RUN_FORMAT, "capture": str(capture_path.resolve()), "stages": {}}
-        if self.path.exists():
-            data = _read_json(self.path)
-            if data.get("format") != RUN_FORMAT:
-                raise ValueError(f"{self.path}: not a bcmocap run log")
-            if data.get("capture") != self.data["capture"]:
-                raise ValueError(
-                    f"{out} holds a run of another capture ({data.get('capture')}); choose another --out")
-            self.data = data
-
-    def finished(self, stage: str, fingerprint: str) -> bool:
-        rec = self.data["stages"].get(stage)
-        return bool(rec) and rec.get("fingerprint") == fingerprint
-
-    def record(self, stage: str, fingerprint: str, seconds: float, **extra) -> None:
-        self.data["stages"][stage] = {"fingerprint": fingerprint, "seconds": round(seconds, 3),
-                                      "finished": datetime.datetime.now().isoformat(timespec="seconds"), **extra}
-        write_json_atomic(self.path, self.data)
-
-    def forget_from(self, stage: str) -> None:
-        for s in STAGES[STAGES.index(stage):]:
-            self.data["stages"].pop(s, None)
-        write_json_atomic(self.path, self.data)
 
 
 #: Settings added after runs were made, left out of the fingerprints at these (default) values, so that those
@@ -267,7 +216,7 @@ def _stage_frontend(ctx: RunContext) -> dict:
         given = {"given_lenses": ctx.capture.lens_fingerprint()}  # edited intrinsics files redo both passes
         _register_trials(ctx, ctx.capture, ctx.path("frontend", "calibration_pass"), given)
         correction = _lens_correction(ctx, ctx.path("frontend", "calibration_pass"))
-        _write_npz(correction_path, correction=correction, cameras=np.array(ctx.capture.camera_names))
+        write_npz(correction_path, correction=correction, cameras=np.array(ctx.capture.camera_names))
         # the correction rounded: a redone fit may differ in the last bits, which should not redo the registration
         reports = _register_trials(ctx, _frontend_capture(ctx), ctx.path("frontend"),
                                    {**given, "lens_correction": np.round(correction, 6).tolist()})
@@ -295,7 +244,7 @@ def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None 
                                   gyro=gyro_fingerprint(capture, trial) if f.rolling_shutter_readout > 0 else None
                                   ) | (extra or {})
         if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
-            report = _read_json(done)
+            report = read_json(done)
             if report.get("settings") == settings:
                 ctx.log(f"{trial}: registration found in {done}, reused")
                 reports[trial] = report
@@ -453,10 +402,10 @@ def _refine_registered_poses(ctx: RunContext) -> None:
     results = refine_trials(stores, _given_intrinsics(ctx), options,  # the readout in each trial's frame periods
                             readouts=readouts_in_frames(s.rolling_shutter_readout, stores))
     if s.self_calibration:
-        _write_npz(folder / "intrinsics.npz", correction=results[0].intrinsics_correction)
+        write_npz(folder / "intrinsics.npz", correction=results[0].intrinsics_correction)
     summary = {}
     for trial, store, result in zip(trials, stores, results):
-        _write_npz(folder / f"{trial}.npz", world_from_camera=result.world_from_camera, registered=store.registered)
+        write_npz(folder / f"{trial}.npz", world_from_camera=result.world_from_camera, registered=store.registered)
         rms = np.nanmedian(result.rms_px, axis=0) if np.isfinite(result.rms_px).any() else np.full(2, np.nan)
         summary[trial] = {"refined_frames": int(result.refined.sum()), "registered_frames": int(store.registered.sum()),
                           "iterations": result.iterations,
@@ -546,24 +495,19 @@ def _stage_world(ctx: RunContext) -> dict:
     k = ctx.config.skeleton
     upright = upright_frame(est.skeleton, rest_motion, k.up_from, k.up_to, factor)
     sim = provisional.then(upright)
-    write_json_atomic(ctx.path("world", "similarity.json"), {
+    write_json_atomic(ctx.out / SIMILARITY, {
         **sim.to_dict(), "maps": "reference model frame → metric world (m, Z up, origin on the floor under the rest pose)",
         "provisional_scale": provisional.scale, "measurement_factor": factor})
     ctx.log(f"world: {sim.scale:.4g} m per reference-model unit (measurements × {factor:.3f} on the provisional scale)")
     return {"metres_per_unit": sim.scale}
 
 
-def _world(ctx: RunContext):
-    from .world import Similarity
-
-    return Similarity.from_dict(_read_json(ctx.path("world", "similarity.json")), str(ctx.path("world", "similarity.json")))
-
-
 def _stage_skeleton(ctx: RunContext) -> dict:
     from ..io.model_json import rig_to_dict, skeleton_to_dict
+    from .world import load_similarity
 
     poses, registered, rest = _rom_inputs(ctx)
-    est = _estimate_skeleton(ctx, _world(ctx).poses, poses, registered, rest)
+    est = _estimate_skeleton(ctx, load_similarity(ctx.out).poses, poses, registered, rest)
     write_json_atomic(ctx.path("model", "skeleton.json"), skeleton_to_dict(est.skeleton))
     write_json_atomic(ctx.path("model", "rig.json"), rig_to_dict(est.rig, est.skeleton))
     with atomic_path(ctx.path("model", "rom_summary.txt"), suffix=".txt") as tmp:
@@ -572,61 +516,12 @@ def _stage_skeleton(ctx: RunContext) -> dict:
     return {"segments": len(est.skeleton.names), "cameras": len(est.rig.names)}
 
 
-def load_model(out: Path | str, stage: str = "model"):
-    """The skeleton and rig a run estimated (``DIR/model/``), or refined in its solve (``stage="solve"``:
-    ``DIR/solve/`` holds them after ``solver.refine_rounds``; else the estimate): ``(Skeleton, Rig)``."""
-    from ..io.model_json import rig_from_dict, skeleton_from_dict
-
-    out = Path(out)
-    folder = out / stage
-    if stage == "solve" and not (folder / "skeleton.json").is_file():
-        folder = out / "model"
-    sk_path, rig_path = folder / "skeleton.json", folder / "rig.json"
-    skeleton = skeleton_from_dict(_read_json(sk_path), str(sk_path))
-    return skeleton, rig_from_dict(_read_json(rig_path), skeleton, str(rig_path))
-
-
-def save_motion(path: Path, motion, **extra) -> None:
-    _write_npz(path, root_position=np.asarray(motion.root_position), rotations=np.asarray(motion.rotations), **extra)
-
-
-def _solved_variables(solution) -> dict:
-    """The user terms' static and per-frame variables of a :class:`~bcmocap.solver.Solution`, as npz entries."""
-    return {**{f"static:{k}": v for k, v in solution.statics.items()},
-            **{f"frame:{k}": v for k, v in solution.frame_variables.items()}}
-
-
-def _load_solved_variables(path: Path) -> tuple[dict, dict]:
-    """``(statics, frame_variables)`` saved beside a motion by :func:`_solved_variables`."""
-    try:
-        with np.load(path) as data:
-            pick = lambda prefix: {k[len(prefix):]: data[k] for k in data.files if k.startswith(prefix)}  # noqa: E731
-            return pick("static:"), pick("frame:")
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: not a saved motion ({exc})") from None
-
-
-def load_motion(path: Path | str):
-    """A motion saved by a run (``DIR/solve/motion.npz``, ``DIR/initial/motion.npz``, ``DIR/motion.npz``)."""
-    from ..kinematics.skeleton import Motion
-
-    try:
-        with np.load(path) as data:
-            arrays = {name: data[name] for name in ("root_position", "rotations")}
-    except (OSError, KeyError, ValueError) as exc:
-        raise ValueError(f"{path}: not a saved motion ({exc})") from None
-    for name, a in arrays.items():  # a damaged checkpoint must not carry NaN into the solve or motion.bvh
-        if a.dtype.kind != "f" or not np.all(np.isfinite(a)):
-            where = f" at frame {np.argwhere(~np.isfinite(a))[0][0]}" if a.dtype.kind == "f" else f" (dtype {a.dtype})"
-            raise ValueError(f"{path}: {name} holds NaN or inf{where}" if a.dtype.kind == "f" else f"{path}: {name}{where}")
-    return Motion(arrays["root_position"], arrays["rotations"])
-
-
 def _stage_initial(ctx: RunContext) -> dict:
     from ..correspondence_store import CorrespondenceStore
     from ..kinematics.ik import motion_from_camera_poses
+    from .world import load_similarity
 
-    sim = _world(ctx)
+    sim = load_similarity(ctx.out)
     corr = CorrespondenceStore.open(ctx.path("frontend", "capture", "correspondences"))
     poses, registered = _registered_poses(ctx, "capture", corr)
     metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses, world_from_camera=poses,
@@ -695,17 +590,17 @@ def _stage_solve(ctx: RunContext) -> dict:
     checkpoint_path, reports_path = ctx.path("solve", "checkpoint.npz"), ctx.path("solve", "checkpoint.json")
     skip, reports, statics, frame_variables = 0, [], {}, {}
     if checkpoint_path.exists() and reports_path.exists():
-        saved = _read_json(reports_path)
+        saved = read_json(reports_path)
         if saved.get("fingerprint") == fingerprints(ctx.config)["solve"]:
             initial = load_motion(checkpoint_path)
-            statics, frame_variables = _load_solved_variables(checkpoint_path)
+            statics, frame_variables = load_solved_variables(checkpoint_path)
             reports = saved["reports"]
             skip = len(reports)
             ctx.log(f"solve: resuming after window {skip} of {len(window_starts(corr.num_frames, min(s.window, corr.num_frames), s.overlap))}")
 
     def save(index, report, so_far):
         reports.append(dataclasses.asdict(report))
-        save_motion(checkpoint_path, so_far.motion, **_solved_variables(so_far))
+        save_motion(checkpoint_path, so_far.motion, **solved_variables(so_far))
         write_json_atomic(reports_path, {"fingerprint": fingerprints(ctx.config)["solve"], "reports": reports})
 
     def solve_all(problem, motion, **resume):
@@ -736,7 +631,7 @@ def _stage_solve(ctx: RunContext) -> dict:
     if refinements:
         write_json_atomic(ctx.path("solve", "skeleton.json"), skeleton_to_dict(problem.skeleton))
         write_json_atomic(ctx.path("solve", "rig.json"), rig_to_dict(problem.rig, problem.skeleton))
-    save_motion(ctx.path("solve", "motion.npz"), solution.motion, **_solved_variables(solution))
+    save_motion(ctx.path("solve", "motion.npz"), solution.motion, **solved_variables(solution))
     write_json_atomic(ctx.path("solve", "reports.json"), {"windows": reports, "refinements": refinements})
     return {"windows": len(reports), "converged": all(r["converged"] for r in reports), "refinement_rounds": len(refinements)}
 

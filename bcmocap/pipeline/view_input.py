@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .run import RUN_FORMAT, _read_json, load_model, load_motion
+from ..io.run_folder import MODEL_FILES, load_model, load_motion, read_json, read_run_log
 
 #: At most this many scene points are sent to the browser (every n-th of those the solver used).
 MAX_SCENE_POINTS = 60_000
@@ -93,7 +93,7 @@ def load_view_input(run_dir: str | Path, capture: str | Path | None = None, *,
     has_capture = capture is not None or bool(log.get("capture"))
     metrics = None
     if (run_dir / "metrics.json").is_file():
-        metrics = _read_json(run_dir / "metrics.json")
+        metrics = read_json(run_dir / "metrics.json")
     pictures = []
     if (run_dir / "pictures").is_dir():
         pictures = [p for p in sorted((run_dir / "pictures").glob("*.png")) if p.is_file() and _inside(run_dir, p)]
@@ -131,14 +131,8 @@ def check_run_folder(run_dir: str | Path) -> dict:
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ValueError(f"{run_dir}: no such folder")
-    run_json = run_dir / "run.json"
-    if not run_json.is_file():
-        raise ValueError(f"{run_dir}: not a bcmocap run folder (no run.json; `bcmocap run CAPTURE --out DIR` "
-                         "makes one)")
-    log = _read_json(run_json)
-    if not isinstance(log, dict) or log.get("format") != RUN_FORMAT:
-        raise ValueError(f"{run_json}: not a bcmocap run log")
-    for name in ("skeleton.json", "rig.json"):
+    log = read_run_log(run_dir)
+    for name in MODEL_FILES:
         if not (run_dir / "model" / name).is_file():
             raise ValueError(f"{run_dir / 'model' / name}: missing (the run has not finished its skeleton stage)")
     return log
@@ -182,7 +176,7 @@ def _camera_frames(run_dir: Path, capture_dir: Path, store, rig, notes: list[str
 
     report_path = run_dir / "frontend" / "capture" / "registration.json"
     try:
-        report = _read_json(report_path)
+        report = read_json(report_path)
         cameras, starts, stride = report["cameras"], report["first_clap_frames"], int(report["stride"])
         if list(cameras) != list(rig.names) or len(starts) != len(cameras):
             raise ValueError("its cameras are not the rig's")

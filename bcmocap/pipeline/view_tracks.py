@@ -27,11 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .run import _read_json
+from ..io.run_folder import RUN_LOG, read_json
+from ..kcs import files as kcs_files
+from ..markers import files as markers_files
 
 #: Files by which a folder is recognised (a ``poses.npz`` beside an ``index.json`` is a correspondence store's).
-MARKERS_FILES = ("poses.npz", "skeleton.json", "skeleton.bvh")
-KCS_FILES = ("result.npz", "report.json", "joints_3d.csv")
+MARKERS_FILES = (markers_files.POSES, markers_files.SKELETON_JSON, markers_files.SKELETON_BVH)
+KCS_FILES = (kcs_files.RESULT, kcs_files.REPORT, kcs_files.JOINTS_CSV)
 #: Segment colours (RGB), in segment order, repeated when there are more segments: no blue, which the
 #: skeleton's lines use.
 SEGMENT_COLOURS = ((230, 120, 20), (40, 170, 60), (210, 40, 40), (150, 80, 200), (140, 90, 60), (230, 110, 190),
@@ -46,7 +48,7 @@ def folder_kind(folder: str | Path) -> str:
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"{folder}: no such folder")
-    if (folder / "run.json").is_file():
+    if (folder / RUN_LOG).is_file():
         return "run"
     if any((folder / name).is_file() for name in MARKERS_FILES) and not (folder / "index.json").is_file():
         return "markers"
@@ -72,8 +74,8 @@ def load_markers_folder(folder: str | Path):
     from ..viewer.inputs import LineTracks, PointTracks, TrackInput
 
     folder = Path(folder)
-    json_path, poses_path = folder / "skeleton.json", folder / "poses.npz"
-    desc = _read_json(_existing(json_path, "bcmocap markers"))
+    json_path, poses_path = folder / markers_files.SKELETON_JSON, folder / markers_files.POSES
+    desc = read_json(_existing(json_path, "bcmocap markers"))
     fps = _fps(desc, json_path)
     segments = desc.get("segments") if isinstance(desc, dict) else None
     if not isinstance(segments, list) or not segments or not all(
@@ -118,8 +120,8 @@ def load_markers_folder(folder: str | Path):
              f"segments, {len(children)} joints. Markers are coloured by segment; black: joints; blue: the "
              "skeleton."]
     report = ""
-    if (folder / "report.txt").is_file():
-        report = "```\n" + _text(folder / "report.txt") + "\n```"
+    if (folder / markers_files.REPORT).is_file():
+        report = "```\n" + _text(folder / markers_files.REPORT) + "\n```"
     return TrackInput(title=folder.resolve().name, kind="markers", fps=fps, layers=layers, legend=legend,
                       report=report, notes=notes)
 
@@ -129,7 +131,7 @@ def load_kcs_folder(folder: str | Path):
     from ..viewer.inputs import LineTracks, PointTracks, TrackInput
 
     folder = Path(folder)
-    result_path, report_path = folder / "result.npz", folder / "report.json"
+    result_path, report_path = folder / kcs_files.RESULT, folder / kcs_files.REPORT
     arrays = _arrays(_existing(result_path, "bcmocap kcs"), {"joints": "f", "names": "U", "parents": "i"},
                      optional={"bone_names": "U"})
     joints = arrays["joints"]
@@ -144,7 +146,7 @@ def load_kcs_folder(folder: str | Path):
     links = _extra_links(result_path, [str(b) for b in arrays.get("bone_names", [])], names, parents)
     notes, report, fps = [], "", 30.0
     if report_path.is_file():
-        summary = _read_json(report_path)
+        summary = read_json(report_path)
         fps = _fps(summary, report_path)
         report = _kcs_report(summary)
     else:

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from .cluster import worker_setup
+from .worker_setup import worker_setup
 
 
 class WorkerSetup(WorkerPlugin):
-    """Runs :func:`~bcmocap.pipeline.cluster.worker_setup` (float64 JAX, compilation cache, one OpenCV thread)
+    """Runs :func:`~bcmocap.pipeline.worker_setup.worker_setup` (float64 JAX, compilation cache, one OpenCV thread)
     on every worker as it joins, before it runs a task: the workers of a cluster started elsewhere
     (``tcp://``) do not have :data:`~bcmocap.pipeline.cluster.WORKER_ENVIRONMENT`."""
 

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
 from ..geometry import matrix_from_quat, quat_from_matrix
+from ..io.run_folder import SIMILARITY, read_json
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
@@ -78,6 +80,12 @@ class Similarity:
             raise ValueError(f"{where}: expected rotation (3, 3), translation (3,), scale > 0")
         return cls(s, rot, t)
 
+
+
+def load_similarity(run_dir: str | Path) -> Similarity:
+    """The run's reference-model frame → metric world map (``DIR/world/similarity.json``, the world stage's)."""
+    path = Path(run_dir) / SIMILARITY
+    return Similarity.from_dict(read_json(path), str(path))
 
 def rest_joint_positions(skeleton: Skeleton) -> np.ndarray:
     """``(J, 3)`` joint centres in the rest pose, root at the origin, in world axes (m)."""

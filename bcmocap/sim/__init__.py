@@ -37,7 +37,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "TexturedScene": "scene",
     "TextureParams": "scene",
     "make_textured_scene": "scene",
-    "GroundTruth": "studio",
+    "GroundTruth": "..io.capture_folder",
     "StudioSettings": "studio",
     "load_ground_truth": "studio",
     "preset_settings": "studio",

@@ -104,7 +104,7 @@ def standard_capture(
     noise: NoiseModel = NoiseModel(),
     seed: int = 0,
 ) -> SyntheticCapture:
-    """The standard synthetic capture of ARCHITECTURE.md.
+    """The standard synthetic capture of docs/architecture.md.
 
     Args:
         motion: bundled CMU trial ("walk", "run", "jump").

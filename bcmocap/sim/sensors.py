@@ -52,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import matrix_from_quat, quat_conjugate, quat_exp, quat_log, quat_multiply
+from ..io.capture_folder import read_npz, read_truth_model, trial_dir, trial_truth_path
 from ..io.sensors import (
     CONTACTS_FILE,
     IMU_FILE,
@@ -403,22 +404,17 @@ def write_sensor_data(capture_path: str | os.PathLike, *, seed: int | None = Non
     Raises:
         ValueError: naming a missing or malformed file of the capture.
     """
-    from ..io.names import checked_name
-    from .studio import TRIALS, _read_npz, read_studio_model
-
     folder = Path(capture_path)
-    manifest, settings, skeleton, rig = read_studio_model(folder)
-    seed = settings.seed if seed is None else seed
-    gt = folder / "ground_truth"
-    trials = manifest.get("trials", list(TRIALS))
-    if not isinstance(trials, list):
-        raise ValueError(f"{folder / 'capture.json'}: field 'trials' must be a list of names, got {trials!r}")
-    # trial names become path components: plain names only (bcmocap.io.names)
-    trials = [checked_name(t, f"trials[{i}]", folder / "capture.json") for i, t in enumerate(trials)]
+    # the manifest's trial names are checked plain names (they become path components)
+    manifest, skeleton, rig = read_truth_model(folder)
+    if seed is None:
+        seed = manifest.settings.get("seed", 0)  # the studio's default seed when its settings do not give one
+        if isinstance(seed, bool) or not isinstance(seed, int):
+            raise ValueError(f"{manifest.path}: field 'settings.seed' must be a whole number, got {seed!r}")
     written = {}
-    for trial_index, name in enumerate(trials):
-        where = gt / f"{name}.npz"
-        data = _read_npz(where)
+    for trial_index, name in enumerate(manifest.trials):
+        where = trial_truth_path(folder, name)
+        data = read_npz(where)
         try:
             motion = Motion(data["root_position"], data["rotations"])
             fps, clap_frames = float(data["fps"]), np.asarray(data["clap_frames"])
@@ -432,7 +428,7 @@ def write_sensor_data(capture_path: str | os.PathLike, *, seed: int | None = Non
         if clap_frames.shape != (2,) or clap_frames.dtype.kind not in "iu" or clap_frames[1] <= clap_frames[0]:
             raise ValueError(f"{where}: clap_frames must be 2 increasing whole frames, got {clap_frames!r}")
         written[name] = write_trial_sensors(
-            folder / "trials" / name, skeleton, rig, motion, fps, clap_frames, seed=seed, trial_index=trial_index,
+            trial_dir(folder, name), skeleton, rig, motion, fps, clap_frames, seed=seed, trial_index=trial_index,
             rate=rate, gyro_noise=gyro_noise, gyro_bias=gyro_bias, accel_noise=accel_noise, accel_bias=accel_bias,
             contact_segments=contact_segments, world_from_camera=cameras)
     return written

@@ -4,53 +4,12 @@
 paper-like 18-camera rig in a textured room (:mod:`bcmocap.sim.scene`, :mod:`bcmocap.sim.render`),
 with one video and one soundtrack per camera, reference photos of the room taken from a hand-held path
 (§4.1), the intrinsics and the rig; and beside it the Vicon-style ground truth, which
-:func:`load_ground_truth` reads back in one call. The same settings and seed write the same bytes.
+:func:`load_ground_truth` reads back in one call (:func:`bcmocap.io.capture_folder.load_ground_truth` without
+:mod:`bcmocap.sim`). The same settings and seed write the same bytes.
 
-Folder layout (``CAPTURE_DIR``)::
-
-    capture.json                  manifest: format "bcmocap-capture", version, the settings, camera
-                                  names, trials, the subject (topology, tape measurements, when the
-                                  rest pose was held: :func:`subject_record`), and "complete" once
-                                  everything is written
-    rig.json                      which camera is strapped to which body segment (mounts are unknown
-                                  in a real shoot: they are in ground_truth/rig.json)
-    intrinsics/<camera>.yml       cv2.fisheye calibration (image_width, image_height, camera_matrix,
-                                  dist_coeff), as bcmocap.io.opencv_calibration.read_opencv_fisheye_calibration reads;
-                                  for the default FOV lens it is the Kannala-Brandt fit of that lens
-    intrinsics/<camera>.json      the exact lens: {"model": "FOV" | "OPENCV_FISHEYE", "width", "height",
-                                  "params": [fx, fy, cx, cy, omega | k1..k4]} (OpenCV pixel convention:
-                                  the top-left pixel's centre is (0, 0)), and the fit's error in pixels
-    reference/photo_NNN.jpg       reference photos of the empty room from a hand-held camera walking a
-                                  loop around the capture area (JPEG quality 95)
-    reference/camera.json, .yml   their pinhole intrinsics (same conventions; .yml with
-                                  camera_matrix and 5 zero distortion_coefficients)
-    trials/<trial>/<camera>.mp4   one video per body camera: MPEG-4 part 2 ("mp4v", via OpenCV) with the
-    trials/<trial>/<camera>.wav   camera's soundtrack (mono 16-bit PCM, same start as the video) beside it
-                                  (container "mp4v-wav", the default); or, with container "mp4-aac",
-                                  H.264 video and the soundtrack as an AAC track in the same file, as a
-                                  real action camera writes it (PyAV, bcmocap.io.media), and no WAV
-    trials/<trial>/imu.npz        the IMU in every body camera (gyro, accelerometer, their mounts) and
-    trials/<trial>/contacts.npz   foot-contact flags, from the first clap to the second on the claps'
-                                  clock (formats: bcmocap.io.sensors; simulation: bcmocap.sim.sensors,
-                                  whose write_sensor_data adds them to a capture written before them)
-    ground_truth/skeleton.json    segment names, parents, rest offsets (m), joint types, hinge axes
-    ground_truth/rig.json         cameras: segment, segment_from_camera (wxyz_xyz), exact intrinsics
-    ground_truth/scene.json       the textured scene's surfaces (bcmocap.sim.scene.TexturedScene)
-    ground_truth/world_points.npz points (N, 3) m on the textured surfaces and their materials (N,)
-    ground_truth/reference.npz    names (N,) and world_from_camera (N, 7) of the reference photos
-    ground_truth/<trial>.npz      per trial frame: root_position (T, 3), rotations (T, J, 4) (Motion),
-                                  joint_positions (T, J, 3), world_rotations (T, J, 4) (the bones' poses),
-                                  world_from_camera (T, C, 7) (the true, rendered camera poses),
-                                  world_from_mount (T, C, 7) (where each camera would be rigidly on its
-                                  bone: world_from_segment · segment_from_camera), camera_offsets (T, C, 6)
-                                  (translation m, rotation rad, camera frame) with world_from_camera =
-                                  world_from_mount · SE3.exp(camera_offsets) (zero without mount wobble;
-                                  absent from captures written before: read as zero); per camera: video_start_frame (C,),
-                                  num_video_frames (C,), clap_samples (C, 2), audio_gain (C,);
-                                  clap_frames (2,); fps, audio_rate; Vicon-style markers:
-                                  marker_names (M,), marker_segments (M,), marker_offsets (M, 3) m in
-                                  the segment frame, markers (T, M, 3) m with NaN in gaps
-    ground_truth/<trial>.bvh      the skeleton and the trial's motion (bcmocap.io.write_bvh)
+The folder's layout (``capture.json``, ``rig.json``, ``intrinsics/``, ``reference/``, ``trials/<trial>/`` with
+the videos, soundtracks and sensor files, and ``ground_truth/``) is specified, and its paths built, in
+:mod:`bcmocap.io.capture_folder`, which also reads the ground truth back.
 
 Trials are ``rom`` (range of motion, for skeleton estimation: every joint swung about all its axes at
 once by incommensurate sinusoids around the first pose of the capture, while the body turns in place)
@@ -96,7 +55,6 @@ import hashlib
 import json
 import math
 import os
-import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -107,7 +65,38 @@ import numpy as np
 from ..atomic import atomic_path, write_npz_atomic
 from ..cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
 from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
-from ..io.model_json import camera_from_dict, camera_to_dict, rig_from_dict, rig_to_dict, skeleton_from_dict, skeleton_to_dict
+from ..io import capture_folder
+from ..io.capture_folder import (
+    CAPTURE_FORMAT,
+    CAPTURE_VERSION,
+    TRIALS,
+    GroundTruth,
+    MarkerTrajectories,
+    ground_truth_dir,
+    intrinsics_dir,
+    intrinsics_path,
+    lens_path,
+    manifest_path,
+    new_manifest,
+    reference_camera_path,
+    reference_dir,
+    reference_photo_path,
+    reference_truth_path,
+    relative_name,
+    rig_path,
+    subject_record,
+    trial_audio_path,
+    trial_dir,
+    trial_truth_path,
+    trial_video_path,
+    truth_rig_path,
+    truth_scene_path,
+    truth_skeleton_path,
+    world_points_path,
+    write_json,
+    write_manifest,
+)
+from ..io.model_json import camera_to_dict, rig_to_dict, skeleton_to_dict
 from ..io.opencv_calibration import fit_opencv_fisheye
 from ..io.wav import write_wav
 from ..kinematics.fk import forward_kinematics
@@ -123,23 +112,18 @@ from .scene import TexturedScene, make_textured_scene
 from .sensors import write_trial_sensors
 from .wobble import mount_wobble
 
-__all__ = [
-    "CAPTURE_FORMAT",
-    "GroundTruth",
-    "MarkerTrajectories",
+__all__ = [  # the format's names (CAPTURE_FORMAT, GroundTruth, TrialTruth, ...) are bcmocap.io.capture_folder's
     "PRESETS",
     "REALISTIC",
     "StudioSettings",
-    "TrialTruth",
     "capsule_ends",
     "load_ground_truth",
     "preset_settings",
+    "read_studio_model",
+    "studio_subject",
     "write_capture",
 ]
 
-CAPTURE_FORMAT = "bcmocap-capture"
-CAPTURE_VERSION = 1
-TRIALS = ("rom", "capture")
 CONTAINERS = ("mp4v-wav", "mp4-aac")
 _BATCH = 4  # frames rendered per call (one compilation per camera size)
 _LEAD_S = 0.25  # clap before the first / after the last trial frame
@@ -405,31 +389,8 @@ def _atomic_bytes(path: Path, data: bytes) -> None:
         tmp.write_bytes(data)
 
 
-def _write_json(path: Path, payload: dict) -> None:
-    _atomic_bytes(path, (json.dumps(payload, indent=1) + "\n").encode())
-
-
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: missing (not a complete bcmocap capture folder?)") from None
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from None
-
-
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
-    except FileNotFoundError:
-        raise ValueError(f"{path}: missing (not a complete bcmocap capture folder?)") from None
-    except (OSError, ValueError, zipfile.BadZipFile) as err:
-        raise ValueError(f"{path}: not a readable .npz file ({err})") from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -484,14 +445,10 @@ MEASURED_JOINTS = (("left_thigh", "left_foot"), ("right_thigh", "right_foot"),
                    ("left_upper_arm", "left_hand"), ("right_upper_arm", "right_hand"))
 
 
-def subject_record(skeleton: Skeleton, rom_frames: int, fps: float) -> dict:
-    """The ``"subject"`` entry of ``capture.json``: what a shoot's log holds besides the videos.
-
-    ``topology``: ``[name, parent, joint type]`` per segment (the predefined kinematic structure);
-    ``measurements``: ``{"from", "to", "metres"}`` distances between the joint centres of two segments
-    in the rest pose (what a tape measure gives: hip to ankle, shoulder to wrist), which fix the
-    reconstruction's scale; ``rest``: the trial and the stretch after its first clap (s) in which the
-    subject held the rest pose.
+def studio_subject(skeleton: Skeleton, rom_frames: int, fps: float) -> dict:
+    """The ``"subject"`` entry of the studio's ``capture.json`` (:func:`bcmocap.io.capture_folder.subject_record`):
+    the skeleton's topology, the tape measurements of :data:`MEASURED_JOINTS` it has (rest pose, to 0.1 mm),
+    and the rest-pose hold that starts the range-of-motion trial of ``rom_frames`` frames at ``fps``.
     """
     rest_joints = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
     measurements = []
@@ -500,12 +457,10 @@ def subject_record(skeleton: Skeleton, rom_frames: int, fps: float) -> dict:
             d = float(np.linalg.norm(rest_joints[skeleton.index(a)] - rest_joints[skeleton.index(b)]))
             measurements.append({"from": a, "to": b, "metres": round(d, 4)})
     hold = _rest_hold(rom_frames, fps)
-    return {
-        "topology": [[n, None if p < 0 else skeleton.names[p], JointType(t).name.lower()]
-                     for n, p, t in zip(skeleton.names, skeleton.parents, skeleton.joint_types)],
-        "measurements": measurements,
-        "rest": {"trial": "rom", "after_first_clap_s": [0.0, round((int(round(_LEAD_S * fps)) + hold) / fps, 4)]},
-    }
+    topology = [(n, None if p < 0 else skeleton.names[p], JointType(t).name.lower())
+                for n, p, t in zip(skeleton.names, skeleton.parents, skeleton.joint_types)]
+    rest = {"trial": "rom", "after_first_clap_s": [0.0, round((int(round(_LEAD_S * fps)) + hold) / fps, 4)]}
+    return subject_record(topology, measurements, rest)
 
 
 def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float, fps: float,
@@ -549,22 +504,6 @@ def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float
     rot = np.asarray(skeleton.project_rotations(rot))
     position = np.broadcast_to(np.asarray(reference.root_position[0]), (n, 3))
     return Motion(np.array(position), rot)
-
-
-@dataclasses.dataclass(frozen=True)
-class MarkerTrajectories:
-    """Vicon-style optical markers: a few per segment, offset from the bone onto the body's surface.
-
-    Attributes:
-        names: ``(M,)`` marker names; segments ``(M,)`` segment index of each marker.
-        offsets: ``(M, 3)`` marker positions in their segment's frame (m).
-        positions: ``(T, M, 3)`` measured world positions (m): noisy, NaN where the marker was occluded.
-    """
-
-    names: tuple[str, ...]
-    segments: np.ndarray
-    offsets: np.ndarray
-    positions: np.ndarray
 
 
 def _marker_layout(skeleton: Skeleton, per_segment: int, rng: np.random.Generator):
@@ -740,9 +679,8 @@ def _check_folder(path: Path, settings: StudioSettings) -> bool:
         raise FileExistsError(f"{path} exists and is not a folder")
     if not path.exists() or not any(path.iterdir()):
         return False
-    manifest = path / "capture.json"
     try:
-        data = json.loads(manifest.read_text())
+        data = json.loads(manifest_path(path).read_text())
     except (OSError, json.JSONDecodeError):
         data = None
     if not isinstance(data, dict) or data.get("format") != CAPTURE_FORMAT:
@@ -817,10 +755,10 @@ class _VideoSink:
 
 
 def _render_camera_trial(plan: _Plan, renderer: Renderer, trial_index: int, trial: str, camera: int,
-                         poses: np.ndarray, capsules: tuple, folder: Path, pool: concurrent.futures.Executor,
+                         poses: np.ndarray, capsules: tuple, video: Path, pool: concurrent.futures.Executor,
                          advance: Callable[[int], None],
                          audio: tuple[np.ndarray, int] | None = None) -> concurrent.futures.Future:
-    """Render one camera's trial batch by batch while a writer thread encodes the previous batches.
+    """Render one camera's trial into ``video`` batch by batch while a writer thread encodes the previous batches.
 
     ``audio`` ``(samples, rate)``: the soundtrack, written into the video file as its audio track (container "mp4-aac").
     Returns the future of the video's completion (rename to its final name).
@@ -831,7 +769,7 @@ def _render_camera_trial(plan: _Plan, renderer: Renderer, trial_index: int, tria
     head = int(timeline["video_start_frame"][camera])  # copies of frame 0 before the trial starts
     tail = int(timeline["num_video_frames"][camera]) - head - n  # copies of frame n-1 after it ends
     ends, radii, colors = capsules
-    sink = pool.submit(_VideoSink, folder / f"{plan.rig.names[camera]}.mp4", s.fps, (s.width, s.height),
+    sink = pool.submit(_VideoSink, video, s.fps, (s.width, s.height),
                        audio, s.video_bitrate_mbps).result()
     control = None
     if s.auto_exposure or s.white_balance:
@@ -891,32 +829,27 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
     resume = _check_folder(folder, settings)
     plan = _plan(settings)
     s, rig, skeleton = settings, plan.rig, plan.skeleton
-    manifest = {
-        "format": CAPTURE_FORMAT,
-        "version": CAPTURE_VERSION,
-        "settings": s.to_dict(),
-        "cameras": list(rig.names),
-        "trials": list(TRIALS),
-        "subject": subject_record(skeleton, plan.trials["rom"].num_frames, s.fps),
-        "complete": False,
-    }
+    manifest = new_manifest(settings=s.to_dict(), cameras=list(rig.names), trials=list(TRIALS),
+                            subject=studio_subject(skeleton, plan.trials["rom"].num_frames, s.fps), complete=False)
     if s.motion_paths:  # where a motion file came from (its bytes may change after the capture)
         manifest["motion_files"] = [{"path": str(f), "sha256": _sha256(Path(f))} for f in s.motion_paths]
     folder.mkdir(parents=True, exist_ok=True)
     if not resume:  # the manifest first: an interrupted capture is always recognised as one
-        _write_json(folder / "capture.json", manifest)
-    for sub in ("intrinsics", "reference", "ground_truth", *(f"trials/{t}" for t in TRIALS)):
-        (folder / sub).mkdir(parents=True, exist_ok=True)
+        write_manifest(folder, manifest)
+    for sub in (intrinsics_dir(folder), reference_dir(folder), ground_truth_dir(folder),
+                *(trial_dir(folder, t) for t in TRIALS)):
+        sub.mkdir(parents=True, exist_ok=True)
     _write_static_files(folder, plan)
 
     embedded = s.container == "mp4-aac"
 
     def written(trial: str, camera: int) -> bool:
-        base = folder / "trials" / trial / rig.names[camera]
-        return base.with_suffix(".mp4").exists() and (embedded or base.with_suffix(".wav").exists())
+        name = rig.names[camera]
+        return (trial_video_path(folder, trial, name).exists()
+                and (embedded or trial_audio_path(folder, trial, name).exists()))
 
     todo = [(ti, t, c) for ti, t in enumerate(TRIALS) for c in range(rig.num_cameras) if not written(t, c)]
-    photos = [i for i in range(len(plan.reference_poses)) if not (folder / "reference" / f"photo_{i:03d}.jpg").exists()]
+    photos = [i for i in range(len(plan.reference_poses)) if not reference_photo_path(folder, i).exists()]
     total = sum(plan.trials[t].num_frames for _, t, _ in todo) + len(photos)
     options = s.render_options()
     with tqdm(total=total, unit="frame", desc="bcmocap simulate", disable=not progress, smoothing=0.1) as bar, \
@@ -943,19 +876,19 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
             key = np.concatenate([np.ravel(np.asarray(leaf)) for leaf in jax.tree.leaves(cam)]).tobytes()
             if key not in renderers:
                 renderers[key] = Renderer(plan.scene, cam, options)
-            out = folder / "trials" / trial
+            video = trial_video_path(folder, trial, rig.names[camera])
             track = _soundtrack(plan, trial_index, trial, camera)
             if not embedded:
-                write_wav(out / f"{rig.names[camera]}.wav", track, s.audio_rate)
+                write_wav(trial_audio_path(folder, trial, rig.names[camera]), track, s.audio_rate)
             closing.append(_render_camera_trial(plan, renderers[key], trial_index, trial, camera, poses[:, camera],
-                                                capsules, out, pool, bar.update,
+                                                capsules, video, pool, bar.update,
                                                 (track, s.audio_rate) if embedded else None))
             timings[f"frames:{trial}"] += plan.trials[trial].num_frames
         for done in closing:
             done.result()
         if todo:
             timings[f"trial:{todo[-1][1]}"] = time.perf_counter() - clock
-    _write_json(folder / "capture.json", {**manifest, "complete": True})
+    write_manifest(folder, {**manifest, "complete": True})
     return folder
 
 
@@ -992,7 +925,7 @@ def _write_reference_photos(folder: Path, plan: _Plan, todo: list[int], advance:
             ok, data = cv2.imencode(".jpg", np.ascontiguousarray(image[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95])
             if not ok:
                 raise RuntimeError("OpenCV could not encode a reference photo as JPEG")
-            _atomic_bytes(folder / "reference" / f"photo_{i:03d}.jpg", data.tobytes())
+            _atomic_bytes(reference_photo_path(folder, int(i)), data.tobytes())
         advance(min(_BATCH, len(todo) - first))
 
 
@@ -1007,30 +940,31 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
     for c, name in enumerate(rig.names):
         cam = _given_intrinsics(camera_at(rig.intrinsics, c), s, calibration_rng)  # the rendered lens by default
         fitted, err = fit_opencv_fisheye(cam)
-        _write_opencv_yaml(folder / "intrinsics" / f"{name}.yml", fitted)
-        _write_json(folder / "intrinsics" / f"{name}.json", {**camera_to_dict(cam), "opencv_fisheye_fit_max_error_px": err})
-        entry = {"name": name, "segment": skeleton.names[rig.segments[c]], "intrinsics": f"intrinsics/{name}.yml",
-                 "lens": f"intrinsics/{name}.json", "video": {t: f"trials/{t}/{name}.mp4" for t in TRIALS}}
+        _write_opencv_yaml(intrinsics_path(folder, name), fitted)
+        write_json(lens_path(folder, name), {**camera_to_dict(cam), "opencv_fisheye_fit_max_error_px": err})
+        entry = {"name": name, "segment": skeleton.names[rig.segments[c]],
+                 "intrinsics": relative_name(folder, intrinsics_path(folder, name)),
+                 "lens": relative_name(folder, lens_path(folder, name)),
+                 "video": {t: relative_name(folder, trial_video_path(folder, t, name)) for t in TRIALS}}
         if s.container == "mp4v-wav":  # with "mp4-aac" the soundtrack is the video's own audio track
-            entry["audio"] = {t: f"trials/{t}/{name}.wav" for t in TRIALS}
+            entry["audio"] = {t: relative_name(folder, trial_audio_path(folder, t, name)) for t in TRIALS}
         cameras.append(entry)
-    _write_json(folder / "rig.json", {"cameras": cameras, "segments": list(skeleton.names)})
-    _write_json(folder / "reference" / "camera.json", camera_to_dict(plan.reference_camera))
-    _write_opencv_yaml(folder / "reference" / "camera.yml", plan.reference_camera)
+    write_json(rig_path(folder), {"cameras": cameras, "segments": list(skeleton.names)})
+    write_json(reference_camera_path(folder), camera_to_dict(plan.reference_camera))
+    _write_opencv_yaml(reference_camera_path(folder, ".yml"), plan.reference_camera)
 
-    gt = folder / "ground_truth"
-    _write_json(gt / "skeleton.json", skeleton_to_dict(skeleton))
-    _write_json(gt / "rig.json", rig_to_dict(rig, skeleton))
-    _write_json(gt / "scene.json", plan.scene.to_dict())
+    write_json(truth_skeleton_path(folder), skeleton_to_dict(skeleton))
+    write_json(truth_rig_path(folder), rig_to_dict(rig, skeleton))
+    write_json(truth_scene_path(folder), plan.scene.to_dict())
     points, materials = plan.scene.sample_points(seed=s.seed)
-    write_npz_atomic(gt / "world_points.npz", {"points": points, "materials": materials})
-    write_npz_atomic(gt / "reference.npz", {"names": np.array([f"photo_{i:03d}.jpg" for i in range(len(plan.reference_poses))]),
-                                      "world_from_camera": plan.reference_poses})
+    write_npz_atomic(world_points_path(folder), {"points": points, "materials": materials})
+    names = [reference_photo_path(folder, i).name for i in range(len(plan.reference_poses))]
+    write_npz_atomic(reference_truth_path(folder), {"names": np.array(names), "world_from_camera": plan.reference_poses})
     wobble = s.mount_wobble_mm > 0 or s.mount_wobble_deg > 0
     for ti, (trial, motion) in enumerate(plan.trials.items()):
         fk = forward_kinematics(skeleton, motion)
         markers = _simulate_markers(skeleton, motion, s.fps, s.markers_per_segment, _rng(s.seed, 3, ti))
-        write_npz_atomic(gt / f"{trial}.npz", {
+        write_npz_atomic(trial_truth_path(folder, trial), {
             "root_position": np.asarray(motion.root_position),
             "rotations": np.asarray(motion.rotations),
             "joint_positions": np.asarray(fk.translation()),
@@ -1047,133 +981,34 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
             "marker_offsets": markers.offsets,
             "markers": markers.positions,
         })
-        write_bvh(gt / f"{trial}.bvh", skeleton, motion, 1.0 / s.fps)
-        write_trial_sensors(folder / "trials" / trial, skeleton, rig, motion, s.fps, plan.timelines[trial]["clap_frames"],
+        write_bvh(trial_truth_path(folder, trial, ".bvh"), skeleton, motion, 1.0 / s.fps)
+        write_trial_sensors(trial_dir(folder, trial), skeleton, rig, motion, s.fps, plan.timelines[trial]["clap_frames"],
                             seed=s.seed, trial_index=ti, world_from_camera=plan.camera_poses[trial] if wobble else None)
 
 
 # ---------------------------------------------------------------------------------------------
-# Reading the ground truth back.
+# Reading the ground truth back (bcmocap.io.capture_folder; here with the studio's settings and scene).
 
 
-@dataclasses.dataclass(frozen=True)
-class TrialTruth:
-    """Ground truth of one trial (arrays over trial frames ``T`` and cameras ``C``).
-
-    Attributes:
-        motion: the true motion (root position and joint rotations).
-        joint_positions: ``(T, J, 3)`` m; world_rotations ``(T, J, 4)`` segment orientations (wxyz): the
-            bones' poses.
-        world_from_camera: ``(T, C, 7)`` the true camera poses (what was rendered).
-        world_from_mount: ``(T, C, 7)`` where each camera would be if rigidly fixed to its bone
-            (``world_from_segment · segment_from_camera``, the rig's mounts).
-        camera_offsets: ``(T, C, 6)`` (translation m, rotation rad) of each camera on its mount, in its own
-            frame: ``world_from_camera = world_from_mount · SE3.exp(camera_offsets)`` (the convention of
-            :data:`bcmocap.residuals.variables.CAMERA_OFFSETS`); zero with rigid mounts.
-        video_start_frame, num_video_frames: ``(C,)`` video frame showing trial frame 0; video length.
-        clap_frames: ``(2,)`` trial frames of the claps; clap_samples ``(C, 2)`` their first audio sample
-            in each camera's track; audio_gain ``(C,)``.
-        markers: Vicon-style marker trajectories.
-        fps, audio_rate: Hz.
-    """
-
-    name: str
-    motion: Motion
-    joint_positions: np.ndarray
-    world_rotations: np.ndarray
-    world_from_camera: np.ndarray
-    video_start_frame: np.ndarray
-    num_video_frames: np.ndarray
-    clap_frames: np.ndarray
-    clap_samples: np.ndarray
-    audio_gain: np.ndarray
-    markers: MarkerTrajectories
-    fps: float
-    audio_rate: int
-    world_from_mount: np.ndarray
-    camera_offsets: np.ndarray
-
-
-@dataclasses.dataclass(frozen=True)
-class GroundTruth:
-    """Everything :func:`write_capture` knows about a capture.
-
-    Attributes:
-        settings: the settings it was written with.
-        skeleton, rig: the true skeleton and camera mounts (exact intrinsics).
-        scene: the textured scene; world_points ``(N, 3)`` m on its surfaces and their ``materials``.
-        reference_camera, reference_names, reference_poses: the photos' intrinsics, file names and
-            ``world_from_camera`` ``(N, 7)``.
-        trials: ``{"rom": TrialTruth, "capture": TrialTruth}``.
-    """
-
-    path: Path
-    settings: StudioSettings
-    skeleton: Skeleton
-    rig: Rig
-    scene: TexturedScene
-    world_points: np.ndarray
-    world_point_materials: np.ndarray
-    reference_camera: CameraModel
-    reference_names: tuple[str, ...]
-    reference_poses: np.ndarray
-    trials: dict[str, TrialTruth]
-
-
-def read_studio_model(folder: Path) -> tuple[dict, StudioSettings, Skeleton, Rig]:
-    """``(manifest, settings, skeleton, rig)`` of a studio capture: ``capture.json`` and the true model of
-    ``ground_truth/`` (the rendered lenses and mounts).
+def read_studio_model(folder: str | os.PathLike) -> tuple[dict, StudioSettings, Skeleton, Rig]:
+    """``(manifest, settings, skeleton, rig)`` of a studio capture: ``capture.json`` (as read), its settings and
+    the true model of ``ground_truth/`` (the rendered lenses and mounts;
+    :func:`bcmocap.io.capture_folder.read_truth_model`).
 
     Raises:
         ValueError: not a studio capture, or a missing or malformed file (naming it).
     """
-    manifest = _read_json(folder / "capture.json")
-    if manifest.get("format") != CAPTURE_FORMAT:
-        raise ValueError(f"{folder / 'capture.json'}: format is {manifest.get('format')!r}, expected {CAPTURE_FORMAT!r}")
-    settings = StudioSettings.from_dict(manifest.get("settings", {}), str(folder / "capture.json"))
-    gt = folder / "ground_truth"
-    skeleton = skeleton_from_dict(_read_json(gt / "skeleton.json"), str(gt / "skeleton.json"))
-    rig = rig_from_dict(_read_json(gt / "rig.json"), skeleton, str(gt / "rig.json"))
-    return manifest, settings, skeleton, rig
+    manifest, skeleton, rig = capture_folder.read_truth_model(folder)
+    return manifest.data, StudioSettings.from_dict(manifest.settings, str(manifest.path)), skeleton, rig
 
 
 def load_ground_truth(path: str | os.PathLike) -> GroundTruth:
-    """Read the ground truth of a capture folder written by :func:`write_capture`.
+    """Read the ground truth of a capture folder written by :func:`write_capture`
+    (:func:`bcmocap.io.capture_folder.load_ground_truth` with the settings as :class:`StudioSettings` and the scene
+    as :class:`~bcmocap.sim.scene.TexturedScene`).
 
     Raises:
         ValueError: naming the file that is missing or malformed.
     """
-    folder = Path(path)
-    manifest, settings, skeleton, rig = read_studio_model(folder)
-    gt = folder / "ground_truth"
-    scene = TexturedScene.from_dict(_read_json(gt / "scene.json"), str(gt / "scene.json"))
-    points = _read_npz(gt / "world_points.npz")
-    reference = _read_npz(gt / "reference.npz")
-    ref_camera = camera_from_dict(_read_json(folder / "reference" / "camera.json"), str(folder / "reference" / "camera.json"))
-    trials = {}
-    for name in manifest.get("trials", TRIALS):
-        d = _read_npz(gt / f"{name}.npz")
-        try:
-            trials[name] = TrialTruth(
-                name=name,
-                motion=Motion(d["root_position"], d["rotations"]),
-                joint_positions=d["joint_positions"],
-                world_rotations=d["world_rotations"],
-                world_from_camera=d["world_from_camera"],
-                video_start_frame=d["video_start_frame"],
-                num_video_frames=d["num_video_frames"],
-                clap_frames=d["clap_frames"],
-                clap_samples=d["clap_samples"],
-                audio_gain=d["audio_gain"],
-                markers=MarkerTrajectories(tuple(str(x) for x in d["marker_names"]), d["marker_segments"],
-                                           d["marker_offsets"], d["markers"]),
-                fps=float(d["fps"]),
-                audio_rate=int(d["audio_rate"]),
-                # a capture written before mount wobble existed has rigid mounts
-                world_from_mount=d.get("world_from_mount", d["world_from_camera"]),
-                camera_offsets=d.get("camera_offsets", np.zeros(d["world_from_camera"].shape[:2] + (6,))),
-            )
-        except KeyError as err:
-            raise ValueError(f"{gt / f'{name}.npz'}: missing array {err}") from None
-    return GroundTruth(folder, settings, skeleton, rig, scene, points["points"], points["materials"], ref_camera,
-                       tuple(str(x) for x in reference["names"]), reference["world_from_camera"], trials)
+    return capture_folder.load_ground_truth(path, parse_settings=StudioSettings.from_dict,
+                                            parse_scene=TexturedScene.from_dict)
