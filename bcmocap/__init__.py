@@ -13,7 +13,8 @@ The public API, for scripts::
 
 The model (:class:`Skeleton`, :class:`Motion`, :class:`Rig`, :func:`forward_kinematics`), the camera models,
 :class:`Correspondences` (what the frontend measures), the problem and its solvers, the paper's residual
-terms, the four term shapes a new term is written in, and the robust losses. The frontend, the simulator,
+terms, :func:`residual_term` (a new term is a decorated function) with the :class:`TermWindow` its factory is
+given, the five term kinds, and the robust losses. The frontend, the simulator,
 the pipeline and the file readers are in their subpackages (``bcmocap.frontend``, ``bcmocap.sim``,
 ``bcmocap.pipeline``, ``bcmocap.io``).
 """
@@ -24,6 +25,7 @@ from .lazy_exports import lazy_exports
 _PUBLIC = {
     "CameraPairTerm": "residuals",
     "CameraTerm": "residuals",
+    "CameraView": "residuals",
     "CauchyLoss": "residuals",
     "Correspondences": "correspondences",
     "FOVCamera": "cameras",
@@ -49,11 +51,13 @@ _PUBLIC = {
     "SolverOptions": "solver",
     "StoredProblem": "solver.objective",
     "Term": "residuals",
+    "TermWindow": "residuals",
     "enable_float64": "precision",
     "forward_kinematics": "kinematics",
     "joint_positions": "kinematics",
     "paper_problem": "solver.objective",
     "paper_terms": "solver.objective",
+    "residual_term": "residuals",
     "require_float64": "precision",
     "solve": "solver",
     "solve_with_refinement": "solver",

@@ -73,7 +73,7 @@ class CameraCentreSecondDifference(MultiFrameTerm):
 
     span = 3
 
-    def residual(self, states, data):
+    def residual(self, states, data, variables):
         c = states.world_from_camera.translation()  # (3, C, 3)
         return c[2] - 2.0 * c[1] + c[0] - data, jnp.ones(data.shape[0], bool)
 

@@ -1,8 +1,9 @@
 """Add your own residual term: a joint-limit prior on the hinge joints (knees, elbows).
 
-A term is one class: it holds its data (first axis = frame) and a pure function of one frame's state
-returning residual blocks and a validity mask. The solver differentiates it with JAX and places it in
-the block-tridiagonal normal equations by its footprint (here: one frame).
+A term is ``residual(x, data, variables) -> (r, valid)`` over the frames it spans, here one frame's state. Written as
+a class (this one holds the skeleton and the limits as fields and has a method of its own); a plain function
+decorated with ``bcmocap.residual_term`` is the same term (examples/gyro_term). The solver differentiates it with
+JAX and places it in the block-tridiagonal normal equations by its footprint (here: one frame).
 
     python examples/custom_residual.py [--seconds 1.0]
 """
@@ -31,9 +32,9 @@ class HingeLimits(FrameTerm):
         along_axis = jnp.sum(rotations[..., 1:] * self.skeleton.hinge_axes, axis=-1)
         return 2.0 * jnp.arctan2(along_axis, rotations[..., 0])
 
-    def residual(self, state, data):
+    def residual(self, x, data, variables):
         hinge = np.array([t == JointType.HINGE for t in self.skeleton.joint_types])
-        angle = self.hinge_angles(state.motion.rotations)
+        angle = self.hinge_angles(x.motion.rotations)
         excess = jnp.maximum(angle - self.upper, 0.0) + jnp.minimum(angle - self.lower, 0.0)
         return excess[:, None], jnp.asarray(hinge) & (data > 0)
 

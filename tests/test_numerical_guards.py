@@ -279,7 +279,7 @@ def test_a_window_whose_jacobian_is_not_finite_is_rejected_inside_the_solve(solv
         """|x| of the root's height as √(x²): finite at x = 0, but its Jacobian there is NaN (a bug the
         cost does not show)."""
 
-        def residual(self, state, data):
+        def residual(self, state, data, variables):
             x = state.motion.root_position[2] - data
             return jnp.sqrt(x * x)[None, None], jnp.ones(1, bool)
 

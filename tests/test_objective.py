@@ -16,7 +16,7 @@ from conftest import make_rig, make_skeleton
 class RootHeight(FrameTerm):
     """The root's height equals ``data`` (m)."""
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         return (state.motion.root_position[2] - data)[None, None], np.ones(1, bool)
 
     @classmethod

@@ -16,7 +16,7 @@ OPTIONS = SolverOptions(window=4, overlap=1)
 class KneeLimit(FrameTerm):
     """A researcher's own term: its code is outside bcmocap, so a program holding it is never stored."""
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         return state.motion.rotations[4, 1:, None], jnp.ones(3, bool)
 
 

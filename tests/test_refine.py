@@ -86,7 +86,7 @@ class _ShinLength(FrameTerm):
 
     length: float = 0.0
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         joints = state.world_from_segment.translation()
         return (jnp.linalg.norm(joints[FOOT] - joints[KNEE]) - self.length)[None, None], data[None] > 0
 

@@ -31,6 +31,7 @@ from bcmocap.residuals import (
     loss_from_name,
     pair_mask,
 )
+from bcmocap.residuals.base import CameraView, stacked
 from bcmocap.residuals.mount_compliance import MountCompliance, MountSmoothness
 from bcmocap.residuals.registered_pose import RegisteredPose, registered_pose_data
 from bcmocap.residuals.rolling_shutter import READOUT, RollingShutterReprojection
@@ -301,10 +302,15 @@ def test_window_jacobian_matches_finite_differences(problems, skeleton):
 # ---- per-term Jacobians against finite differences ------------------------------------------------
 
 
+def _view(poses, camera) -> CameraView:
+    """What a camera term sees of one camera at one pose, or at two (stacked, oldest first)."""
+    return CameraView(poses[0] if len(poses) == 1 else stacked(*poses), camera)
+
+
 def _camera_term_residual(xi, term, poses, camera, data):
     """A camera term's finished residual with each pose moved by a left perturbation ``exp(ξ_i) · pose_i``."""
     moved = [SE3.exp(xi[6 * i : 6 * i + 6]) @ SE3(p) for i, p in enumerate(poses)]
-    return term.finish(*term.residual(*moved, camera, data))
+    return term.finish(*term.residual(_view(moved, camera), data, {}))
 
 
 # Compiled once per term class, loss and data shape; shared by the tests below.
@@ -343,14 +349,14 @@ def test_registered_pose_residual_and_jacobian(rig):
     data = {"world_from_camera": world_from_camera.wxyz_xyz, "weights": jnp.asarray(1.0)}
     term = RegisteredPose(data, sigma=np.array([0.02, np.deg2rad(1.0)]), loss=CauchyLoss(8.0), name="registered pose")
     camera = camera_at(rig.intrinsics, 0)
-    r, valid = term.residual(world_from_camera.inverse(), camera, data)
+    r, valid = term.residual(CameraView(world_from_camera.inverse(), camera), data, {})
     np.testing.assert_allclose(r, 0.0, atol=1e-12)
     assert r.shape == (1, 6) and bool(valid[0])
     moved = SE3.from_rotation_and_translation(world_from_camera.rotation() @ SO3.exp(jnp.array([0.01, 0.0, 0.0])),
                                               world_from_camera.translation() + jnp.array([0.0, 0.03, 0.0]))
-    r, _ = term.residual(moved.inverse(), camera, data)
+    r, _ = term.residual(CameraView(moved.inverse(), camera), data, {})
     np.testing.assert_allclose(r[0], [0.0, 1.5, 0.0, 2 * np.sin(0.005) / np.deg2rad(1.0), 0.0, 0.0], atol=1e-9)
-    _, valid = term.residual(moved.inverse(), camera, {**data, "weights": jnp.asarray(0.0)})
+    _, valid = term.residual(CameraView(moved.inverse(), camera), {**data, "weights": jnp.asarray(0.0)}, {})
     assert not bool(valid[0])
     xi = rng.normal(scale=1e-2, size=6)
     check_camera_term_jacobian(term, xi, (np.asarray(moved.inverse().wxyz_xyz),), camera, data)
@@ -411,7 +417,7 @@ def test_invalid_observations_give_zero_residuals_and_finite_jacobians(rig):
     data = {"points": jnp.asarray(p_cam), "pixels": jnp.asarray(pixels), "weights": jnp.asarray(weights)}
     term = reprojection_term(data)
     identity = jnp.asarray(SE3.identity().wxyz_xyz)
-    _, valid = term.residual(SE3(identity), camera, data)
+    _, valid = term.residual(CameraView(SE3(identity), camera), data, {})
     np.testing.assert_array_equal(valid, [True] + [False] * (N - 1))
     args = (jnp.zeros(6), eqx.tree_at(lambda t: t.data, term, data), (identity,), camera, data)
     out = np.asarray(camera_term_residual(*args))
@@ -449,7 +455,7 @@ def test_homography_of_a_pure_rotation_is_exact(rig):
     uv_prev, ok_prev = camera.project(prev.rotation() @ rays)
     assert np.all(ok_curr & ok_prev)
     data = {"pixels": uv_curr, "pixels_prev": uv_prev, "weights": jnp.ones(10)}
-    r, valid = HomographyTransfer(data).residual(prev, curr, camera, data)
+    r, valid = HomographyTransfer(data).residual(_view((prev, curr), camera), data, {})
     assert np.all(valid)
     np.testing.assert_allclose(r, 0.0, atol=1e-9)
 
@@ -464,7 +470,7 @@ def _smoothness_residuals(y2, terms, skeleton, rig, reference):
     """Both smoothness terms' finished residuals ``(6 + D - 6,)`` of the pair of frames ``reference[0], reference[1]``."""
     prev = frame_state(skeleton, rig, reference[0], y2[0])
     curr = frame_state(skeleton, rig, reference[1], y2[1])
-    return jnp.concatenate([t.finish(*t.residual(prev, curr, jnp.asarray(1.0))).ravel() for t in terms])
+    return jnp.concatenate([t.finish(*t.residual(stacked(prev, curr), jnp.asarray(1.0), {})).ravel() for t in terms])
 
 
 smoothness_residuals = eqx.filter_jit(_smoothness_residuals)
@@ -593,7 +599,7 @@ def test_camera_slot_errors_are_named(scene):
 class _HeadUp(FrameTerm):
     """A user's frame term: the head segment's z axis towards world +z (3 residuals per frame)."""
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         z = state.world_from_segment.rotation().as_matrix()[2, :, 2]
         return (z - jnp.array([0.0, 0.0, 1.0]))[None], data[None] > 0
 
@@ -602,16 +608,16 @@ class _Bearings(CameraTerm):
     """A user's generic camera term: unit bearings to known points, through the whole 6-DOF pose (no
     world_points shortcut)."""
 
-    def residual(self, cam_from_world, camera, data):
-        p = transform_points(cam_from_world, data["points"])
+    def residual(self, x, data, variables):
+        p = transform_points(x.cam_from_world, data["points"])
         return p / jnp.linalg.norm(p, axis=-1, keepdims=True) - data["bearings"], data["valid"]
 
 
 class _CentreStep(CameraPairTerm):
     """A user's camera pair term with translation: the camera centre's step between frames (odometry)."""
 
-    def residual(self, prev_cam_from_world, cam_from_world, camera, data):
-        step = cam_from_world.inverse().translation() - prev_cam_from_world.inverse().translation()
+    def residual(self, x, data, variables):
+        step = x[1].cam_from_world.inverse().translation() - x[0].cam_from_world.inverse().translation()
         return (step - data["step"])[None], data["valid"][None]
 
 
@@ -652,7 +658,7 @@ class _CentreAcceleration(MultiFrameTerm):
 
     span = 3
 
-    def residual(self, states, data):
+    def residual(self, states, data, variables):
         centres = states.world_from_camera.translation()  # (3, C, 3)
         return centres[2] - 2.0 * centres[1] + centres[0] - data["acceleration"], data["valid"]
 
@@ -710,7 +716,7 @@ class _OffsetHeadUp(FrameTerm):
     def static_variables(self):
         return {"tilt": 3}
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         z = state.world_from_segment.rotation().as_matrix()[2, :, 2]
         return (z - jnp.array([0.0, 0.0, 1.0]) - state.statics["tilt"])[None], data[None] > 0
 
@@ -721,9 +727,9 @@ class _OffsetRootStep(PairTerm):
     def static_variables(self):
         return {"tilt": 3}
 
-    def residual(self, prev, curr, data):
-        step = curr.motion.root_position - prev.motion.root_position
-        return (step - curr.statics["tilt"])[None], data[None] > 0
+    def residual(self, x, data, variables):
+        step = x[1].motion.root_position - x[0].motion.root_position
+        return (step - variables["tilt"])[None], data[None] > 0
 
 
 @pytest.mark.slow
@@ -766,7 +772,7 @@ class _Lean(FrameTerm):
     def frame_variables(self):
         return {"lean": 2}
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         lean = state.world_from_segment.rotation().as_matrix()[2, :2, 2] - state.variables["lean"]
         return jnp.stack([lean, 10.0 * state.variables["lean"]]), jnp.full(2, data > 0)
 
@@ -777,7 +783,7 @@ class _HeadFrame(FrameTerm):
     def static_variables(self):
         return {"head frame": Rotation()}
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         head = SO3(state.world_from_segment.rotation().wxyz[2])
         return (head.inverse() @ SO3(state.statics["head frame"])).log()[None], data[None] > 0
 
@@ -789,8 +795,8 @@ class _CameraTurn(CameraPairTerm):
     def static_variables(self):
         return {"turn": Rotation()}
 
-    def residual(self, prev, curr, camera, data, statics):
-        turn = curr.rotation() @ prev.rotation().inverse() @ SO3(statics["turn"])
+    def residual(self, x, data, variables):
+        turn = x[1].cam_from_world.rotation() @ x[0].cam_from_world.rotation().inverse() @ SO3(variables["turn"])
         return turn.log()[None], data["weights"][None] > 0
 
 
@@ -853,11 +859,11 @@ def test_rolling_shutter_reprojection_explains_row_times(rig):
     data = {"points": points, "pixels": pixels, "weights": jnp.where(valid, 1.0, 0.0)}
     assert int(valid.sum()) > 20
     shutter = RollingShutterReprojection(data, readout=readout)
-    r, ok = shutter.residual(prev, curr, camera, data)
+    r, ok = shutter.residual(_view((prev, curr), camera), data, {})
     assert np.abs(np.asarray(r)[np.asarray(ok)]).max() < 1e-6
-    r_global, ok_global = Reprojection(data).residual(curr, camera, data)
+    r_global, ok_global = Reprojection(data).residual(CameraView(curr, camera), data, {})
     assert np.abs(np.asarray(r_global)[np.asarray(ok_global)]).max() > 1.0
-    r0, _ = RollingShutterReprojection(data, readout=0.0).residual(prev, curr, camera, data)
+    r0, _ = RollingShutterReprojection(data, readout=0.0).residual(_view((prev, curr), camera), data, {})
     np.testing.assert_allclose(np.asarray(r0), np.asarray(r_global), atol=1e-9)
 
 
@@ -875,7 +881,7 @@ def test_variable_declarations_are_checked(skeleton, rig, scene):
         def static_variables(self):
             return {"head frame": 3}
 
-        def residual(self, state, data):
+        def residual(self, state, data, variables):
             return state.statics["head frame"][None], data[None] > 0
 
     with pytest.raises(ValueError, match="'head frame'.*head frame declares Rotation.*clash declares Euclidean"):
@@ -885,7 +891,7 @@ def test_variable_declarations_are_checked(skeleton, rig, scene):
         def frame_variables(self):
             return {"x": 0}
 
-        def residual(self, state, data):
+        def residual(self, state, data, variables):
             return jnp.zeros((1, 1)), data[None] > 0
 
     with pytest.raises(ValueError, match="bad: per-frame variable 'x'"):

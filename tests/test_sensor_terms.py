@@ -13,7 +13,8 @@ from bcmocap.kinematics import Motion
 from bcmocap.sim import standard_rig
 from bcmocap.sim.sensors import simulate_contacts, simulate_imu
 from bcmocap.sim.studio import _body_motion
-from bcmocap.solver.objective import TermWindow, UserTerms
+from bcmocap.residuals import TermWindow
+from bcmocap.solver.objective import UserTerms
 from bcmocap.solver.window import make_window_problem, residuals, window_history
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "wearable_sensors"))
@@ -70,7 +71,7 @@ def test_foot_contact_flags_planted_feet(trial):
     flags' edges); both feet get flags, not everywhere."""
     problem, terms = _blocks(trial, sensor_terms.foot_contact, 0, 40, weight=1.0, loss="none")
     (r,) = residuals(problem, jnp.zeros((problem.num_frames, problem.skeleton.num_dofs)))
-    flags = np.asarray(terms[0].data)
+    flags = np.asarray(terms[0].data["planted"])
     assert flags[:, 0].any() and flags[:, 1].any() and not flags.all()
     step = np.linalg.norm(np.asarray(r), axis=-1)[flags]
     assert np.median(step) < 0.002 and step.max() < 0.015
@@ -79,5 +80,5 @@ def test_foot_contact_flags_planted_feet(trial):
 def test_a_missing_sensor_file_is_named(trial, tmp_path):
     skeleton, rig, _, _ = trial
     window = TermWindow(0, 10, FPS / STRIDE, skeleton, rig, trial_folder=tmp_path)
-    with pytest.raises(ValueError, match=r"imu.npz: missing; the sensor terms read it"):
+    with pytest.raises(ValueError, match=r"imu\.npz: missing \(a term factory reads it\)"):
         sensor_terms.gyroscope(window)

@@ -140,7 +140,7 @@ def test_recovers_truth_with_outliers(setup):
 class JointLimit(FrameTerm):
     """A tiny custom term: keep the knee angle below 0.1 rad."""
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         angle = 2 * jnp.arctan2(jnp.linalg.norm(state.motion.rotations[4, 1:]), state.motion.rotations[4, 0])
         return jnp.maximum(angle - 0.1, 0.0)[None, None], jnp.ones(1, bool)
 
@@ -221,7 +221,7 @@ def test_a_window_stopped_at_max_steps_reports_it(setup):
 class _BrokenPrior(FrameTerm):
     """A user term with a bug: the log of a negative number on frame 2 (NaN residual)."""
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         return jnp.log(data - 2.5 + state.motion.root_position[0] * 0.0)[None, None], jnp.ones(1, bool)
 
 
@@ -242,7 +242,7 @@ class CentreAcceleration(MultiFrameTerm):
 
     span = 3
 
-    def residual(self, states, data):
+    def residual(self, states, data, variables):
         centres = states.world_from_camera.translation()  # (3, C, 3)
         return centres[2] - 2.0 * centres[1] + centres[0] - data, jnp.ones(data.shape[0], bool)
 
@@ -283,7 +283,7 @@ class BiasedCentres(FrameTerm):
     def static_variables(self):
         return {"centre_offset": 3}
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         centres = state.world_from_camera.translation()  # (C, 3)
         return centres + state.statics["centre_offset"] - data, jnp.ones(data.shape[0], bool)
 
@@ -330,7 +330,7 @@ class MountCompliance(FrameTerm):
     def frame_variables(self):
         return {CAMERA_OFFSETS: PerCamera(Euclidean(6), self.num_cameras)}
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         return state.variables[CAMERA_OFFSETS] / data, jnp.ones(self.num_cameras, bool)
 
 
@@ -341,7 +341,7 @@ class HeadingOfCentres(FrameTerm):
     def static_variables(self):
         return {"misalignment": Rotation()}
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         centres = state.world_from_camera.translation()  # (C, 3)
         turned = jax.vmap(SO3(state.statics["misalignment"]).apply)(centres)
         return turned - data, jnp.ones(data.shape[0], bool)

@@ -208,7 +208,7 @@ def test_seam_windows_weigh_each_frame_once(window, overlap, num_frames):
 class _BrokenPrior(FrameTerm):
     """A user term with a bug: the log of a negative number at the frames where ``data`` is 1 (NaN residual)."""
 
-    def residual(self, state, data):
+    def residual(self, state, data, variables):
         return jnp.log(data - 2.5 + state.motion.root_position[0] * 0.0)[None, None], jnp.ones(1, bool)
 
 

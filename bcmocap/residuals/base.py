@@ -14,8 +14,11 @@ kind                   the residual is a function of                    data lea
 ``CameraPairTerm``     one camera's ``cam_from_world`` at ``t-1, t``    ``(T, C, ...)`` (indexed by t)
 =====================  ==============================================  ==========================
 
-Every residual function returns ``(r, valid)``: residual blocks ``r`` of shape ``(n, k)`` and a
-boolean mask ``(n,)``. The solver zeroes invalid blocks, applies the term's robust loss per block
+Every term's residual is one function, ``residual(x, data, variables) -> (r, valid)``: ``x`` is what the kind
+spans (a :class:`FrameState`, several stacked, or a :class:`CameraView` of one camera), ``data`` the term's data
+at that frame (and camera), ``variables`` the static variables it declares, by name (an empty dict when it
+declares none). :func:`~.function_term.residual_term` makes a term of any kind from such a function. The
+function returns residual blocks ``r`` of shape ``(n, k)`` and a boolean mask ``(n,)``. The solver zeroes invalid blocks, applies the term's robust loss per block
 and multiplies by ``sqrt(weight)`` (the λ of Eq. 1), so a term's contribution to the cost is
 ``weight · ½ Σ ρ(‖r‖²)`` over valid blocks. Per-measurement weights or square-root information
 matrices belong in the data and are applied inside the residual function (whitening).
@@ -71,6 +74,10 @@ class FrameState(eqx.Module):
     world_from_camera: SE3
     statics: dict = eqx.field(default_factory=dict)
     variables: dict = eqx.field(default_factory=dict)
+
+    def __getitem__(self, i) -> FrameState:
+        """The state of the ``i``-th of stacked frames (a multi-frame term's ``states[0]`` is the oldest)."""
+        return jax.tree.map(lambda a: a[i], self)
 
 
 class Term(eqx.Module):
@@ -154,10 +161,8 @@ class Term(eqx.Module):
         banded solves per step), starts them at the block's start value (0, identity) in the first window and
         carries each window's estimate into the next. Terms that name the same block share it.
 
-        Frame, pair and multi-frame terms read them from ``state.statics``. A camera term that declares any
-        receives them as one more argument of ``residual`` (``residual(cam_from_world, camera, data, statics)``;
-        pair: ``residual(prev, curr, camera, data, statics)``), a :class:`~.variables.PerCamera` block reduced
-        to its own camera's value.
+        Every kind of term receives the blocks it declares as the ``variables`` argument of ``residual`` (a
+        camera term: a :class:`~.variables.PerCamera` block reduced to its own camera's value).
         """
         return {}
 
@@ -239,33 +244,53 @@ def camera_slots(data: dict, weights_key: str = "weights", multiple: int = 4, co
     return out
 
 
+class CameraView(eqx.Module):
+    """What a camera term sees: one camera's pose(s) and intrinsics.
+
+    Attributes:
+        cam_from_world: SE3, batch ``()`` at the frame (:class:`CameraTerm`), or ``(2,)`` at ``t − 1`` and ``t``
+            (:class:`CameraPairTerm`; ``view[0]``, ``view[1]``).
+        camera: the camera's intrinsics.
+    """
+
+    cam_from_world: SE3
+    camera: CameraModel
+
+    def __getitem__(self, i) -> CameraView:
+        """The view at the ``i``-th of the stacked frames (oldest first)."""
+        return CameraView(SE3(self.cam_from_world.wxyz_xyz[i]), self.camera)
+
+
 class FrameTerm(Term):
-    """A residual on one frame's variables (priors, joint limits, contacts)."""
+    """A residual on one frame's variables (priors, joint limits, contacts): ``x`` is the frame's
+    :class:`FrameState`."""
 
     kind = "frame"
 
     @abc.abstractmethod
-    def residual(self, state: FrameState, data: Any) -> tuple[jax.Array, jax.Array]:
-        """Args: one frame's state and data slice. Returns ``(r (n, k), valid (n,))``."""
+    def residual(self, x: FrameState, data: Any, variables: dict) -> tuple[jax.Array, jax.Array]:
+        """Args: one frame's state, its data ``data[t]`` and the term's static variables by name. Returns
+        ``(r (n, k), valid (n,))``."""
 
 
 class PairTerm(Term):
-    """A residual on two consecutive frames (smoothness). ``data[t]`` belongs to the pair ``(t-1, t)``."""
+    """A residual on two consecutive frames (smoothness): ``x`` is their :class:`FrameState` stacked,
+    ``x[0]`` at ``t − 1`` and ``x[1]`` at ``t``. ``data[t]`` belongs to the pair ``(t-1, t)``."""
 
     kind = "pair"
     span = 2
 
     @abc.abstractmethod
-    def residual(self, prev: FrameState, curr: FrameState, data: Any) -> tuple[jax.Array, jax.Array]:
+    def residual(self, x: FrameState, data: Any, variables: dict) -> tuple[jax.Array, jax.Array]:
         """Returns ``(r (n, k), valid (n,))`` for the pair ``(t-1, t)``."""
 
 
 class MultiFrameTerm(Term):
     """A residual on ``span`` consecutive frames ``t − span + 1 … t`` (an accelerometer over three frames,
-    a jerk prior). ``data[t]`` belongs to the frames ending at ``t``; blocks whose first frames fall
-    before the sequence are dropped. The normal equations become block banded with bandwidth
-    ``span − 1`` (:mod:`bcmocap.solver.block_banded`), and each window keeps ``span − 1`` solved frames
-    before it fixed, so the term also connects across window seams.
+    a jerk prior): ``x`` is their :class:`FrameState` with leading axis ``span``, oldest first. ``data[t]``
+    belongs to the frames ending at ``t``; blocks whose first frames fall before the sequence are dropped. The
+    normal equations become block banded with bandwidth ``span − 1`` (:mod:`bcmocap.solver.block_banded`), and
+    each window keeps ``span − 1`` solved frames before it fixed, so the term also connects across window seams.
 
     Attributes:
         span: the number of frames (class attribute, ≥ 2; a static property of the term's kind).
@@ -275,13 +300,13 @@ class MultiFrameTerm(Term):
     span = 3
 
     @abc.abstractmethod
-    def residual(self, states: FrameState, data: Any) -> tuple[jax.Array, jax.Array]:
-        """Args: the frames' states with leading axis ``span`` (oldest first) and ``data[t]``.
-        Returns ``(r (n, k), valid (n,))``."""
+    def residual(self, x: FrameState, data: Any, variables: dict) -> tuple[jax.Array, jax.Array]:
+        """Args: the frames' states with leading axis ``span`` (oldest first), ``data[t]`` and the term's static
+        variables. Returns ``(r (n, k), valid (n,))``."""
 
 
 class CameraTerm(Term):
-    """Measurements of one camera at one frame (reprojection).
+    """Measurements of one camera at one frame (reprojection): ``x`` is a :class:`CameraView`.
 
     A term whose measurement ``i`` depends on the pose only through the camera-frame position of its own
     world point ``i`` may say so by returning those points from :meth:`world_points` and implementing
@@ -292,9 +317,9 @@ class CameraTerm(Term):
     per_camera = True
 
     @abc.abstractmethod
-    def residual(self, cam_from_world: SE3, camera: CameraModel, data: Any) -> tuple[jax.Array, jax.Array]:
-        """Args: one camera's pose (batch ``()``), its intrinsics and data slice ``data[t, c]`` (and the term's
-        static variables, when it declares any: see :meth:`Term.static_variables`)."""
+    def residual(self, x: CameraView, data: Any, variables: dict) -> tuple[jax.Array, jax.Array]:
+        """Args: one camera's pose (batch ``()``) and intrinsics, its data ``data[t, c]`` and the term's static
+        variables (a :class:`~.variables.PerCamera` block reduced to this camera's value)."""
 
     def world_points(self, data: Any) -> jax.Array | None:
         """``(n, 3)`` world points whose camera-frame positions alone determine the residuals, or None."""
@@ -306,7 +331,8 @@ class CameraTerm(Term):
 
 
 class CameraPairTerm(Term):
-    """Measurements linking one camera at frames ``t-1`` and ``t`` (homography transfer).
+    """Measurements linking one camera at frames ``t-1`` and ``t`` (homography transfer): ``x`` is a
+    :class:`CameraView` with both poses (``x[0]``, ``x[1]``).
 
     Subclasses whose residual depends on the camera orientations only set ``rotation_only = True``;
     the solver then differentiates with respect to the 3 rotation tangents of each pose, not all 6.
@@ -318,7 +344,16 @@ class CameraPairTerm(Term):
     rotation_only = False
 
     @abc.abstractmethod
-    def residual(
-        self, prev_cam_from_world: SE3, cam_from_world: SE3, camera: CameraModel, data: Any
-    ) -> tuple[jax.Array, jax.Array]:
-        """Args: the camera's poses at ``t-1`` and ``t``, its intrinsics and ``data[t, c]``."""
+    def residual(self, x: CameraView, data: Any, variables: dict) -> tuple[jax.Array, jax.Array]:
+        """Args: the camera's poses at ``t-1`` and ``t`` and its intrinsics, ``data[t, c]`` and the term's static
+        variables."""
+
+
+def stacked(*frames):
+    """Pytrees of one frame each (states, poses) stacked on a new leading axis, oldest first."""
+    return jax.tree.map(lambda *a: jnp.stack(a), *frames)
+
+
+def declared_statics(term: Term, statics: dict) -> dict:
+    """The static variables ``term`` declares, taken from ``statics`` (the window's, by name)."""
+    return {name: statics[name] for name in term.static_variables()}

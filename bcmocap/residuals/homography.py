@@ -11,8 +11,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ..cameras import CameraModel
-from ..geometry import SE3, rotate_vectors
+from ..geometry import rotate_vectors
 from .base import CameraPairTerm, slot_cameras
 
 
@@ -51,9 +50,10 @@ class HomographyTransfer(CameraPairTerm):
                     c = int(np.asarray(slots)[t, c])
                 raise ValueError(f"{self.label}: {key} has NaN/inf at frame {t}, camera {c}, match {i}")
 
-    def residual(self, prev_cam_from_world: SE3, cam_from_world: SE3, camera: CameraModel, data):
+    def residual(self, x, data, variables):
+        camera = x.camera
         rays = camera.unproject(data["pixels"])
-        prev_from_curr = prev_cam_from_world.rotation() @ cam_from_world.rotation().inverse()
+        prev_from_curr = x[0].cam_from_world.rotation() @ x[1].cam_from_world.rotation().inverse()
         predicted, valid = camera.project(rotate_vectors(prev_from_curr, rays))
         r = (predicted - data["pixels_prev"]) * jnp.sqrt(data["weights"])[:, None]
         return r, valid & (data["weights"] > 0)

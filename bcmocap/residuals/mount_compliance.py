@@ -39,8 +39,8 @@ class MountCompliance(FrameTerm):
     def frame_variables(self):
         return {CAMERA_OFFSETS: camera_offsets(self.num_cameras)}
 
-    def residual(self, state, data):
-        return state.variables[CAMERA_OFFSETS] / self.sigma, jnp.full(self.num_cameras, data > 0)
+    def residual(self, x, data, variables):
+        return x.variables[CAMERA_OFFSETS] / self.sigma, jnp.full(self.num_cameras, data > 0)
 
 
 class MountSmoothness(PairTerm):
@@ -55,6 +55,6 @@ class MountSmoothness(PairTerm):
     def frame_variables(self):
         return {CAMERA_OFFSETS: camera_offsets(self.num_cameras)}
 
-    def residual(self, prev, curr, data):
-        step = curr.variables[CAMERA_OFFSETS] - prev.variables[CAMERA_OFFSETS]
+    def residual(self, x, data, variables):
+        step = x.variables[CAMERA_OFFSETS][1] - x.variables[CAMERA_OFFSETS][0]
         return step / self.sigma, jnp.full(self.num_cameras, data > 0)

@@ -36,8 +36,8 @@ class RegisteredPose(CameraTerm):
 
     sigma: jax.Array = eqx.field(kw_only=True, converter=jnp.asarray)
 
-    def residual(self, cam_from_world: SE3, camera, data):
-        registered, world_from_camera = SE3(data["world_from_camera"]), cam_from_world.inverse()
+    def residual(self, x, data, variables):
+        registered, world_from_camera = SE3(data["world_from_camera"]), x.cam_from_world.inverse()
         q = (registered.rotation().inverse() @ world_from_camera.rotation()).wxyz
         rotation = 2.0 * jnp.where(q[0] < 0, -1.0, 1.0) * q[1:]
         centre = world_from_camera.translation() - registered.translation()

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..cameras import CameraModel
-from ..geometry import SE3, transform_points
+from ..geometry import transform_points
 from .base import CameraTerm
 
 
@@ -33,8 +33,8 @@ class Reprojection(CameraTerm):
     def check(self, num_frames: int, num_cameras: int) -> None:
         check_measurements(self.label, self.data, self.points, num_frames, num_cameras)
 
-    def residual(self, cam_from_world: SE3, camera: CameraModel, data):
-        return self.residual_in_camera(transform_points(cam_from_world, data["points"]), camera, data)
+    def residual(self, x, data, variables):
+        return self.residual_in_camera(transform_points(x.cam_from_world, data["points"]), x.camera, data)
 
     def world_points(self, data):
         return data["points"]

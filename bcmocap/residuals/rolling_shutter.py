@@ -20,13 +20,25 @@ import jax.numpy as jnp
 
 from ..cameras import CameraModel
 from ..geometry import SE3
-from .base import CameraPairTerm
+from .base import CameraPairTerm, CameraView
 from .reprojection import check_measurements, window_data
 from .self_calibration import INTRINSICS_CORRECTION, corrected_camera, intrinsics_correction
 from .variables import Euclidean
 
 #: Static block: the correction to the readout time, in frame periods (one value shared by all cameras).
 READOUT = "readout"
+
+
+def rolling_shutter_projection(camera: CameraModel, cam_from_world: SE3, velocity: jax.Array, readout,
+                               points: jax.Array, rows: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(N, 2)`` pixels and ``(N,)`` validity of world ``points`` ``(N, 3)``, each seen from the camera's pose at
+    the time its image row ``rows`` ``(N,)`` (px) is exposed: ``exp(s · readout · velocity) · cam_from_world`` with
+    ``s = row / (H − 1) − ½`` (``velocity`` ``(6,)``: a left increment of ``cam_from_world`` per frame period;
+    ``readout`` in frame periods), projected through ``camera``. The one rolling-shutter projection of bcmocap:
+    :class:`RollingShutterReprojection` and :mod:`bcmocap.solver.registered_poses` both predict with it."""
+    s = rows / max(camera.height - 1, 1) - 0.5  # (N,) in [-½, ½] over the image
+    at_row = SE3.exp((s * readout)[:, None] * velocity) @ SE3(jnp.broadcast_to(cam_from_world.wxyz_xyz, (s.shape[0], 7)))
+    return camera.project(at_row.apply(points))
 
 
 class RollingShutterReprojection(CameraPairTerm):
@@ -67,14 +79,12 @@ class RollingShutterReprojection(CameraPairTerm):
         if self.calibrate and self.num_cameras != num_cameras:
             raise ValueError(f"{self.label}: num_cameras is {self.num_cameras}, the rig has {num_cameras}")
 
-    def residual(self, prev: SE3, curr: SE3, camera: CameraModel, data, statics=None):
-        statics = statics or {}
+    def residual(self, x: CameraView, data, variables):
+        prev, curr, camera, statics = x[0].cam_from_world, x[1].cam_from_world, x.camera, variables
         readout = self.readout + (statics[READOUT][0] if self.estimate_readout else 0.0)
         if self.calibrate:
             camera = corrected_camera(camera, statics[INTRINSICS_CORRECTION])
-        rows = data["pixels"][:, 1] / max(camera.height - 1, 1) - 0.5  # (N,) in [-½, ½] over the image
         velocity = (curr @ prev.inverse()).log()  # (6,) left increment per frame period
-        at_row = SE3.exp((rows * readout)[:, None] * velocity) @ SE3(jnp.broadcast_to(curr.wxyz_xyz, (rows.shape[0], 7)))
-        predicted, valid = camera.project(at_row.apply(data["points"]))
+        predicted, valid = rolling_shutter_projection(camera, curr, velocity, readout, data["points"], data["pixels"][:, 1])
         r = (predicted - data["pixels"]) * jnp.sqrt(data["weights"])[:, None]
         return r, valid & (data["weights"] > 0)

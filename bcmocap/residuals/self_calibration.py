@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from ..cameras import CameraModel
-from ..geometry import SE3, transform_points
+from ..geometry import transform_points
 from .base import FrameTerm
 from .reprojection import Reprojection, window_data
 from .variables import PerCamera, Euclidean
@@ -57,9 +57,9 @@ class SelfCalibratingReprojection(Reprojection):
         return SelfCalibratingReprojection(window_data(self.data, self.points, start, stop), points=jnp.zeros((0, 3)),
                                            weight=self.weight, loss=self.loss, name=self.name, num_cameras=self.num_cameras)
 
-    def residual(self, cam_from_world: SE3, camera: CameraModel, data, statics):
-        camera = corrected_camera(camera, statics[INTRINSICS_CORRECTION])
-        return self.residual_in_camera(transform_points(cam_from_world, data["points"]), camera, data)
+    def residual(self, x, data, variables):
+        camera = corrected_camera(x.camera, variables[INTRINSICS_CORRECTION])
+        return self.residual_in_camera(transform_points(x.cam_from_world, data["points"]), camera, data)
 
 
 class StaticPrior(FrameTerm):
@@ -80,6 +80,6 @@ class StaticPrior(FrameTerm):
     def static_variables(self):
         return {self.block: self.variable}
 
-    def residual(self, state, data):
-        value = jnp.reshape(state.statics[self.block] / self.sigma, (1, -1))
+    def residual(self, x, data, variables):
+        value = jnp.reshape(variables[self.block] / self.sigma, (1, -1))
         return value * jnp.sqrt(data), jnp.ones(1, bool)

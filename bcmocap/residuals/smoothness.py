@@ -22,7 +22,8 @@ class RootSmoothness(PairTerm):
 
     rotation_scale: float = 1.0
 
-    def residual(self, prev, curr, data):
+    def residual(self, x, data, variables):
+        prev, curr = x[0], x[1]
         dp = curr.motion.root_position - prev.motion.root_position
         dr = _rotation_differences(prev.motion.rotations[:1], curr.motion.rotations[:1])[0]
         r = jnp.concatenate([dp, self.rotation_scale * dr])[:, None]
@@ -34,8 +35,8 @@ class JointSmoothness(PairTerm):
 
     skeleton: Skeleton = None
 
-    def residual(self, prev, curr, data):
-        rel = _rotation_differences(prev.motion.rotations[1:], curr.motion.rotations[1:])
+    def residual(self, x, data, variables):
+        rel = _rotation_differences(x.motion.rotations[0, 1:], x.motion.rotations[1, 1:])
         dofs = jnp.einsum("jkd,jk->d", self.skeleton.rotation_basis()[1:, :, 6:], rel)
         return dofs[:, None], jnp.broadcast_to(data > 0, dofs.shape)
 

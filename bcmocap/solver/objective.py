@@ -30,6 +30,7 @@ from ..residuals import HomographyTransfer, camera_slot_count, camera_slots, Joi
 from ..residuals.mount_compliance import MountCompliance, MountSmoothness
 from ..residuals.registered_pose import RegisteredPose, registered_pose_data
 from ..residuals.rolling_shutter import READOUT, RollingShutterReprojection
+from ..residuals.term_window import TermWindow
 from ..residuals.self_calibration import INTRINSICS_CORRECTION, SelfCalibratingReprojection, StaticPrior, intrinsics_correction
 from ..residuals.variables import Euclidean
 from .solve import Problem
@@ -168,41 +169,6 @@ def paper_terms(
     if weights.joint_smoothness > 0:
         terms.append(JointSmoothness(mask, skeleton=skeleton, weight=weights.joint_smoothness, name="joint smoothness"))
     return terms
-
-
-@dataclasses.dataclass(frozen=True)
-class TermWindow:
-    """What a term factory is given: frames ``[start, stop)`` of a trial.
-
-    Attributes:
-        start, stop: the window's frames in the trial (solver frames, ``fps`` per second).
-        fps: solver frames per second.
-        skeleton, rig: the model the terms will be evaluated on.
-        correspondences: the window's measurements (frames ``[start, stop)``), or None.
-        trial_folder: the capture's folder of this trial (``CAPTURE/trials/<trial>``) where a user's own
-            measurement files live, or None when the problem does not come from a capture folder.
-    """
-
-    start: int
-    stop: int
-    fps: float
-    skeleton: Skeleton
-    rig: Rig | None
-    correspondences: Correspondences | None = None
-    trial_folder: Path | None = None
-
-    @property
-    def num_frames(self) -> int:
-        return self.stop - self.start
-
-    @property
-    def times(self) -> np.ndarray:
-        """``(W,)`` seconds of the window's frames since the trial's first clap (the synchronised clock)."""
-        return (self.start + np.arange(self.num_frames)) / self.fps
-
-    @property
-    def first_frame_has_previous(self) -> bool:
-        return self.start > 0
 
 
 TermFactory = Callable[[TermWindow], Sequence[Term]]

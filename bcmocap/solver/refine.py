@@ -51,7 +51,7 @@ from ..correspondences import Correspondences
 from ..geometry import SE3
 from ..kinematics.rig import Rig, camera_poses
 from ..kinematics.skeleton import Motion, Skeleton
-from ..residuals import Reprojection
+from ..residuals import CameraView, Reprojection
 from ..precision import require_float64
 from .levenberg_marquardt import static_schur_complement
 from .model_parameters import MODEL, ModelParameters, parameter_changes, parameter_difference, parameter_layout
@@ -343,7 +343,7 @@ def _reprojection_cost(term: Reprojection, skeleton: Skeleton, rig: Rig, motion:
 @eqx.filter_jit
 def _chunk_cost(skeleton: Skeleton, rig: Rig, term: Reprojection, motion: Motion, data):
     cam_from_world = camera_poses(skeleton, rig, motion).inverse()  # (F, C)
-    one = lambda p, cam, dt: term.finish(*term.residual(SE3(p), cam, dt))  # noqa: E731
+    one = lambda p, cam, dt: term.finish(*term.residual(CameraView(SE3(p), cam), dt, {}))  # noqa: E731
     per_camera = jax.vmap(jax.vmap(one, in_axes=(0, 0, 0)), in_axes=(0, None, 0))
     return 0.5 * jnp.sum(per_camera(cam_from_world.wxyz_xyz, rig.intrinsics, data) ** 2)
 

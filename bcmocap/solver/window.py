@@ -26,7 +26,7 @@ from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
 from .levenberg_marquardt import NormalEquations
 from .model_parameters import MODEL, ModelParameters, reaxis
-from ..residuals.base import CameraTerm, FrameState, Term, slot_cameras
+from ..residuals.base import CameraTerm, CameraView, FrameState, Term, declared_statics, slot_cameras, stacked
 from ..residuals.variables import CAMERA_OFFSETS, Euclidean, PerCamera, Variable, as_variable, retract_blocks
 
 
@@ -294,9 +294,14 @@ def _camera_statics_args(own: _CameraTermStatics | None, z: jax.Array) -> tuple:
     return (None, None) if own is None else (own.values, z[own.columns])
 
 
-def _statics_arg(own: _CameraTermStatics | None, values: dict | None, z_own: jax.Array | None) -> tuple:
-    """The extra argument of a camera term's residual: its static values, if it declares any."""
-    return () if own is None else (own.at(values, z_own),)
+def _own_statics(own: _CameraTermStatics | None, values: dict | None, z_own: jax.Array | None) -> dict:
+    """The ``variables`` argument of a camera term's residual: its static values ({} if it declares none)."""
+    return {} if own is None else own.at(values, z_own)
+
+
+def _span_statics(term: Term, states: FrameState) -> dict:
+    """The ``variables`` argument of a multi-frame term's residual (the statics are the same at every frame)."""
+    return declared_statics(term, jax.tree.map(lambda a: a[0], states.statics))
 
 
 def cost(problem: WindowProblem, y: jax.Array) -> jax.Array:
@@ -485,14 +490,15 @@ class _FrameKind(_TermKind):
     """One frame's state: ``term.residual(state, data[t])``."""
 
     def residuals(self, problem, term, point):
-        return jax.vmap(term.residual)(point.curr_states, term.data)
+        return jax.vmap(lambda x, data: term.residual(x, data, declared_statics(term, x.statics)))(
+            point.curr_states, term.data)
 
     def linearise(self, problem, terms, system):  # one differentiation of the frame state serves every frame term
         d, h = system.d, system.h
 
         def frame_residuals(v, ref_t, data):
             state = model_state(problem, ref_t, v[:d], static_values(problem, v[d:]))
-            return tuple(t.masked(*t.residual(state, dt)) for t, dt in zip(terms, data))
+            return tuple(t.masked(*t.residual(state, dt, declared_statics(t, state.statics))) for t, dt in zip(terms, data))
 
         args = (system.with_z(system.y), system.frames(slice(h, None)), tuple(t.data for t in terms))
         rs, jacs = jax.vmap(frame_residuals)(*args), jax.vmap(_jacobian(frame_residuals, args))(*args)
@@ -505,7 +511,8 @@ class _PairKind(_TermKind):
     """Consecutive frames: ``term.residual(prev, curr, data[t])``; the pair before a sequence's first frame is dropped."""
 
     def residuals(self, problem, term, point):
-        r, v = jax.vmap(term.residual)(point.prev_states, point.curr_states, term.data)
+        r, v = jax.vmap(lambda prev, curr, data: term.residual(stacked(prev, curr), data, declared_statics(term, prev.statics)))(
+            point.prev_states, point.curr_states, term.data)
         return r, _pair_valid(problem, v)
 
     def linearise(self, problem, terms, system):  # likewise one differentiation of both frames of each pair
@@ -515,7 +522,8 @@ class _PairKind(_TermKind):
             at = static_values(problem, v[2 * d :])
             prev = model_state(problem, ref_prev, v[:d], at)
             curr = model_state(problem, ref_curr, v[d : 2 * d], at)
-            return tuple(t.masked(*_and_valid(t.residual(prev, curr, dt), ok)) for t, dt in zip(terms, data))
+            return tuple(t.masked(*_and_valid(t.residual(stacked(prev, curr), dt, declared_statics(t, prev.statics)), ok))
+                         for t, dt in zip(terms, data))
 
         pairs = jnp.concatenate([system.y_ext[h - 1 : -1], system.y_ext[h:]], axis=1)  # (W, 2D)
         args = (system.with_z(pairs), system.frames(slice(h - 1, -1)), system.frames(slice(h, None)),
@@ -532,7 +540,7 @@ class _SpanKind(_TermKind):
 
     def residuals(self, problem, term, point):
         spans = jax.tree.map(lambda a: a[_span_index(problem, term.span)], point.states)
-        r, v = jax.vmap(term.residual)(spans, term.data)
+        r, v = jax.vmap(lambda x, data: term.residual(x, data, _span_statics(term, x)))(spans, term.data)
         return r, v & _span_ok(problem, term.span).reshape(-1, *([1] * (v.ndim - 1)))
 
     def linearise(self, problem, terms, system):
@@ -541,7 +549,7 @@ class _SpanKind(_TermKind):
 
         def span_residuals(v, ref_span, data, ok):
             states = model_state(problem, ref_span, v[: span * d].reshape(span, d), static_values(problem, v[span * d :]))
-            return term.masked(*_and_valid(term.residual(states, data), ok))
+            return term.masked(*_and_valid(term.residual(states, data, _span_statics(term, states)), ok))
 
         index = _span_index(problem, span)
         args = (system.with_z(system.y_ext[index].reshape(w, span * d)), system.frames(index), term.data,
@@ -559,7 +567,8 @@ class _CameraKind(_TermKind):
     def residuals(self, problem, term, point):
         h = problem.history
         own = _camera_term_statics(problem, term)
-        fn = lambda pose, cam, data, values, z_own: term.residual(SE3(pose), cam, data, *_statics_arg(own, values, z_own))
+        fn = lambda pose, cam, data, values, z_own: term.residual(CameraView(SE3(pose), cam), data,
+                                                                  _own_statics(own, values, z_own))
         cams, cam_axis = _slot_intrinsics(term, problem.rig)
         return jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0, 0)), in_axes=(0, cam_axis, 0, 0, 0))(
             _slot_gather(term, point.cam_from_world.wxyz_xyz[h:]), cams, term.data, *_camera_statics_args(own, point.z))
@@ -572,10 +581,10 @@ class _CameraKind(_TermKind):
 
         def cam_blocks(pose, cam, data, values, z_own):
             if own is not None:
-                fn = lambda p, delta: term.masked(*term.residual(p, cam, data, own.at(values, z_own + delta)))
+                fn = lambda p, delta: term.masked(*term.residual(CameraView(p, cam), data, own.at(values, z_own + delta)))
                 r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,), static_size=own.size))
             elif term.world_points(data) is None:
-                fn = lambda p: term.masked(*term.residual(p, cam, data))
+                fn = lambda p: term.masked(*term.residual(CameraView(p, cam), data, {}))
                 r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (pose,)))
             else:
                 r, jac = _irls_rows(term, *_point_measurement_jacobians(term, SE3(pose), cam, data))
@@ -602,7 +611,7 @@ class _CameraPairKind(_TermKind):
         h = problem.history
         own = _camera_term_statics(problem, term)
         fn = lambda prev, pose, cam, data, values, z_own: term.residual(
-            SE3(prev), SE3(pose), cam, data, *_statics_arg(own, values, z_own))
+            CameraView(SE3(jnp.stack([prev, pose])), cam), data, _own_statics(own, values, z_own))
         cams, cam_axis = _slot_intrinsics(term, problem.rig)
         poses = point.cam_from_world.wxyz_xyz
         r, v = jax.vmap(jax.vmap(fn, in_axes=(0, 0, 0, 0, 0, 0)), in_axes=(0, 0, cam_axis, 0, 0, 0))(
@@ -620,9 +629,9 @@ class _CameraPairKind(_TermKind):
         def cam_pair_blocks(prev, pose, cam, data, values, z_own, ok):
             if own is not None:
                 fn = lambda p0, p1, delta: term.masked(*_and_valid(
-                    term.residual(p0, p1, cam, data, own.at(values, z_own + delta)), ok))
+                    term.residual(CameraView(stacked(p0, p1), cam), data, own.at(values, z_own + delta)), ok))
             else:
-                fn = lambda p0, p1: term.masked(*_and_valid(term.residual(p0, p1, cam, data), ok))
+                fn = lambda p0, p1: term.masked(*_and_valid(term.residual(CameraView(stacked(p0, p1), cam), data, {}), ok))
             r, jac = _irls_rows(term, *_camera_measurement_jacobians(fn, (prev, pose), term.rotation_only, own_size))
             return jac.T @ jac, jac.T @ r
 

@@ -26,14 +26,12 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from bcmocap.geometry import SE3, SO3
 from bcmocap.io.sensors import CONTACTS_FILE, IMU_FILE, ContactRecording, ImuRecording, integrate_gyro, read_contacts, read_imu
-from bcmocap.residuals import MultiFrameTerm, PairTerm, loss_from_name
-from bcmocap.solver.objective import TermWindow
+from bcmocap.residuals import TermWindow, loss_from_name, residual_term
 
 GRAVITY = 9.81  # m/s², along world −Z
 
@@ -48,15 +46,6 @@ def _contacts(path: Path) -> ContactRecording:
     return read_contacts(path)
 
 
-def _recording_file(window: TermWindow, name: str) -> Path:
-    if window.trial_folder is None:
-        raise ValueError(f"sensor terms need the capture's trial folder (with {name}); this problem has none")
-    path = window.trial_folder / name
-    if not path.is_file():
-        raise ValueError(f"{path}: missing; the sensor terms read it (bcmocap simulate CAPTURE --sensors-only writes it)")
-    return path
-
-
 def _rig_slots(window: TermWindow, imu: ImuRecording) -> tuple[np.ndarray, np.ndarray]:
     """For every rig camera: the index of its IMU (0 if none) and whether it has one."""
     names = window.rig.names
@@ -67,20 +56,18 @@ def _rig_slots(window: TermWindow, imu: ImuRecording) -> tuple[np.ndarray, np.nd
 # ---- gyroscope ----------------------------------------------------------------------------------
 
 
-class CameraRotationChange(PairTerm):
+@residual_term(frames=2)
+def camera_rotation_change(states, data, variables):
     """Each camera's rotation from frame t−1 to t, ``R_wc(t−1)ᵀ R_wc(t)``, equals ``data["rotation"][t]``
     (wxyz ``(C, 4)``); residual: its rotation vector error (rad), 3 per camera."""
-
-    def residual(self, prev, curr, data):
-        predicted = prev.world_from_camera.rotation().inverse() @ curr.world_from_camera.rotation()
-        error = (SO3(data["rotation"]).inverse() @ predicted).log()
-        return error, data["valid"]
+    predicted = states[0].world_from_camera.rotation().inverse() @ states[1].world_from_camera.rotation()
+    return (SO3(data["rotation"]).inverse() @ predicted).log(), data["valid"]
 
 
 def gyroscope(window: TermWindow, weight: float = 1e6, loss: str = "none", loss_scale: float = 1.0):
-    """:class:`CameraRotationChange` from ``imu.npz``: each camera's gyro integrated between consecutive solver
+    """:func:`camera_rotation_change` from ``imu.npz``: each camera's gyro integrated between consecutive solver
     frames, turned into the camera frame by the IMU's mount (``R_c ΔR_imu R_cᵀ``)."""
-    imu = _imu(_recording_file(window, IMU_FILE))
+    imu = _imu(window.trial_file(IMU_FILE))
     t1 = window.times
     t0 = t1 - 1.0 / window.fps
     inside = (t0 >= imu.time[0]) & (t1 <= imu.time[-1])
@@ -89,27 +76,23 @@ def gyroscope(window: TermWindow, weight: float = 1e6, loss: str = "none", loss_
     in_camera = np.asarray((mount @ SO3(jnp.asarray(change)) @ mount.inverse()).wxyz)  # (W, S, 4)
     index, has = _rig_slots(window, imu)
     data = {"rotation": in_camera[:, index], "valid": inside[:, None] & has[None, :]}
-    return CameraRotationChange(data, weight=weight, loss=loss_from_name(loss, loss_scale), name="gyroscope")
+    return camera_rotation_change(data, weight=weight, loss=loss_from_name(loss, loss_scale), name="gyroscope")
 
 
 # ---- foot contact -------------------------------------------------------------------------------
 
 
-class PlantedJoints(PairTerm):
-    """Joint centres (segment origins ``segments``) flagged in contact at t−1 and t do not move (m)."""
-
-    segments: tuple[int, ...] = eqx.field(static=True, default=())
-
-    def residual(self, prev, curr, data):
-        index = jnp.asarray(self.segments)
-        step = curr.world_from_segment.translation()[index] - prev.world_from_segment.translation()[index]
-        return step, data
+@residual_term(frames=2)
+def planted_joints(states, data, variables):
+    """Joint centres (segment origins ``data["segment"]``) flagged in contact at t−1 and t do not move (m)."""
+    centres = states.world_from_segment.translation()[:, data["segment"]]  # (2, S, 3)
+    return centres[1] - centres[0], data["planted"]
 
 
 def foot_contact(window: TermWindow, weight: float = 1e4, loss: str = "huber", loss_scale: float = 0.01):
-    """:class:`PlantedJoints` from ``contacts.npz``: the flagged segments' joint centres stay put while flagged
+    """:func:`planted_joints` from ``contacts.npz``: the flagged segments' joint centres stay put while flagged
     at both frames of a pair."""
-    contacts = _contacts(_recording_file(window, CONTACTS_FILE))
+    contacts = _contacts(window.trial_file(CONTACTS_FILE))
     names = list(window.skeleton.names)
     missing = [s for s in contacts.segments if s not in names]
     if missing:
@@ -118,30 +101,25 @@ def foot_contact(window: TermWindow, weight: float = 1e4, loss: str = "huber", l
     t0 = t1 - 1.0 / window.fps
     inside = (t0 >= contacts.time[0]) & (t1 <= contacts.time[-1])
     flags = contacts.at(t1) & contacts.at(np.maximum(t0, contacts.time[0])) & inside[:, None]
-    return PlantedJoints(flags, segments=tuple(names.index(s) for s in contacts.segments), weight=weight,
-                         loss=loss_from_name(loss, loss_scale), name="foot contact")
+    segments = np.broadcast_to([names.index(s) for s in contacts.segments], flags.shape)
+    return planted_joints({"planted": flags, "segment": segments}, weight=weight, loss=loss_from_name(loss, loss_scale),
+                          name="foot contact")
 
 
 # ---- accelerometer ------------------------------------------------------------------------------
 
 
-class ImuAcceleration(MultiFrameTerm):
-    """Three frames t−2, t−1, t: the IMU position's second difference over ``dt²`` equals
+@residual_term(frames=3)
+def imu_acceleration(states, data, variables):
+    """Three frames t−2, t−1, t: the IMU position's second difference over ``dt²`` (``data["dt"]``, s) equals
     ``R_wi(t−1) f̄ + g``, where ``f̄`` (``data["force"]``, m/s² in the IMU frame at t−1) is the specific force
     averaged over ``[t−2, t]`` with the triangle weights a second difference applies to acceleration (3
-    residuals per camera, m/s²)."""
-
-    span = 3
-    dt: float = eqx.field(static=True, default=1.0 / 30.0)
-    camera_from_imu: jnp.ndarray = None  # (C, 7) wxyz_xyz per rig camera
-
-    def residual(self, states, data):
-        world_from_imu = states.world_from_camera @ SE3(self.camera_from_imu)  # batch (3, C)
-        p = world_from_imu.translation()
-        acceleration = (p[2] - 2.0 * p[1] + p[0]) / self.dt**2
-        middle = SO3(world_from_imu.rotation().wxyz[1])
-        measured = middle @ data["force"] - jnp.array([0.0, 0.0, GRAVITY])
-        return acceleration - measured, data["valid"]
+    residuals per camera, m/s²; ``data["camera_from_imu"]`` ``(C, 7)``: each camera's IMU mount)."""
+    world_from_imu = states.world_from_camera @ SE3(data["camera_from_imu"])  # batch (3, C)
+    p = world_from_imu.translation()
+    acceleration = (p[2] - 2.0 * p[1] + p[0]) / data["dt"] ** 2
+    measured = SO3(world_from_imu.rotation().wxyz[1]) @ data["force"] - jnp.array([0.0, 0.0, GRAVITY])
+    return acceleration - measured, data["valid"]
 
 
 def _second_difference_force(imu: ImuRecording, middle: np.ndarray, dt: float) -> np.ndarray:
@@ -170,14 +148,14 @@ def _interpolate(time: np.ndarray, samples: np.ndarray, at: np.ndarray) -> np.nd
 
 
 def accelerometer(window: TermWindow, weight: float = 1.0, loss: str = "huber", loss_scale: float = 3.0):
-    """:class:`ImuAcceleration` from ``imu.npz`` (bias not removed: it enters as a constant error)."""
-    imu = _imu(_recording_file(window, IMU_FILE))
+    """:func:`imu_acceleration` from ``imu.npz`` (bias not removed: it enters as a constant error)."""
+    imu = _imu(window.trial_file(IMU_FILE))
     dt = 1.0 / window.fps
     middle = window.times - dt
     inside = (middle - dt >= imu.time[0]) & (middle + dt <= imu.time[-1])
     index, has = _rig_slots(window, imu)
     force = _second_difference_force(imu, middle, dt)[:, index]  # (W, C, 3)
     mounts = np.where(has[:, None], imu.camera_from_imu[index], np.array([1.0, 0, 0, 0, 0, 0, 0]))
-    return ImuAcceleration({"force": force, "valid": inside[:, None] & has[None, :]}, dt=dt,
-                           camera_from_imu=jnp.asarray(mounts), weight=weight, loss=loss_from_name(loss, loss_scale),
-                           name="accelerometer")
+    data = {"force": force, "valid": inside[:, None] & has[None, :], "dt": np.full(len(middle), dt),
+            "camera_from_imu": np.broadcast_to(mounts, (len(middle), *mounts.shape))}
+    return imu_acceleration(data, weight=weight, loss=loss_from_name(loss, loss_scale), name="accelerometer")
