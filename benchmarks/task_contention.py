@@ -45,7 +45,7 @@ def _chunk_function(run: Path, out: Path, trial: str):
     """The function ``k → chunk k registered`` that ``bcmocap run`` hands a cluster for ``trial`` of ``run``,
     writing under ``out`` (the run's SIFT cache is linked, not copied)."""
     from bcmocap.frontend.capture import read_capture
-    from bcmocap.frontend.command import prepare_reference, process_trial
+    from bcmocap.frontend.command import TrialOptions, prepare_reference, process_trial
     from bcmocap.frontend.register import reference_index
     from bcmocap.pipeline.config import RunConfig
 
@@ -69,11 +69,11 @@ def _chunk_function(run: Path, out: Path, trial: str):
 
     f = config.frontend
     try:
-        process_trial(capture, index, trial, out, stride=f.rom_stride if trial == "rom" else f.stride,
-                      frames=f.frames or None, max_features=f.max_features, homographies=trial == "capture",
-                      chunk_frames=f.chunk_frames, registration=f.registration,
-                      max_measurements=f.max_measurements or None, points=f.points, log=lambda line: None,
-                      map_tasks=map_tasks)
+        options = TrialOptions(stride=f.rom_stride if trial == "rom" else f.stride, frames=f.frames or None,
+                               max_features=f.max_features, homographies=trial == "capture",
+                               chunk_frames=f.chunk_frames, registration=f.registration,
+                               max_measurements=f.max_measurements or None, points=f.points)
+        process_trial(capture, index, trial, out, options, log=lambda line: None, map_tasks=map_tasks)
     except _Captured:
         return found["fn"]
     raise ValueError(f"{run}: trial {trial!r} is registered in one chunk (frontend.chunk_frames), not as tasks")

@@ -86,8 +86,8 @@ def test_mutual_matching_searches_back_only_the_rows_chosen():
 
 def test_index_cache_shares_each_frames_trees_and_stays_bounded():
     rng = np.random.default_rng(3)
-    states = [[relative.FrameState(np.zeros((300, 2)), rng.integers(0, 256, (300, 128)).astype(np.uint8),
-                                   np.full(300, -1), np.full(7, np.nan)) for _ in range(2)] for _ in range(3)]
+    states = [[relative.CameraFrameRegistration(np.zeros((300, 2)), rng.integers(0, 256, (300, 128)).astype(np.uint8),
+                                                np.full(300, -1), np.full(7, np.nan)) for _ in range(2)] for _ in range(3)]
     cache = relative._IndexCache(states, 16, 3)
     first = cache((0, 0))
     assert cache((0, 0)) is first

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bcmocap.frontend.homography import fill_with_homographies, rotation_between_frames
-from bcmocap.frontend.relative import CaptureRegistration, FrameState
+from bcmocap.frontend.relative import CameraFrameRegistration, CaptureRegistration
 from bcmocap.geometry import matrix_from_quat, quat_from_matrix
 from bcmocap.sim import fov_camera_for
 
@@ -64,8 +64,9 @@ def test_fill_with_homographies_chains_orientations_and_interpolates_positions()
     for t in range(6):
         uv, d = _observe(points, desc, _yaw(yaws[t]), centres[t], rng)
         pose = np.concatenate([np.asarray(quat_from_matrix(_yaw(yaws[t]))), centres[t]])
-        states.append([FrameState(uv, d, np.full(len(uv), -1), pose if registered[t] else np.full(7, np.nan),
-                                  "absolute" if registered[t] else "")])
+        states.append([CameraFrameRegistration(uv, d, np.full(len(uv), -1),
+                                               pose if registered[t] else np.full(7, np.nan),
+                                               "absolute" if registered[t] else "")])
     reg = CaptureRegistration(np.arange(6), states, {}, set(), [])
     fill = fill_with_homographies(reg, [CAMERA])
     assert fill.filled[:, 0].tolist() == [False, True, True, True, False, True]

@@ -144,14 +144,15 @@ def test_register_trial_with_stride_and_progress(studio):
 
 
 def test_neighbours_offer_registered_cameras_nearest_in_view_first():
-    from bcmocap.frontend.relative import FrameState, _neighbours
+    from bcmocap.frontend.relative import CameraFrameRegistration, _neighbours
 
     def state(yaw_deg=None):
         if yaw_deg is None:  # unregistered
-            return FrameState(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64), np.full(7, np.nan))
+            return CameraFrameRegistration(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64),
+                                           np.full(7, np.nan))
         half = np.radians(yaw_deg) / 2  # about the camera's y axis: the optical axis turns in the x-z plane
-        return FrameState(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64),
-                          np.array([np.cos(half), 0, np.sin(half), 0, 0, 0, 0]), how="absolute", round=0)
+        return CameraFrameRegistration(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64),
+                                       np.array([np.cos(half), 0, np.sin(half), 0, 0, 0, 0]), how="absolute", round=0)
 
     # Frame 1 of camera 0 is unregistered; camera 0 looked along yaw 0 at frame 0. At frame 1, cameras
     # 1 and 2 are unregistered and must not take the slots; 3 (yaw 100) is beyond 90 degrees.
@@ -301,7 +302,7 @@ def test_a_trial_registered_in_chunks_is_saved_chunk_by_chunk_and_resumed(studio
     import bcmocap.frontend.relative as relative
     from bcmocap.correspondence_store import CorrespondenceStore
     from bcmocap.correspondences import Correspondences
-    from bcmocap.frontend.command import process_trial
+    from bcmocap.frontend.command import TrialOptions, process_trial
 
     features, poses = turned_rig
     names = ("a", "b", "c")
@@ -310,9 +311,11 @@ def test_a_trial_registered_in_chunks_is_saved_chunk_by_chunk_and_resumed(studio
         video_info=lambda trial, name: types.SimpleNamespace(num_frames=2), correction_settings=lambda trial: {},
         lens_fingerprint=lambda: "lenses")
     monkeypatch.setattr(relative, "extract_trial_features", lambda *args, **kwargs: features)
-    quiet = dict(offsets=[0, 0, 0], homographies=False, registration="global", log=lambda line: None)
-    whole = process_trial(capture, studio.index, "capture", tmp_path / "whole", **quiet)
-    chunked = process_trial(capture, studio.index, "capture", tmp_path / "chunked", chunk_frames=1, **quiet)
+    quiet = dict(offsets=[0, 0, 0], log=lambda line: None)
+    whole_trial = TrialOptions(homographies=False, registration="global")
+    by_frame = TrialOptions(homographies=False, registration="global", chunk_frames=1)
+    whole = process_trial(capture, studio.index, "capture", tmp_path / "whole", whole_trial, **quiet)
+    chunked = process_trial(capture, studio.index, "capture", tmp_path / "chunked", by_frame, **quiet)
     a = CorrespondenceStore.open(tmp_path / "whole" / "capture" / "correspondences").load()
     b = CorrespondenceStore.open(tmp_path / "chunked" / "capture" / "correspondences").load()
     assert whole["registered_fraction"] == chunked["registered_fraction"] == 1.0
@@ -337,5 +340,5 @@ def test_a_trial_registered_in_chunks_is_saved_chunk_by_chunk_and_resumed(studio
         raise AssertionError("a saved chunk was registered again")
 
     monkeypatch.setattr(relative, "register_capture", no_registration)
-    again = process_trial(capture, studio.index, "capture", tmp_path / "chunked", chunk_frames=1, **quiet)
+    again = process_trial(capture, studio.index, "capture", tmp_path / "chunked", by_frame, **quiet)
     assert again["registered_fraction"] == 1.0 and again["rounds"] == chunked["rounds"]

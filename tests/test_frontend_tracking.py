@@ -146,7 +146,7 @@ def test_process_trial_with_tracking_registers_every_frame_and_caps_the_measurem
     import types
 
     from bcmocap.correspondence_store import CorrespondenceStore
-    from bcmocap.frontend.command import process_trial
+    from bcmocap.frontend.command import TrialOptions, process_trial
 
     frames, poses = walk
     blanked = {6, 7, 8, 9}
@@ -180,8 +180,9 @@ def test_process_trial_with_tracking_registers_every_frame_and_caps_the_measurem
 
     tracking.track_trial = track_then_switch
     try:
-        report = process_trial(capture, studio.index, "capture", tmp_path, offsets=[0, 0], homographies=True,
-                               registration="tracking", max_measurements=60, log=lambda line: None)
+        report = process_trial(capture, studio.index, "capture", tmp_path,
+                               TrialOptions(homographies=True, registration="tracking", max_measurements=60),
+                               offsets=[0, 0], log=lambda line: None)
     finally:
         tracking.track_trial = original
     assert report["registered_fraction"] == 1.0 and report["registration"] == "tracking"
@@ -216,7 +217,7 @@ def test_track_after_rounds_fills_the_frames_the_rounds_left(studio, walk):  # n
     registration's points, and their states become "tracked" with the tracked measurements."""
     import types
 
-    from bcmocap.frontend.relative import CaptureRegistration, FrameState
+    from bcmocap.frontend.relative import CameraFrameRegistration, CaptureRegistration
     from bcmocap.frontend.tracking import track_after_rounds
 
     frames, poses = walk
@@ -226,11 +227,11 @@ def test_track_after_rounds_fills_the_frames_the_rounds_left(studio, walk):  # n
     states = []
     for t in range(first, 16):
         if 6 <= t <= 9:
-            states.append([FrameState(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64),
-                                      np.full(7, np.nan))])
+            states.append([CameraFrameRegistration(np.zeros((0, 2)), np.zeros((0, 128), np.uint8),
+                                                   np.zeros(0, np.int64), np.full(7, np.nan))])
         else:
-            states.append([FrameState(track.pixels[t], np.zeros((0, 128), np.uint8), track.point_ids[t].copy(),
-                                      track.poses[t], "relative", 1)])
+            states.append([CameraFrameRegistration(track.pixels[t], np.zeros((0, 128), np.uint8),
+                                                   track.point_ids[t].copy(), track.poses[t], "relative", 1)])
     points = {int(i): x for i, x in zip(studio.index.point3D_ids, studio.index.xyz)} | track.points
     result = CaptureRegistration(np.arange(first, 16), states, points, set(), [], None)
     capture = types.SimpleNamespace(
@@ -248,7 +249,7 @@ def test_track_after_rounds_fills_the_frames_the_rounds_left(studio, walk):  # n
 def test_sift_for_homographies_extracts_the_frames_left_and_their_neighbours_without_descriptors():
     import types
 
-    from bcmocap.frontend.relative import CaptureRegistration, FrameState
+    from bcmocap.frontend.relative import CameraFrameRegistration, CaptureRegistration
     from bcmocap.frontend.tracking import sift_for_homographies
 
     rng = np.random.default_rng(0)
@@ -256,9 +257,11 @@ def test_sift_for_homographies_extracts_the_frames_left_and_their_neighbours_wit
 
     def state(t):
         if t == 3:  # left by the rounds and not tracked: unregistered, no features
-            return FrameState(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64), np.full(7, np.nan))
+            return CameraFrameRegistration(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0, np.int64),
+                                           np.full(7, np.nan))
         desc = np.ones((1, 128), np.uint8) if t == 4 else np.zeros((0, 128), np.uint8)  # frame 4 has SIFT already
-        return FrameState(np.array([[5.0, 6.0]]), desc, np.array([7]), np.array([1.0, 0, 0, 0, 0, 0, 0]), "tracked")
+        return CameraFrameRegistration(np.array([[5.0, 6.0]]), desc, np.array([7]), np.array([1.0, 0, 0, 0, 0, 0, 0]),
+                                       "tracked")
 
     first = 1
     states = [[state(t)] for t in range(first, 6)]
@@ -282,7 +285,7 @@ def test_rounds_for_the_rest_register_a_frame_tracking_could_not_reach(studio, w
     it relative to them; everything else keeps its registration."""
     import types
 
-    from bcmocap.frontend.relative import CaptureRegistration, FrameState
+    from bcmocap.frontend.relative import CameraFrameRegistration, CaptureRegistration
     from bcmocap.frontend.tracking import rounds_for_the_rest
 
     frames, poses = walk
@@ -290,9 +293,9 @@ def test_rounds_for_the_rest_register_a_frame_tracking_could_not_reach(studio, w
     track = track_camera(frames[:10], cam, studio.index)
     assert track.registered.all()
     empty = np.zeros((0, 128), np.uint8)
-    states = [[FrameState(track.pixels[t], empty, track.point_ids[t].copy(), track.poses[t], "tracked", 0)
+    states = [[CameraFrameRegistration(track.pixels[t], empty, track.point_ids[t].copy(), track.poses[t], "tracked", 0)
                for _ in range(2)] for t in range(10)]
-    states[5][1] = FrameState(np.zeros((0, 2)), empty, np.zeros(0, np.int64), np.full(7, np.nan))
+    states[5][1] = CameraFrameRegistration(np.zeros((0, 2)), empty, np.zeros(0, np.int64), np.full(7, np.nan))
     points = {int(i): x for i, x in zip(studio.index.point3D_ids, studio.index.xyz)} | track.points
     result = CaptureRegistration(np.arange(10), states, points, set(), [{"registered": 19, "new_points": 0}], [cam, cam])
     capture = types.SimpleNamespace(

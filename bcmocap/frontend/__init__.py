@@ -39,7 +39,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "fill_with_homographies": "homography",
     "rotation_between_frames": "homography",
     "CaptureRegistration": "relative",
-    "FrameState": "relative",
+    "CameraFrameRegistration": "relative",
     "RelativeOptions": "relative",
     "extract_trial_features": "relative",
     "register_capture": "relative",

@@ -27,6 +27,7 @@ import json
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from ..atomic import write_json_atomic
@@ -132,29 +133,63 @@ def prepare_reference(capture, ref_dir, log=print):
     return model
 
 
-def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: int | None = None,
-                  max_features: int = 8000, offsets=None, homographies: bool = True, chunk_frames: int = 0,
-                  registration: str = "global", max_measurements: int | None = None, points: str = "all",
-                  rolling_shutter_readout: float = 0.0, extra_settings: dict | None = None, log=print,
-                  map_tasks=None) -> dict:
-    """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
-    are given), through sync, features, registration and homographies, written under ``out``.
+@dataclasses.dataclass(frozen=True)
+class TrialOptions:
+    """How :func:`process_trial` registers a trial: the settings its result depends on (saved in
+    ``registration.json`` by :meth:`saved_settings`; a saved registration is reused only with the same).
 
-    ``registration`` "tracking" tracks each camera's video (:mod:`~.tracking`: KLT and PnP, SIFT
+    Attributes:
+        stride: use every ``stride``-th video frame (1: all).
+        frames: at most this many frames per camera from the first clap (None: up to the second clap).
+        max_features: SIFT features per image.
+        homographies: fill the frames registration leaves with homographies (:mod:`~.homography`).
+        chunk_frames: register in equal chunks of at most this many processed frames (0: the whole trial at once;
+            see :func:`process_trial`).
+        registration: "tracking" or "global" (see :func:`process_trial`; the commands default to "tracking").
+        max_measurements: at most this many measurements per camera-frame (:mod:`~.selection`; None keeps all).
+        points: which 3D points the solver measures: "all", or "reference" (the reference model's only).
+        rolling_shutter_readout: s from the first row to the last; > 0 corrects every frame for the rolling
+            shutter by the cameras' gyros first (0: global shutter).
+    """
+
+    stride: int = 1
+    frames: int | None = None
+    max_features: int = 8000
+    homographies: bool = True
+    chunk_frames: int = 0
+    registration: str = "global"
+    max_measurements: int | None = None
+    points: str = "all"
+    rolling_shutter_readout: float = 0.0
+
+    def saved_settings(self, gyro: str | None = None) -> dict:
+        """:func:`trial_settings` of these options (``gyro``: the gyros' fingerprint, with a rolling-shutter
+        readout)."""
+        return trial_settings(**dataclasses.asdict(self), gyro=gyro)
+
+
+def process_trial(capture, index, trial: str, out, options: TrialOptions = TrialOptions(), *, offsets=None,
+                  extra_settings: dict | None = None, log=print, map_tasks=None) -> dict:
+    """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
+    are given), through sync, features, registration and homographies, written under ``out``, as ``options``
+    say (:class:`TrialOptions`).
+
+    ``options.registration`` "tracking" tracks each camera's video (:mod:`~.tracking`: KLT and PnP, SIFT
     and global matching only at keyframes; cached in ``out/tracks/<trial>/``) and hands every third frame it
     leaves to the rounds of relative registration, with SIFT extracted only for them and their neighbours,
     then tracks the others from the frames the rounds registered (a second pass of the rounds takes the rest);
-    "global" (this function's default; the commands default to "tracking") extracts SIFT of every frame and
-    matches each against the reference (about 8 times slower than tracking on the 10 s walk, as accurate). ``max_measurements`` caps the
-    measurements per camera-frame (:mod:`~.selection`; None keeps all); ``points`` "reference" keeps only the
-    measurements of reference-model points (:meth:`~.relative.CaptureRegistration.correspondences`). With
-    ``rolling_shutter_readout`` > 0 (s, first row to last), every frame is first corrected for the rolling shutter
+    "global" (:class:`TrialOptions`' default; the commands default to "tracking") extracts SIFT of every frame and
+    matches each against the reference (about 8 times slower than tracking on the 10 s walk, as accurate).
+    ``options.max_measurements`` caps the measurements per camera-frame (:mod:`~.selection`; None keeps all);
+    ``options.points`` "reference" keeps only the measurements of reference-model points
+    (:meth:`~.relative.CaptureRegistration.correspondences`). With ``options.rolling_shutter_readout`` > 0 (s,
+    first row to last), every frame is first corrected for the rolling shutter
     by the cameras' gyros (``trials/<trial>/imu.npz``; :mod:`~.rolling_shutter`), so the poses and measurements are
     those of a global shutter at the frame times (the camera's translation across the readout aside).
     ``extra_settings`` join the settings saved with the result (e.g. the lens correction a caller applied to
     ``capture``), so a saved registration is reused only with them.
 
-    With ``chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
+    With ``options.chunk_frames`` > 0 the trial is registered in equal chunks of at most that many processed
     frames (:func:`chunk_bounds`), one after the other: a chunk's points, tracks and matches are dropped
     once its correspondences are written to ``out/<trial>/chunks/NNNN.npz`` (with ``NNNN.json``), so
     memory no longer grows with the trial's length during registration, and a rerun reuses the chunks
@@ -170,33 +205,33 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     from ..correspondence_store import write_store
     from .sync import given_offsets, synchronize
 
-    requested_frames = frames
+    o = options
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
     starts = np.asarray(sync.offsets, np.int64)
     available = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(capture.camera_names, starts))
     if np.isfinite(sync.duration_s):  # the take ends at the second clap
         available = min(available, int(round(sync.duration_s * capture.fps)) + 1)
-    frames = available if frames is None else min(available, frames)
+    frames = available if o.frames is None else min(available, o.frames)
     log(f"{trial}: first clap at video frames {starts.tolist()}; {frames} frames per camera up to the second clap")
-    if rolling_shutter_readout > 0:
+    if o.rolling_shutter_readout > 0:
         from .rolling_shutter import gyro_unwarp
 
-        capture = capture.corrected(trial, gyro_unwarp(capture, trial, starts, rolling_shutter_readout))
-        log(f"{trial}: frames corrected for a {1e3 * rolling_shutter_readout:g} ms rolling-shutter readout by the gyros")
-    if registration not in ("tracking", "global"):
-        raise ValueError(f"registration must be 'tracking' or 'global', got {registration!r}")
+        capture = capture.corrected(trial, gyro_unwarp(capture, trial, starts, o.rolling_shutter_readout))
+        log(f"{trial}: frames corrected for a {1e3 * o.rolling_shutter_readout:g} ms rolling-shutter readout by the "
+            f"gyros")
+    if o.registration not in ("tracking", "global"):
+        raise ValueError(f"registration must be 'tracking' or 'global', got {o.registration!r}")
     clock = time.perf_counter()
-    settings = {"first_clap_frames": starts.tolist(), "stride": stride, "max_features": max_features,
-                "homographies": homographies, "registration": registration, "max_measurements": max_measurements,
-                **({} if points == "all" else {"points": points}), **capture.correction_settings(trial),
-                **(extra_settings or {})}
-    job = TrialRegistration(capture, index, trial, Path(out), starts, frames, stride, max_features, homographies,
-                            registration, max_measurements, points, settings)
+    settings = {"first_clap_frames": starts.tolist(), "stride": o.stride, "max_features": o.max_features,
+                "homographies": o.homographies, "registration": o.registration,
+                "max_measurements": o.max_measurements, **({} if o.points == "all" else {"points": o.points}),
+                **capture.correction_settings(trial), **(extra_settings or {})}
+    job = TrialRegistrationJob(capture, index, trial, Path(out), starts, frames, o, settings)
     state = job.per_camera(log, map_tasks)
     count = state.count
     if not count:
-        raise ValueError(f"trial {trial!r}: no frames to register after the first clap (stride {stride})")
-    bounds = chunk_bounds(count, chunk_frames)
+        raise ValueError(f"trial {trial!r}: no frames to register after the first clap (stride {o.stride})")
+    bounds = chunk_bounds(count, o.chunk_frames)
     if map_tasks is not None and len(bounds) > 1:  # chunks are independent: register them as tasks, saved
         todo = [k for k, (a, b) in enumerate(bounds) if _saved_summary(job.chunk_path(k), settings, [a, b]) is None]
         if todo:
@@ -227,22 +262,18 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
     store = write_store(out / trial / "correspondences", parts())
     shutil.rmtree(out / trial / "progress", ignore_errors=True)  # the trial is saved: its progress is not needed
     reg = store.registered
-    report = {"trial": trial, "first_clap_frames": starts.tolist(), "stride": stride,
+    report = {"trial": trial, "first_clap_frames": starts.tolist(), "stride": o.stride,
               "frames": int(reg.shape[0]), "cameras": list(capture.camera_names),
               "registered_fraction": float(reg.mean()) if reg.size else 0.0,
               "registered_per_camera": reg.mean(axis=0).tolist(),
-              "chunk_frames": chunk_frames}
-    report["registration"] = registration
-    report["max_measurements"] = max_measurements
-    report["points"] = points
+              "chunk_frames": o.chunk_frames}
+    report["registration"] = o.registration
+    report["max_measurements"] = o.max_measurements
+    report["points"] = o.points
     from .rolling_shutter import gyro_fingerprint
 
-    report["settings"] = trial_settings(stride=stride, frames=requested_frames, max_features=max_features,
-                                        homographies=homographies, chunk_frames=chunk_frames,
-                                        registration=registration, max_measurements=max_measurements, points=points,
-                                        rolling_shutter_readout=rolling_shutter_readout,
-                                        gyro=gyro_fingerprint(capture, trial) if rolling_shutter_readout > 0 else None
-                                        ) | (extra_settings or {})
+    gyro = gyro_fingerprint(capture, trial) if o.rolling_shutter_readout > 0 else None
+    report["settings"] = o.saved_settings(gyro) | (extra_settings or {})
     for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
                 "tracked_after_rounds", "points", "new_points", "filled_by_homographies", "homography_pairs"):
         report[key] = int(sum(c.get(key, 0) for c in chunks))
@@ -261,8 +292,8 @@ def process_trial(capture, index, trial: str, out, *, stride: int = 1, frames: i
 def trial_settings(*, stride: int, frames: int | None, max_features: int, homographies: bool, chunk_frames: int,
                    registration: str, max_measurements: int | None, points: str = "all",
                    rolling_shutter_readout: float = 0.0, gyro: str | None = None) -> dict:
-    """The settings of :func:`process_trial` that its result depends on, as saved in ``registration.json``
-    (``"settings"``): a saved registration is reused only when they are all the same."""
+    """The settings of :func:`process_trial` that its result depends on (:class:`TrialOptions`' fields), as saved in
+    ``registration.json`` (``"settings"``): a saved registration is reused only when they are all the same."""
     from .tracking import ROUND_PARTNERS
 
     return {"stride": int(stride), "frames": None if frames is None else int(frames), "max_features": int(max_features),
@@ -276,7 +307,7 @@ def trial_settings(*, stride: int, frames: int | None, max_features: int, homogr
 
 @dataclasses.dataclass(frozen=True)
 class _PerCamera:
-    """What :meth:`TrialRegistration.per_camera` found: SIFT of every frame (global registration) or the
+    """What :meth:`TrialRegistrationJob.per_camera` found: SIFT of every frame (global registration) or the
     camera tracks and their keyframe SIFT (tracking), and the frames every camera has."""
 
     count: int
@@ -287,23 +318,48 @@ class _PerCamera:
 
 
 @dataclasses.dataclass(frozen=True)
-class TrialRegistration:
+class _ChunkInputs:
+    """What the registration of one chunk of processed frames starts from (:meth:`TrialRegistrationJob._chunk_inputs`,
+    for :func:`_register_frames`).
+
+    Attributes:
+        features: ``features[t][c] = (keypoints (N, 2), descriptors (M ≤ N, 128))`` of the chunk's frames.
+        initial: ``initial[t][c] = (world_from_camera (7,), point_ids (N,), how)``: their registration by tracking
+            (:func:`~.tracking.tracking_states`), or None (global registration: absolute registration first).
+        initial_points: ``{id: (3,) position}`` of the points ``initial`` observes besides the reference's, or None.
+        leave: ``(T, C)`` bool, the frames the rounds skip, or None.
+        after_rounds: ``after_rounds(result, progress) → (result, count)`` registers frames after the rounds
+            (before the homographies), or None.
+    """
+
+    features: list
+    initial: list | None = None
+    initial_points: dict | None = None
+    leave: object = None
+    after_rounds: Callable | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class TrialRegistrationJob:
     """The registration of one trial after sync, split into what a cluster can run as tasks: each camera's
     SIFT or tracking (:meth:`per_camera`), then each chunk of frames (:meth:`register_chunk`). Holds paths
-    and small values only (it is pickled into every task); what a task makes is written under ``out``."""
+    and small values only (it is pickled into every task); what a task makes is written under ``out``.
+
+    Attributes:
+        capture, index: the capture (:class:`~.capture.Capture`) and its reference index
+            (:func:`~.register.reference_index`); trial: its name; out: the output folder.
+        starts: ``(C,)`` int64, each camera's first clap frame.
+        num_frames: frames per camera from the first clap (the video frames, before ``options.stride``).
+        options: how it is registered; settings: what the chunks are saved with (reused only with the same).
+    """
 
     capture: object
     index: object
     trial: str
     out: Path
-    starts: object  # (C,) int64: each camera's first clap frame
-    frames: int
-    stride: int
-    max_features: int
-    homographies: bool
-    registration: str
-    max_measurements: int | None
-    points: str
+    starts: object
+    num_frames: int
+    options: TrialOptions
     settings: dict
 
     def chunk_path(self, k: int) -> Path:
@@ -319,17 +375,17 @@ class TrialRegistration:
         from .relative import extract_trial_features
         from .tracking import TrackingOptions, track_trial
 
-        trial = self.trial
-        if self.registration == "global":
-            features = extract_trial_features(self.capture, trial, stride=self.stride, starts=self.starts,
-                                              num_frames=self.frames, max_features=self.max_features,
+        trial, o = self.trial, self.options
+        if o.registration == "global":
+            features = extract_trial_features(self.capture, trial, stride=o.stride, starts=self.starts,
+                                              num_frames=self.num_frames, max_features=o.max_features,
                                               cache_dir=self.out / "features" / trial,
                                               progress=_progress(f"{trial} features") if progress else None,
                                               map_tasks=map_tasks)
             return _PerCamera(len(features), features=features)
-        options = TrackingOptions(registration=RegistrationOptions(max_features=self.max_features))
+        options = TrackingOptions(registration=RegistrationOptions(max_features=o.max_features))
         tracks, keyframe_features = track_trial(self.capture, trial, self.index, starts=self.starts,
-                                                num_frames=self.frames, stride=self.stride, options=options,
+                                                num_frames=self.num_frames, stride=o.stride, options=options,
                                                 cache_dir=self.out / "tracks" / trial,
                                                 progress=_progress(f"{trial} tracking") if progress else None,
                                                 map_tasks=map_tasks)
@@ -340,17 +396,17 @@ class TrialRegistration:
                 f"({sum(int(t.keyframe[:count].sum()) for t in tracks)} keyframes)")
         return _PerCamera(count, tracks=tracks, keyframe_features=keyframe_features, options=options)
 
-    def _chunk_inputs(self, state: _PerCamera, a: int, b: int, progress_dir: Path, log):
-        """``(features, initial, points, leave, after_rounds)`` of the processed frames ``a … b − 1`` for
-        :func:`_register_frames`."""
+    def _chunk_inputs(self, state: _PerCamera, a: int, b: int, progress_dir: Path, log) -> _ChunkInputs:
+        """What the registration of the processed frames ``a … b − 1`` starts from."""
         from .tracking import rounds_for_the_rest, sift_for_homographies, states_for_rounds, track_after_rounds
 
         if state.tracks is None:
-            return state.features[a:b], None, None, None, None
-        capture, trial, starts, stride, options = self.capture, self.trial, self.starts, self.stride, state.options
-        *inputs, leave, partners = states_for_rounds(capture, trial, state.tracks, state.keyframe_features,
-                                                     self.index, starts=starts, stride=stride, first=a, stop=b,
-                                                     options=options, log=log)
+            return _ChunkInputs(state.features[a:b])
+        capture, trial, starts, options = self.capture, self.trial, self.starts, state.options
+        stride, max_features = self.options.stride, self.options.max_features
+        features, initial, points, leave, partners = states_for_rounds(
+            capture, trial, state.tracks, state.keyframe_features, self.index, starts=starts, stride=stride, first=a,
+            stop=b, options=options, log=log)
 
         def after_rounds(result, progress):
             """The frames the rounds left: tracked from theirs, a second pass for the rest, SIFT for the
@@ -358,16 +414,16 @@ class TrialRegistration:
             filled = track_after_rounds(capture, trial, result, starts=starts, stride=stride, first=a, options=options)
             rest = int((leave & ~result.registered).sum())
             result = rounds_for_the_rest(capture, trial, result, leave, partners, self.index, starts=starts,
-                                         stride=stride, first=a, max_features=self.max_features, progress=progress,
+                                         stride=stride, first=a, max_features=max_features, progress=progress,
                                          checkpoint=_checkpoint(progress_dir, "rest", self.settings, [a, b]))
             extracted = sift_for_homographies(capture, trial, result, leave, starts=starts, stride=stride, first=a,
-                                              max_features=self.max_features) if self.homographies else 0
+                                              max_features=max_features) if self.options.homographies else 0
             log(f"{trial}: frames {a}-{b - 1}: of the {int(leave.sum())} frames the rounds left, {filled} tracked "
                 f"from the frames they registered, {rest - int((leave & ~result.registered).sum())} of the {rest} "
                 f"others in a second pass; SIFT of {extracted} frames for the homographies")
             return result, filled
 
-        return (*inputs, leave, after_rounds)
+        return _ChunkInputs(features, initial, points, leave, after_rounds)
 
     def register_chunk(self, state: _PerCamera, k: int, a: int, b: int, label: str, log=print, save: bool = True,
                        progress: bool = True):
@@ -375,10 +431,9 @@ class TrialRegistration:
         written to :meth:`chunk_path` (its progress, saved as it goes under ``out/<trial>/progress/``, is
         then removed)."""
         progress_dir = self.out / self.trial / "progress" / f"{k:04d}"
-        part, summary = _register_frames(*self._chunk_inputs(state, a, b, progress_dir, log), a, self.capture,
-                                         self.index, self.stride, self.homographies, label, self.max_measurements,
-                                         self.points, checkpoint=_checkpoint(progress_dir, "rounds", self.settings,
-                                                                             [a, b]), progress=progress)
+        part, summary = _register_frames(self, self._chunk_inputs(state, a, b, progress_dir, log), a, label,
+                                         checkpoint=_checkpoint(progress_dir, "rounds", self.settings, [a, b]),
+                                         progress=progress)
         summary = {"frames": [a, b], "settings": self.settings, **summary}
         if save:
             saved = self.chunk_path(k)
@@ -388,7 +443,7 @@ class TrialRegistration:
         return part, summary
 
 
-def _chunk_task(job: TrialRegistration, bounds: list, k: int) -> list[str]:
+def _chunk_task(job: TrialRegistrationJob, bounds: list, k: int) -> list[str]:
     """A task on a cluster: register and save chunk ``k`` of ``job`` (the per-camera work is read from its
     caches); returns the log lines it wrote."""
     lines: list[str] = []
@@ -441,15 +496,14 @@ def _checkpoint(folder, stage: str, settings: dict, frames: list[int]):
                                                    "version": SETTINGS_VERSION})
 
 
-def _register_frames(features, initial, initial_points, leave, after_rounds, first: int, capture, index, stride: int,
-                     homographies: bool, label: str, max_measurements: int | None, points: str = "all",
-                     checkpoint=None, progress: bool = True):
-    """Registration (from ``initial`` when given, :func:`~.relative.register_capture`) and homographies of the
-    processed frames ``first … first + len(features) − 1``: ``(Correspondences, summary)``; the registration's
-    points and tracks are released on return. The rounds skip the frames in ``leave`` ((T, C) bool or None);
-    ``after_rounds(result, progress) → (result, count)``, when given, registers frames after them (before the
-    homographies). ``checkpoint`` (a :class:`~.relative.RegistrationCheckpoint`) saves the registration's
-    progress, and a rerun continues from it."""
+def _register_frames(job: TrialRegistrationJob, inputs: _ChunkInputs, first: int, label: str, checkpoint=None,
+                     progress: bool = True):
+    """Registration (from ``inputs.initial`` when given, :func:`~.relative.register_capture`) and homographies of
+    the processed frames ``first … first + len(inputs.features) − 1`` of ``job``'s trial: ``(Correspondences,
+    summary)``; the registration's points and tracks are released on return. The rounds skip the frames in
+    ``inputs.leave``; ``inputs.after_rounds``, when given, registers frames after them (before the homographies).
+    ``checkpoint`` (a :class:`~.relative.RegistrationCheckpoint`) saves the registration's progress, and a rerun
+    continues from it; ``label`` names the chunk in the progress lines, shown with ``progress``."""
     import numpy as np
 
     from .homography import fill_with_homographies
@@ -464,19 +518,21 @@ def _register_frames(features, initial, initial_points, leave, after_rounds, fir
         if show:
             stages.setdefault(stage, _progress(f"{label} {stage}"))(done, total)
 
+    capture, o, features = job.capture, job.options, inputs.features
     cameras = [c.intrinsics for c in capture.cameras]
     # After tracking, many frames may be left: only the pairs their new points come from are matched, and each
     # frame with fewer other cameras.
-    options = RelativeOptions() if initial is None else round_options()
-    result = register_capture(features, cameras, index, options, frames=(first + np.arange(len(features))) * stride,
-                              initial=initial, initial_points=initial_points, leave=leave, checkpoint=checkpoint,
+    options = RelativeOptions() if inputs.initial is None else round_options()
+    result = register_capture(features, cameras, job.index, options,
+                              frames=(first + np.arange(len(features))) * o.stride, initial=inputs.initial,
+                              initial_points=inputs.initial_points, leave=inputs.leave, checkpoint=checkpoint,
                               progress=progress)
     tracked_after = 0
-    if after_rounds is not None:
-        result, tracked_after = after_rounds(result, progress)
-    fill = fill_with_homographies(result, cameras) if homographies else None
-    corr = result.correspondences(fps=capture.fps / stride, homographies=fill, max_per_frame=max_measurements,
-                                  points=points)
+    if inputs.after_rounds is not None:
+        result, tracked_after = inputs.after_rounds(result, progress)
+    fill = fill_with_homographies(result, cameras) if o.homographies else None
+    corr = result.correspondences(fps=capture.fps / o.stride, homographies=fill, max_per_frame=o.max_measurements,
+                                  points=o.points)
     states = [s for row in result.states for s in row]
     summary = {"registered_absolute": sum(s.how == "absolute" for s in states),
                "registered_tracked": sum(s.how == "tracked" for s in states),
@@ -519,9 +575,9 @@ def run_frontend(args: argparse.Namespace) -> int:
     with locked_output(out):  # a second command on this --out is refused (bcmocap's main prints it)
         index = reference_index(prepare_reference(capture, out / "reference", log=lambda m: print(m, flush=True)))
         for trial in trials:
-            process_trial(capture, index, trial, out, stride=args.stride, frames=args.frames,
-                          max_features=args.max_features, offsets=offsets, chunk_frames=args.chunk_frames,
-                          registration=args.registration, max_measurements=args.max_measurements or None,
-                          points=args.points, rolling_shutter_readout=args.rolling_shutter_readout,
-                          log=lambda m: print(m, flush=True))
+            options = TrialOptions(stride=args.stride, frames=args.frames, max_features=args.max_features,
+                                   chunk_frames=args.chunk_frames, registration=args.registration,
+                                   max_measurements=args.max_measurements or None, points=args.points,
+                                   rolling_shutter_readout=args.rolling_shutter_readout)
+            process_trial(capture, index, trial, out, options, offsets=offsets, log=lambda m: print(m, flush=True))
     return 0

@@ -108,8 +108,9 @@ class FrameRegistration:
 
 @dataclasses.dataclass
 class TrialRegistration:
-    """``frames (T,)`` frame numbers, ``poses (T, 7)`` world_from_camera (NaN where not registered),
-    ``registered (T,)`` mask and the per-frame :class:`FrameRegistration` results."""
+    """One camera's frames of a trial, each registered on its own (:func:`register_trial`): ``frames (T,)`` frame
+    numbers, ``poses (T, 7)`` world_from_camera (NaN where not registered), ``registered (T,)`` mask and the
+    per-frame :class:`FrameRegistration` results."""
 
     frames: np.ndarray
     poses: np.ndarray

@@ -49,8 +49,8 @@ from .reference import DescriptorIndex, extract_sift, match_descriptors, uint8_d
 from .register import ReferenceIndex, RegistrationOptions, match_to_reference
 from .threads import default_threads
 
-__all__ = ["FrameState", "RelativeOptions", "CaptureRegistration", "CaptureRegistrar", "RegistrationCheckpoint",
-           "extract_trial_features", "register_features", "register_capture", "triangulate_rays"]
+__all__ = ["CameraFrameRegistration", "RelativeOptions", "CaptureRegistration", "CaptureRegistrar",
+           "RegistrationCheckpoint", "extract_trial_features", "register_features", "register_capture", "triangulate_rays"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,8 +96,9 @@ class RelativeOptions:
 
 
 @dataclasses.dataclass
-class FrameState:
-    """One frame of one camera.
+class CameraFrameRegistration:
+    """One frame of one camera as :func:`register_capture` holds it: its features, the 3D points they observe and
+    its pose as registration goes (:class:`~.register.FrameRegistration` is one absolute registration's result).
 
     Attributes:
         keypoints: ``(N, 2)`` SIFT keypoint pixels (then, after tracking, tracked measurements without a
@@ -127,7 +128,7 @@ class CaptureRegistration:
 
     Attributes:
         frames: ``(T,)`` frame numbers (per camera: ``frames + start offset`` of that camera).
-        states: ``states[t][c]`` :class:`FrameState`.
+        states: ``states[t][c]`` :class:`CameraFrameRegistration`.
         points: ``{point id: (3,) position}`` of the reference's and the new points.
         new_point_ids: ids of the points triangulated here.
         rounds: per round ``{"registered": frames registered, "new_points": points added}``.
@@ -578,7 +579,7 @@ class CaptureRegistrar:
         num_t, num_c: frames ``T`` and cameras ``C``.
         cams: ``(C,)`` ``pycolmap.Camera``; geo: their :class:`_Geometry`.
         options: the :class:`RelativeOptions`; reg: its ``registration`` thresholds; index: the reference index.
-        states: ``states[t][c]`` :class:`FrameState` (poses ``world_from_camera`` wxyz_xyz in the reference
+        states: ``states[t][c]`` :class:`CameraFrameRegistration` (poses ``world_from_camera`` wxyz_xyz in the reference
             model's frame, keypoints' point ids).
         points: ``{point id: (3,) position}`` of the reference's and the new points (its order orders later work).
         next_id: the id the next new point gets; new_ids: ids of the points triangulated here.
@@ -638,9 +639,10 @@ class CaptureRegistrar:
     def _frame_states(features: list, initial: list | None, num_c: int) -> list:
         """``states[t][c]`` of the features, unregistered, or registered where ``initial`` says so."""
         num_t = len(features)
-        states = [[FrameState(np.asarray(kp, np.float64).reshape(-1, 2),
-                              uint8_descriptors(d),
-                              np.full(len(kp), -1, np.int64), np.full(7, np.nan)) for kp, d in row] for row in features]
+        states = [[CameraFrameRegistration(np.asarray(kp, np.float64).reshape(-1, 2),
+                                           uint8_descriptors(d),
+                                           np.full(len(kp), -1, np.int64), np.full(7, np.nan)) for kp, d in row]
+                  for row in features]
         if initial is not None:
             if len(initial) != num_t or any(len(row) != num_c for row in initial):
                 raise ValueError(f"register_capture: initial must hold {num_t} frames of {num_c} cameras")

@@ -107,8 +107,8 @@ __all__ = [
     "TRIALS",
     "GroundTruth",
     "Manifest",
-    "MarkerTrajectories",
     "TrialTruth",
+    "TruthMarkers",
     "contacts_path",
     "ground_truth_dir",
     "imu_path",
@@ -448,8 +448,9 @@ def subject_record(topology: Iterable, measurements: Iterable[Mapping] = (), res
 
 
 @dataclasses.dataclass(frozen=True)
-class MarkerTrajectories:
-    """Vicon-style optical markers: a few per segment, offset from the bone onto the body's surface.
+class TruthMarkers:
+    """The studio's Vicon-style optical markers of a trial (ground truth): a few per segment, offset from the bone
+    onto the body's surface. (The marker pipeline's input is :class:`bcmocap.markers.MarkerTrajectories`.)
 
     Attributes:
         names: ``(M,)`` marker names; segments ``(M,)`` segment index of each marker.
@@ -494,7 +495,7 @@ class TrialTruth:
     clap_frames: np.ndarray
     clap_samples: np.ndarray
     audio_gain: np.ndarray
-    markers: MarkerTrajectories
+    markers: TruthMarkers
     fps: float
     audio_rate: int
     world_from_mount: np.ndarray
@@ -570,8 +571,8 @@ def read_trial_truth(folder: str | os.PathLike, trial: str) -> TrialTruth:
             clap_frames=d["clap_frames"],
             clap_samples=d["clap_samples"],
             audio_gain=d["audio_gain"],
-            markers=MarkerTrajectories(tuple(str(x) for x in d["marker_names"]), d["marker_segments"],
-                                       d["marker_offsets"], d["markers"]),
+            markers=TruthMarkers(tuple(str(x) for x in d["marker_names"]), d["marker_segments"],
+                                 d["marker_offsets"], d["markers"]),
             fps=float(d["fps"]),
             audio_rate=int(d["audio_rate"]),
             # a capture written before mount wobble existed has rigid mounts

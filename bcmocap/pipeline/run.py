@@ -229,7 +229,7 @@ def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None 
     ``extra`` included): the trials' registration reports."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from ..frontend.command import prepare_reference, process_trial, trial_settings
+    from ..frontend.command import TrialOptions, prepare_reference, process_trial
     from ..frontend.register import reference_index
     from ..frontend.rolling_shutter import gyro_fingerprint
 
@@ -237,29 +237,25 @@ def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None 
     reports, todo = {}, []
     for trial, stride, homographies in (("rom", f.rom_stride, False), ("capture", f.stride, True)):
         done = folder / trial / "registration.json"
-        settings = trial_settings(stride=stride, frames=f.frames or None, max_features=f.max_features,
-                                  homographies=homographies, chunk_frames=f.chunk_frames, registration=f.registration,
-                                  max_measurements=f.max_measurements or None, points=f.points,
-                                  rolling_shutter_readout=f.rolling_shutter_readout,
-                                  gyro=gyro_fingerprint(capture, trial) if f.rolling_shutter_readout > 0 else None
-                                  ) | (extra or {})
+        options = TrialOptions(stride=stride, frames=f.frames or None, max_features=f.max_features,
+                               homographies=homographies, chunk_frames=f.chunk_frames, registration=f.registration,
+                               max_measurements=f.max_measurements or None, points=f.points,
+                               rolling_shutter_readout=f.rolling_shutter_readout)
+        gyro = gyro_fingerprint(capture, trial) if f.rolling_shutter_readout > 0 else None
+        settings = options.saved_settings(gyro) | (extra or {})
         if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
             report = read_json(done)
             if report.get("settings") == settings:
                 ctx.log(f"{trial}: registration found in {done}, reused")
                 reports[trial] = report
                 continue
-        todo.append((trial, stride, homographies))
+        todo.append((trial, options))
     if todo:
         index = reference_index(prepare_reference(capture, folder / "reference", log=ctx.log))
         map_tasks = ctx.executor.map if ctx.executor.distributed else None
 
-        def register(trial: str, stride: int, homographies: bool) -> dict:
-            return process_trial(capture, index, trial, folder, stride=stride, frames=f.frames or None,
-                                 max_features=f.max_features, homographies=homographies,
-                                 chunk_frames=f.chunk_frames, registration=f.registration,
-                                 max_measurements=f.max_measurements or None, points=f.points,
-                                 rolling_shutter_readout=f.rolling_shutter_readout, extra_settings=extra, log=ctx.log,
+        def register(trial: str, options: TrialOptions) -> dict:
+            return process_trial(capture, index, trial, folder, options=options, extra_settings=extra, log=ctx.log,
                                  map_tasks=map_tasks)
 
         with ThreadPoolExecutor(max_workers=len(todo) if map_tasks is not None else 1) as pool:

@@ -41,6 +41,7 @@ import dataclasses
 import functools
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -182,6 +183,138 @@ def camera_rays(camera: CameraModel, samples_per_pixel: int = 1) -> CameraRays:
     directions = np.stack([np.moveaxis(d, -1, 0) for d in dirs]).astype(np.float32)
     max_angle = float(np.arccos(np.clip(centre[..., 2][valid].min(), -1.0, 1.0))) if valid.any() else 0.0
     return CameraRays(directions, pixel_angle.astype(np.float32), valid, max_angle)
+
+
+# ---------------------------------------------------------------------------------------------
+# What the compiled renderer takes, grouped (made from a RenderOptions, a CameraRays and a batch of poses by
+# Renderer). Fields marked static are part of the compiled code (a new value compiles again); the others are
+# traced (any value runs the same compiled code).
+
+
+@dataclasses.dataclass(frozen=True)
+class _Appearance:
+    """How surfaces look (static, hashable: an argument of the jitted :func:`_render_batch`).
+
+    Attributes:
+        texture: the scene's procedural texture (:attr:`~bcmocap.sim.scene.TexturedScene.texture`).
+        light: unit direction towards the light, world frame (:attr:`RenderOptions.light` normalised).
+        ambient: share of the light that comes from everywhere, in [0, 1] (:attr:`RenderOptions.ambient`).
+    """
+
+    texture: TextureParams
+    light: tuple[float, float, float]
+    ambient: float
+
+
+class _Shader(eqx.Module):
+    """Everything a ray's colour depends on besides the ray and the body (built inside the jitted functions).
+
+    Attributes:
+        scene: the scene's float32 arrays (:func:`_scene_arrays`: room bounds and boxes in m, pillars
+            ``(x, y, radius)`` in m, material colours RGB in [0, 1]).
+        light: ``(3,)`` float32 unit direction towards the light (world frame).
+        one: a runtime int32 1 (see :func:`_materialize`).
+        texture: static: the procedural texture; ambient: static: the ambient share of the light, in [0, 1].
+    """
+
+    scene: dict
+    light: jax.Array
+    one: jax.Array
+    texture: TextureParams = eqx.field(static=True)
+    ambient: float = eqx.field(static=True)
+
+
+class _Body(eqx.Module):
+    """The body's capsules at one sub-exposure.
+
+    Attributes:
+        capsules: ``(K, 2, 3)`` end points (m, world frame); radii: ``(K,)`` m; colors: ``(K, 3)`` RGB in [0, 1].
+    """
+
+    capsules: jax.Array
+    radii: jax.Array
+    colors: jax.Array
+
+
+class _Frames(eqx.Module):
+    """A batch of frames to render (arguments of :func:`_render_batch`), or one frame of it (:func:`_render_rows`:
+    the per-frame fields without their leading ``F`` axis).
+
+    Attributes:
+        rotations: ``(F, S, R, 3, 3)`` float32 ``world_from_camera`` rotations per frame, sub-exposure and row
+            (``R`` = 1: all rows at once, or one per row).
+        origins: ``(F, S, R, 3)`` float32 camera centres (m, world frame).
+        capsules: ``(F, S, K, 2, 3)`` float32 body capsule end points (m, world frame).
+        radii: ``(K,)`` float32 capsule radii (m); colors: ``(K, 3)`` float32 RGB in [0, 1] (shared by the frames).
+        keys: ``(F,)`` uint32 seeds of each frame's sensor noise.
+        gains: ``(F, 3)`` float32 per-channel gains (exposure times white balance; used when
+            :attr:`_Sensor.photometric`).
+    """
+
+    rotations: jax.Array
+    origins: jax.Array
+    capsules: jax.Array
+    radii: jax.Array
+    colors: jax.Array
+    keys: jax.Array
+    gains: jax.Array
+
+
+class _Sensor(eqx.Module):
+    """How radiance becomes 8-bit levels (made from :class:`RenderOptions`; see the module docstring's Sensor).
+
+    Attributes:
+        noise_dn: float32 standard deviation of the read noise (8-bit levels); traced (one compilation for any
+            level; zero adds exactly 0).
+        shot_scale: float32 ``255 / full_scale_electrons``: the photon shot noise's variance per level
+            (levels² per level); traced.
+        photometric: static: apply the vignetting map and the frames' gains. Without it the code is the plain
+            render's (the same bytes as before these existed).
+        shot: static: add shot noise.
+    """
+
+    noise_dn: jax.Array
+    shot_scale: jax.Array
+    photometric: bool = eqx.field(static=True)
+    shot: bool = eqx.field(static=True)
+
+
+class _CameraPixels(eqx.Module):
+    """A camera's per-pixel arrays, padded to ``Hp`` rows (a multiple of ``rows``), on the device once.
+
+    Attributes:
+        rays: ``(N, 3, Hp, W)`` float32 unit rays (camera frame), ``N`` per pixel.
+        pixel_angle: ``(Hp, W)`` float32 size of a pixel (rad); valid: ``(Hp, W)`` bool, False outside the image.
+        vignette: ``(Hp, W)`` float32 share of light reaching each pixel (:func:`vignette_map`).
+        cones: ``(Hp / rows, 4)`` float32 per band of rows, the cone holding its rays (unit axis, camera frame;
+            half angle, rad).
+        rows: static: rows per band (the image is rendered band by band).
+    """
+
+    rays: jax.Array
+    pixel_angle: jax.Array
+    valid: jax.Array
+    vignette: jax.Array
+    cones: jax.Array
+    rows: int = eqx.field(static=True)
+
+
+class _Band(eqx.Module):
+    """One band of ``h`` rows of a camera's pixels, and what its rays may meet in the frames of a batch.
+
+    Attributes:
+        rays: ``(N, 3, h, W)``; pixel_angle, valid, vignette: ``(h, W)`` (as in :class:`_CameraPixels`).
+        row0: int32, its first row in the image.
+        box_active, capsule_active: ``(B,)``, ``(K,)`` bool: the boxes and capsules to test (see :func:`_band_flags`).
+    """
+
+    rays: jax.Array
+    pixel_angle: jax.Array
+    valid: jax.Array
+    vignette: jax.Array
+    row0: jax.Array
+    box_active: jax.Array
+    capsule_active: jax.Array
 
 
 # ---------------------------------------------------------------------------------------------
@@ -339,15 +472,19 @@ def _select(index: jax.Array, table: jax.Array) -> list[jax.Array]:
     return out
 
 
-def _shade_terms(scene: dict, texture: TextureParams, light: jax.Array, ambient: float, d, o, pixel_angle, capsules,
-                 radii, one, box_active=None, capsule_active=None) -> tuple:
+def _shade_terms(shader: _Shader, d, o, pixel_angle, body: _Body, box_active=None, capsule_active=None) -> tuple:
     """The pieces of a pixel's colour, each ``(H, W)``: ``(material, shade, t, body)``.
+
+    ``d``, ``o``: the rays' world directions and origins (3 arrays each); ``pixel_angle`` ``(H, W)`` rad;
+    ``box_active``, ``capsule_active``: the boxes and capsules to test (None: all).
 
     ``material`` indexes the scene's colours and ``shade`` scales it, ``t`` is the distance to the scene;
     ``body`` is None without capsules, else ``(hit, k, body_shade, t_body)``: where ``hit`` the pixel shows
     capsule ``k``'s colour times ``body_shade`` at distance ``t_body``. Both intersection keys are stored
     (:func:`_materialize`): ``material``, ``t``, ``k``, ``t_body`` are cheap to re-derive from them.
     """
+    scene, texture, light, ambient, one = shader.scene, shader.texture, shader.light, shader.ambient, shader.one
+    capsules, radii = body.capsules, body.radii
     num_boxes, num_pillars = scene["boxes"].shape[0], scene["pillars"].shape[0]
     t, ident = _unpack(_materialize(_trace_scene(scene, d, o, box_active), one), _scene_bits(6 + num_boxes + num_pillars))
     material, kind = ident >> 2, ident & 3
@@ -386,20 +523,20 @@ def _shade_terms(scene: dict, texture: TextureParams, light: jax.Array, ambient:
     return material, shade, t, (body, k, body_shade, t_body)
 
 
-def _shade(scene: dict, texture: TextureParams, light: jax.Array, ambient: float, d, o, pixel_angle,
-           capsules, radii, cap_colors, one, box_active=None, capsule_active=None) -> tuple[list[jax.Array], jax.Array]:
-    """``([r, g, b], depth)``: colour in [0, 1] and distance along the ray, each ``(H, W)``, one ray per pixel.
+def _shade(shader: _Shader, d, o, pixel_angle, body: _Body, box_active=None,
+           capsule_active=None) -> tuple[list[jax.Array], jax.Array]:
+    """``([r, g, b], depth)``: colour in [0, 1] and distance along the ray, each ``(H, W)``, one ray per pixel
+    (arguments as :func:`_shade_terms`'s).
 
     Written as one chain of element-wise operations from rays to colour, with no gather or reduction,
     so that XLA compiles it into a single loop over pixels (every intermediate computed once).
     """
-    material, shade, t, body = _shade_terms(scene, texture, light, ambient, d, o, pixel_angle, capsules, radii, one,
-                                            box_active, capsule_active)
-    rgb = [c * shade for c in _select(material, scene["colors"])]
+    material, shade, t, hit_body = _shade_terms(shader, d, o, pixel_angle, body, box_active, capsule_active)
+    rgb = [c * shade for c in _select(material, shader.scene["colors"])]
     depth = t
-    if body is not None:
-        hit, k, body_shade, t_body = body
-        color = _select(k, cap_colors)
+    if hit_body is not None:
+        hit, k, body_shade, t_body = hit_body
+        color = _select(k, body.colors)
         rgb = [jnp.where(hit, color[c] * body_shade, rgb[c]) for c in range(3)]
         depth = jnp.where(hit, t_body, t)
     return rgb, depth
@@ -410,9 +547,9 @@ def _materialize_f32(x: jax.Array, one: jax.Array) -> jax.Array:
     return jax.lax.bitcast_convert_type(_materialize(jax.lax.bitcast_convert_type(x, jnp.int32), one), _F32)
 
 
-def _shade_sum(scene, texture, light, ambient, pixel_angle, box_active, capsule_active, rays, rotations, origins,
-               capsules, radii, cap_colors, one) -> list[jax.Array]:
-    """Sum of the colours ``[r, g, b]`` ``(h, W)`` of all rays (``rays`` ``(N, 3, h, W)``) at all sub-exposures.
+def _shade_sum(shader: _Shader, band: _Band, frame: _Frames) -> list[jax.Array]:
+    """Sum of the colours ``[r, g, b]`` ``(h, W)`` of all the band's rays (``(N, 3, h, W)``) at all sub-exposures
+    of one frame.
 
     Sub-exposure ``s`` and ray ``n`` are summed in the order ``s * N + n`` (the order of a plain double
     loop), by a ``fori_loop``. One step stores the intersection keys and the pixel's scalar shade (surface
@@ -421,6 +558,8 @@ def _shade_sum(scene, texture, light, ambient, pixel_angle, box_active, capsule_
     rounding: about 1e-5 of the bytes differ by a level), but XLA compiles one small vectorised step instead
     of a fused loop holding every sample's texture (5-8x slower per sample, and a long compilation).
     """
+    rays, pixel_angle, box_active, capsule_active = band.rays, band.pixel_angle, band.box_active, band.capsule_active
+    rotations, origins, capsules = frame.rotations, frame.origins, frame.capsules
     num_rays = rays.shape[0]
     num_samples = rotations.shape[0] * num_rays
 
@@ -431,14 +570,14 @@ def _shade_sum(scene, texture, light, ambient, pixel_angle, box_active, capsule_
         ray = rays[0] if num_rays == 1 else jax.lax.dynamic_index_in_dim(rays, n, keepdims=False)
         caps = jax.lax.dynamic_index_in_dim(capsules, s, keepdims=False)
         d = _world_rays(ray, rot)
-        material, shade, _, body = _shade_terms(scene, texture, light, ambient, d, o, pixel_angle, caps, radii, one,
+        material, shade, _, body = _shade_terms(shader, d, o, pixel_angle, _Body(caps, frame.radii, frame.colors),
                                                 box_active, capsule_active)
-        color = _select(material, scene["colors"])
+        color = _select(material, shader.scene["colors"])
         if body is not None:
             hit, k, body_shade, _ = body
             shade = jnp.where(hit, body_shade, shade)
-            color = [jnp.where(hit, a, b) for a, b in zip(_select(k, cap_colors), color)]
-        shade = _materialize_f32(shade, one)
+            color = [jnp.where(hit, a, b) for a, b in zip(_select(k, frame.colors), color)]
+        shade = _materialize_f32(shade, shader.one)
         return tuple(acc[c] + color[c] * shade for c in range(3))
 
     zero = jnp.zeros(pixel_angle.shape, _F32)
@@ -480,29 +619,28 @@ def _band_flags(scene, cone, rotations, origins, capsules, radii):
     return boxes.any(axis=0), capsules_seen.any(axis=0)
 
 
-def _render_rows(scene, texture, light, ambient, noise_dn, shot_scale, one, width, photometric, shot, rays, pixel_angle,
-                 valid, vignette, row0, box_active, capsule_active, rotations, origins, capsules, radii, cap_colors, key,
-                 gains):
+def _render_rows(shader: _Shader, sensor: _Sensor, band: _Band, frame: _Frames) -> jax.Array:
     """A band of rows of one frame → uint8 ``(h, W, 3)``.
 
     Args:
-        photometric, shot: static: apply ``vignette`` and ``gains``; add shot noise (``shot_scale`` = 255 /
-            full-scale electrons). Without them the code is the plain render's (the same bytes as before).
-        rays: ``(N, 3, h, W)`` camera rays of the band; pixel_angle, valid, vignette ``(h, W)``; row0 its first row.
-        gains: ``(3,)`` the frame's per-channel gains.
-        box_active, capsule_active: ``(B,)``, ``(K,)`` boxes and capsules to test (see :func:`_band_flags`).
-        rotations: ``(S, r, 3, 3)``, origins ``(S, r, 3)`` with ``r`` = 1 (all rows) or ``h`` (per row).
-        capsules: ``(S, K, 2, 3)``.
+        shader: the scene and its lighting; sensor: noise, and whether to apply the band's ``vignette`` and the
+            frame's ``gains``.
+        band: the band's rays and pixel arrays, its first row and the boxes and capsules to test.
+        frame: one frame: rotations ``(S, r, 3, 3)``, origins ``(S, r, 3)`` with ``r`` = 1 (all rows) or ``h``
+            (per row), capsules ``(S, K, 2, 3)``, its noise ``keys`` (a scalar) and ``gains`` ``(3,)``.
 
     The channels are packed into one uint32 per pixel so that the band is one fused loop.
     """
+    rays, pixel_angle, rotations, origins = band.rays, band.pixel_angle, frame.rotations, frame.origins
+    noise_dn, shot_scale, photometric, shot = sensor.noise_dn, sensor.shot_scale, sensor.photometric, sensor.shot
+    valid, vignette, row0, key, gains = band.valid, band.vignette, band.row0, frame.keys, frame.gains
+    width = rays.shape[-1]
     if rotations.shape[0] * rays.shape[0] == 1:  # one ray per pixel, one exposure: a single fused loop
         o = tuple(origins[0, :, i][:, None] for i in range(3))
-        acc, _ = _shade(scene, texture, light, ambient, _world_rays(rays[0], rotations[0]), o, pixel_angle,
-                        capsules[0], radii, cap_colors, one, box_active, capsule_active)
+        acc, _ = _shade(shader, _world_rays(rays[0], rotations[0]), o, pixel_angle,
+                        _Body(frame.capsules[0], frame.radii, frame.colors), band.box_active, band.capsule_active)
     else:
-        acc = _shade_sum(scene, texture, light, ambient, pixel_angle, box_active, capsule_active, rays, rotations,
-                         origins, capsules, radii, cap_colors, one)
+        acc = _shade_sum(shader, band, frame)
     scale = 255.0 / (rotations.shape[0] * rays.shape[0])
     h = pixel_angle.shape[0]
     packed = jnp.zeros(pixel_angle.shape, jnp.uint32)
@@ -532,17 +670,22 @@ def _hash_uniform(idx: jax.Array, key: jax.Array) -> jax.Array:
     return (h >> 8).astype(_F32) * _F32(1.0 / (1 << 24))
 
 
-@functools.partial(jax.jit, static_argnames=("texture", "light", "ambient", "rows", "photometric", "shot"))
-def _render_batch(scene, rays, pixel_angle, valid, cones, rotations, origins, capsules, radii, cap_colors, keys, one,
-                  noise_dn, vignette, gains, shot_scale, *, texture, light, ambient, rows, photometric=False, shot=False):
-    """Frames ``(F, Hp, W, 3)`` uint8 from rays padded to ``Hp`` rows, a multiple of ``rows``.
+@functools.partial(jax.jit, static_argnames=("appearance",))
+def _render_batch(scene: dict, one, pixels: _CameraPixels, frames: _Frames, sensor: _Sensor, *,
+                  appearance: _Appearance):
+    """Frames ``(F, Hp, W, 3)`` uint8 from a camera's pixels padded to ``Hp`` rows, a multiple of ``pixels.rows``.
+
+    ``scene``: :func:`_scene_arrays`; ``one``: a runtime int32 1 (:func:`_materialize`).
 
     The image is rendered band by band of ``rows`` rows (``lax.map``), all frames of the batch at once
     (``vmap``): the few arrays XLA stores between its fused loops stay in cache, and a band skips the
-    boxes and capsules outside its cone of rays (``cones`` ``(bands, 4)``) in every frame of the batch
+    boxes and capsules outside its cone of rays (``pixels.cones`` ``(bands, 4)``) in every frame of the batch
     (a real branch: the flags are shared by the vmapped frames).
     """
-    light_arr = jnp.asarray(light, _F32)
+    shader = _Shader(scene, jnp.asarray(appearance.light, _F32), one, appearance.texture, appearance.ambient)
+    rays, pixel_angle, valid, vignette, cones, rows = (pixels.rays, pixels.pixel_angle, pixels.valid, pixels.vignette,
+                                                       pixels.cones, pixels.rows)
+    rotations, origins, capsules, radii = frames.rotations, frames.origins, frames.capsules, frames.radii
     n, _, hp, w = rays.shape
     bands = hp // rows
     per_row = rotations.shape[2] != 1
@@ -558,15 +701,14 @@ def _render_batch(scene, rays, pixel_angle, valid, cones, rotations, origins, ca
     else:
         band_rot = jnp.broadcast_to(rotations, (bands, *rotations.shape))
         band_org = jnp.broadcast_to(origins, (bands, *origins.shape))
-    draw = functools.partial(_render_rows, scene, texture, light_arr, ambient, noise_dn, shot_scale, one, w, photometric,
-                             shot)
 
     def band(args):
         b_rays, b_angle, b_valid, b_vignette, b_row0, cone, rot, org = args
         box_active, capsule_active = _band_flags(scene, cone, rot, org, capsules, radii)
-        return jax.vmap(lambda r, o, c, k, g: draw(b_rays, b_angle, b_valid, b_vignette, b_row0, box_active,
-                                                   capsule_active, r, o, c, radii, cap_colors, k, g))(
-            rot, org, capsules, keys, gains)
+        strip = _Band(b_rays, b_angle, b_valid, b_vignette, b_row0, box_active, capsule_active)
+        return jax.vmap(lambda r, o, c, k, g: _render_rows(shader, sensor, strip,
+                                                           _Frames(r, o, c, radii, frames.colors, k, g)))(
+            rot, org, capsules, frames.keys, frames.gains)
 
     out = jax.lax.map(band, (band_rays, band_angle, band_valid, band_vignette, row0, cones, band_rot, band_org))
     return out.transpose(1, 0, 2, 3, 4).reshape(-1, hp, w, 3)
@@ -576,9 +718,9 @@ def _render_batch(scene, rays, pixel_angle, valid, cones, rotations, origins, ca
 def _depth(scene, rays, rotation, origin, capsules, radii, one):
     o = tuple(origin[i][None, None] for i in range(3))
     d = _world_rays(rays, rotation[None])
-    texture = TextureParams(octaves=1)
-    _, depth = _shade(scene, texture, jnp.zeros(3, _F32), 1.0, d, o, jnp.ones(rays.shape[1:], _F32),
-                      capsules, radii, jnp.ones((capsules.shape[0], 3), _F32), one)
+    shader = _Shader(scene, jnp.zeros(3, _F32), one, TextureParams(octaves=1), 1.0)
+    _, depth = _shade(shader, d, o, jnp.ones(rays.shape[1:], _F32),
+                      _Body(capsules, radii, jnp.ones((capsules.shape[0], 3), _F32)))
     if capsules.shape[0]:
         t_body, _ = _unpack(_trace_capsules(capsules, radii, d, o), _capsule_bits(capsules.shape[0]))
         return depth, t_body <= depth
@@ -685,14 +827,17 @@ class Renderer:
         self._rows = max(1, min(h, _BAND_PIXELS // w))
         pad = -h % self._rows
         edge = ((0, 0),) * 2 + ((0, pad), (0, 0))
-        self._dev_rays = jnp.asarray(np.pad(self.rays.directions, edge, mode="edge"))
-        self._pixel_angle = jnp.asarray(np.pad(self.rays.pixel_angle, ((0, pad), (0, 0)), mode="edge"))
-        self._valid = jnp.asarray(np.pad(self.rays.valid, ((0, pad), (0, 0))))
         self.vignette = vignette_map(self.rays, options.vignetting)
-        self._vignette = jnp.asarray(np.pad(self.vignette, ((0, pad), (0, 0)), mode="edge"))
+        self._pixels = _CameraPixels(
+            rays=jnp.asarray(np.pad(self.rays.directions, edge, mode="edge")),
+            pixel_angle=jnp.asarray(np.pad(self.rays.pixel_angle, ((0, pad), (0, 0)), mode="edge")),
+            valid=jnp.asarray(np.pad(self.rays.valid, ((0, pad), (0, 0)))),
+            vignette=jnp.asarray(np.pad(self.vignette, ((0, pad), (0, 0)), mode="edge")),
+            cones=jnp.asarray(_band_cones(self.rays, self._rows)),
+            rows=self._rows,
+        )
         self._dev_rays_first = jnp.asarray(self.rays.directions[0])
         self._pad = pad
-        self._cones = jnp.asarray(_band_cones(self.rays, self._rows))
 
     def poses_at(self, world_from_camera: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per sub-exposure and row poses of ``frames`` ``(B,)``: rotations ``(B, S, R, 3, 3)``, origins ``(B, S, R, 3)``."""
@@ -749,11 +894,13 @@ class Renderer:
             origins = np.pad(origins, ((0, 0), (0, 0), (0, self._pad), (0, 0)), mode="edge")
         opt = self.options
         shot = opt.full_scale_electrons > 0
-        out = _render_batch(self._scene, self._dev_rays, self._pixel_angle, self._valid, self._cones, rotations, origins, caps,
-                            radii, colors, keys, _ONE, np.float32(opt.noise_dn), self._vignette, gains,
-                            np.float32(255.0 / opt.full_scale_electrons if shot else 0.0), texture=self.scene.texture,
-                            light=tuple(float(x) for x in np.asarray(opt.light) / np.linalg.norm(opt.light)),
-                            ambient=float(opt.ambient), rows=self._rows, photometric=photometric, shot=shot)
+        sensor = _Sensor(np.float32(opt.noise_dn), np.float32(255.0 / opt.full_scale_electrons if shot else 0.0),
+                         photometric=photometric, shot=shot)
+        appearance = _Appearance(self.scene.texture,
+                                 tuple(float(x) for x in np.asarray(opt.light) / np.linalg.norm(opt.light)),
+                                 float(opt.ambient))
+        frames = _Frames(rotations, origins, caps, radii, colors, keys, gains)
+        out = _render_batch(self._scene, _ONE, self._pixels, frames, sensor, appearance=appearance)
         return np.asarray(out)[:, : self.rays.height]
 
     def depth(self, rotation: np.ndarray, origin: np.ndarray, capsules: np.ndarray | None = None,

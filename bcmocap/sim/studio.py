@@ -71,7 +71,7 @@ from ..io.capture_folder import (
     CAPTURE_VERSION,
     TRIALS,
     GroundTruth,
-    MarkerTrajectories,
+    TruthMarkers,
     ground_truth_dir,
     intrinsics_dir,
     intrinsics_path,
@@ -528,7 +528,7 @@ def _marker_layout(skeleton: Skeleton, per_segment: int, rng: np.random.Generato
 
 def _simulate_markers(skeleton: Skeleton, motion: Motion, fps: float, per_segment: int, rng: np.random.Generator,
                       noise_m: float = 0.001, gaps_per_second: float = 0.3,
-                      gap_frames: tuple[int, int] = (3, 30)) -> MarkerTrajectories:
+                      gap_frames: tuple[int, int] = (3, 30)) -> TruthMarkers:
     names, segments, offsets = _marker_layout(skeleton, per_segment, rng)
     world = SE3(np.asarray(forward_kinematics(skeleton, motion).wxyz_xyz)[:, segments])
     positions = np.asarray(world @ offsets[None]) + rng.normal(scale=noise_m, size=(motion.num_frames, len(names), 3))
@@ -538,7 +538,7 @@ def _simulate_markers(skeleton: Skeleton, motion: Motion, fps: float, per_segmen
             length = rng.integers(gap_frames[0], gap_frames[1] + 1)
             start = rng.integers(0, num_frames)
             positions[start: start + length, m] = np.nan
-    return MarkerTrajectories(names, segments, offsets, positions)
+    return TruthMarkers(names, segments, offsets, positions)
 
 
 def _timeline(num_frames: int, num_cameras: int, fps: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
