@@ -117,3 +117,23 @@ def test_frames_with_static_variables_reach_scipys_joint_minimum(seed):
     assert bool(report.converged)
     np.testing.assert_allclose(np.asarray(u)[:, 0], ref[:w], atol=1e-8)
     np.testing.assert_allclose(np.asarray(z), ref[w:], atol=1e-8)
+
+
+def test_vmapped_bordered_problems_each_keep_their_own_damping_and_minimum():
+    """Frames with no bands bordered by static variables, several problems under ``jax.vmap`` (as the re-fit of
+    registered poses solves its cameras): each reaches scipy's joint minimum of its own problem, with its own
+    number of accepted steps."""
+    rng = np.random.default_rng(3)
+    w, k = 10, 3
+    u_true = rng.uniform(-1.0, 1.0, (k, w))
+    scale = np.array([0.8, 0.2, 1.5])[:, None]
+    obs = jnp.asarray(np.stack([u_true, np.exp(scale * u_true) - 0.3], axis=2) + 0.05 * rng.normal(size=(k, w, 2)))
+    v0 = (jnp.zeros((k, w, 1)), jnp.zeros((k, 2)))
+    solve = lambda o, v: levenberg_marquardt(_arrow_residual, eqx.Partial(_arrow_system, o), v, o, rtol=1e-10, atol=1e-12)
+    (u, z), report = jax.jit(jax.vmap(solve))(obs, v0)
+    assert np.all(np.asarray(report.converged))
+    for i in range(k):
+        flat = lambda p, i=i: np.asarray(_arrow_residual((p[:w, None], p[w:]), obs[i])).reshape(-1)
+        ref = least_squares(flat, np.zeros(w + 2), xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+        np.testing.assert_allclose(np.asarray(u)[i, :, 0], ref[:w], atol=1e-8)
+        np.testing.assert_allclose(np.asarray(z)[i], ref[w:], atol=1e-8)

@@ -4,14 +4,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import fov_camera
 
 from bcmocap.cameras import stack_cameras
 from bcmocap.correspondences import Correspondences
 from bcmocap.geometry import SE3
+from bcmocap.residuals.losses import CauchyLoss, TrivialLoss
 from bcmocap.residuals.self_calibration import corrected_camera
-from bcmocap.solver.registered_poses import (PoseRefinementOptions, _frame_system, _measurement_residual,
-                                             camera_velocities, refine_registered_poses, refine_trials)
-from conftest import fov_camera
+from bcmocap.solver.registered_poses import (
+    CameraSequence,
+    PoseRefinementOptions,
+    camera_velocities,
+    refine_registered_poses,
+    refine_trials,
+    sequence_normal_equations,
+    sequence_residuals,
+)
 
 T, C, N = 8, 2, 40
 #: per frame period, per camera: a left increment of cam_from_world (translation m, rotation rad)
@@ -122,27 +130,41 @@ def test_trials_share_the_intrinsics_correction():
     np.testing.assert_array_equal(alone.intrinsics_correction[1], 0.0)  # nothing calibrates camera 1 in trial 0
 
 
-def test_normal_equations_match_finite_differences():
-    """The pose columns of the chained Jacobian (projection × left increment) and the intrinsics columns agree with
-    central differences of the measurement residual."""
+@pytest.mark.parametrize("loss", [TrivialLoss(), CauchyLoss(2.0)])
+def test_normal_equations_match_finite_differences(loss):
+    """The normal equations one Levenberg–Marquardt solve steps with, at a point away from zero increments: the
+    gradient is the exact gradient of the cost (central differences), and without a robust loss the matrix is
+    JᵀJ of the residuals' central differences (pose columns chained through the world point, intrinsics columns
+    and the prior); with Cauchy's loss it is the IRLS model ``Σ ρ' JᵀJ``."""
     rng = np.random.default_rng(2)
     camera = fov_camera()
-    pose = SE3.exp(jnp.asarray(rng.normal(0, 0.2, 6)))
-    velocity, correction = jnp.asarray(VELOCITIES[0]), jnp.asarray([0.003, 0.7, -0.4])
-    uv = rng.uniform([10, 10], [150, 110], (12, 2))
-    points = pose.inverse().apply(camera.unproject(jnp.asarray(uv)) * 3.0)
-    pixels = jnp.asarray(uv + rng.normal(0, 1.5, uv.shape))
-    weights = jnp.asarray(rng.uniform(0.5, 2.0, 12))
-    h, g, _ = _frame_system(pose, velocity, correction, camera, points, pixels, weights, jnp.asarray(0.7), jnp.asarray(1e6))
-    base = jnp.concatenate([jnp.zeros(6), correction])
+    frames, n = 3, 12
+    poses = SE3.exp(jnp.asarray(rng.normal(0, 0.2, (frames, 6))))
+    uv = rng.uniform([10, 10], [150, 110], (frames, n, 2))
+    points = jax.vmap(lambda p, x: p.inverse().apply(x))(poses, camera.unproject(jnp.asarray(uv)) * 3.0)
+    problem = CameraSequence(
+        camera=camera, cam_from_world=poses.wxyz_xyz, velocity=jnp.asarray(np.tile(VELOCITIES[0], (frames, 1))),
+        readout=jnp.full(frames, 0.7), points=points, pixels=jnp.asarray(uv + rng.normal(0, 1.5, uv.shape)),
+        weights=jnp.asarray(rng.uniform(0.5, 2.0, (frames, n))), correction=jnp.zeros(3),
+        prior=jnp.asarray([10.0, 0.2, 0.2]), loss=loss, calibrate=True, block_frames=2)
+    y = (jnp.asarray(rng.normal(0, 0.01, (frames, 6))), jnp.asarray([0.003, 0.7, -0.4]))
+    flat = np.concatenate([np.asarray(y[0]).ravel(), np.asarray(y[1])])
+    unflat = lambda v: (jnp.asarray(v[:-3].reshape(frames, 6)), jnp.asarray(v[-3:]))
+    at = jax.jit(lambda d, k: jnp.concatenate([a.ravel() for a in jax.tree.leaves(sequence_residuals((d, k), problem))]))
+    residuals = lambda v: np.asarray(at(*unflat(v)))
     eps = 1e-6
-    jac = np.stack([(np.asarray(jax.vmap(lambda p, x: _measurement_residual(base + eps * e, pose, velocity, camera, p, x, 0.7)[0])(points, pixels))
-                     - np.asarray(jax.vmap(lambda p, x: _measurement_residual(base - eps * e, pose, velocity, camera, p, x, 0.7)[0])(points, pixels))) / (2 * eps)
-                    for e in np.eye(9)], axis=-1)  # (12, 2, 9)
-    r = np.asarray(jax.vmap(lambda p, x: _measurement_residual(base, pose, velocity, camera, p, x, 0.7)[0])(points, pixels))
-    w = np.asarray(weights)
-    np.testing.assert_allclose(np.asarray(h), np.einsum("n,nri,nrj->ij", w, jac, jac), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(np.asarray(g), -np.einsum("n,nri,nr->i", w, jac, r), rtol=1e-5, atol=1e-6)
+    jac = np.stack([(residuals(flat + eps * e) - residuals(flat - eps * e)) / (2 * eps) for e in np.eye(flat.size)], axis=-1)
+    system = sequence_normal_equations(problem, y)
+    grad = np.concatenate([np.asarray(system.grad).ravel(), np.asarray(system.static_grad)])
+    np.testing.assert_allclose(grad, jac.T @ residuals(flat), rtol=1e-5, atol=1e-6)
+    if isinstance(loss, TrivialLoss):
+        hessian = jac.T @ jac
+        frame_blocks = np.stack([hessian[6 * t:6 * t + 6, 6 * t:6 * t + 6] for t in range(frames)])
+        np.testing.assert_allclose(np.asarray(system.diag), frame_blocks, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(system.coupling).reshape(-1, 3), hessian[:-3, -3:], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(system.static_matrix), hessian[-3:, -3:], rtol=1e-5, atol=1e-6)
+        off = hessian[:-3, :-3] - np.kron(np.eye(frames), np.ones((6, 6))) * hessian[:-3, :-3]
+        np.testing.assert_allclose(off, 0.0, atol=1e-9)  # frames independent given the correction: no bands
 
 
 def test_velocities_are_central_one_sided_or_zero():

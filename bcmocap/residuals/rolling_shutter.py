@@ -29,15 +29,23 @@ from .variables import Euclidean
 READOUT = "readout"
 
 
+def rolling_shutter_motion(camera: CameraModel, velocity: jax.Array, readout, rows: jax.Array) -> SE3:
+    """``(N,)`` how far the camera has moved when its image rows ``rows`` ``(N,)`` (px) are exposed:
+    ``exp(s · readout · velocity)`` with ``s = row / (H − 1) − ½`` (``velocity`` ``(6,)``: a left increment of
+    ``cam_from_world`` per frame period; ``readout`` in frame periods). The pose at a row is this times the frame's
+    ``cam_from_world``: :func:`rolling_shutter_projection`."""
+    s = rows / max(camera.height - 1, 1) - 0.5  # (N,) in [-½, ½] over the image
+    return SE3.exp((s * readout)[:, None] * velocity)
+
+
 def rolling_shutter_projection(camera: CameraModel, cam_from_world: SE3, velocity: jax.Array, readout,
                                points: jax.Array, rows: jax.Array) -> tuple[jax.Array, jax.Array]:
     """``(N, 2)`` pixels and ``(N,)`` validity of world ``points`` ``(N, 3)``, each seen from the camera's pose at
-    the time its image row ``rows`` ``(N,)`` (px) is exposed: ``exp(s · readout · velocity) · cam_from_world`` with
-    ``s = row / (H − 1) − ½`` (``velocity`` ``(6,)``: a left increment of ``cam_from_world`` per frame period;
-    ``readout`` in frame periods), projected through ``camera``. The one rolling-shutter projection of bcmocap:
-    :class:`RollingShutterReprojection` and :mod:`bcmocap.solver.registered_poses` both predict with it."""
-    s = rows / max(camera.height - 1, 1) - 0.5  # (N,) in [-½, ½] over the image
-    at_row = SE3.exp((s * readout)[:, None] * velocity) @ SE3(jnp.broadcast_to(cam_from_world.wxyz_xyz, (s.shape[0], 7)))
+    the time its image row ``rows`` ``(N,)`` (px) is exposed (:func:`rolling_shutter_motion` ``· cam_from_world``),
+    projected through ``camera``. The one rolling-shutter projection of bcmocap: :class:`RollingShutterReprojection`
+    and :mod:`bcmocap.solver.registered_poses` predict with it."""
+    at_row = rolling_shutter_motion(camera, velocity, readout, rows) @ SE3(jnp.broadcast_to(cam_from_world.wxyz_xyz,
+                                                                                            (rows.shape[0], 7)))
     return camera.project(at_row.apply(points))
 
 

@@ -365,9 +365,11 @@ def levenberg_marquardt(
 ):
     """Minimise ``½ Σ r(y)²`` from ``y0``: the one Levenberg–Marquardt of bcmocap (jit- and vmap-able).
 
-    The windowed motion solve, the skeleton and mount refinement, the joint centres of marker groups
-    and marker IK all step through here; what differs is only ``build``, the structure of their
-    Gauss–Newton system (block banded over frames, bordered by static variables, or one dense block).
+    The windowed motion solve, the skeleton and mount refinement, the joint centres of marker groups,
+    marker IK and the re-fit of registered camera poses all step through here; what differs is only
+    ``build``, the structure of their Gauss–Newton system (block banded over frames, bordered by static
+    variables, or one dense block; no bands: independent frames). Under ``jax.vmap`` each problem keeps
+    its own trust region, i.e. its own damping (block-diagonal damping over the mapped problems).
 
     Args:
         residual_fn: ``(y, args) ↦`` residual pytree (its squared sum is twice the cost).

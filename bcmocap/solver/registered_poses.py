@@ -12,23 +12,38 @@ slower than 5°/s, 6 cm off at 120–240°/s and 21 cm above 240°/s.
 of each registered frame's pose ``T_t`` (``cam_from_world``) and, with ``calibrate``, of each camera's
 intrinsics correction ``k_c`` (log focal scale, principal point shift in px; as
 :func:`~bcmocap.residuals.self_calibration.corrected_camera`, held near zero by a Gaussian prior). A measurement
-``x`` of point ``X`` in image row ``y`` is predicted as in the solver's rolling-shutter term,
+``x`` of point ``X`` in image row ``y`` is predicted by the solver's rolling-shutter projection
+(:func:`~bcmocap.residuals.rolling_shutter.rolling_shutter_projection`),
 
     π_{k_c}( exp(s · readout · v_t) · T_t · X ),   s = y / (H − 1) − ½,
 
 with ``v_t`` the camera's velocity at frame ``t`` (a left increment of ``cam_from_world`` per frame period): half
 the increment from frame ``t − 1`` to ``t + 1`` when both are registered, else the one-sided increment, else
-zero. The velocities are taken from the current poses and held fixed for one Gauss–Newton step (the frames are
-then independent given ``k_c``; the intrinsics are eliminated per camera by a Schur complement), then
-recomputed, so the fixed point is the poses whose every frame best explains its image given its neighbours'.
-The loss is Cauchy at ``loss_scale`` px; steps are damped (Levenberg–Marquardt, one damping per camera) and a
-camera's step is kept only when its cost falls.
+zero (:func:`camera_velocities`). The loss is the solver's Cauchy loss (:class:`~bcmocap.residuals.losses.CauchyLoss`)
+at ``loss_scale`` px on each measurement's inverse-variance weighted error.
 
-The measurements are read a block of frames at a time from a
-:class:`~bcmocap.correspondence_store.CorrespondenceStore` (or taken from in-memory
-:class:`~bcmocap.correspondences.Correspondences`; a short trial's blocks are kept in memory): the Jacobians are a
-block's, the normal equations ``(T, C, 9, 9)`` the whole trial's (about 0.7 kB per camera-frame); each step reads
-the trial two to five times (linearisation, then the cost of each damped try).
+Given the velocities, every camera is a problem of its own — its frames (of all trials, end to end) are independent
+given its correction ``k_c``, which no other camera sees — with the structure of the solver's normal equations
+(:class:`~bcmocap.solver.levenberg_marquardt.NormalEquations`): ``(T, 6, 6)`` pose blocks, no bands, bordered by
+the 3 variables of ``k_c``. Each camera is therefore solved by the one Levenberg–Marquardt
+(:func:`~bcmocap.solver.levenberg_marquardt.levenberg_marquardt`, ``jax.vmap`` over cameras: one damping and one
+trust region per camera, i.e. block-diagonal damping), the velocities held fixed, for at most ``max_steps`` steps
+(by default two Gauss–Newton steps). Then the velocities are taken from the new poses and the cameras solved
+again, until no pose moves more than ``tolerance`` over a round (or every camera's solve converges from its
+start). The fixed point is the poses whose every frame best explains its image given its neighbours' velocity:
+the same as that of refreshing the velocities after every Gauss–Newton step, as this module did before it used
+the one Levenberg–Marquardt (at the fixed point a refresh changes nothing and every solve's gradient is zero).
+Rounds are short because stale velocities and the IRLS model of the Cauchy loss both cost a few-fold contraction
+a step: solving each round to convergence took 30 steps where short rounds take 17 (60 frames × 18 cameras).
+Without a readout the velocities are zero and the rounds only continue the one solve.
+
+Memory: a group of cameras is solved at once, holding those cameras' whole sequences (every trial): per camera
+``T × N`` measurements (``T`` frames of all trials, ``N`` the most measurements one of its re-fitted frames
+has) of about 100 bytes, and the Jacobians (2 × 9 per measurement) of ``block_frames`` frames at a time. The
+group is as many cameras as ``memory`` bytes allow, at least one, so memory grows with one camera's ``T × N``;
+the measurements are read from a :class:`~bcmocap.correspondence_store.CorrespondenceStore` a block of frames at
+a time, once per group (or taken from in-memory :class:`~bcmocap.correspondences.Correspondences`; a short
+trial's blocks are kept in memory).
 """
 
 from __future__ import annotations
@@ -40,13 +55,35 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from ..cameras import CameraModel
 from ..correspondence_store import CorrespondenceStore
 from ..geometry import SE3
+from ..residuals.losses import CauchyLoss, RobustLoss
+from ..residuals.rolling_shutter import (
+    rolling_shutter_motion,
+    rolling_shutter_projection,
+)
 from ..residuals.self_calibration import corrected_camera, corrected_cameras
+from .levenberg_marquardt import NormalEquations, levenberg_marquardt
 
-__all__ = ["PoseRefinementOptions", "PoseRefinement", "refine_registered_poses", "refine_trials", "camera_velocities"]
+__all__ = [
+    "CameraSequence",
+    "PoseRefinement",
+    "PoseRefinementOptions",
+    "camera_velocities",
+    "refine_registered_poses",
+    "refine_trials",
+    "sequence_normal_equations",
+    "sequence_residuals",
+]
+
+#: Relative tolerance of each Levenberg–Marquardt solve (the absolute one is ``PoseRefinementOptions.tolerance``).
+_RTOL = 1e-4
+_DAMPING = 1e-3
+#: Bytes held per measurement of a group of cameras (points, pixels, weights, residuals and the solve's copies).
+_BYTES_PER_MEASUREMENT = 100
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,13 +96,19 @@ class PoseRefinementOptions:
         calibrate: also estimate each camera's intrinsics correction.
         intrinsics_sigma: the correction's prior σ: (log focal scale, principal point px).
         loss_scale: Cauchy loss scale (px).
-        max_iterations: Gauss–Newton steps at most.
-        tolerance: stop when no pose (nor, with ``calibrate``, correction) moves more than this in a step (the
-            poses' units and rad; log focal scale and px).
+        max_iterations: rounds at most (each one Levenberg–Marquardt solve per camera with the velocities held,
+            then the velocities taken from the new poses).
+        max_steps: Levenberg–Marquardt steps at most in one round (the first evaluates the start: 3 is two
+            Gauss–Newton steps between velocity refreshes).
+        tolerance: a round's solve stops when no pose (nor, with ``calibrate``, correction) moves more than this
+            in a step, the rounds when none moves more than this over a round (the poses' units and rad; log focal
+            scale and px).
         min_measurements: a registered frame with fewer measurements keeps its pose (it still gives its
             neighbours their velocity): too few to fit a pose (the frontend registered it through points the
             measurements do not hold).
-        block_frames: frames linearised at once (memory: ``block_frames × cameras × slots`` Jacobians of 2 × 9).
+        block_frames: frames read from the source at once, and linearised at once (the Jacobians of
+            ``block_frames × slots`` measurements of 2 × 9 per camera solved together).
+        memory: bytes of measurements to hold at once; sets how many cameras are solved together (at least one).
     """
 
     readout: float = 0.0
@@ -73,19 +116,21 @@ class PoseRefinementOptions:
     intrinsics_sigma: tuple[float, float] = (0.01, 5.0)
     loss_scale: float = 2.0
     max_iterations: int = 12
+    max_steps: int = 3
     tolerance: float = 1e-4
     min_measurements: int = 20
     block_frames: int = 32
+    memory: float = 1e9
 
     def __post_init__(self):
         if not (np.isfinite(self.readout) and 0.0 <= self.readout <= 2.0):
             raise ValueError(f"PoseRefinementOptions.readout must lie in [0, 2] frame periods, got {self.readout}")
         if not (len(self.intrinsics_sigma) == 2 and all(np.isfinite(s) and s > 0 for s in self.intrinsics_sigma)):
             raise ValueError(f"PoseRefinementOptions.intrinsics_sigma must be two positive numbers, got {self.intrinsics_sigma}")
-        if not (self.loss_scale > 0 and self.max_iterations >= 1 and self.tolerance > 0 and self.block_frames >= 1
-                and self.min_measurements >= 6):
-            raise ValueError("PoseRefinementOptions: loss_scale and tolerance must be > 0, max_iterations and "
-                             "block_frames >= 1, min_measurements >= 6")
+        if not (self.loss_scale > 0 and self.max_iterations >= 1 and self.max_steps >= 1 and self.tolerance > 0
+                and self.block_frames >= 1 and self.min_measurements >= 6 and self.memory > 0):
+            raise ValueError("PoseRefinementOptions: loss_scale, tolerance and memory must be > 0, max_iterations, "
+                             "max_steps and block_frames >= 1, min_measurements >= 6")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,7 +142,7 @@ class PoseRefinement:
         intrinsics_correction: ``(C, 3)`` per camera (log focal scale, Δcx px, Δcy px); zeros without ``calibrate``.
         rms_px: ``(C, 2)`` per camera, root mean square reprojection error of its measurements before and after
             (inverse-variance weighted, px; measurements within 5 loss scales, NaN for a camera without any).
-        iterations: Gauss–Newton steps taken.
+        iterations: Levenberg–Marquardt steps taken (over all rounds; the most of any camera).
         moved_m, moved_deg: ``(T, C)`` how far each pose's centre moved (m) and its orientation turned (deg).
         refined: ``(T, C)`` the registered frames re-fitted (enough measurements); the others are as given.
     """
@@ -135,81 +180,139 @@ def camera_velocities(cam_from_world: np.ndarray, registered: np.ndarray) -> np.
     return np.where(registered[..., None], velocity, 0.0)
 
 
-def _measurement_residual(delta_k: jax.Array, pose: SE3, velocity: jax.Array, camera: CameraModel, point: jax.Array,
-                          pixel: jax.Array, readout: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """One measurement's ``(2,)`` residual (px) and validity at the increment ``delta_k`` ``(9,)``: pose (6, left)
-    and intrinsics correction (3)."""
-    s = pixel[1] / max(camera.height - 1, 1) - 0.5
-    at_row = SE3.exp(s * readout * velocity) @ SE3.exp(delta_k[:6]) @ pose
-    predicted, valid = corrected_camera(camera, delta_k[6:]).project(at_row.apply(point))
-    return predicted - pixel, valid
+class CameraSequence(eqx.Module):
+    """One camera's frames to re-fit (those of every trial, end to end), the velocities held: one
+    Levenberg–Marquardt problem. Its variables ``y``: the ``(T, 6)`` left increments of the poses, and with
+    ``calibrate`` the ``(3,)`` intrinsics correction with them (the pair ``(increments, correction)``).
+
+    Attributes:
+        camera: the camera's intrinsics as given.
+        cam_from_world: ``(T, 7)`` the poses the increments move; velocity: ``(T, 6)`` held fixed; readout:
+            ``(T,)`` of each frame's trial (frame periods).
+        points: ``(T, N, 3)`` world points; pixels: ``(T, N, 2)``; weights: ``(T, N)`` inverse variances (0: a
+            padding slot or a frame that keeps its pose).
+        correction: ``(3,)`` the intrinsics correction (without ``calibrate``: held; with: where the solve starts).
+        prior: ``(3,)`` ``1 / σ`` of the correction's Gaussian prior.
+        loss: the robust loss of each measurement's weighted squared error.
+        calibrate: estimate the correction; block_frames: frames linearised at once.
+    """
+
+    camera: CameraModel
+    cam_from_world: jax.Array
+    velocity: jax.Array
+    readout: jax.Array
+    points: jax.Array
+    pixels: jax.Array
+    weights: jax.Array
+    correction: jax.Array
+    prior: jax.Array
+    loss: RobustLoss
+    calibrate: bool = eqx.field(static=True, default=False)
+    block_frames: int = eqx.field(static=True, default=32)
+
+    def split(self, y) -> tuple[jax.Array, jax.Array]:
+        """``(T, 6)`` increments and ``(3,)`` correction of the variables ``y``."""
+        return y if self.calibrate else (y, self.correction)
+
+    def frame_data(self) -> tuple[jax.Array, ...]:
+        return self.cam_from_world, self.velocity, self.readout, self.points, self.pixels, self.weights
 
 
-def _frame_system(pose, velocity, correction, camera, points, pixels, weights, readout, loss_scale):
-    """One camera-frame's normal equations at zero increment: ``(9, 9)`` ``JᵀWJ``, ``(9,)`` ``−JᵀWr`` and its
-    robust cost (Cauchy, IRLS weights). The pose columns chain the projection's Jacobian (forward mode, 6
-    directions: the point in the camera, the correction) with that of a left increment, ``[I | −[q]×]``."""
-
-    def one(point, pixel):
-        s = pixel[1] / max(camera.height - 1, 1) - 0.5
-        motion = SE3.exp(s * readout * velocity)
-        q = pose.apply(point)
-        project = lambda pk: corrected_camera(camera, pk[3:]).project(pk[:3])  # noqa: E731
-        pk = jnp.concatenate([motion.apply(q), correction])
-        (predicted, valid), jac = project(pk), jax.jacfwd(lambda x: project(x)[0])(pk)
-        increment = jnp.concatenate([jnp.eye(3), -_skew(q)], axis=1)  # d(exp(δ) q)/dδ at δ = 0, (3, 6)
-        pose_jac = jac[:, :3] @ motion.rotation().as_matrix() @ increment
-        return predicted - pixel, jnp.concatenate([pose_jac, jac[:, 3:]], axis=1), valid
-
-    r, jac, valid = jax.vmap(one)(points, pixels)
-    w = jnp.where(valid, weights, 0.0)
-    e = w * jnp.sum(r * r, axis=-1)
-    c2 = loss_scale * loss_scale
-    robust = w / (1.0 + e / c2)
-    h = jnp.einsum("n,nri,nrj->ij", robust, jac, jac)
-    g = -jnp.einsum("n,nri,nr->i", robust, jac, r)
-    return h, g, jnp.sum(c2 * jnp.log1p(e / c2))
+def _frame_residuals(camera: CameraModel, correction: jax.Array, delta: jax.Array, cam_from_world: jax.Array,
+                     velocity: jax.Array, readout: jax.Array, points: jax.Array, pixels: jax.Array,
+                     weights: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """One frame's ``(N, 2)`` weighted residuals (px × √weight; 0 where not valid) at the pose increment ``delta``
+    ``(6,)`` and intrinsics correction ``correction``, and their ``(N,)`` validity."""
+    pose = SE3.exp(delta) @ SE3(cam_from_world)
+    predicted, valid = rolling_shutter_projection(corrected_camera(camera, correction), pose, velocity, readout,
+                                                  points, pixels[:, 1])
+    ok = valid & (weights > 0)
+    return jnp.where(ok[:, None], (predicted - pixels) * jnp.sqrt(weights)[:, None], 0.0), ok
 
 
-def _skew(v: jax.Array) -> jax.Array:
-    return jnp.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+def _over_frames(fn):
+    """``fn(camera, correction, delta, *frame_data)`` mapped over the frames (camera and correction shared)."""
+    return jax.vmap(fn, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0))
 
 
-def _frame_cost(pose, velocity, correction, camera, points, pixels, weights, readout, loss_scale, delta):
-    """One camera-frame's robust cost (and inverse-variance weighted squared error and count of the measurements
-    within 5 loss scales) after the pose increment ``delta`` ``(6,)`` at intrinsics correction ``correction``."""
-    inc = jnp.concatenate([delta, correction])
-    r, valid = jax.vmap(lambda p, x: _measurement_residual(inc, pose, velocity, camera, p, x, readout))(points, pixels)
-    w = jnp.where(valid, weights, 0.0)
-    e = w * jnp.sum(r * r, axis=-1)
-    c2 = loss_scale * loss_scale
-    inlier = (w > 0) & (e < 25 * c2)
-    return jnp.sum(c2 * jnp.log1p(e / c2)), jnp.sum(jnp.where(inlier, e, 0.0)), jnp.sum(inlier)
+def sequence_residuals(y, problem: CameraSequence):
+    """The residuals whose squared sum is twice the cost of ``problem`` at ``y``: each measurement's weighted
+    residual scaled by its robust loss, and with ``calibrate`` the correction's prior ``correction / σ``."""
+    delta, correction = problem.split(y)
+    r, _ = _over_frames(_frame_residuals)(problem.camera, correction, delta, *problem.frame_data())
+    r = problem.loss.scale_residual(r)
+    return (r, correction * problem.prior) if problem.calibrate else r
 
 
-def _over_frames_and_cameras(fn, per_frame_tail: int = 0):
-    """``fn`` mapped over ``(B, C)`` camera-frames, the camera (and its correction) shared along frames; its
-    ``per_frame_tail`` last arguments are per camera-frame too."""
-    tail = (0,) * per_frame_tail
-    per_camera = jax.vmap(fn, in_axes=(0, 0, 0, 0, 0, 0, 0, None, None) + tail)
-    return jax.vmap(per_camera, in_axes=(0, 0, None, None, 0, 0, 0, None, None) + tail)
+def sequence_normal_equations(problem: CameraSequence, y) -> NormalEquations:
+    """The Gauss–Newton system of :func:`sequence_residuals` at ``y`` (IRLS model of the robust loss, exact
+    gradient): ``(T, 6, 6)`` pose blocks, no bands, with ``calibrate`` bordered by the correction (its prior
+    included)."""
+    delta, correction = problem.split(y)
+    h, g = jax.lax.map(lambda inputs: _frame_system(problem, correction, *inputs), (delta, *problem.frame_data()),
+                       batch_size=problem.block_frames)
+    if not problem.calibrate:
+        return NormalEquations(h, (), g, jnp.zeros(h.shape[:2] + (0,)), jnp.zeros((0, 0)), jnp.zeros(0))
+    p2 = problem.prior ** 2
+    return NormalEquations(h[:, :6, :6], (), g[:, :6], h[:, :6, 6:], h[:, 6:, 6:].sum(0) + jnp.diag(p2),
+                           g[:, 6:].sum(0) + p2 * correction)
+
+
+def _frame_system(problem: CameraSequence, correction, delta, cam_from_world, velocity, readout, points, pixels, weights):
+    """One frame's ``Σ ρ' JᵀJ`` and ``Σ ρ' Jᵀr`` (``(6 [+ 3],)`` columns: the pose increment, with ``calibrate`` the
+    correction): :func:`~bcmocap.residuals.rolling_shutter.rolling_shutter_projection` differentiated by the chain
+    rule. With ``q = exp(δ) · T · X`` and ``M`` the row's motion
+    (:func:`~bcmocap.residuals.rolling_shutter.rolling_shutter_motion`), the prediction is ``π_k(M · q)``: forward
+    mode differentiates ``π_k`` along 6 directions (the point in the camera, the correction), and
+    ``∂(M · q)/∂δ = R(M) · ∂q/∂δ`` with ``∂q/∂δ = ∂R(exp(δ))/∂δ · T X + ∂t(exp(δ))/∂δ`` (one ``(3, 4, 6)`` per frame)."""
+    motion = rolling_shutter_motion(problem.camera, velocity, readout, pixels[:, 1])  # (N,)
+    in_pose = SE3(cam_from_world).apply(points)  # T · X, (N, 3)
+    q = SE3.exp(delta).apply(in_pose)
+    project = lambda pk: corrected_camera(problem.camera, pk[3:]).project(pk[:3])
+    pk = jnp.concatenate([motion.apply(q), jnp.broadcast_to(correction, q.shape)], axis=-1)  # (N, 6)
+    predicted, valid = jax.vmap(project)(pk)
+    jac = jax.vmap(jax.jacfwd(lambda x: project(x)[0]))(pk)  # (N, 2, 6)
+    increment = jax.jacfwd(lambda d: SE3.exp(d).as_matrix()[:3])(delta)  # (3, 4, 6): ∂[R | t]/∂δ
+    dq = jnp.einsum("ijk,nj->nik", increment[:, :3], in_pose) + increment[:, 3]  # (N, 3, 6)
+    j_delta = jnp.einsum("nri,nij,njk->nrk", jac[..., :3], motion.rotation().as_matrix(), dq)
+    jac = jnp.concatenate([j_delta, jac[..., 3:]], axis=-1) if problem.calibrate else j_delta
+    root = jnp.where(valid & (weights > 0), jnp.sqrt(weights), 0.0)[:, None]  # as _frame_residuals
+    r, jac = (predicted - pixels) * root, jac * root[..., None]
+    w = problem.loss.derivative(jnp.sum(r * r, axis=-1))  # ρ'(s): the IRLS weight of each measurement
+    return jnp.einsum("n,nri,nrj->ij", w, jac, jac), jnp.einsum("n,nri,nr->i", w, jac, r)
 
 
 @eqx.filter_jit
-def _block_systems(poses, velocities, corrections, cameras, points, pixels, weights, readout, loss_scale):
-    return _over_frames_and_cameras(_frame_system)(SE3(poses), velocities, corrections, cameras, points, pixels,
-                                                   weights, readout, loss_scale)
+def _solve_sequences(problems: CameraSequence, y0, tolerance: float, max_steps: int):
+    """One Levenberg–Marquardt solve per camera (``problems`` and ``y0`` stacked over cameras)."""
+
+    def one(problem, y):
+        return levenberg_marquardt(sequence_residuals, eqx.Partial(sequence_normal_equations, problem), y, problem,
+                                   rtol=_RTOL, atol=tolerance, max_steps=max_steps, norm=optx.max_norm,
+                                   damping_scale=_DAMPING)
+
+    return jax.vmap(one)(problems, y0)
 
 
 @eqx.filter_jit
-def _block_costs(poses, velocities, corrections, cameras, points, pixels, weights, readout, loss_scale, deltas):
-    return _over_frames_and_cameras(_frame_cost, per_frame_tail=1)(SE3(poses), velocities, corrections, cameras, points,
-                                                                   pixels, weights, readout, loss_scale, deltas)
+def _sequence_errors(problems: CameraSequence, inlier_bound: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(G, T)`` weighted squared error and count of each camera-frame's valid measurements whose weighted squared
+    error is below ``inlier_bound``, at zero increments and the problems' corrections."""
+
+    def one(problem):
+        zero = jnp.zeros(problem.cam_from_world.shape[:1] + (6,))
+        r, ok = _over_frames(_frame_residuals)(problem.camera, problem.correction, zero, *problem.frame_data())
+        e = jnp.sum(r * r, axis=-1)
+        inlier = ok & (e < inlier_bound)
+        return jnp.sum(jnp.where(inlier, e, 0.0), axis=-1), jnp.sum(inlier, axis=-1)
+
+    return jax.vmap(one)(problems)
 
 
 class _BlockReader:
     """Iterates over :func:`_blocks` of ``source``; keeps them in memory when they take less than ``budget`` bytes
-    (a short trial: the refinement reads it twice a step), else reads them again each time (memory of a block)."""
+    (a short trial: the refinement reads it once to count, then once per group of cameras), else reads them again
+    each time (memory of a block)."""
 
     def __init__(self, source, block_frames: int, budget: float = 1e9):
         self.source, self.block_frames, self.kept = source, block_frames, None
@@ -236,11 +339,6 @@ def _blocks(source, block_frames: int):
         yield start, stop, xyz.astype(np.float64), np.asarray(pixels, np.float64), np.asarray(weights, np.float64)
 
 
-def _padded(a: np.ndarray, start: int, stop: int, size: int) -> np.ndarray:
-    part = a[start:stop]
-    return np.concatenate([part, np.repeat(part[-1:], size - len(part), axis=0)]) if len(part) < size else part
-
-
 def refine_registered_poses(source, cameras: CameraModel, options: PoseRefinementOptions = PoseRefinementOptions(),
                             *, world_from_camera: np.ndarray | None = None, registered: np.ndarray | None = None,
                             progress: Callable[[str], None] | None = None) -> PoseRefinement:
@@ -254,7 +352,7 @@ def refine_registered_poses(source, cameras: CameraModel, options: PoseRefinemen
             ``points`` ``(P, 3)`` held fixed, ``world_from_camera`` ``(T, C, 7)``, ``registered`` ``(T, C)``).
         cameras: the rig's ``C`` intrinsics as given (stacked).
         world_from_camera, registered: start from these instead of the source's.
-        progress: receives one line per step.
+        progress: receives one line per round.
 
     Returns:
         A :class:`PoseRefinement`.
@@ -277,51 +375,120 @@ def refine_trials(sources, cameras: CameraModel, options: PoseRefinementOptions 
         raise ValueError(f"refine_trials: {len(sources)} trials, {len(starts)} starts and {len(readouts)} readouts")
     trials = [_Trial(source, cameras, dataclasses.replace(o, readout=readout), *(start or (None, None)))
               for source, start, readout in zip(sources, starts, readouts)]
-    num_cameras = cameras.batch_shape[0]
+    num_cameras, frames = cameras.batch_shape[0], sum(t.num_frames for t in trials)
+    width = -(-max(int(t.counts[t.free].max(initial=0)) for t in trials) // 8) * 8  # slots of a camera-frame
+    per_camera = frames * width * _BYTES_PER_MEASUREMENT + min(o.block_frames, frames) * width * 2 * 9 * 8
+    group = int(np.clip(o.memory // max(per_camera, 1), 1, num_cameras))
+    cam_from_world = np.concatenate([t.cam_from_world for t in trials])  # (T, C, 7): all trials end to end
     correction = np.zeros((num_cameras, 3))
-    prior = 1.0 / np.array([o.intrinsics_sigma[0], o.intrinsics_sigma[1], o.intrinsics_sigma[1]]) ** 2
-    damping = np.full(num_cameras, 1e-4)
-    free = np.concatenate([t.free for t in trials])
-
-    def camera_cost(frame_costs, corr):
-        return frame_costs.sum(0) + (np.sum(prior * corr ** 2, axis=-1) if o.calibrate else 0.0)
-
-    def split(a: np.ndarray) -> list[np.ndarray]:
-        return np.split(a, np.cumsum([t.num_frames for t in trials])[:-1])
-
-    rms_before = [t.rms(correction) for t in trials]
+    errors = np.zeros((2, 2, frames, num_cameras))  # (before, after), (squared, count)
     iterations = 0
-    for iterations in range(1, o.max_iterations + 1):
-        h, g, frame_costs = (np.concatenate(part) for part in zip(*(t.linearise(correction) for t in trials)))
-        before = camera_cost(frame_costs, correction)
-        step, dk_kept = np.zeros(h.shape[:2] + (6,)), np.zeros((num_cameras, 3))
-        after = before.copy()
-        pending = free.any(0)
-        for _ in range(4):  # a camera whose cost rose tries again with more damping (at most 4 times a step)
-            if not pending.any():
-                break
-            deltas, dk = _solve(h, g, free & pending[None], correction, prior if o.calibrate else None, damping)
-            trial_costs = camera_cost(np.concatenate([t.costs(correction + dk, d)[0] for t, d in zip(trials, split(deltas))]),
-                                      correction + dk)
-            kept = pending & (trial_costs <= before)
-            step[:, kept], dk_kept[kept], after[kept] = deltas[:, kept], dk[kept], trial_costs[kept]
-            damping = np.where(kept, np.maximum(damping / 3.0, 1e-9), np.where(pending, damping * 10.0, damping))
-            pending &= ~kept
-        for t, d in zip(trials, split(step)):
-            t.apply(d)
-        correction = correction + dk_kept
-        moved = max(np.abs(step).max(initial=0.0), np.abs(dk_kept).max(initial=0.0) if o.calibrate else 0.0)
+    for first in range(0, num_cameras, group) if width else ():
+        cams = np.arange(first, first + group)
+        real = cams < num_cameras
+        cams = np.minimum(cams, num_cameras - 1)  # the last group padded with copies that measure nothing
+        poses, k, error, steps = _refine_cameras(trials, cameras, cams, real, width, progress)
+        cam_from_world[:, cams[real]], correction[cams[real]] = poses[:, real], k[real]
+        errors[..., cams[real]] = error[..., real]
+        iterations = max(iterations, steps)
+    out, offset = [], 0
+    for t in trials:
+        t.cam_from_world = np.where(t.free[..., None], cam_from_world[offset:offset + t.num_frames], t.cam_from_world)
+        squared, count = errors[:, :, offset:offset + t.num_frames].sum(2).transpose(1, 0, 2)
+        rms = np.sqrt(squared / np.where(count > 0, count, np.nan))  # (2, C)
+        out.append(t.result(correction, rms[0], rms[1], iterations))
+        offset += t.num_frames
+    return out
+
+
+def _refine_cameras(trials: list[_Trial], cameras: CameraModel, cams: np.ndarray, real: np.ndarray, width: int,
+                    progress: Callable[[str], None] | None):
+    """Rounds of :func:`_solve_sequences` for the cameras ``cams`` (``real``: not a padding copy) of all ``trials``.
+
+    Returns ``(T, G, 7)`` poses, ``(G, 3)`` corrections, ``(2, 2, T, G)`` (before, after) × (squared error, count)
+    of the inliers, and the Levenberg–Marquardt steps taken."""
+    o = trials[0].options
+    points, pixels, weights = _camera_measurements(trials, cams, width)
+    weights[~real] = 0.0
+    free = np.concatenate([t.free[:, cams] for t in trials]) & real  # (T, G)
+    poses = np.concatenate([t.cam_from_world[:, cams] for t in trials])
+    readout = np.concatenate([np.full(t.num_frames, t.options.readout) for t in trials])
+    group = len(cams)
+    sigma = np.array([o.intrinsics_sigma[0], o.intrinsics_sigma[1], o.intrinsics_sigma[1]])
+    fixed = {"camera": jax.tree.map(lambda a: a[cams], cameras), "readout": jnp.asarray(np.tile(readout, (group, 1))),
+             "points": jnp.asarray(points), "pixels": jnp.asarray(pixels), "weights": jnp.asarray(weights),
+             "prior": jnp.asarray(np.tile(1.0 / sigma, (group, 1))), "loss": CauchyLoss(jnp.full(group, o.loss_scale)),
+             "calibrate": o.calibrate, "block_frames": o.block_frames}
+
+    def problems(poses: np.ndarray, correction: np.ndarray) -> CameraSequence:
+        velocity = np.concatenate([_velocities(t, poses[offset:offset + t.num_frames], cams)
+                                   for t, offset in zip(trials, np.cumsum([0] + [t.num_frames for t in trials]))])
+        return CameraSequence(cam_from_world=jnp.asarray(poses.swapaxes(0, 1)), velocity=jnp.asarray(velocity.swapaxes(0, 1)),
+                              correction=jnp.asarray(correction), **fixed)
+
+    inlier_bound = jnp.asarray(25.0 * o.loss_scale ** 2)
+    correction = np.zeros((group, 3))
+    before = _sequence_errors(problems(poses, correction), inlier_bound)
+    steps = 0
+    for round_ in range(1, o.max_iterations + 1):
+        delta = jnp.zeros(weights.shape[:2] + (6,))
+        y, report = _solve_sequences(problems(poses, correction), (delta, jnp.asarray(correction)) if o.calibrate else delta,
+                                     o.tolerance, o.max_steps)
+        delta, k = (np.asarray(a) for a in y) if o.calibrate else (np.asarray(y), correction)
+        delta = np.where(free.T[..., None], delta, 0.0)
+        moved = max(np.abs(delta).max(initial=0.0), np.abs(k - correction).max(initial=0.0))
+        poses = np.where(free[..., None], np.asarray((SE3.exp(jnp.asarray(delta.swapaxes(0, 1))) @ SE3(jnp.asarray(poses))).wxyz_xyz),
+                         poses)
+        correction = k
+        steps += int(np.max(report.num_steps))
         if progress:
-            progress(f"pose refinement step {iterations}: cost {before.sum():.6g} → {after.sum():.6g}, "
-                     f"largest step {moved:.2e}")
-        if moved < o.tolerance and not pending.any():  # converged, not merely every step refused
-            break
-    return [t.result(correction, before_rms, t.rms(correction), iterations) for t, before_rms in zip(trials, rms_before)]
+            progress(f"pose refinement of cameras {cams[real].min()}–{cams[real].max()}, round {round_}: cost "
+                     f"{np.sum(np.asarray(report.initial_cost)[real]):.6g} → {np.sum(np.asarray(report.final_cost)[real]):.6g} in "
+                     f"{int(np.max(report.num_steps))} steps, largest move {moved:.2e}")
+        settled = np.asarray(report.converged) & (np.asarray(report.num_steps) <= 2)  # converged from the start
+        if moved < o.tolerance or np.all(settled) or (not readout.any() and np.all(np.asarray(report.converged))):
+            break  # (without a readout the velocities stay zero: nothing changes for another round)
+    after = _sequence_errors(problems(poses, correction), inlier_bound)
+    error = np.stack([np.stack([np.asarray(a).T for a in before]), np.stack([np.asarray(a).T for a in after])])
+    return poses, correction, error, steps
+
+
+def _velocities(trial: _Trial, cam_from_world: np.ndarray, cams: np.ndarray) -> np.ndarray:
+    """``(T, G, 6)`` the cameras ``cams``' velocities in ``trial`` at its poses ``cam_from_world`` ``(T, G, 7)``."""
+    if trial.options.readout <= 0:
+        return np.zeros(cam_from_world.shape[:2] + (6,))
+    return camera_velocities(cam_from_world, trial.registered[:, cams])
+
+
+def _camera_measurements(trials: list[_Trial], cams: np.ndarray, width: int):
+    """``(G, T, width, 3)`` points, ``(G, T, width, 2)`` pixels and ``(G, T, width)`` weights of the cameras ``cams``
+    over all ``trials`` (end to end): each camera-frame's weighted measurements first (zero weight at frames that
+    keep their pose)."""
+    frames = sum(t.num_frames for t in trials)
+    group = len(cams)
+    points, pixels = np.zeros((group, frames, width, 3)), np.zeros((group, frames, width, 2))
+    weights = np.zeros((group, frames, width))
+    offset = 0
+    for t in trials:
+        for start, stop, xyz, px, w in t.blocks:
+            n = stop - start
+            w = np.where(t.free[start:stop, cams, None], w[:n, cams], 0.0)  # (n, G, S)
+            order = np.argsort(w <= 0, axis=-1, kind="stable")[..., :width]  # (n, G, ≤ width)
+            rows, used = slice(offset + start, offset + stop), order.shape[-1]
+            points[:, rows, :used], pixels[:, rows, :used], weights[:, rows, :used] = (
+                _slots(a, order) for a in (xyz[:n, cams], px[:n, cams], w))
+        offset += t.num_frames
+    return points, pixels, weights
+
+
+def _slots(a: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """``a`` ``(n, G, S, ...)`` at the slots ``order`` ``(n, G, K)``, as ``(G, n, K, ...)``."""
+    return np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 3)), axis=2).swapaxes(0, 1)
 
 
 class _Trial:
     """One trial's state in :func:`refine_trials`: its measurements (read a block at a time), registered and
-    re-fitted frames, current ``cam_from_world`` poses and velocities."""
+    re-fitted frames and current ``cam_from_world`` poses."""
 
     def __init__(self, source, cameras: CameraModel, options: PoseRefinementOptions, world_from_camera=None,
                  registered=None):
@@ -334,64 +501,14 @@ class _Trial:
         if self.poses0.shape != (self.num_frames, num_cameras, 7):
             raise ValueError(f"refine_registered_poses: world_from_camera has shape {self.poses0.shape}, expected "
                              f"({self.num_frames}, {num_cameras}, 7)")
-        self.options, self.cameras = options, cameras
-        self.block = min(options.block_frames, self.num_frames)
-        self.blocks = _BlockReader(source, self.block)
-        counts = np.zeros((self.num_frames, num_cameras), int)
+        self.options = options
+        self.blocks = _BlockReader(source, min(options.block_frames, self.num_frames))
+        self.counts = np.zeros((self.num_frames, num_cameras), int)
         for start, stop, _, _, weights in self.blocks:
-            counts[start:stop] = (weights[: stop - start] > 0).sum(-1)
-        self.free = self.registered & (counts >= options.min_measurements)
+            self.counts[start:stop] = (weights[: stop - start] > 0).sum(-1)
+        self.free = self.registered & (self.counts >= options.min_measurements)
         self.safe = np.where(self.registered[..., None], self.poses0, np.array([1.0, 0, 0, 0, 0, 0, 0]))
         self.cam_from_world = np.asarray(SE3(jnp.asarray(self.safe)).inverse().wxyz_xyz)
-        self.readout, self.scale = jnp.asarray(float(options.readout)), jnp.asarray(float(options.loss_scale))
-        self._velocities()
-
-    def _velocities(self) -> None:
-        self.velocities = (camera_velocities(self.cam_from_world, self.registered) if self.options.readout > 0
-                           else np.zeros(self.cam_from_world.shape[:2] + (6,)))
-
-    def _padded(self, a: np.ndarray, start: int, stop: int) -> np.ndarray:
-        return _padded(a, start, stop, self.block)
-
-    def linearise(self, correction: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(T, C, 9, 9)`` ``JᵀWJ``, ``(T, C, 9)`` ``−JᵀWr`` and ``(T, C)`` robust costs (zero where not re-fitted)."""
-        shape = self.cam_from_world.shape[:2]
-        h, g, cost = np.zeros(shape + (9, 9)), np.zeros(shape + (9,)), np.zeros(shape)
-        for start, stop, xyz, pixels, weights in self.blocks:
-            n = stop - start
-            hb, gb, cb = _block_systems(self._padded(self.cam_from_world, start, stop),
-                                        self._padded(self.velocities, start, stop), jnp.asarray(correction),
-                                        self.cameras, xyz, pixels, weights, self.readout, self.scale)
-            h[start:stop], g[start:stop], cost[start:stop] = np.asarray(hb)[:n], np.asarray(gb)[:n], np.asarray(cb)[:n]
-        h[~self.free], g[~self.free], cost[~self.free] = 0.0, 0.0, 0.0
-        return h, g, cost
-
-    def costs(self, correction: np.ndarray, deltas: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per camera-frame robust cost after the pose increments ``deltas`` ``(T, C, 6)`` at ``correction``, and per
-        camera the weighted squared error and count of its inliers (within 5 loss scales)."""
-        shape = self.cam_from_world.shape[:2]
-        deltas = np.zeros(shape + (6,)) if deltas is None else deltas
-        cost, squared, count = np.zeros(shape), np.zeros(shape[1]), np.zeros(shape[1])
-        for start, stop, xyz, pixels, weights in self.blocks:
-            n = stop - start
-            c, s, k = _block_costs(self._padded(self.cam_from_world, start, stop), self._padded(self.velocities, start, stop),
-                                   jnp.asarray(correction), self.cameras, xyz, pixels, weights, self.readout, self.scale,
-                                   self._padded(deltas, start, stop))
-            mask = self.free[start:stop]
-            cost[start:stop] = np.where(mask, np.asarray(c)[:n], 0.0)
-            squared += np.where(mask, np.asarray(s)[:n], 0.0).sum(0)
-            count += np.where(mask, np.asarray(k)[:n], 0).sum(0)
-        return cost, squared, count
-
-    def rms(self, correction: np.ndarray) -> np.ndarray:
-        _, squared, count = self.costs(correction)
-        return np.sqrt(squared / np.where(count > 0, count, np.nan))
-
-    def apply(self, step: np.ndarray) -> None:
-        """Move the re-fitted frames by the left increments ``step`` ``(T, C, 6)``; recompute the velocities."""
-        moved = np.asarray((SE3.exp(jnp.asarray(step)) @ SE3(jnp.asarray(self.cam_from_world))).wxyz_xyz)
-        self.cam_from_world = np.where(self.free[..., None], moved, self.cam_from_world)
-        self._velocities()
 
     def result(self, correction: np.ndarray, rms_before: np.ndarray, rms_after: np.ndarray, iterations: int) -> PoseRefinement:
         refined = np.asarray(SE3(jnp.asarray(self.cam_from_world)).inverse().wxyz_xyz)
@@ -401,27 +518,3 @@ class _Trial:
         moved_deg = np.where(self.registered, np.degrees(2 * np.arccos(turn)), 0.0)
         return PoseRefinement(refined, correction, np.stack([rms_before, rms_after], axis=-1), iterations, moved_m,
                               moved_deg, self.free)
-
-
-def _solve(h: np.ndarray, g: np.ndarray, registered: np.ndarray, correction: np.ndarray, prior: np.ndarray | None,
-           damping: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The damped Gauss–Newton step: ``(T, C, 6)`` pose increments and ``(C, 3)`` intrinsics increments (zero
-    without ``prior``), the intrinsics eliminated per camera by a Schur complement."""
-    h = np.where(registered[..., None, None], h, 0.0)  # camera-frames left out (not re-fitted, or not pending)
-    g = np.where(registered[..., None], g, 0.0)
-    lam = damping[None, :, None]
-    a = h[..., :6, :6]
-    a = a + np.einsum("...i,ij->...ij", lam * np.diagonal(a, axis1=-2, axis2=-1) + 1e-9, np.eye(6))
-    a[~registered] = np.eye(6)
-    gp = g[..., :6]
-    if prior is None:
-        return np.linalg.solve(a, gp[..., None])[..., 0], np.zeros_like(correction)
-    b = h[..., :6, 6:]  # (T, C, 6, 3)
-    a_inv_b = np.linalg.solve(a, b)
-    a_inv_g = np.linalg.solve(a, gp[..., None])[..., 0]
-    s = h[..., 6:, 6:].sum(0) - np.einsum("tcij,tcik->cjk", b, a_inv_b) + np.eye(3) * prior
-    s = s + np.einsum("ci,ij->cij", damping[:, None] * np.diagonal(s, axis1=-2, axis2=-1), np.eye(3))
-    rhs = g[..., 6:].sum(0) - np.einsum("tcij,tci->cj", b, a_inv_g) - prior * correction
-    dk = np.linalg.solve(s, rhs[..., None])[..., 0]
-    deltas = a_inv_g - np.einsum("tcij,cj->tci", a_inv_b, dk)
-    return np.where(registered[..., None], deltas, 0.0), dk
