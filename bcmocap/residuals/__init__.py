@@ -5,7 +5,7 @@ made per window by a term factory that is given a :class:`TermWindow`. The class
 are what the decorator makes, and what the project's terms with extra methods (:class:`Reprojection`'s
 camera-frame points) subclass directly."""
 
-from .base import CameraPairTerm, CameraTerm, CameraView, FrameState, FrameTerm, MultiFrameTerm, PairTerm, Term, camera_slot_count, camera_slots, slot_cameras
+from .base import CameraPairTerm, CameraTerm, CameraView, FrameState, FrameTerm, MultiFrameTerm, PairTerm, StackedFrames, Term, camera_slot_count, camera_slots, slot_cameras
 from .function_term import residual_term
 from .homography import HomographyTransfer
 from .losses import CauchyLoss, HuberLoss, RobustLoss, TrivialLoss, loss_from_name
@@ -32,6 +32,7 @@ __all__ = [
     "Reprojection",
     "RobustLoss",
     "RootSmoothness",
+    "StackedFrames",
     "Rotation",
     "Term",
     "TermWindow",

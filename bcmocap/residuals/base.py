@@ -274,8 +274,9 @@ class FrameTerm(Term):
 
 
 class PairTerm(Term):
-    """A residual on two consecutive frames (smoothness): ``x`` is their :class:`FrameState` stacked,
-    ``x[0]`` at ``t − 1`` and ``x[1]`` at ``t``. ``data[t]`` belongs to the pair ``(t-1, t)``."""
+    """A residual on two consecutive frames (smoothness): ``x`` is their states as :class:`StackedFrames`, ``x[0]``
+    at ``t − 1`` and ``x[1]`` at ``t`` (an attribute such as ``x.motion`` is both stacked). ``data[t]`` belongs to the
+    pair ``(t-1, t)``."""
 
     kind = "pair"
     span = 2
@@ -352,6 +353,23 @@ class CameraPairTerm(Term):
 def stacked(*frames):
     """Pytrees of one frame each (states, poses) stacked on a new leading axis, oldest first."""
     return jax.tree.map(lambda *a: jnp.stack(a), *frames)
+
+
+class StackedFrames:
+    """Consecutive frames' states read as one :class:`FrameState` with a leading axis, oldest first: ``x[i]`` is the
+    ``i``-th frame's state as it is, and an attribute (``x.motion``, ``x.world_from_camera``, …) is stacked when it
+    is read, so that a pair term pays only for what it reads."""
+
+    def __init__(self, *frames: FrameState):
+        self._frames = frames
+
+    def __getitem__(self, i):
+        return self._frames[i] if isinstance(i, int) else jax.tree.map(lambda a: a[i], stacked(*self._frames))
+
+    def __getattr__(self, name: str):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return stacked(*(getattr(frame, name) for frame in self._frames))
 
 
 def declared_statics(term: Term, statics: dict) -> dict:

@@ -26,7 +26,7 @@ from ..kinematics.rig import Rig
 from ..kinematics.skeleton import Motion, Skeleton
 from .levenberg_marquardt import NormalEquations
 from .model_parameters import MODEL, ModelParameters, reaxis
-from ..residuals.base import CameraTerm, CameraView, FrameState, Term, declared_statics, slot_cameras, stacked
+from ..residuals.base import CameraTerm, CameraView, FrameState, StackedFrames, Term, declared_statics, slot_cameras, stacked
 from ..residuals.variables import CAMERA_OFFSETS, Euclidean, PerCamera, Variable, as_variable, retract_blocks
 
 
@@ -511,7 +511,7 @@ class _PairKind(_TermKind):
     """Consecutive frames: ``term.residual(prev, curr, data[t])``; the pair before a sequence's first frame is dropped."""
 
     def residuals(self, problem, term, point):
-        r, v = jax.vmap(lambda prev, curr, data: term.residual(stacked(prev, curr), data, declared_statics(term, prev.statics)))(
+        r, v = jax.vmap(lambda prev, curr, data: term.residual(StackedFrames(prev, curr), data, declared_statics(term, prev.statics)))(
             point.prev_states, point.curr_states, term.data)
         return r, _pair_valid(problem, v)
 
@@ -522,7 +522,7 @@ class _PairKind(_TermKind):
             at = static_values(problem, v[2 * d :])
             prev = model_state(problem, ref_prev, v[:d], at)
             curr = model_state(problem, ref_curr, v[d : 2 * d], at)
-            return tuple(t.masked(*_and_valid(t.residual(stacked(prev, curr), dt, declared_statics(t, prev.statics)), ok))
+            return tuple(t.masked(*_and_valid(t.residual(StackedFrames(prev, curr), dt, declared_statics(t, prev.statics)), ok))
                          for t, dt in zip(terms, data))
 
         pairs = jnp.concatenate([system.y_ext[h - 1 : -1], system.y_ext[h:]], axis=1)  # (W, 2D)
