@@ -5,6 +5,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+#: Seconds a compilation must take to be written to the cache (reading is not affected). A host process that must
+#: not serialize executables raises it: the test suite's long-lived workers, where XLA's serialization of an
+#: executable threw a C++ exception whose unwinding faulted (``bcmocap.native_crashes``).
+MIN_COMPILE_SECONDS = 0.5
+
 
 def enable_compilation_cache() -> None:
     """Persist XLA compilations across runs (``BCMOCAP_CACHE_DIR``, default ``~/.cache/bcmocap/jax``)."""
@@ -16,4 +21,4 @@ def enable_compilation_cache() -> None:
     import jax
 
     jax.config.update("jax_compilation_cache_dir", cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)

@@ -13,6 +13,16 @@ import pytest
 from bcmocap.cameras import FOVCamera
 from bcmocap.geometry import SE3, SO3
 from bcmocap.kinematics import Motion, Rig, Skeleton
+import bcmocap.compilation_cache
+from bcmocap.native_crashes import load_pycolmap
+
+# pycolmap through bcmocap: its import's glog signal handler would hang a test process that faults in native code
+# (CI's time then runs out) where the default ends it with faulthandler's report.
+load_pycolmap()
+# The test processes read JAX's persistent cache but never write it (commands run in them turn it on): in a worker
+# that had compiled and freed many programs, serializing one threw a C++ exception whose unwinding faulted (CI hung
+# on it under glog's handler). Commands run as subprocesses write it as usual.
+bcmocap.compilation_cache.MIN_COMPILE_SECONDS = 1e9
 
 SEGMENTS = ("pelvis", "torso", "head", "thigh", "shin", "foot")
 PARENTS = (-1, 0, 1, 0, 3, 4)

@@ -42,6 +42,7 @@ from ..io.capture_folder import (
 from ..io.colmap import from_pycolmap
 from ..io.names import checked_name, checked_relative_path
 from ..io.opencv_calibration import read_opencv_fisheye_calibration
+from ..native_crashes import load_pycolmap
 
 __all__ = ["Capture", "CaptureCamera", "TrialVideo", "VideoInfo", "read_capture", "read_camera_json"]
 
@@ -62,7 +63,7 @@ def lens_fingerprint(lenses) -> str:
 def read_camera_json(path: str | os.PathLike) -> CameraModel:
     """A lens file ``{"model": "FOV" | "OPENCV_FISHEYE" | "PINHOLE", "width", "height", "params"}``
     (OpenCV pixel convention) as a camera model."""
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     path = Path(path)
     data = read_json(path)

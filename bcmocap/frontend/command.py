@@ -32,7 +32,7 @@ from pathlib import Path
 
 from ..atomic import write_json_atomic
 from ..io.output_folder import check_outside, locked_output, output_folder
-
+from ..native_crashes import load_pycolmap
 
 MAX_MEASUREMENTS = 300
 """Measurements per camera-frame for the solver (the paper used about 300 inliers per image). On the 10 s walk
@@ -113,7 +113,7 @@ def prepare_reference(capture, ref_dir, log=print):
     Raises:
         ValueError: the capture has no reference photos.
     """
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     from .reference import build_reference, load_reference, save_reference
 
@@ -398,7 +398,12 @@ class TrialRegistrationJob:
 
     def _chunk_inputs(self, state: _PerCamera, a: int, b: int, progress_dir: Path, log) -> _ChunkInputs:
         """What the registration of the processed frames ``a … b − 1`` starts from."""
-        from .tracking import rounds_for_the_rest, sift_for_homographies, states_for_rounds, track_after_rounds
+        from .tracking import (
+            rounds_for_the_rest,
+            sift_for_homographies,
+            states_for_rounds,
+            track_after_rounds,
+        )
 
         if state.tracks is None:
             return _ChunkInputs(state.features[a:b])

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..native_crashes import load_pycolmap
+
 __all__ = ["estimate_pose", "nearest_point", "world_from_camera_wxyz_xyz"]
 
 
@@ -32,7 +34,7 @@ def estimate_pose(xy: np.ndarray, xyz: np.ndarray, cam, options):
         ``cam_from_world`` a ``pycolmap.Rigid3d``; None with fewer than 4 correspondences, when RANSAC fails
         or when the thresholds reject the pose.
     """
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     if len(xy) < 4:
         return None

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..cameras import CameraModel
 from ..io.colmap import to_pycolmap
+from ..native_crashes import load_pycolmap
 from .threads import default_threads
 
 __all__ = ["DescriptorIndex", "ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "verify_matches"]
@@ -209,7 +210,7 @@ class ReferenceModel:
 
 
 def _reader_options(camera):
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     options = pycolmap.ImageReaderOptions()
     if camera is None:
@@ -240,7 +241,7 @@ def _match_pairs(names, features, *, ratio, threshold_px, min_inliers, workers: 
 
 def _write_database(db_path: Path, image_dir: Path, names, camera, features, verified) -> Path:
     """A fresh pycolmap database holding the photos, their keypoints, descriptors and matches."""
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     if db_path.exists():
         db_path.unlink()
@@ -287,7 +288,7 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
         ValueError: if the folder or a photo is missing or unreadable, or nothing could be reconstructed.
     """
     import cv2
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     if attempts < 1:
         raise ValueError(f"attempts must be >= 1, got {attempts}")
@@ -384,7 +385,7 @@ def load_reference(folder: str | os.PathLike) -> ReferenceModel:
     """
     import json
 
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     folder = Path(folder)
     path = folder / "reference.json"

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..cameras import CameraModel
 from ..io.colmap import to_pycolmap
+from ..native_crashes import load_pycolmap
 from .poses import world_from_camera_wxyz_xyz
 from .reference import DescriptorIndex, ReferenceModel, extract_sift
 
@@ -124,7 +125,7 @@ class TrialRegistration:
 
 def reference_index(model: ReferenceModel) -> ReferenceIndex:
     """Stack the descriptors of the reference keypoints with a 3D point (read from the model's database)."""
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     rec = model.reconstruction
     desc, ids = [], []
@@ -166,7 +167,7 @@ def register_frame(image: np.ndarray, camera: CameraModel | object, index: Refer
                    options: RegistrationOptions = RegistrationOptions()) -> FrameRegistration:
     """Register one frame (gray or BGR uint8) of a camera (a :class:`~bcmocap.cameras.CameraModel` in
     OpenCV's pixel convention, or a ``pycolmap.Camera``) to the reference (see the module docstring)."""
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     cam = to_pycolmap(camera) if isinstance(camera, CameraModel) else camera
     keypoints, desc = extract_sift(image, max_features=options.max_features)

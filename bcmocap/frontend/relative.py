@@ -43,9 +43,15 @@ import numpy as np
 
 from ..cameras import CameraModel
 from ..io.colmap import to_pycolmap
+from ..native_crashes import load_pycolmap
 from .features import read_camera_features, write_camera_features
 from .poses import estimate_pose, nearest_point, world_from_camera_wxyz_xyz
-from .reference import DescriptorIndex, extract_sift, match_descriptors, uint8_descriptors
+from .reference import (
+    DescriptorIndex,
+    extract_sift,
+    match_descriptors,
+    uint8_descriptors,
+)
 from .register import ReferenceIndex, RegistrationOptions, match_to_reference
 from .threads import default_threads
 
@@ -943,7 +949,7 @@ class CaptureRegistrar:
     def _refined_pose(self, tc: tuple, point_ids: np.ndarray, point_xyz: np.ndarray):
         """The frame's pose refined on its points (``point_ids`` sorted, ``point_xyz`` their positions); the
         ``pycolmap.refine_absolute_pose`` output or None. Reads only (pycolmap releases the GIL)."""
-        import pycolmap
+        pycolmap = load_pycolmap()
 
         t, c = tc
         s = self.states[t][c]

@@ -34,6 +34,7 @@ from ..io.ply import write_camera_paths_ply, write_ply_pieces
 from ..io.run_folder import load_model, load_motion
 from ..kinematics.fk import joint_positions
 from ..kinematics.rig import camera_poses
+from ..native_crashes import load_pycolmap
 from .world import Similarity, load_similarity, transform_model
 
 
@@ -113,7 +114,7 @@ def write_outputs(ctx) -> dict:
 
 
 def _write_reference(ctx, sim) -> None:
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     source = ctx.path("frontend", "reference", "model")
     target = ctx.path("reference_colmap")
