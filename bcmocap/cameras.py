@@ -41,6 +41,7 @@ __all__ = [
     "FOVCamera",
     "OpenCVFisheyeCamera",
     "PinholeCamera",
+    "ThinPrismFisheyeCamera",
     "stack_cameras",
     "camera_at",
     "single_camera_intrinsics",
@@ -493,6 +494,190 @@ class OpenCVFisheyeCamera(CameraModel):
         )
         xy = m * (clamp_scale * sinc / poly)[..., None]
         return _normalize(jnp.concatenate([xy, cos[..., None]], axis=-1))
+
+
+def _kb_radial_inverse(k: Array, theta_d: Array, t_max: Array) -> tuple[Array, Array]:
+    """``(theta, beyond)``: the angle in ``[0, t_max]`` whose ``theta * poly(theta^2)`` is ``theta_d`` (...), and where
+    ``theta_d`` lies beyond the image of ``t_max`` (then ``theta = t_max``). A table over ``[0, t_max]``
+    interpolated, then Newton steps kept inside its cell; no gradients (callers add them)."""
+    grid = jnp.linspace(0.0, 1.0, _KB_TABLE + 1) * t_max
+    table = grid * _kb_poly(k, grid * grid)
+    td = jnp.minimum(theta_d, table[-1])
+    i = jnp.clip(jnp.sum(table < td[..., None], axis=-1), 1, _KB_TABLE)
+    lo, hi, f_lo, f_hi = grid[i - 1], grid[i], table[i - 1], table[i]
+    t = lo + (hi - lo) * (td - f_lo) / jnp.where(f_hi > f_lo, f_hi - f_lo, 1.0)
+    for _ in range(_KB_NEWTON_STEPS):
+        d = _kb_dpoly(k, t * t)
+        t = jnp.clip(t - (t * _kb_poly(k, t * t) - td) / jnp.where(d > 0, d, 1.0), lo, hi)
+    return t, theta_d > table[-1]
+
+
+def _prism_slope(ps: Array) -> Array:
+    """``c`` with every entry of the Jacobian of the decentering and thin-prism terms at most ``c * theta``."""
+    p1, p2, s1, s2 = (jnp.abs(ps[..., i]) for i in range(4))
+    return 6.0 * (p1 + p2) + 2.0 * (s1 + s2)
+
+
+@jax.jit
+def _thin_prism_max_angle_single(k: Array, ps: Array) -> Array:
+    """:attr:`ThinPrismFisheyeCamera.max_angle` of one camera: ``k`` (4,) radial, ``ps`` (4,) ``(p1, p2, sx1, sy1)``.
+
+    The radial map ``w -> w poly(|w|^2)`` on the disc ``|w| <= t`` is the gradient of a convex function whose
+    Hessian has the eigenvalues ``poly`` and ``d theta_d / d theta``; the decentering and thin-prism terms change
+    by at most ``2 c t |dw|`` (Frobenius bound). Where the smallest eigenvalue over the disc exceeds ``2 c t`` the
+    whole map is strongly monotone there, hence one-to-one and invertible by Newton steps.
+    """
+    kb = _kb_max_angle_single(k)
+    c = _prism_slope(ps)
+    grid = jnp.linspace(0.0, FISHEYE_ANGLE_LIMIT, _KB_GRID + 1)
+    t2 = grid * grid
+    smallest = jax.lax.cummin(jnp.minimum(_kb_dpoly(k, t2), _kb_poly(k, t2)))
+    bad = smallest <= 2.0 * c * grid
+    last_good = grid[jnp.maximum(jnp.argmax(bad), 1) - 1]
+    limit = jnp.where(jnp.any(bad), last_good, FISHEYE_ANGLE_LIMIT)
+    return jnp.where(c > 0, jnp.minimum(kb, limit), kb)
+
+
+class ThinPrismFisheyeCamera(CameraModel):
+    """Kannala-Brandt fisheye with decentering and thin-prism distortion (COLMAP "THIN_PRISM_FISHEYE").
+
+    With ``theta = atan2(r, z)`` and the equidistant coordinates ``(u, v) = theta (x, y) / r`` (so
+    ``u^2 + v^2 = theta^2``), the normalised image point is
+
+        ``(u, v) (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``                    (radial)
+        ``+ (2 p1 u v + p2 (theta^2 + 2 u^2), p1 (theta^2 + 2 v^2) + 2 p2 u v)``                (decentering)
+        ``+ (sx1, sy1) theta^2``                                                          (thin prism)
+
+    and ``pixel = focal * that + principal_point``. As in COLMAP's ``ThinPrismFisheyeCameraModel``, the
+    decentering and thin-prism terms act on the equidistant coordinates, not on the radially distorted ones;
+    COLMAP's ``theta = atan(r / z)`` holds in front of the camera only, ``atan2`` here also beyond 90 degrees.
+    With ``p = s = 0`` this is :class:`OpenCVFisheyeCamera` (the same formula and max angle).
+
+    Unprojection is a Newton solve in the equidistant plane (fixed steps, jit/vmap/grad friendly; derivatives
+    by the implicit function theorem), started from the radial inverse.
+
+    Attributes:
+        focal: (..., 2) focal lengths (fx, fy) in pixels.
+        principal_point: (..., 2) principal point (cx, cy) in pixels, OpenCV convention.
+        distortion: (..., 4) radial coefficients (k1, k2, k3, k4), dimensionless.
+        tangential: (..., 2) decentering coefficients (p1, p2), dimensionless.
+        thin_prism: (..., 2) thin-prism coefficients (sx1, sy1), dimensionless.
+    """
+
+    focal: Array = eqx.field(converter=_float_array)
+    principal_point: Array = eqx.field(converter=_float_array)
+    distortion: Array = eqx.field(converter=_float_array)
+    tangential: Array = eqx.field(converter=_float_array)
+    thin_prism: Array = eqx.field(converter=_float_array)
+
+    def __check_init__(self) -> None:
+        cls = type(self).__name__
+        _check_common(self)
+        _check_shape(cls, "distortion", self.distortion, (4,), "k1, k2, k3, k4")
+        _check_shape(cls, "tangential", self.tangential, (2,), "p1, p2")
+        _check_shape(cls, "thin_prism", self.thin_prism, (2,), "sx1, sy1")
+        _check_batch(cls, {name: (getattr(self, name), 1) for name in
+                           ("focal", "principal_point", "distortion", "tangential", "thin_prism")})
+        for name in ("distortion", "tangential", "thin_prism"):
+            _check_finite_positive(cls, name, getattr(self, name), positive=False)
+
+    @property
+    def max_angle(self) -> Array:
+        """Largest angle (rad, at most ``FISHEYE_ANGLE_LIMIT``) up to which projection is one-to-one.
+
+        The Kannala-Brandt limit (where ``theta_d`` stops increasing) with ``p = s = 0``; otherwise the largest
+        angle (on a 0.17 degree grid) where the radial map's smallest stretch still exceeds twice a bound of how
+        much the decentering and thin-prism terms can stretch (a sufficient condition; just below the radial
+        limit for the small terms of real lenses).
+        """
+        k, ps = (jax.lax.stop_gradient(x) for x in (self.distortion, self._prism_coefficients()))
+        return jnp.vectorize(_thin_prism_max_angle_single, signature="(4),(4)->()")(k, ps)
+
+    def _prism_coefficients(self) -> Array:
+        """(..., 4) ``(p1, p2, sx1, sy1)``."""
+        return jnp.concatenate([self.tangential, self.thin_prism], axis=-1)
+
+    def _decentering(self, w: Array, theta2: Array, ps: Array) -> Array:
+        """(..., 2) decentering plus thin-prism terms at equidistant coordinates ``w`` (..., 2), ``theta2 = |w|^2``."""
+        p1, p2, sx, sy = (ps[..., i] for i in range(4))
+        u, v = w[..., 0], w[..., 1]
+        du = 2.0 * p1 * u * v + p2 * (theta2 + 2.0 * u * u) + sx * theta2
+        dv = 2.0 * p2 * u * v + p1 * (theta2 + 2.0 * v * v) + sy * theta2
+        return jnp.stack([du, dv], axis=-1)
+
+    def _distort(self, w: Array, k: Array, ps: Array) -> tuple[Array, Array]:
+        """Normalised image points (..., 2) of equidistant coordinates ``w`` (..., 2) and their (..., 2, 2) Jacobian."""
+        u, v = w[..., 0], w[..., 1]
+        t2 = u * u + v * v
+        poly = _kb_poly(k, t2)
+        k1, k2, k3, k4 = (k[..., i] for i in range(4))
+        dpoly_dt2 = k1 + t2 * (2.0 * k2 + t2 * (3.0 * k3 + t2 * 4.0 * k4))
+        p1, p2, sx, sy = (ps[..., i] for i in range(4))
+        # Radial part: poly I + 2 poly'(t2) w w^T; decentering and thin prism: the derivatives of _decentering.
+        j00 = poly + 2.0 * dpoly_dt2 * u * u + 2.0 * p1 * v + 6.0 * p2 * u + 2.0 * sx * u
+        j01 = 2.0 * dpoly_dt2 * u * v + 2.0 * p1 * u + 2.0 * p2 * v + 2.0 * sx * v
+        j10 = 2.0 * dpoly_dt2 * u * v + 2.0 * p2 * v + 2.0 * p1 * u + 2.0 * sy * u
+        j11 = poly + 2.0 * dpoly_dt2 * v * v + 2.0 * p2 * u + 6.0 * p1 * v + 2.0 * sy * v
+        jac = jnp.stack([jnp.stack([j00, j01], axis=-1), jnp.stack([j10, j11], axis=-1)], axis=-2)
+        return w * poly[..., None] + self._decentering(w, t2, ps), jac
+
+    def _project_normalized(self, p: Array) -> Array:
+        k = self.distortion
+        r2 = p[..., 0] ** 2 + p[..., 1] ** 2
+        theta_over_r = _atan2_over_y(r2, p[..., 2])
+        theta2 = r2 * theta_over_r**2
+        s = theta_over_r * _kb_poly(k, theta2)
+        w = p[..., :2] * theta_over_r[..., None]
+        return p[..., :2] * s[..., None] + self._decentering(w, theta2, self._prism_coefficients())
+
+    def _unproject_normalized(self, m: Array) -> Array:
+        th_max = self.max_angle
+        k, ps = self.distortion, self._prism_coefficients()
+        ks, pss, ms = (jax.lax.stop_gradient(x) for x in (k, ps, m))
+
+        # Start: the radial inverse of |m| along m (as OpenCVFisheyeCamera's, exact without decentering).
+        rho = _safe_sqrt(jnp.sum(ms * ms, axis=-1))
+        theta, outside = _kb_radial_inverse(ks, rho, th_max)
+        w = ms * (theta / jnp.where(rho > 0, rho, 1.0))[..., None]
+        # Newton steps on distort(w) = m (all without gradients), each kept inside the disc |w| <= max_angle, so
+        # that pixels beyond the image of the disc end on its rim (their ray at max_angle off-axis). A step that
+        # does not lower the residual is not taken and the next try is half as long (near a fold of the radial
+        # profile, where the Jacobian is nearly singular).
+        def inside_disc(v):
+            norm = _safe_sqrt(jnp.sum(v * v, axis=-1))
+            beyond = norm > th_max
+            return v * jnp.where(beyond, th_max / jnp.where(beyond, norm, 1.0), 1.0)[..., None], beyond
+
+        value, jac = self._distort(w, ks, pss)
+        residual = value - ms
+        length = jnp.ones(ms.shape[:-1])
+        for _ in range(_KB_NEWTON_STEPS):
+            trial, beyond = inside_disc(w - length[..., None] * _solve_2x2(jac, residual))
+            trial_value, trial_jac = self._distort(trial, ks, pss)
+            trial_residual = trial_value - ms
+            better = jnp.sum(trial_residual**2, axis=-1) < jnp.sum(residual**2, axis=-1)
+            w = jnp.where(better[..., None], trial, w)
+            residual = jnp.where(better[..., None], trial_residual, residual)
+            jac = jnp.where(better[..., None, None], trial_jac, jac)
+            outside = jnp.where(better, beyond, outside)
+            length = jnp.where(better, 1.0, 0.5 * length)
+        # Value w; derivative by the implicit function theorem (the rim's rays keep none).
+        value, _ = self._distort(w, k, ps)
+        step = _solve_2x2(jac, value - m)
+        w = jnp.where(outside[..., None], w, w - (step - jax.lax.stop_gradient(step)))
+
+        sinc, cos = _sinc_cos(jnp.sum(w * w, axis=-1))
+        return _normalize(jnp.concatenate([w * sinc[..., None], cos[..., None]], axis=-1))
+
+
+def _solve_2x2(a: Array, b: Array) -> Array:
+    """``a^-1 b`` for (..., 2, 2) ``a`` and (..., 2) ``b``; zero where ``a`` is singular."""
+    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    ok = jnp.abs(det) > 1e-300
+    inv_det = jnp.where(ok, 1.0 / jnp.where(ok, det, 1.0), 0.0)
+    x = a[..., 1, 1] * b[..., 0] - a[..., 0, 1] * b[..., 1]
+    y = a[..., 0, 0] * b[..., 1] - a[..., 1, 0] * b[..., 0]
+    return jnp.stack([x, y], axis=-1) * inv_det[..., None]
 
 
 # ---------------------------------------------------------------------------------------------

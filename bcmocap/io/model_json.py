@@ -5,19 +5,32 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cameras import CameraModel, FOVCamera, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
+from ..cameras import (
+    CameraModel,
+    FOVCamera,
+    OpenCVFisheyeCamera,
+    PinholeCamera,
+    ThinPrismFisheyeCamera,
+    camera_at,
+    stack_cameras,
+)
 from ..kinematics.rig import Rig
 from ..kinematics.skeleton import JointType, Skeleton
 
 
 def camera_to_dict(camera: CameraModel) -> dict:
-    """``{"model": "FOV" | "OPENCV_FISHEYE" | "PINHOLE", "width", "height", "params": [fx, fy, cx, cy, ...]}``."""
+    """``{"model": "FOV" | "OPENCV_FISHEYE" | "THIN_PRISM_FISHEYE" | "PINHOLE", "width", "height", "params": [fx, fy, cx,
+    cy, ...]}``; a thin-prism fisheye's params in COLMAP's order (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, sx1, sy1)."""
     fx, fy = (float(x) for x in np.asarray(camera.focal))
     cx, cy = (float(x) for x in np.asarray(camera.principal_point))
     if isinstance(camera, FOVCamera):
         model, extra = "FOV", [float(camera.omega)]
     elif isinstance(camera, OpenCVFisheyeCamera):
         model, extra = "OPENCV_FISHEYE", [float(x) for x in np.asarray(camera.distortion)]
+    elif isinstance(camera, ThinPrismFisheyeCamera):
+        (k1, k2, k3, k4), (p1, p2), (sx1, sy1) = (np.asarray(x, np.float64).tolist() for x in
+                                                  (camera.distortion, camera.tangential, camera.thin_prism))
+        model, extra = "THIN_PRISM_FISHEYE", [k1, k2, p1, p2, k3, k4, sx1, sy1]
     elif isinstance(camera, PinholeCamera):
         model, extra = "PINHOLE", []
     else:
@@ -35,6 +48,9 @@ def camera_from_dict(data: dict, where: str) -> CameraModel:
             return FOVCamera(**size, focal=p[0:2], principal_point=p[2:4], omega=p[4])
         if model == "OPENCV_FISHEYE" and len(p) == 8:
             return OpenCVFisheyeCamera(**size, focal=p[0:2], principal_point=p[2:4], distortion=p[4:8])
+        if model == "THIN_PRISM_FISHEYE" and len(p) == 12:
+            return ThinPrismFisheyeCamera(**size, focal=p[0:2], principal_point=p[2:4], distortion=[*p[4:6], *p[8:10]],
+                                          tangential=p[6:8], thin_prism=p[10:12])
         if model == "PINHOLE" and len(p) == 4:
             return PinholeCamera(**size, focal=p[0:2], principal_point=p[2:4])
     except KeyError as err:
