@@ -98,7 +98,7 @@ def test_camera_effects_choose_the_reprojection_and_add_their_priors():
     model them, with priors on what they estimate; the paper's terms are the default."""
     from bcmocap.pipeline.run import camera_effects
     from bcmocap.residuals import Reprojection
-    from bcmocap.residuals.rolling_shutter import READOUT, RollingShutterReprojection
+    from bcmocap.residuals.rolling_shutter import READOUT, TIME_OFFSET, RollingShutterReprojection
     from bcmocap.residuals.self_calibration import INTRINSICS_CORRECTION, SelfCalibratingReprojection
     from bcmocap.residuals.variables import CAMERA_OFFSETS
     from bcmocap.correspondences import Correspondences
@@ -124,6 +124,13 @@ def test_camera_effects_choose_the_reprojection_and_add_their_priors():
     only_calibration = paper_terms(corr, skeleton,
                                    effects=camera_effects(RunConfig.from_dict({"solver": {"self_calibration": True}}).solver))
     assert isinstance(only_calibration[0], SelfCalibratingReprojection)
+    # estimating each camera's time offset makes the reprojection a rolling-shutter one (readout 0) with its prior
+    timed = paper_terms(corr, skeleton, effects=camera_effects(
+        RunConfig.from_dict({"solver": {"estimate_time_offsets": True}}).solver))
+    assert isinstance(timed[0], RollingShutterReprojection) and timed[0].estimate_time_offsets
+    assert float(timed[0].readout) == 0.0 and timed[0].num_cameras == c
+    assert {name for t in timed for name in t.static_variables()} == {TIME_OFFSET}
+    assert "time offset prior" in {t.label for t in timed}
     for bad in ({"mount_compliance": [0.003, 0.0]}, {"rolling_shutter_readout": 2.0}):
         with pytest.raises(ValueError, match="solver\\.(mount_compliance|rolling_shutter_readout)"):
             RunConfig.from_dict({"solver": bad})

@@ -34,7 +34,7 @@ from bcmocap.residuals import (
 from bcmocap.residuals.base import CameraView, stacked
 from bcmocap.residuals.mount_compliance import MountCompliance, MountSmoothness
 from bcmocap.residuals.registered_pose import RegisteredPose, registered_pose_data
-from bcmocap.residuals.rolling_shutter import READOUT, RollingShutterReprojection
+from bcmocap.residuals.rolling_shutter import READOUT, TIME_OFFSET, RollingShutterReprojection
 from bcmocap.residuals.self_calibration import INTRINSICS_CORRECTION, SelfCalibratingReprojection, StaticPrior, intrinsics_correction
 from bcmocap.residuals.variables import CAMERA_OFFSETS, Rotation
 from bcmocap.solver.model_parameters import ModelParameters, parameter_layout
@@ -816,7 +816,8 @@ def test_per_frame_variables_and_camera_term_statics_give_the_dense_bordered_sys
         SelfCalibratingReprojection(scene["reprojection"], points=scene["points"], loss=CauchyLoss(2.0),
                                     name="reprojection", num_cameras=c),
         RollingShutterReprojection(scene["reprojection"], points=scene["points"], readout=0.6, estimate_readout=True,
-                                   calibrate=True, num_cameras=c, weight=0.5, loss=HuberLoss(1.0), name="rolling shutter"),
+                                   calibrate=True, estimate_time_offsets=True, num_cameras=c, weight=0.5,
+                                   loss=HuberLoss(1.0), name="rolling shutter"),
         StaticPrior(np.full(W, 1.0 / W), block=INTRINSICS_CORRECTION, variable=intrinsics_correction(c),
                     sigma=jnp.array([0.01, 3.0, 3.0]), name="intrinsics prior"),
         HomographyTransfer(scene["homography"], weight=0.5, loss=HuberLoss(1.0), name="homography"),
@@ -829,16 +830,18 @@ def test_per_frame_variables_and_camera_term_statics_give_the_dense_bordered_sys
     ]
     frame_values = {CAMERA_OFFSETS: rng.normal(scale=0.01, size=(W + 1, c, 6)), "lean": rng.normal(scale=0.1, size=(W + 1, 2))}
     statics = {"head frame": random_quaternions(rng, (), max_angle=0.5), "turn": random_quaternions(rng, (), max_angle=0.1),
-               INTRINSICS_CORRECTION: rng.normal(scale=[0.003, 1.0, 1.0], size=(c, 3)), READOUT: np.array([0.05])}
+               INTRINSICS_CORRECTION: rng.normal(scale=[0.003, 1.0, 1.0], size=(c, 3)), READOUT: np.array([0.05]),
+               TIME_OFFSET: rng.normal(scale=0.2, size=(c, 1))}
     problem = make_window_problem(skeleton, rig, [t.window(0, W) for t in terms], scene["reference"], True, statics,
                                   frame_values=frame_values)
-    assert problem.frame_size == skeleton.num_dofs + 6 * c + 2 and problem.num_statics == 3 + 3 * c + 1 + 3
+    assert problem.frame_size == skeleton.num_dofs + 6 * c + 2 and problem.num_statics == 3 + 3 * c + 1 + c + 3
     hess, n = assert_bordered_matches_dense(problem, rng)
     d = problem.frame_size
     offsets = slice(skeleton.num_dofs, skeleton.num_dofs + 6 * c)  # blocks sorted by name: "camera_offsets", "lean"
     assert np.abs(hess[:d, :d][:skeleton.num_dofs, offsets]).max() > 1e-3 * np.abs(hess).max()  # the cameras see them
     assert np.abs(hess[:n, n + 3 : n + 3 + 3 * c]).max() > 1.0  # the intrinsics couple to the frames
     assert np.abs(hess[:n, n + 3 + 3 * c]).max() > 1e-3  # so does the readout
+    assert np.abs(hess[:n, n + 4 + 3 * c: n + 4 + 4 * c]).max() > 1e-3  # and each camera's time offset
 
 
 def test_rolling_shutter_reprojection_explains_row_times(rig):
@@ -865,6 +868,39 @@ def test_rolling_shutter_reprojection_explains_row_times(rig):
     assert np.abs(np.asarray(r_global)[np.asarray(ok_global)]).max() > 1.0
     r0, _ = RollingShutterReprojection(data, readout=0.0).residual(_view((prev, curr), camera), data, {})
     np.testing.assert_allclose(np.asarray(r0), np.asarray(r_global), atol=1e-9)
+
+
+def test_a_cameras_time_offset_moves_it_along_its_velocity_with_finite_difference_derivatives(rig):
+    """The rolling-shutter term with a per-camera time offset (static block TIME_OFFSET): pixels exposed a time
+    offset after the frame give zero residuals at that offset; the residuals' derivative in the offset is the
+    finite-difference one, and an offset of a whole frame period back is the previous frame's global-shutter view."""
+    rng = np.random.default_rng(5)
+    camera = jax.tree.map(lambda a: a[0], rig.intrinsics)
+    velocity = jnp.array([0.05, -0.02, 0.01, 0.04, 0.08, -0.03])
+    curr = SE3.exp(jnp.array([0.1, 0.0, 0.2, 0.1, -0.2, 0.05]))
+    prev = SE3.exp(-velocity) @ curr
+    points = jnp.asarray(rng.uniform([-2, -2, 2], [2, 2, 5], size=(40, 3)))
+    readout, offset = 0.6, 0.35
+    pixels, _ = camera.project(curr.apply(points))
+    for _ in range(30):
+        s = (pixels[:, 1] / (camera.height - 1) - 0.5) * readout + offset
+        pixels, valid = camera.project(jax.vmap(lambda si, p: (SE3.exp(si * velocity) @ curr).apply(p))(s, points))
+    data = {"points": points, "pixels": pixels, "weights": jnp.where(valid, 1.0, 0.0)}
+    term = RollingShutterReprojection(data, readout=readout, estimate_time_offsets=True, num_cameras=1)
+    assert set(term.static_variables()) == {TIME_OFFSET}
+
+    def residual(value):
+        return term.residual(_view((prev, curr), camera), data, {TIME_OFFSET: jnp.reshape(value, (1,))})[0]
+
+    assert np.abs(np.asarray(residual(offset))[np.asarray(valid)]).max() < 1e-6
+    for value in (0.0, 0.2, -0.4):
+        step = 1e-6
+        numeric = (residual(value + step) - residual(value - step)) / (2 * step)
+        np.testing.assert_allclose(np.asarray(jax.jacfwd(residual)(value)), np.asarray(numeric), atol=1e-5)
+    back = RollingShutterReprojection(data, readout=0.0, estimate_time_offsets=True, num_cameras=1)
+    r_back, _ = back.residual(_view((prev, curr), camera), data, {TIME_OFFSET: jnp.array([-1.0])})
+    r_prev, _ = Reprojection(data).residual(CameraView(prev, camera), data, {})
+    np.testing.assert_allclose(np.asarray(r_back), np.asarray(r_prev), atol=1e-9)
 
 
 def test_variable_declarations_are_checked(skeleton, rig, scene):

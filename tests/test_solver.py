@@ -389,10 +389,11 @@ def test_per_frame_camera_offsets_and_rotation_statics_reach_scipys_minimum_and_
     np.testing.assert_allclose(resumed.statics["misalignment"], windowed.statics["misalignment"], atol=1e-12)
 
 
-def rolling_shutter_observations(skeleton, rig, motion, points, readout, sigma, rng):
+def rolling_shutter_observations(skeleton, rig, motion, points, readout, sigma, rng, time_offsets=None):
     """Pixels ``(T, C, P, 2)`` of a rolling shutter: row ``r`` of ``H`` seen at ``(r/(H−1) − ½)·readout`` frames from
-    the frame's time, the body moving linearly in its tangent space between frames (not the term's model of a
-    camera at constant velocity)."""
+    the frame's time (plus camera ``c``'s ``time_offsets[c]`` frames), the body moving linearly in its tangent space
+    between frames (not the term's model of a camera at constant velocity)."""
+    offsets = np.zeros(rig.num_cameras) if time_offsets is None else np.asarray(time_offsets, float)
     num = motion.num_frames
     forward = np.array(skeleton.difference(motion[np.arange(num)], motion[np.minimum(np.arange(num) + 1, num - 1)]))
     backward = np.array(skeleton.difference(motion[np.maximum(np.arange(num) - 1, 0)], motion[np.arange(num)]))
@@ -407,11 +408,11 @@ def rolling_shutter_observations(skeleton, rig, motion, points, readout, sigma, 
         cam = transform_points(own, jnp.asarray(points)[None, None])
         return jax.vmap(jax.vmap(lambda k, p: k.project(p), in_axes=(None, 0)), in_axes=(0, 1), out_axes=1)(rig.intrinsics, cam)
 
-    s = np.zeros((num, rig.num_cameras, len(points)))
+    s = np.zeros((num, rig.num_cameras, len(points))) + offsets[None, :, None]
     for _ in range(12):  # a pixel's row sets its time, which sets the pixel
         uv, valid = pixels_at(s)
         rows = np.asarray(uv)[..., 1] / (rig.intrinsics.height - 1) - 0.5
-        s = np.clip(rows, -0.5, 0.5) * readout
+        s = np.clip(rows, -0.5, 0.5) * readout + offsets[None, :, None]
     valid = np.asarray(valid) & np.asarray(jax.vmap(lambda k, p: k.in_image(p), in_axes=(0, 1), out_axes=1)(rig.intrinsics, uv))
     pix = np.asarray(uv) + sigma * rng.normal(size=np.shape(uv))
     ids = np.where(valid, np.arange(len(points)), -1).astype(np.int32)
@@ -443,3 +444,56 @@ def test_rolling_shutter_term_recovers_what_a_global_shutter_bends(setup):
         StaticPrior(np.full(T, 1.0 / T), block=READOUT, variable=Euclidean(1), sigma=10.0), *smooth]), init, options)
     readout = float(estimated.statics[READOUT][0])
     assert abs(readout - 1.0) < 0.3 and error(estimated) < 0.8 * error(global_shutter), (readout, error(estimated))
+
+
+def time_offset_observations(skeleton, rig, motion, points, readout, offsets):
+    """Pixels ``(T, C, P, 2)`` as :class:`RollingShutterReprojection` predicts them: camera ``c`` of frame ``t``
+    exposed ``offsets[c]`` frame periods after the frame's time (row ``r`` a further ``(r/(H−1) − ½)·readout``),
+    moving at its velocity between frames ``t − 1`` and ``t``; frame 0 has no previous frame and sees nothing."""
+    from bcmocap.residuals.rolling_shutter import rolling_shutter_projection
+
+    cam_from_world = np.asarray(camera_poses(skeleton, rig, motion).inverse().wxyz_xyz)  # (T, C, 7)
+    num, cams = cam_from_world.shape[:2]
+    pix = np.zeros((num, cams, len(points), 2))
+    valid = np.zeros((num, cams, len(points)), bool)
+    for t in range(1, num):
+        for c in range(cams):
+            camera = jax.tree.map(lambda a: a[c], rig.intrinsics)
+            pose = SE3(jnp.asarray(cam_from_world[t, c]))
+            velocity = (pose @ SE3(jnp.asarray(cam_from_world[t - 1, c])).inverse()).log()
+            rows = jnp.full(len(points), 0.5 * (camera.height - 1))
+            for _ in range(8):  # a pixel's row sets its time, which sets the pixel
+                uv, ok = rolling_shutter_projection(camera, pose, velocity, readout, jnp.asarray(points), rows, offsets[c])
+                rows = jnp.clip(uv[:, 1], 0, camera.height - 1)
+            pix[t, c], valid[t, c] = np.asarray(uv), np.asarray(ok & camera.in_image(uv))
+    ids = np.where(valid, np.arange(len(points)), -1).astype(np.int32)
+    return ids, np.where(valid[..., None], pix, 0.0), valid.astype(np.float64)
+
+
+@pytest.mark.slow
+def test_each_cameras_time_offset_is_recovered_with_the_motion(setup):
+    """Cameras exposed up to 0.3 frame periods off the frames' times (what audio sync leaves: each camera's audio
+    latency), pixels exactly as the rolling-shutter term models them: solving for each camera's time offset (a
+    per-camera static from zero, a weak prior) recovers the offsets and the motion exactly, where a
+    solve that ignores them is degrees off."""
+    from bcmocap.residuals.rolling_shutter import TIME_OFFSET, RollingShutterReprojection, time_offsets
+    from bcmocap.residuals.self_calibration import StaticPrior
+
+    skeleton, rig, truth, points, _, init = setup
+    offsets = np.random.default_rng(32).uniform(-0.3, 0.3, rig.num_cameras)
+    ids, pix, w = time_offset_observations(skeleton, rig, truth, points, 0.5, offsets)
+    data = {"point_ids": ids, "pixels": pix, "weights": w}
+    smooth = [RootSmoothness(pair_mask(T), weight=1e-6), JointSmoothness(pair_mask(T), skeleton=skeleton, weight=1e-6)]
+    options = SolverOptions(window=T, overlap=0, rtol=1e-12, atol=1e-14, max_steps=80)
+    frames = slice(1, None)
+    error = lambda solution: evaluate_motion(skeleton, solution.motion[frames], truth[frames])["joint_angle_error_deg"]["mean"]  # noqa: E731
+    ignored = solve(Problem(skeleton, rig, [RollingShutterReprojection(data, points=points, readout=0.5), *smooth]),
+                    init, options)
+    estimated = solve(Problem(skeleton, rig, [
+        RollingShutterReprojection(data, points=points, readout=0.5, estimate_time_offsets=True,
+                                   num_cameras=rig.num_cameras),
+        StaticPrior(np.full(T, 1.0 / T), block=TIME_OFFSET, variable=time_offsets(rig.num_cameras), sigma=10.0),
+        *smooth]), init, options)
+    found = np.asarray(estimated.statics[TIME_OFFSET])[:, 0]
+    assert np.abs(found - offsets).max() < 0.01, (found, offsets)
+    assert error(estimated) < 0.02 and error(ignored) > 0.2, (error(estimated), error(ignored))

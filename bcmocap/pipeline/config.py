@@ -54,6 +54,8 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     rolling_shutter_readout = 0.0   # s from the first image row to the last (0: global shutter), 0 to 1; also
                                     # re-fits the registered camera poses under it (world stage)
     estimate_readout = false  # also solve for a correction to the readout (prior σ 10 ms)
+    estimate_time_offsets = false  # also solve for each camera's time offset: its sub-frame start and audio
+                                   # latency, which clap sync cannot see (prior σ 10 ms)
     self_calibration = false  # solve for each camera's focal length and centre (prior σ 1 %, 5 px); the world
                               # stage first estimates them with the range-of-motion trial's registered poses
     mount_compliance = [0.0, 0.0]   # σ of each camera's per-frame offset on its mount [m, deg]; [0, 0]: rigid
@@ -138,6 +140,7 @@ class SolverConfig:
     refine_rounds: int = 0
     rolling_shutter_readout: float = 0.0
     estimate_readout: bool = False
+    estimate_time_offsets: bool = False
     self_calibration: bool = False
     mount_compliance: tuple[float, ...] = (0.0, 0.0)
     registered_pose: tuple[float, ...] = (0.02, 1.0)

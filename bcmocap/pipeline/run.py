@@ -545,7 +545,7 @@ def camera_effects(s):
     from ..solver.objective import CameraEffects
 
     return CameraEffects(readout_seconds=s.rolling_shutter_readout, estimate_readout=s.estimate_readout,
-                         self_calibration=s.self_calibration,
+                         estimate_time_offsets=s.estimate_time_offsets, self_calibration=s.self_calibration,
                          mount_sigma=(s.mount_compliance[0], math.radians(s.mount_compliance[1])))
 
 

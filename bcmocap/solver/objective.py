@@ -29,7 +29,7 @@ from ..kinematics.skeleton import Skeleton
 from ..residuals import HomographyTransfer, camera_slot_count, camera_slots, JointSmoothness, Reprojection, RootSmoothness, Term, loss_from_name, pair_mask
 from ..residuals.mount_compliance import MountCompliance, MountSmoothness
 from ..residuals.registered_pose import RegisteredPose, registered_pose_data
-from ..residuals.rolling_shutter import READOUT, RollingShutterReprojection
+from ..residuals.rolling_shutter import READOUT, TIME_OFFSET, RollingShutterReprojection, time_offsets
 from ..residuals.term_window import TermWindow
 from ..residuals.self_calibration import INTRINSICS_CORRECTION, SelfCalibratingReprojection, StaticPrior, intrinsics_correction
 from ..residuals.variables import Euclidean
@@ -78,6 +78,9 @@ class CameraEffects:
             ``readout_sigma_seconds``).
         self_calibration: solve for each camera's focal scale and principal point with the motion (static
             variables with a prior σ ``intrinsics_sigma``: log focal scale, px).
+        estimate_time_offsets: solve for each camera's time offset, when its frames are exposed after the
+            frames' times (sub-frame starts, audio latencies; a per-camera static variable of the rolling-shutter
+            reprojection, prior σ ``time_offset_sigma_seconds``).
         mount_sigma: ``(m, rad)`` σ of each camera's per-frame offset from its mount
             (:class:`~bcmocap.residuals.mount_compliance.MountCompliance`; (0, 0): rigid mounts); offsets change
             between frames with σ half as large.
@@ -88,11 +91,13 @@ class CameraEffects:
     readout_sigma_seconds: float = 0.01
     self_calibration: bool = False
     intrinsics_sigma: tuple[float, float] = (0.01, 5.0)
+    estimate_time_offsets: bool = False
+    time_offset_sigma_seconds: float = 0.01
     mount_sigma: tuple[float, float] = (0.0, 0.0)
 
     @property
     def rolling_shutter(self) -> bool:
-        return self.readout_seconds > 0 or self.estimate_readout
+        return self.readout_seconds > 0 or self.estimate_readout or self.estimate_time_offsets
 
 
 def _camera_terms(c: Correspondences, effects: CameraEffects, loss, mask: np.ndarray) -> list[Term]:
@@ -103,10 +108,14 @@ def _camera_terms(c: Correspondences, effects: CameraEffects, loss, mask: np.nda
     if effects.rolling_shutter:
         terms: list[Term] = [RollingShutterReprojection(
             data, points=c.points, readout=effects.readout_seconds * c.fps, estimate_readout=effects.estimate_readout,
-            calibrate=effects.self_calibration, num_cameras=c.num_cameras, loss=loss, name="reprojection")]
+            estimate_time_offsets=effects.estimate_time_offsets, calibrate=effects.self_calibration,
+            num_cameras=c.num_cameras, loss=loss, name="reprojection")]
         if effects.estimate_readout:
             terms.append(StaticPrior(share, block=READOUT, variable=Euclidean(1),
                                      sigma=effects.readout_sigma_seconds * c.fps, name="readout prior"))
+        if effects.estimate_time_offsets:
+            terms.append(StaticPrior(share, block=TIME_OFFSET, variable=time_offsets(c.num_cameras),
+                                     sigma=effects.time_offset_sigma_seconds * c.fps, name="time offset prior"))
     elif effects.self_calibration:
         terms = [SelfCalibratingReprojection(data, points=c.points, num_cameras=c.num_cameras, loss=loss, name="reprojection")]
     else:
