@@ -15,7 +15,18 @@ from conftest import KNEE_AXIS, quat_distance, random_motion, random_quaternions
 from bcmocap.eval import joint_position_errors
 from bcmocap.geometry import SE3
 from bcmocap.kinematics import JointType, Motion, camera_poses, forward_kinematics, world_rotations
-from bcmocap.sim import BODY_SEGMENTS, BodySegment, make_world, reduce_motion, resample, standard_capture
+from bcmocap.sim import (
+    BODY_SEGMENTS,
+    CMU_TRIALS,
+    BodySegment,
+    load_body_motion,
+    make_textured_scene,
+    make_world,
+    reduce_motion,
+    resample,
+    standard_capture,
+    standard_rig,
+)
 
 FRAMES = 3
 
@@ -236,3 +247,90 @@ def test_segment_distance_squared_matches_a_dense_sampling():
     brute = np.min(np.sum((a[:, :, None] - b[:, None]) ** 2, -1), axis=(1, 2))
     assert got.shape == (20,)
     assert np.all(got <= brute + 1e-9) and np.allclose(got, brute, atol=2e-4)
+
+
+# ---- the bundled CMU trials that are not walk, run or jump ---------------------------------------------
+
+#: Frames of the added trials at 60 fps: scoop 600 frames at 120 Hz (5 s), hop 1006 (8.4 s).
+ADDED_TRIALS = {"scoop": 300, "hop": 503}
+
+
+@pytest.fixture(scope="module", params=sorted(ADDED_TRIALS))
+def added_trial(request):
+    return request.param, *load_body_motion(request.param, fps=60.0)
+
+
+def test_added_trials_load_whole_finite_and_on_the_camera_skeleton(added_trial):
+    name, skeleton, motion = added_trial
+    assert motion.num_frames == ADDED_TRIALS[name]  # all the bundled frames, 120 Hz resampled to 60 fps
+    root, rotations = np.asarray(motion.root_position), np.asarray(motion.rotations)
+    assert np.all(np.isfinite(root)) and np.all(np.isfinite(rotations))
+    walk, _ = load_body_motion("walk", fps=60.0, seconds=0.05)
+    assert skeleton.names == walk.names == tuple(s.name for s in BODY_SEGMENTS)
+    assert skeleton.parents == walk.parents and skeleton.joint_types == walk.joint_types
+    hinges = [j for j, t in enumerate(skeleton.joint_types) if t == JointType.HINGE]
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(skeleton.hinge_axes)[hinges], axis=1), 1.0, atol=1e-12)
+    # Knees and elbows turn about their axes only; the 18 cameras follow the motion without a NaN.
+    np.testing.assert_allclose(np.asarray(skeleton.project_rotations(rotations)), rotations, atol=1e-12)
+    poses = np.asarray(standard_rig(skeleton, 64, 36).world_from_camera(forward_kinematics(skeleton, motion)).wxyz_xyz)
+    assert poses.shape == (motion.num_frames, 18, 7) and np.all(np.isfinite(poses))
+
+
+def test_added_trials_stay_in_the_studio_room_and_do_what_they_were_chosen_for(added_trial):
+    from bcmocap.sim.studio import capsule_ends
+
+    name, skeleton, motion = added_trial
+    ends, radii, _ = capsule_ends(skeleton, motion)  # (T, K, 2, 3), (K,)
+    scene = make_textured_scene(np.asarray(motion.root_position)[:, :2], seed=0)
+    r = radii[None, :, None]
+    xy = ends[..., :2]
+    assert np.all(xy - r[..., None] > scene.lower[:2]) and np.all(xy + r[..., None] < scene.upper[:2])
+    assert np.all(ends[..., 2] + r < scene.upper[2])
+    low = np.min(ends[..., 2] - r, axis=(1, 2))  # (T,) lowest point of the body per frame
+    assert -0.02 < low.min() < 0.0  # CMU's floor, as for walk, run and jump: the body touches it
+    for (lo, hi) in scene.boxes:  # clutter is kept off the path: no body part reaches a box or a pillar
+        gap = np.maximum(np.maximum(lo[:2] - xy, xy - hi[:2]), 0.0)
+        assert np.all((np.linalg.norm(gap, axis=-1) > r) | (ends[..., 2] - r > hi[2]))
+    for x, y, radius in scene.pillars:
+        assert np.all(np.linalg.norm(xy - [x, y], axis=-1) > radius + r)
+    world = forward_kinematics(skeleton, motion)
+    joints = np.asarray(world.translation())
+    if name == "scoop":  # the trunk bends past horizontal; a wrist reaches the floor and goes above the neck
+        up = joints[:, skeleton.index("head")] - joints[:, skeleton.index("torso")]
+        assert np.degrees(np.arccos(np.min(up[:, 2] / np.linalg.norm(up, axis=1)))) > 90.0
+        wrists = joints[:, [skeleton.index("left_hand"), skeleton.index("right_hand")], 2]
+        assert wrists.min() < 0.1 and np.any(wrists.max(axis=1) > joints[:, skeleton.index("head"), 2] + 0.3)
+    else:  # a leap with both feet off the floor, and the heading sweeps more than a full turn
+        assert low.max() > 0.2
+        forward = np.asarray(world.rotation().as_matrix())[:, 0, :2, 0]  # the pelvis's x axis, horizontal part
+        assert np.ptp(np.degrees(np.unwrap(np.arctan2(forward[:, 1], forward[:, 0])))) > 400.0
+
+
+def test_an_excerpt_of_an_added_trial_is_the_same_motion_on_the_same_skeleton(added_trial):
+    """The BVH trial's hinges are fitted over the whole trial, so an excerpt has the whole trial's skeleton."""
+    name, skeleton, motion = added_trial
+    part_skeleton, part = load_body_motion(name, fps=60.0, seconds=0.5, start_seconds=2.0)
+    np.testing.assert_array_equal(np.asarray(part_skeleton.offsets), np.asarray(skeleton.offsets))
+    np.testing.assert_array_equal(np.asarray(part_skeleton.hinge_axes), np.asarray(skeleton.hinge_axes))
+    np.testing.assert_allclose(np.asarray(part.root_position), np.asarray(motion.root_position)[120:150], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(part.rotations), np.asarray(motion.rotations)[120:150], atol=1e-12)
+
+
+def test_added_trials_are_bundled_with_their_terms_and_accepted_by_simulate(tmp_path, capsys):
+    from conftest import one_line_error
+
+    from bcmocap.cli import main
+    from bcmocap.io.bvh import read_bvh
+    from bcmocap.sim.motions import cmu_trial_path
+
+    readme = (cmu_trial_path("walk")[0].parent / "README.md").read_text()
+    for name in ADDED_TRIALS:
+        paths = cmu_trial_path(name)
+        assert all(p.is_file() and f"`{p.name}`" in readme for p in paths) and CMU_TRIALS[name][2]
+        # "--motion NAME" is taken: the command stops at a bad option given after it, naming that option only.
+        assert main(["simulate", str(tmp_path / name), "--motion", name, "--vignetting", "2"]) == 2
+        assert "--motion" not in one_line_error(capsys, "simulate", "--vignetting")
+    (bvh,) = cmu_trial_path("hop")
+    assert (bvh.parent / "bvh11_LICENSE.txt").is_file() and "bvh11_LICENSE.txt" in readme
+    data = read_bvh(bvh, length_unit_m=0.0254 / 0.45)
+    assert data.motion.num_frames == 1006 and data.frame_time_s == pytest.approx(1 / 120, abs=1e-6)

@@ -4,6 +4,7 @@ One tiny capture (64x36 px, 6 frames per trial, 2 reference photos) is written o
 line and shared by every test; the resume test re-renders parts of a copy of it.
 """
 
+import dataclasses
 import filecmp
 import json
 import shutil
@@ -16,13 +17,15 @@ from conftest import one_line_error
 
 from bcmocap.cameras import FOVCamera, camera_at
 from bcmocap.cli import main
-from bcmocap.geometry import SE3
+from bcmocap.geometry import SE3, matrix_from_quat
 from bcmocap.io import read_bvh
+from bcmocap.io.capture_folder import read_passerby_truth
 from bcmocap.io.opencv_calibration import read_opencv_fisheye_calibration
 from bcmocap.io.wav import read_wav
 from bcmocap.kinematics import forward_kinematics
 from bcmocap.sim.audio import clap_onsets
-from bcmocap.sim.studio import StudioSettings, load_ground_truth, write_capture
+from bcmocap.sim.render import Renderer
+from bcmocap.sim.studio import StudioSettings, capsule_ends, load_ground_truth, write_capture
 
 pytestmark = pytest.mark.slow  # rendering capture folders
 
@@ -153,6 +156,11 @@ def test_refuses_folders_it_must_not_write(capture, tmp_path):
         write_capture(a_file, SETTINGS, progress=False)
     with pytest.raises(ValueError, match="lens"):
         StudioSettings(lens="pinhole")
+    with pytest.raises(ValueError, match="StudioSettings.room must be one of"):
+        StudioSettings(room="cave")
+    from bcmocap.sim import studio, studio_command
+
+    assert studio_command.ROOMS == studio.ROOMS  # the command line lists them without importing JAX
     with pytest.raises(ValueError, match="missing"):
         load_ground_truth(foreign)
 
@@ -200,3 +208,54 @@ def test_board_videos_are_added_per_rendered_lens(capture, tmp_path, capsys):
     video.release()
     assert main(["simulate", str(tmp_path / "nothing"), "--board-videos"]) == 2
     assert "capture.json" in capsys.readouterr().err
+
+
+def _video_frames(path: Path) -> np.ndarray:
+    video = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, image = video.read()
+        if not ok:
+            video.release()
+            return np.array(frames, int)
+        frames.append(image[..., ::-1])
+
+
+def test_passerby_room_shows_a_second_person_in_the_videos_only(capture, tmp_path):
+    """The shared capture's settings in the room "passerby": the same static room and photos, the passer-by's truth
+    written, and each video differs from the textured room's exactly where the passer-by is seen."""
+    folder = tmp_path / "passerby"
+    assert main(["simulate", str(folder), *ARGS, "--room", "passerby"]) == 0
+    gt = load_ground_truth(folder)
+    assert gt.settings == dataclasses.replace(SETTINGS, room="passerby")
+    for rel in ("ground_truth/scene.json", "ground_truth/world_points.npz", "reference/photo_000.jpg",
+                "reference/photo_001.jpg", "ground_truth/capture.npz"):
+        assert filecmp.cmp(capture / rel, folder / rel, shallow=False), rel  # photos of the empty room
+    assert read_passerby_truth(capture, "capture") is None
+    trial = gt.trials["capture"]
+    walker = read_passerby_truth(folder, "capture")
+    assert walker.motion == "run" and walker.present.all() and read_passerby_truth(folder, "rom").present.any()
+    k = len(walker.radii)
+    assert walker.capsules.shape == (6, k, 2, 3) and walker.joint_positions.shape == (6, len(walker.segment_names), 3)
+    assert np.isfinite(walker.capsules).all() and walker.colors.shape == (k, 3)
+    ends, radii, _ = capsule_ends(gt.skeleton, trial.motion)
+    both, both_radii = np.concatenate([ends, walker.capsules], axis=1), np.concatenate([radii, walker.radii])
+    seen = {}
+    for c, name in enumerate(gt.rig.names):
+        renderer = Renderer(gt.scene, camera_at(gt.rig.intrinsics, c))
+        mine = _video_frames(folder / "trials" / "capture" / f"{name}.mp4")
+        textured = _video_frames(capture / "trials" / "capture" / f"{name}.mp4")
+        for t in range(6):
+            rotation = np.asarray(matrix_from_quat(trial.world_from_camera[t, c, :4]))
+            origin = trial.world_from_camera[t, c, 4:]
+            _, with_walker = renderer.depth(rotation, origin, both[t], both_radii)
+            _, subject_only = renderer.depth(rotation, origin, ends[t], radii)
+            walker_pixels = with_walker & ~subject_only  # where the passer-by is in front of everything else
+            diff = np.abs(mine - textured)[trial.video_start_frame[c] + t].mean(axis=-1)
+            seen[name, t] = int(walker_pixels.sum())
+            if walker_pixels.sum() >= 8:
+                assert diff[walker_pixels].mean() > 15 and diff[~walker_pixels].mean() < 3, (name, t)
+            elif not walker_pixels.any():
+                assert diff.mean() < 0.5, (name, t)
+    assert all(seen[name, t] > 30 for name in ("head", "chest", "waist_front") for t in range(6))  # ahead of them
+    assert all(seen["back", t] == 0 for t in range(6))  # and not behind

@@ -18,16 +18,24 @@ import numpy as np
 import pytest
 from conftest import one_line_error
 
-from bcmocap.cameras import camera_at
+from bcmocap.cameras import ThinPrismFisheyeCamera
 from bcmocap.cli import main
 from bcmocap.geometry import SE3
 from bcmocap.io.opencv_calibration import read_opencv_fisheye_calibration
 from bcmocap.io.sensors import read_imu
 from bcmocap.kinematics import JointType, forward_kinematics
 from bcmocap.sim import load_body_motion, load_motion_file, standard_rig
+from bcmocap.sim.lens_units import lens_design, nominal_lens
 from bcmocap.sim.motions import cmu_trial_path
 from bcmocap.sim.sensors import simulate_imu
-from bcmocap.sim.studio import REALISTIC, StudioSettings, load_ground_truth, preset_settings, write_capture
+from bcmocap.sim.studio import (
+    READOUT_RANGE_MS,
+    REALISTIC,
+    StudioSettings,
+    load_ground_truth,
+    preset_settings,
+    write_capture,
+)
 from bcmocap.sim.studio_command import DEGRADATIONS, PRESETS
 from bcmocap.sim.wobble import CAMERA_SCALE, KNEE, mount_wobble
 
@@ -116,7 +124,8 @@ def test_preset_turns_every_degradation_on():
     assert changed == set(REALISTIC) - {"read_noise_dn"}  # the studio's read noise is already a camera's
     options, plain = preset.render_options(), clean.render_options()
     assert options.motion_blur and options.rolling_shutter and not plain.motion_blur and not plain.rolling_shutter
-    assert options.exposure_frames == pytest.approx(0.48) and options.readout_frames == pytest.approx(0.9)
+    assert options.exposure_frames == pytest.approx(0.48)
+    assert options.readout_frames == pytest.approx(preset.readout_ms * 60 / 1000)  # drawn: test_preset_draws_the_readout
     assert options.vignetting == 0.4 and options.full_scale_electrons == pytest.approx(9900.0)
     assert plain.vignetting == 0 and plain.full_scale_electrons == 0 and plain.noise_dn == 1.0
     assert preset.video_bitrate_mbps == pytest.approx(45 * 640 * 360 / (1920 * 1080)) and preset.container == "mp4-aac"
@@ -128,6 +137,24 @@ def test_preset_turns_every_degradation_on():
     assert preset_settings("realistic", mount_wobble_mm=0.0).mount_wobble_mm == 0.0
     with pytest.raises(ValueError, match="unknown studio preset 'grainy'"):
         preset_settings("grainy")
+
+
+def test_preset_draws_the_readout_per_capture_from_the_published_range():
+    """What a user does not know: each capture's readout is drawn by its seed from action cameras' range."""
+    low, high = READOUT_RANGE_MS
+    assert (low, high) == (10.0, 15.8) and high <= 0.95 * 1000 / 60  # at 60 fps no draw is capped
+    readouts = [preset_settings("realistic", seed=seed).readout_ms for seed in range(40)]
+    assert all(low <= r <= high for r in readouts) and len(set(readouts)) == 40
+    assert min(readouts) < low + 1.5 and max(readouts) > high - 1.5  # the whole range is drawn from, not one end
+    a, b = preset_settings("realistic", seed=1), preset_settings("realistic", seed=2)
+    assert a.readout_ms != b.readout_ms and preset_settings("realistic", seed=1).readout_ms == a.readout_ms
+    # The draw is its own stream: other settings do not move it, and it moves nothing else.
+    assert preset_settings("realistic", seed=1, fps=50.0, width=320, height=180, motion="run").readout_ms == a.readout_ms
+    assert dataclasses.replace(a, readout_ms=b.readout_ms) == dataclasses.replace(b, seed=1)
+    # Capped at 0.95 frame periods; a value given explicitly wins (and is not capped by the preset).
+    assert preset_settings("realistic", seed=1, fps=120.0).readout_ms == pytest.approx(0.95 * 1000 / 120, abs=1e-4)
+    assert preset_settings("realistic", seed=1, readout_ms=12.5).readout_ms == 12.5
+    assert preset_settings("realistic", seed=1, readout_ms=0.0).readout_ms == 0.0
 
 
 @pytest.mark.slow  # renders a capture
@@ -164,8 +191,11 @@ def test_calibration_error_within_the_requested_band(preset_capture):
     gt = load_ground_truth(preset_capture)
     settings = gt.settings
     focal_errors, centre_errors = [], []
+    # With lens units (the preset's), the lens a user is given is the design's nominal one, moved by the error.
+    assert settings.lens_units
+    nominal = nominal_lens(lens_design(64, 36), "fov")
     for c, name in enumerate(gt.rig.names):
-        rendered = camera_at(gt.rig.intrinsics, c)
+        rendered = nominal
         given = json.loads((preset_capture / "intrinsics" / f"{name}.json").read_text())
         fx, fy, cx, cy = given["params"][:4]
         np.testing.assert_allclose(given["params"][4], float(rendered.omega))  # only focal length and centre
@@ -181,8 +211,10 @@ def test_calibration_error_within_the_requested_band(preset_capture):
     assert np.all((focal_errors >= lo - 1e-9) & (focal_errors <= hi + 1e-9)) and focal_errors.std() > 0.05
     lo, hi = 0.3 * settings.centre_error_px, settings.centre_error_px
     assert np.all((centre_errors >= lo - 1e-9) & (centre_errors <= hi + 1e-9))
-    # The truth keeps the rendered lens: the standard rig's.
-    np.testing.assert_allclose(np.asarray(gt.rig.intrinsics.focal), np.asarray(standard_rig(gt.skeleton, 64, 36).intrinsics.focal))
+    # The truth keeps the rendered lenses: each camera its own unit of the design.
+    units = gt.rig.intrinsics
+    assert isinstance(units, ThinPrismFisheyeCamera) and len(np.unique(np.asarray(units.focal)[:, 0])) == gt.rig.num_cameras
+    np.testing.assert_allclose(np.asarray(units.focal), np.tile(np.asarray(lens_design(64, 36).focal), (18, 1)), rtol=0.01)
 
 
 def _frames(path: Path) -> np.ndarray:

@@ -11,6 +11,14 @@ Convention: ``offsets[c]`` is the video frame of camera ``c`` in which the first
 frame ``i`` of camera ``c`` shows the common time ``i - offsets[c]`` frames after the first clap, and
 ``offsets[c] - offsets[d]`` is how many frames camera ``c`` started before camera ``d``.
 
+Cameras start at arbitrary sub-frame times and count time with their own clocks, so the claps also give
+what whole frames do not: ``frame_offsets[c]``, the first clap's time in camera ``c``'s video to the audio
+sample (1/800 of a frame at 48 kHz and 60 fps), and ``clock_rates[c]``, how fast camera ``c``'s clock runs
+against the cameras' median clock, from the samples between its two claps (a 10 s take dates the rate to a
+few ppm). Video frame ``i`` of camera ``c`` then shows the common time ``(i - frame_offsets[c]) /
+clock_rates[c]`` frames after the first clap. What audio cannot tell is a camera's own delay between its
+picture and its sound (an audio latency): it is in ``frame_offsets``.
+
 A camera that recorded several trials in one file has two claps per trial in its track;
 :func:`common_claps` finds them all (the candidates of every camera aligned by one shift per camera,
 so a bang only some cameras heard is outvoted), which is how ``bcmocap init`` cuts such files into trials.
@@ -38,6 +46,9 @@ class SyncResult:
         clap_samples: ``(C, 2)`` int, first sample of each clap in each track (-1 when offsets were given).
         duration_s: time between the two claps (s), NaN when offsets were given.
         agreeing: number of cameras whose claps agree with ``duration_s``.
+        frame_offsets: ``(C,)`` float, video frame of the first clap to the audio sample (``offsets`` when given).
+        clock_rates: ``(C,)`` each camera's clock rate against the cameras' median clock (1 when offsets were
+            given).
     """
 
     cameras: tuple[str, ...]
@@ -45,6 +56,14 @@ class SyncResult:
     clap_samples: np.ndarray
     duration_s: float
     agreeing: int
+    frame_offsets: np.ndarray = None
+    clock_rates: np.ndarray = None
+
+    def __post_init__(self):
+        if self.frame_offsets is None:
+            object.__setattr__(self, "frame_offsets", np.asarray(self.offsets, np.float64))
+        if self.clock_rates is None:
+            object.__setattr__(self, "clock_rates", np.ones(len(self.cameras)))
 
     def offset(self, camera: str) -> int:
         return int(self.offsets[self.cameras.index(camera)])
@@ -103,7 +122,7 @@ def synchronize_tracks(tracks: Sequence[np.ndarray], rate: int, fps: float, *, c
         rate: audio sample rate (Hz); fps: video frame rate (Hz).
         cameras: names (default ``"0", "1", …``).
         tolerance_s: how far two cameras' clap durations may differ and still agree (default: a quarter
-            of a frame).
+            of a frame, or 100 ppm of the duration if that is more: clocks that drift apart).
         min_duration_s: shortest plausible time between the two claps.
 
     Raises:
@@ -113,6 +132,7 @@ def synchronize_tracks(tracks: Sequence[np.ndarray], rate: int, fps: float, *, c
     if len(names) != len(tracks) or not tracks:
         raise ValueError(f"synchronize_tracks: {len(tracks)} tracks for {len(names)} camera names")
     tol = (0.25 / fps if tolerance_s is None else tolerance_s) * rate
+    drift = 1e-4 if tolerance_s is None else 0.0  # clocks apart by up to 100 ppm
     cands = [clap_candidates(t, rate) for t in tracks]
     # Every pair (i < j) of candidates of every camera: its duration and loudness.
     pairs = []
@@ -128,7 +148,7 @@ def synchronize_tracks(tracks: Sequence[np.ndarray], rate: int, fps: float, *, c
     for d in np.unique(durations):
         agree, loud = 0, 0.0
         for _, _, dc, lc in pairs:
-            ok = np.abs(dc - d) <= tol
+            ok = np.abs(dc - d) <= max(tol, drift * d)
             if ok.any():
                 agree += 1
                 loud += float(lc[ok].max())
@@ -138,7 +158,7 @@ def synchronize_tracks(tracks: Sequence[np.ndarray], rate: int, fps: float, *, c
     samples = np.full((len(tracks), 2), -1, np.int64)
     missing = []
     for c, ((onsets, _), (i, j, dc, lc)) in enumerate(zip(cands, pairs)):
-        ok = np.flatnonzero(np.abs(dc - best) <= tol)
+        ok = np.flatnonzero(np.abs(dc - best) <= max(tol, drift * best))
         if len(ok) == 0:
             missing.append(names[c])
             continue
@@ -147,9 +167,11 @@ def synchronize_tracks(tracks: Sequence[np.ndarray], rate: int, fps: float, *, c
     if missing:
         raise ValueError(f"synchronize_tracks: no pair of claps {best / rate:.4f} s apart (the duration "
                          f"{best_key[0]} of {len(tracks)} cameras agree on) in cameras {missing}; give offsets instead")
-    offsets = np.round(samples[:, 0] * fps / rate).astype(np.int64)
-    duration = float(np.mean(samples[:, 1] - samples[:, 0]) / rate)
-    return SyncResult(names, offsets, samples, duration, int(best_key[0]))
+    frame_offsets = samples[:, 0] * fps / rate
+    offsets = np.round(frame_offsets).astype(np.int64)
+    spans = (samples[:, 1] - samples[:, 0]).astype(np.float64)
+    duration = float(np.mean(spans) / rate)
+    return SyncResult(names, offsets, samples, duration, int(best_key[0]), frame_offsets, spans / np.median(spans))
 
 
 def common_claps(candidates: Sequence[tuple[np.ndarray, np.ndarray]], rate: int, count: int, *,

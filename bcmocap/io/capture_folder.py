@@ -57,10 +57,19 @@ Folder layout::
                                   world_from_mount · SE3.exp(camera_offsets) (zero without mount wobble;
                                   absent from captures written before: read as zero); per camera: video_start_frame (C,),
                                   num_video_frames (C,), clap_samples (C, 2), audio_gain (C,);
+                                  the clocks: video_start_time (C,), clock_rate (C,),
+                                  audio_latency_s (C,), imu_clock_offset_s ();
                                   clap_frames (2,); fps, audio_rate; Vicon-style markers:
                                   marker_names (M,), marker_segments (M,), marker_offsets (M, 3) m in
                                   the segment frame, markers (T, M, 3) m with NaN in gaps
     ground_truth/<trial>.bvh      the skeleton and the trial's motion (bcmocap.io.write_bvh)
+    ground_truth/passerby/<trial>.npz
+                                  (room "passerby" only) the second person walking through the trial, per
+                                  trial frame (NaN while out of the room): present (T,), motion (the bundled
+                                  CMU trial walked), segment_names (J,), root_position (T, 3),
+                                  joint_positions (T, J, 3), capsules (T, K, 2, 3) m (the end points of the
+                                  body's capsules, as rendered: they occlude the cameras' views), radii (K,) m,
+                                  colors (K, 3) RGB in [0, 1] (read by read_passerby_truth)
 
 Only the studio writes ``ground_truth/``. A camera's entry in ``rig.json`` may say where its videos are instead
 of ``trials/<trial>/<camera>.mp4`` (what ``bcmocap init`` writes for a shoot whose cameras recorded several
@@ -68,10 +77,12 @@ trials in one file): ``"video": {trial: "path"}`` or ``{trial: {"file": "path", 
 N}}``, a stretch of a longer file that the trial's frame 0 starts, and ``"audio": {trial: "path"}`` for its WAV
 (paths relative to the capture, staying inside it).
 
-Timing of the ground truth: video frame ``i`` of camera ``c`` shows trial frame ``clip(i - video_start_frame[c],
-0, T - 1)``, and its audio covers samples ``[i, i + 1) * audio_rate / fps``; the claps are at trial frames
-``clap_frames``, i.e. at sample ``(clap_frames + video_start_frame[c]) * audio_rate / fps`` of camera ``c``'s
-track. World frame Z up, metres; rotations as wxyz quaternions; camera frames as OpenCV.
+Timing of the ground truth: video frame ``i`` of camera ``c`` shows trial time ``clip((i - video_start_time[c]) /
+clock_rate[c], 0, T - 1)`` frames (``video_start_time`` is ``video_start_frame`` plus a sub-frame phase; both
+are whole frames and rates are 1 unless the studio's clocks are on), and its audio covers samples
+``[i, i + 1) * audio_rate / fps``; the claps are at trial frames ``clap_frames``, i.e. at sample
+``(clap_frames * clock_rate[c] + video_start_time[c] + audio_latency_s[c] * clock_rate[c] * fps) * audio_rate / fps``
+of camera ``c``'s track. The IMU's timestamps are the true time plus ``imu_clock_offset_s``. World frame Z up, metres; rotations as wxyz quaternions; camera frames as OpenCV.
 
 This module imports JAX only when a ground truth is read (the paths and the manifest need none of it).
 """
@@ -109,6 +120,7 @@ __all__ = [
     "Manifest",
     "TrialTruth",
     "TruthMarkers",
+    "TruthPasserby",
     "contacts_path",
     "ground_truth_dir",
     "imu_path",
@@ -118,9 +130,11 @@ __all__ = [
     "load_ground_truth",
     "manifest_path",
     "new_manifest",
+    "passerby_truth_path",
     "read_json",
     "read_manifest",
     "read_npz",
+    "read_passerby_truth",
     "read_trial_truth",
     "read_truth_model",
     "reference_camera_path",
@@ -278,6 +292,11 @@ def reference_truth_path(folder: str | os.PathLike) -> Path:
 def trial_truth_path(folder: str | os.PathLike, trial: str, suffix: str = ".npz") -> Path:
     """``ground_truth/<trial>.npz`` (or ``.bvh``): one trial's ground truth."""
     return ground_truth_dir(folder) / _file_name(folder, trial, suffix, "trial")
+
+
+def passerby_truth_path(folder: str | os.PathLike, trial: str) -> Path:
+    """``ground_truth/passerby/<trial>.npz``: the passer-by of one trial (the studio's room "passerby")."""
+    return ground_truth_dir(folder) / "passerby" / _file_name(folder, trial, ".npz", "trial")
 
 
 def relative_name(folder: str | os.PathLike, path: str | os.PathLike) -> str:
@@ -465,6 +484,36 @@ class TruthMarkers:
 
 
 @dataclasses.dataclass(frozen=True)
+class TruthPasserby:
+    """A second person walking through a trial (the studio's room "passerby"), over trial frames ``T``: NaN where
+    ``present`` is False (out of the room, not rendered).
+
+    Attributes:
+        motion: the bundled CMU trial the passer-by walks ("walk" or "run").
+        present: ``(T,)`` bool, in the room.
+        segment_names: ``(J,)`` the passer-by's segments; root_position ``(T, 3)`` m; joint_positions ``(T, J, 3)`` m.
+        capsules: ``(T, K, 2, 3)`` end points of the body's capsules (m, as rendered); radii ``(K,)`` m; colors
+            ``(K, 3)`` RGB in [0, 1].
+    """
+
+    motion: str
+    present: np.ndarray
+    segment_names: tuple[str, ...]
+    root_position: np.ndarray
+    joint_positions: np.ndarray
+    capsules: np.ndarray
+    radii: np.ndarray
+    colors: np.ndarray
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The arrays of ``ground_truth/passerby/<trial>.npz`` (module docstring)."""
+        return {"motion": np.array(self.motion), "present": np.asarray(self.present, bool),
+                "segment_names": np.array(self.segment_names), "root_position": self.root_position,
+                "joint_positions": self.joint_positions, "capsules": self.capsules, "radii": self.radii,
+                "colors": self.colors}
+
+
+@dataclasses.dataclass(frozen=True)
 class TrialTruth:
     """Ground truth of one trial (arrays over trial frames ``T`` and cameras ``C``).
 
@@ -483,6 +532,11 @@ class TrialTruth:
             in each camera's track; audio_gain ``(C,)``.
         markers: Vicon-style marker trajectories.
         fps, audio_rate: Hz.
+        video_start_time: ``(C,)`` video frame (fractional) in which trial frame 0 happens; clock_rate ``(C,)``
+            camera seconds per true second: video frame ``i`` of camera ``c`` shows trial time
+            ``(i - video_start_time[c]) / clock_rate[c]`` frames. audio_latency_s ``(C,)``: how much each
+            soundtrack lags its video; imu_clock_offset_s: added to the IMU's timestamps. A capture written
+            before these existed had whole-frame starts, perfect clocks, no latency and no offset.
     """
 
     name: str
@@ -500,6 +554,22 @@ class TrialTruth:
     audio_rate: int
     world_from_mount: np.ndarray
     camera_offsets: np.ndarray
+    video_start_time: np.ndarray = None
+    clock_rate: np.ndarray = None
+    audio_latency_s: np.ndarray = None
+    imu_clock_offset_s: float = 0.0
+
+    def __post_init__(self):
+        cameras = len(self.video_start_frame)
+        defaults = {"video_start_time": np.asarray(self.video_start_frame, np.float64),
+                    "clock_rate": np.ones(cameras), "audio_latency_s": np.zeros(cameras)}
+        for name, value in defaults.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
+
+    def video_frame_of(self, camera: int, trial_frame) -> np.ndarray:
+        """Video frame (fractional) of ``camera`` in which trial time ``trial_frame`` (frames) happens."""
+        return self.video_start_time[camera] + self.clock_rate[camera] * np.asarray(trial_frame, np.float64)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -578,7 +648,27 @@ def read_trial_truth(folder: str | os.PathLike, trial: str) -> TrialTruth:
             # a capture written before mount wobble existed has rigid mounts
             world_from_mount=d.get("world_from_mount", d["world_from_camera"]),
             camera_offsets=d.get("camera_offsets", np.zeros(d["world_from_camera"].shape[:2] + (6,))),
+            # a capture written before the studio's clocks: whole-frame starts, perfect clocks
+            video_start_time=d.get("video_start_time"), clock_rate=d.get("clock_rate"),
+            audio_latency_s=d.get("audio_latency_s"), imu_clock_offset_s=float(d.get("imu_clock_offset_s", 0.0)),
         )
+    except KeyError as err:
+        raise ValueError(f"{path}: missing array {err}") from None
+
+
+def read_passerby_truth(folder: str | os.PathLike, trial: str) -> TruthPasserby | None:
+    """``ground_truth/passerby/<trial>.npz`` (module docstring), or None for a capture without a passer-by.
+
+    Raises:
+        ValueError: naming the file, unreadable or without an array it needs.
+    """
+    path = passerby_truth_path(folder, trial)
+    if not path.exists():
+        return None
+    d = read_npz(path)
+    try:
+        return TruthPasserby(str(d["motion"]), d["present"].astype(bool), tuple(str(x) for x in d["segment_names"]),
+                             d["root_position"], d["joint_positions"], d["capsules"], d["radii"], d["colors"])
     except KeyError as err:
         raise ValueError(f"{path}: missing array {err}") from None
 

@@ -107,7 +107,7 @@ def standard_capture(
     """The standard synthetic capture of docs/architecture.md.
 
     Args:
-        motion: bundled CMU trial ("walk", "run", "jump").
+        motion: bundled CMU trial ("walk", "run", "jump", "scoop", "hop": :data:`~bcmocap.sim.motions.CMU_TRIALS`).
         seconds, start_seconds: part of the trial to use (``seconds=None``: to its end).
         repeat: play the trial back and forth when ``seconds`` is longer than it (long benchmarks).
         fps: frame rate (Hz).

@@ -10,6 +10,27 @@ Besides the bundled trials, :func:`load_motion_file` reduces any BVH file or ASF
 skeleton whose bones carry one of the usual names (CMU's ASF bones, CMU's BVH conversions, Mixamo,
 Unity-like rigs: :data:`BONE_ALIASES`); knees and elbows given as 3-DOF joints become hinges about the
 axis they mostly turn about (:func:`reduce_motion` with ``fit_hinges``).
+
+The bundled trials (:data:`CMU_TRIALS`). Walking (35_01), running (02_03) and a two-footed jump (02_04) each
+keep one heading (pelvis yaw within 15 deg over the trial). The trunk leans at most 66 deg, in the jump's
+crouch, and a wrist rises above the neck in 5 % of the jump's frames only. Two more trials exercise what those
+three do not (figures at 60 fps over the bundled excerpts):
+
+- ``scoop`` (02_06, "bend over, scoop up, rise, lift arm", its first 5 s): the subject bends to the floor twice
+  and lifts the right arm overhead in between. The trunk leans up to 106 deg from vertical (median 41 deg)
+  and the pelvis drops from 1.0 to 0.6 m. The right wrist comes within 6 cm of the floor, then rises to 1.83 m,
+  0.5 m above the neck (a wrist is above the neck in 31 % of the frames). Torso and head cameras face the
+  floor; the camera skeleton's one rigid torso departs most from CMU's three spine bones here (wrists up to
+  11 cm from CMU's, against 6 cm in ``hop``).
+- ``hop`` (131_03, "start, hop, stop", a dance, from 0.8 s): the subject stands on the left foot for 40 % of the
+  frames while the right leg kicks, leaps with both feet off the floor (0.3 m up) and spins on one foot. The
+  heading sweeps 475 deg (net -355 deg), turning at up to 490 deg/s. This tests single-leg support, views
+  that sweep the whole room, and the blur and rolling shutter of fast camera rotation. The trial is a BVH
+  conversion, so its knees and elbows are fitted hinges; the fit is exact (CMU's knees and elbows have one
+  DOF) and moves no wrist or ankle relative to its joint.
+
+Subject 01's "forward jumps, turn around" (01_01) was left out: it repeats the two-footed jump and turns at
+walking speed, and CMU's index warns that its lower-numbered subjects "may not be as high quality".
 """
 
 from __future__ import annotations
@@ -26,13 +47,17 @@ from ..geometry import SE3, SO3, slerp
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 
-#: Bundled CMU trials (frames at 120 Hz): name → (ASF, AMC, description).
+#: Bundled CMU trials (frames at 120 Hz, files in ``bcmocap/data/cmu``): name → (ASF, AMC, description), or
+#: (None, BVH, description) for a BVH conversion, whose one file holds the skeleton and the motion.
 CMU_TRIALS = {
     "walk": ("35.asf", "35_01.amc", "subject 35 trial 01, walking"),
     "run": ("02.asf", "02_03.amc", "subject 02 trial 03, running/jogging"),
     "jump": ("02.asf", "02_04.amc", "subject 02 trial 04, jumping and balancing"),
+    "scoop": ("02.asf", "02_06_first600.amc", "subject 02 trial 06, first 5 s: bend over, scoop up, rise, lift arm"),
+    "hop": (None, "131_03_from97.bvh", "subject 131 trial 03 from 0.8 s: kicks on one leg, a leap, a spin"),
 }
 CMU_FPS = 120.0
+CMU_UNIT_M = 0.0254 / 0.45  # CMU's length unit, 1/0.45 inch (m): the ASF files state it, the BVH conversions do not
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,13 +194,13 @@ def resample(motion: Motion, source_fps: float, target_fps: float) -> Motion:
     return Motion(position, rotations)
 
 
-def cmu_trial_path(name: str) -> tuple[Path, Path]:
-    """Paths of a bundled CMU trial's ASF and AMC files."""
+def cmu_trial_path(name: str) -> tuple[Path, ...]:
+    """Paths of a bundled CMU trial's files: ``(ASF, AMC)``, or ``(BVH,)`` for a BVH conversion."""
     if name not in CMU_TRIALS:
         raise ValueError(f"unknown CMU trial '{name}'; bundled trials: {sorted(CMU_TRIALS)}")
-    asf, amc, _ = CMU_TRIALS[name]
+    asf, motion, _ = CMU_TRIALS[name]
     base = resources.files("bcmocap") / "data" / "cmu"
-    return Path(str(base / asf)), Path(str(base / amc))
+    return tuple(Path(str(base / f)) for f in (asf, motion) if f is not None)
 
 
 def back_and_forth(motion: Motion, num_frames: int) -> Motion:
@@ -198,21 +223,32 @@ def load_body_motion(
     """A bundled CMU trial reduced to the camera skeleton and resampled.
 
     Args:
-        name: "walk", "run" or "jump" (see :data:`CMU_TRIALS`).
+        name: "walk", "run", "jump", "scoop" or "hop" (see :data:`CMU_TRIALS`).
         fps: output frame rate.
         seconds: length to keep (None: all), starting at ``start_seconds``.
         repeat: if ``seconds`` is longer than the trial, extend it with :func:`back_and_forth`
             (otherwise the trial's own length is the limit).
+
+    A BVH trial keeps CMU's floor, as the ASF/AMC trials do. Its hinges are fitted over the whole trial, so
+    the skeleton does not depend on ``seconds`` or ``start_seconds``.
     """
     from ..io.asf import load_cmu
 
-    asf, amc = cmu_trial_path(name)
-    full_skeleton, full_motion = load_cmu(asf, amc, fps=CMU_FPS)
+    paths = cmu_trial_path(name)
+    if len(paths) == 1:
+        full_skeleton, full_motion, _ = _read_motion_source((str(paths[0]),), CMU_FPS, CMU_UNIT_M)
+    else:
+        full_skeleton, full_motion = load_cmu(*paths, fps=CMU_FPS)
     first = int(round(start_seconds * CMU_FPS))
     last = full_motion.num_frames if seconds is None else min(full_motion.num_frames, first + int(round(seconds * CMU_FPS)) + 1)
     if last - first < 2:
         raise ValueError(f"CMU trial '{name}' has {full_motion.num_frames} frames; nothing left from {start_seconds} s")
-    skeleton, motion = reduce_motion(full_skeleton, full_motion[first:last])
+    if len(paths) == 1:
+        segments = _body_segments_for(full_skeleton, str(paths[0]))
+        skeleton, motion = reduce_motion(full_skeleton, full_motion, segments, fit_hinges=True)
+        motion = motion[first:last]
+    else:
+        skeleton, motion = reduce_motion(full_skeleton, full_motion[first:last])
     motion = resample(motion, CMU_FPS, fps)
     if seconds is not None:
         wanted = int(round(seconds * fps))

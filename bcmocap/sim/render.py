@@ -49,7 +49,7 @@ import numpy as np
 from ..cameras import CameraModel
 from ..geometry import matrix_from_quat, slerp
 from .observe import Capsule
-from .scene import TexturedScene, TextureParams, surface_texture
+from .scene import TexturedScene, TextureParams, finished_texture, surface_texture
 
 __all__ = [
     "CameraRays",
@@ -211,7 +211,8 @@ class _Shader(eqx.Module):
 
     Attributes:
         scene: the scene's float32 arrays (:func:`_scene_arrays`: room bounds and boxes in m, pillars
-            ``(x, y, radius)`` in m, material colours RGB in [0, 1]).
+            ``(x, y, radius)`` in m, material colours RGB in [0, 1]; with finishes ``finishes`` ``(M, 6)``: kind,
+            gain, tile width, height, row shift, joint, :func:`~bcmocap.sim.scene.finished_texture`).
         light: ``(3,)`` float32 unit direction towards the light (world frame).
         one: a runtime int32 1 (see :func:`_materialize`).
         texture: static: the procedural texture; ambient: static: the ambient share of the light, in [0, 1].
@@ -323,13 +324,16 @@ class _Band(eqx.Module):
 
 
 def _scene_arrays(scene: TexturedScene) -> dict:
-    return {
+    arrays = {
         "lower": jnp.asarray(scene.lower, _F32),
         "upper": jnp.asarray(scene.upper, _F32),
         "boxes": jnp.asarray(scene.boxes, _F32).reshape(-1, 2, 3),
         "pillars": jnp.asarray(scene.pillars, _F32).reshape(-1, 3),
         "colors": jnp.asarray(scene.colors, _F32).reshape(-1, 3),
     }
+    if scene.has_finishes:  # a key of its own: a scene without finishes compiles (and renders) as before them
+        arrays["finishes"] = jnp.asarray(np.column_stack([scene.finish_kinds, scene.finish_gains, scene.tiles]), _F32)
+    return arrays
 
 
 def _world_rays(rays: jax.Array, rotation: jax.Array) -> tuple[jax.Array, ...]:
@@ -503,7 +507,11 @@ def _shade_terms(shader: _Shader, d, o, pixel_angle, body: _Body, box_active=Non
     u = jnp.where(kind == 0, p[1], jnp.where(is_pillar, jnp.arctan2(p[1] - cy, p[0] - cx) * radius, p[0]))
     v = jnp.where(kind == 2, p[1], p[2])
     footprint = t * pixel_angle / jnp.sqrt(jnp.maximum(cos_view, 0.05))
-    grey = surface_texture(u, v, material, footprint, texture)
+    if "finishes" in scene:  # (M, 6): kind, gain, tile width, height, row shift, joint
+        finish = _select(material, scene["finishes"])
+        grey = finished_texture(u, v, material, footprint, texture, finish[0], finish[1], tuple(finish[2:]))
+    else:
+        grey = surface_texture(u, v, material, footprint, texture)
     shade = (0.15 + 0.85 * grey) * lit
     if not capsules.shape[0]:
         return material, shade, t, None
@@ -766,17 +774,26 @@ def _interpolate_points(points: np.ndarray, times: np.ndarray) -> np.ndarray:
     return points[k0] * (1 - a) + points[k1] * a
 
 
-def capsule_colors(capsules: tuple[Capsule, ...], names: tuple[str, ...]) -> np.ndarray:
-    """``(K, 3)`` RGB clothing colours: skin for head and hands, a shirt on the trunk and arms, trousers."""
+#: The subject's skin, trousers and shirt (RGB in [0, 1]).
+SUBJECT_PALETTE = ((0.80, 0.62, 0.50), (0.22, 0.24, 0.30), (0.30, 0.42, 0.62))
+
+
+def capsule_colors(capsules: tuple[Capsule, ...], names: tuple[str, ...],
+                   palette: tuple = SUBJECT_PALETTE) -> np.ndarray:
+    """``(K, 3)`` RGB clothing colours: skin for head and hands, a shirt on the trunk and arms, trousers.
+
+    ``palette``: the skin, trousers and shirt colours (RGB in [0, 1]; default :data:`SUBJECT_PALETTE`).
+    """
+    skin, trousers, shirt = palette
     out = []
     for c in capsules:
         name = names[c.segment]
         if name == "head" or name.endswith("hand"):
-            out.append((0.80, 0.62, 0.50))
+            out.append(skin)
         elif name.endswith(("thigh", "shin", "foot")) or name == "pelvis":
-            out.append((0.22, 0.24, 0.30))
+            out.append(trousers)
         else:
-            out.append((0.30, 0.42, 0.62))
+            out.append(shirt)
     return np.asarray(out, np.float64)
 
 

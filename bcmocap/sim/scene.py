@@ -14,6 +14,15 @@ clamping), so one ray per pixel gives images SIFT can track.
 Surface coordinates: a face whose normal is along x uses ``(y, z)``, along y ``(x, z)``, along z
 ``(x, y)``; a pillar uses ``(radius * azimuth, z)``. Materials are numbered: 0 floor, 1 ceiling, 2..5
 the walls at x = lower, x = upper, y = lower, y = upper, then one per box, then one per pillar.
+
+Finishes. A scene may also give each material a finish (:class:`TexturedScene`'s ``finish_kinds``,
+``finish_gains`` and ``tiles``; :func:`finished_texture`): ``NOISE`` (the texture above, its contrast times
+a gain), ``TILED`` (tiles, bricks or windows: the noise of one tile repeated exactly, every tile alike, with
+darker joints between them, box-filtered over the pixel footprint) or ``BLANK`` (uniform grey: nothing to
+track). A scene without finishes is rendered by the plain texture's code, so it keeps its pixels.
+:func:`make_room` builds the studio's rooms: "textured" (:func:`make_textured_scene`), "sparse" (painted,
+weakly textured surfaces, one blank wall, less clutter) and "repeated" (a tiled floor and ceiling, a brick wall,
+a wall of identical windows).
 """
 
 from __future__ import annotations
@@ -28,9 +37,13 @@ import numpy as np
 
 from .world import World, make_world
 
-__all__ = ["TextureParams", "TexturedScene", "make_textured_scene", "surface_texture"]
+__all__ = ["BLANK", "NOISE", "ROOM_STYLES", "TILED", "TextureParams", "TexturedScene", "finished_texture",
+           "make_room", "make_textured_scene", "surface_texture"]
 
 ROOM_MATERIALS = 6  # floor, ceiling, walls x-, x+, y-, y+
+NOISE, TILED, BLANK = 0, 1, 2  # finishes of a material (module docstring)
+ROOM_STYLES = ("textured", "sparse", "repeated")  # what make_room builds
+_JOINT_GREY = 0.2  # grey level of the joints between tiles
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,6 +93,15 @@ def surface_texture(u: jax.Array, v: jax.Array, material: jax.Array, footprint_m
         footprint_m: size of a pixel on the surface (m); octaves below it fade out (anti-aliasing).
         params: the texture.
     """
+    total, norm = _octave_sum(u, v, material, footprint_m, params)
+    return jnp.clip(0.5 + params.contrast * total / norm, 0.0, 1.0)
+
+
+def _octave_sum(u, v, material, footprint_m, params: TextureParams,
+                largest_m: jax.Array | None = None) -> tuple[jax.Array, float]:
+    """``(sum, norm)``: the octaves of value noise in [-1/2, 1/2] summed with their weights (float32, shapes
+    broadcast), and the root of the sum of their squared weights (arguments as :func:`surface_texture`'s;
+    ``largest_m``: leave out the octaves whose spacing exceeds it, m)."""
     u = jnp.asarray(u, jnp.float32)
     v = jnp.asarray(v, jnp.float32)
     # One reciprocal shared by all octaves (a division per octave would each be a separate XLA loop).
@@ -102,9 +124,55 @@ def surface_texture(u: jax.Array, v: jax.Array, material: jax.Array, footprint_m
         top = h01 + (h11 - h01) * fx
         value = bottom + (top - bottom) * fy - 0.5
         weight = jnp.clip(spacing * inv_foot - 1.0, 0.0, 1.0)
+        if largest_m is not None:
+            weight = jnp.where(spacing <= largest_m, weight, 0.0)
         total = total + (params.persistence**k) * weight * value
     norm = sum(params.persistence**k for k in range(params.octaves)) ** 0.5
-    return jnp.clip(0.5 + params.contrast * total / norm, 0.0, 1.0)
+    return total, norm
+
+
+def _joint_coverage(distance_m: jax.Array, joint_m: jax.Array, footprint_m: jax.Array) -> jax.Array:
+    """Share of a pixel (a box of width ``footprint_m``) covered by a joint of width ``joint_m`` centred
+    ``distance_m`` away (m, ``distance_m >= 0``)."""
+    half_joint, half_pixel = 0.5 * joint_m, 0.5 * footprint_m
+    overlap = jnp.minimum(distance_m + half_pixel, half_joint) - jnp.maximum(distance_m - half_pixel, -half_joint)
+    return jnp.clip(overlap / footprint_m, 0.0, 1.0)
+
+
+def finished_texture(u: jax.Array, v: jax.Array, material: jax.Array, footprint_m: jax.Array, params: TextureParams,
+                     kind: jax.Array, gain: jax.Array, tile: tuple) -> jax.Array:
+    """Grey level in [0, 1] of a material with a finish (module docstring; float32, shapes broadcast).
+
+    Args:
+        u, v, material, footprint_m, params: as :func:`surface_texture`'s.
+        kind: ``NOISE``, ``TILED`` or ``BLANK``; gain: the noise's contrast relative to ``params.contrast``.
+        tile: ``(width, height, row_shift, joint)``: a tile's size along u and v (m), the share of a width every
+            other row is shifted by (0: a grid, 0.5: bricks) and the joints' width (m). Exactly periodic, in
+            float32 too, when width and height are powers of two (period ``width`` along u; ``height`` along v,
+            or twice it with a row shift).
+    """
+    u = jnp.asarray(u, jnp.float32)
+    v = jnp.asarray(v, jnp.float32)
+    footprint_m = jnp.maximum(jnp.asarray(footprint_m, jnp.float32), 1e-6)
+    width, height, row_shift, joint = tile
+    row = jnp.floor(v / height)
+    shifted = u + row_shift * width * (row - 2.0 * jnp.floor(0.5 * row))
+    tile_u = shifted - width * jnp.floor(shifted / width)  # in [0, width): exact for a power-of-two width
+    tile_v = v - height * row
+    tiled = kind == TILED
+    # A tile holds the octaves no larger than itself (larger ones would shade every tile as one ramp).
+    total, norm = _octave_sum(jnp.where(tiled, tile_u, u), jnp.where(tiled, tile_v, v), material, footprint_m, params,
+                              jnp.where(tiled, jnp.minimum(width, height), jnp.float32(np.inf)))
+    grey = jnp.clip(0.5 + (params.contrast * gain) * total / norm, 0.0, 1.0)
+    # Joints, box-filtered; where a pixel spans most of a tile, their mean share instead (no aliasing).
+    across_u = _joint_coverage(jnp.minimum(tile_u, width - tile_u), joint, footprint_m)
+    across_v = _joint_coverage(jnp.minimum(tile_v, height - tile_v), joint, footprint_m)
+    fade = jnp.clip(2.0 * footprint_m / jnp.minimum(width, height) - 0.5, 0.0, 1.0)
+    across_u = across_u + fade * (joint / width - across_u)
+    across_v = across_v + fade * (joint / height - across_v)
+    in_joint = 1.0 - (1.0 - across_u) * (1.0 - across_v)
+    grey = jnp.where(tiled, grey + in_joint * (_JOINT_GREY - grey), grey)
+    return jnp.where(kind == BLANK, jnp.float32(0.5), grey)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,6 +185,11 @@ class TexturedScene:
         pillars: ``(P, 3)`` centre x, centre y and radius of vertical pillars from floor to ceiling (m).
         colors: ``(6 + B + P, 3)`` RGB albedo in [0, 1] per material (order in the module docstring).
         texture: the procedural texture.
+        finish_kinds: None (every material ``NOISE`` at gain 1, the plain texture's code) or ``(6 + B + P,)``
+            int ``NOISE``, ``TILED`` or ``BLANK`` per material (:func:`finished_texture`); then also
+            finish_gains: ``(6 + B + P,)`` contrast of each material's noise relative to ``texture.contrast``;
+            tiles: ``(6 + B + P, 4)`` width, height (m), row shift (share of a width) and joint width (m) of
+            each material's tiles (used where ``TILED``; width and height > 0 everywhere).
     """
 
     lower: np.ndarray
@@ -125,6 +198,9 @@ class TexturedScene:
     pillars: np.ndarray
     colors: np.ndarray
     texture: TextureParams = TextureParams()
+    finish_kinds: np.ndarray | None = None
+    finish_gains: np.ndarray | None = None
+    tiles: np.ndarray | None = None
 
     def __post_init__(self):
         for name, shape in (("lower", (3,)), ("upper", (3,))):
@@ -138,6 +214,31 @@ class TexturedScene:
             raise ValueError(f"TexturedScene.colors must have shape ({self.num_materials}, 3), got {np.shape(self.colors)}")
         if not np.all(np.asarray(self.upper) > np.asarray(self.lower)):
             raise ValueError(f"TexturedScene: upper {self.upper} must exceed lower {self.lower} on every axis")
+        self._check_finishes()
+
+    def _check_finishes(self) -> None:
+        given = [self.finish_kinds is not None, self.finish_gains is not None, self.tiles is not None]
+        if not any(given):
+            return
+        if not all(given):
+            raise ValueError("TexturedScene: finish_kinds, finish_gains and tiles must be given together (or none)")
+        m = self.num_materials
+        for name, shape in (("finish_kinds", (m,)), ("finish_gains", (m,)), ("tiles", (m, 4))):
+            if np.shape(getattr(self, name)) != shape:
+                raise ValueError(f"TexturedScene.{name} must have shape {shape}, got {np.shape(getattr(self, name))}")
+        if not np.isin(self.finish_kinds, (NOISE, TILED, BLANK)).all():
+            raise ValueError(f"TexturedScene.finish_kinds must be {NOISE} (noise), {TILED} (tiled) or {BLANK} (blank), "
+                             f"got {np.unique(self.finish_kinds).tolist()}")
+        if not (np.all(np.isfinite(self.finish_gains)) and np.all(np.asarray(self.finish_gains) >= 0)):
+            raise ValueError("TexturedScene.finish_gains must be finite and >= 0")
+        tiles = np.asarray(self.tiles, float)
+        if not (np.all(np.isfinite(tiles)) and np.all(tiles[:, :2] > 0) and np.all(tiles[:, 3] >= 0)):
+            raise ValueError("TexturedScene.tiles must be finite, with widths and heights > 0 and joints >= 0 (m)")
+
+    @property
+    def has_finishes(self) -> bool:
+        """Whether the materials have finishes (else every one is the plain texture)."""
+        return self.finish_kinds is not None
 
     @property
     def num_materials(self) -> int:
@@ -198,8 +299,8 @@ class TexturedScene:
         return World(points, np.asarray(self.lower, float), np.asarray(self.upper, float))
 
     def to_dict(self) -> dict:
-        """JSON-ready description (metres, RGB in [0, 1])."""
-        return {
+        """JSON-ready description (metres, RGB in [0, 1]; the finishes only where given)."""
+        out = {
             "lower": np.asarray(self.lower).tolist(),
             "upper": np.asarray(self.upper).tolist(),
             "boxes": np.asarray(self.boxes).tolist(),
@@ -208,6 +309,13 @@ class TexturedScene:
             "texture": dataclasses.asdict(self.texture),
             "materials": "0 floor, 1 ceiling, 2-5 walls x-, x+, y-, y+, then one per box, then one per pillar",
         }
+        if self.has_finishes:
+            out["finish_kinds"] = np.asarray(self.finish_kinds).tolist()
+            out["finish_gains"] = np.asarray(self.finish_gains).tolist()
+            out["tiles"] = np.asarray(self.tiles).tolist()
+            out["finishes"] = (f"{NOISE} noise, {TILED} tiled, {BLANK} blank; "
+                               "tiles: width, height (m), row shift, joint (m)")
+        return out
 
     @classmethod
     def from_dict(cls, data: dict, where: str = "scene") -> TexturedScene:
@@ -220,6 +328,9 @@ class TexturedScene:
                 pillars=np.asarray(data["pillars"], float).reshape(-1, 3),
                 colors=np.asarray(data["colors"], float).reshape(-1, 3),
                 texture=TextureParams(**data.get("texture", {})),
+                finish_kinds=None if "finish_kinds" not in data else np.asarray(data["finish_kinds"], np.int64),
+                finish_gains=None if "finish_gains" not in data else np.asarray(data["finish_gains"], float),
+                tiles=None if "tiles" not in data else np.asarray(data["tiles"], float).reshape(-1, 4),
             )
         except KeyError as err:
             raise ValueError(f"{where}: missing field {err}") from None
@@ -289,3 +400,57 @@ def make_textured_scene(
         colors=colors,
         texture=texture if texture is not None else TextureParams(seed=seed),
     )
+
+
+def make_room(style: str, path_xy: np.ndarray, *, seed: int = 0, margin_m: float = 6.0,
+              wall_height_m: float = 4.0) -> TexturedScene:
+    """One of the studio's rooms around a path (the same style and seed give the same room).
+
+    Args:
+        style: "textured" (:func:`make_textured_scene` as it is), "sparse" (painted walls, ceiling and pillars
+            with weak, coarse texture, the wall the path heads for blank, a grey floor of low contrast, 4 boxes
+            and 2 pillars) or "repeated" (the textured room with a floor of 0.5 m tiles, a ceiling of 0.5 m
+            panels, brick bond on the wall the path heads for and a wall of identical 1 m windows behind: exactly
+            periodic, see :func:`finished_texture`).
+        path_xy, seed, margin_m, wall_height_m: as :func:`make_textured_scene`'s.
+    """
+    if style not in ROOM_STYLES:
+        raise ValueError(f"make_room: style must be one of {list(ROOM_STYLES)}, got {style!r}")
+    bounds = {"seed": seed, "margin_m": margin_m, "wall_height_m": wall_height_m}
+    if style == "textured":
+        return make_textured_scene(path_xy, **bounds)
+    ahead = _wall_ahead(np.asarray(path_xy, dtype=np.float64).reshape(-1, 2))
+    if style == "sparse":
+        scene = make_textured_scene(path_xy, **bounds, num_pillars=2, num_boxes=4,
+                                    texture=TextureParams(coarsest_m=1.0, octaves=5, persistence=0.8, seed=seed))
+        rng = np.random.default_rng([seed, 0x5BA125E])
+        colors = np.array(scene.colors)
+        paint = slice(0, ROOM_MATERIALS)
+        colors[paint] = _hsv_to_rgb(rng.random(ROOM_MATERIALS), rng.uniform(0.03, 0.15, ROOM_MATERIALS),
+                                    rng.uniform(0.8, 0.95, ROOM_MATERIALS))
+        gains = np.ones(scene.num_materials)
+        gains[paint] = [0.3, 0.15, 0.2, 0.2, 0.2, 0.2]  # floor, ceiling, walls: plaster and paint
+        gains[ROOM_MATERIALS + len(scene.boxes):] = 0.4  # painted pillars; the boxes keep their texture
+        kinds = np.full(scene.num_materials, NOISE)
+        kinds[ahead] = BLANK
+        tiles = np.tile([1.0, 1.0, 0.0, 0.0], (scene.num_materials, 1))
+        return dataclasses.replace(scene, colors=colors, finish_kinds=kinds, finish_gains=gains, tiles=tiles)
+    scene = make_textured_scene(path_xy, **bounds)
+    tiles = np.tile([1.0, 1.0, 0.0, 0.0], (scene.num_materials, 1))
+    tiles[0] = [0.5, 0.5, 0.0, 0.006]  # floor tiles
+    tiles[1] = [0.5, 0.5, 0.0, 0.025]  # ceiling panels
+    tiles[ahead] = [0.25, 0.125, 0.5, 0.012]  # brick bond
+    tiles[ahead ^ 1] = [1.0, 1.0, 0.0, 0.08]  # windows in their frames
+    kinds = np.full(scene.num_materials, NOISE)
+    kinds[[0, 1, ahead, ahead ^ 1]] = TILED
+    colors = np.array(scene.colors)
+    colors[ahead] = [0.72, 0.40, 0.31]  # brick
+    return dataclasses.replace(scene, colors=colors, finish_kinds=kinds, finish_gains=np.ones(scene.num_materials),
+                               tiles=tiles)
+
+
+def _wall_ahead(path_xy: np.ndarray) -> int:
+    """Material of the wall a path heads for (along its larger net displacement; the x+ wall for no displacement)."""
+    step = path_xy[-1] - path_xy[0]
+    axis = int(np.argmax(np.abs(step))) if np.abs(step).max() > 0.5 else 0
+    return 2 + 2 * axis + int(step[axis] >= 0 or np.abs(step).max() <= 0.5)

@@ -44,6 +44,8 @@ contacts and gaps shorter than 50 ms removed: on the CMU walk that flags the foo
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import os
 from collections.abc import Sequence
@@ -436,12 +438,16 @@ def write_sensor_data(capture_path: str | os.PathLike, *, seed: int | None = Non
 
 def write_trial_sensors(folder: str | os.PathLike, skeleton: Skeleton, rig: Rig, motion: Motion, fps: float, clap_frames,
                         *, seed: int, trial_index: int, rate: float | None = None, contact_segments=FOOT_SEGMENTS,
-                        world_from_camera: np.ndarray | None = None, **noise) -> tuple[Path, Path]:
+                        world_from_camera: np.ndarray | None = None, clock_offset_s: float = 0.0,
+                        **noise) -> tuple[Path, Path]:
     """Simulate and write one trial's ``imu.npz`` and ``contacts.npz`` into ``folder`` (returns their paths);
-    ``world_from_camera`` as :func:`simulate_imu`."""
+    ``world_from_camera`` as :func:`simulate_imu`; ``clock_offset_s``: added to the IMU's timestamps (its clock
+    is that much ahead of the video's; the contacts keep true time)."""
     folder = Path(folder)
     imu = simulate_imu(skeleton, rig, motion, fps, clap_frames, rate=rate, seed=seed, trial_index=trial_index,
                        world_from_camera=world_from_camera, **noise)
+    if clock_offset_s:
+        imu = dataclasses.replace(imu, time=imu.time + float(clock_offset_s))
     segments = [name for name in contact_segments if name in skeleton.names]
     contacts = simulate_contacts(skeleton, motion, fps, clap_frames, rate=imu.rate, segments=segments)
     return write_imu(folder / IMU_FILE, imu), write_contacts(folder / CONTACTS_FILE, contacts)

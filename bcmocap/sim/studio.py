@@ -19,7 +19,11 @@ after the trial), and its audio covers samples ``[i, i + 1) * audio_rate / fps``
 claps at trial frames ``clap_frames = (-lead, T - 1 + lead)``, i.e. at sample
 ``(clap_frames + video_start_frame[c]) * audio_rate / fps`` of camera ``c``'s track. Cameras start
 recording at random whole frames apart (up to 0.5 s), so synchronising by the claps recovers frame
-offsets exactly. World frame Z up, metres; rotations as wxyz quaternions; camera frames as OpenCV.
+offsets exactly. Time as a shoot has it (settings ``start_subframe``, ``clock_ppm``, ``audio_latency_ms``,
+``imu_offset_ms``): each camera starts at a sub-frame time, counts time with its own clock (video and audio),
+its audio lags its video, and the IMU's timestamps are offset; frame ``i`` then shows trial time
+``(i - video_start_time[c]) / clock_rate[c]`` (rendered at that time, the motion interpolated between frames)
+and the claps move with the clocks and latencies (:func:`bcmocap.io.capture_folder` documents the arrays). World frame Z up, metres; rotations as wxyz quaternions; camera frames as OpenCV.
 
 Containers: OpenCV's VideoWriter writes video streams only, so the default ("mp4v-wav") keeps a WAV beside
 each mp4v video; every figure in the README was measured on such captures. "mp4-aac" writes what a camera
@@ -72,12 +76,14 @@ from ..io.capture_folder import (
     TRIALS,
     GroundTruth,
     TruthMarkers,
+    TruthPasserby,
     ground_truth_dir,
     intrinsics_dir,
     intrinsics_path,
     lens_path,
     manifest_path,
     new_manifest,
+    passerby_truth_path,
     reference_camera_path,
     reference_dir,
     reference_photo_path,
@@ -104,16 +110,19 @@ from ..kinematics.rig import Rig
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 from .audio import soundtrack
 from .exposure import ExposureControl
+from .lens_units import lens_design, manufactured_lens_units, nominal_lens
 from .motions import CMU_TRIALS, load_body_motion, load_motion_file
 from .observe import body_capsules
+from .passerby import PASSERBY_PALETTE, passerby_motion
 from .render import Renderer, RenderOptions, capsule_colors
 from .rig import standard_rig
-from .scene import TexturedScene, make_textured_scene
+from .scene import ROOM_STYLES, TexturedScene, make_room
 from .sensors import write_trial_sensors
 from .wobble import mount_wobble
 
 __all__ = [  # the format's names (CAPTURE_FORMAT, GroundTruth, TrialTruth, ...) are bcmocap.io.capture_folder's
     "PRESETS",
+    "READOUT_RANGE_MS",
     "REALISTIC",
     "StudioSettings",
     "capsule_ends",
@@ -125,12 +134,14 @@ __all__ = [  # the format's names (CAPTURE_FORMAT, GroundTruth, TrialTruth, ...)
 ]
 
 CONTAINERS = ("mp4v-wav", "mp4-aac")
+ROOMS = (*ROOM_STYLES, "passerby")  # StudioSettings.room
 _BATCH = 4  # frames rendered per call (one compilation per camera size)
 _LEAD_S = 0.25  # clap before the first / after the last trial frame
 _ROLL_S = 0.1  # recording before the first clap / after the last one, plus the random offsets
 _MAX_OFFSET_S = 0.5  # spread of camera start (and stop) times
 MAX_SECONDS = 600.0  # longest trial (s): the soundtracks and ground truth are made whole in memory
 MAX_FPS = 240.0  # highest frame rate (Hz)
+_TIME_LIMITS = {"clock_ppm": 1000.0, "audio_latency_ms": 100.0, "imu_offset_ms": 1000.0}  # largest time errors
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,7 +153,8 @@ class StudioSettings:
     value comes from).
 
     Attributes:
-        motion: the capture's motion: a bundled CMU trial ("walk", "run", "jump"), a ``.bvh`` file, or an
+        motion: the capture's motion: a bundled CMU trial ("walk", "run", "jump", "scoop", "hop":
+            :data:`~bcmocap.sim.motions.CMU_TRIALS`), a ``.bvh`` file, or an
             ``(.asf, .amc)`` pair of paths (:func:`~bcmocap.sim.motions.load_motion_file`; paths are
             stored as given, so give absolute ones to resume from elsewhere).
         motion_fps: frame rate of a motion file (Hz); 0: a BVH file's own ``Frame Time``, 120 Hz for AMC.
@@ -157,6 +169,11 @@ class StudioSettings:
         width, height: body-camera image size (px).
         lens: "fov" (the paper's FOV model, 170°) or "opencv_fisheye" (its Kannala-Brandt fit, so the
             .yml calibration is exact).
+        room: where the capture takes place (:func:`~bcmocap.sim.scene.make_room`): "textured" (rich
+            non-repeating texture everywhere), "sparse" (weak texture, a blank wall, less clutter), "repeated"
+            (exactly periodic tiles, bricks and windows on the floor, ceiling and two walls) or "passerby" (the
+            textured room, and a second person pacing across it ahead of the subject, in every camera's frames
+            but not in the reference photos: :mod:`bcmocap.sim.passerby`, ``ground_truth/passerby/<trial>.npz``).
         reference_photos: number of reference photos; reference_width, reference_height their size (px);
             reference_fov_deg their horizontal field of view (pinhole).
         motion_blur, rolling_shutter: rendering effects (:class:`~bcmocap.sim.render.RenderOptions`).
@@ -181,6 +198,21 @@ class StudioSettings:
             (``intrinsics/``): each camera's focal length off by a relative amount of magnitude uniform in
             [0.3, 1] × ``focal_error_pct`` % (random sign), its centre by [0.3, 1] × ``centre_error_px`` px
             (random direction); the ground truth keeps the rendered lens.
+        start_subframe: each camera starts recording at a random sub-frame time (uniform in a frame period),
+            so its frames are not on the trial's frame grid and clap sync cannot be exact in whole frames;
+            off: every camera starts on a whole frame.
+        clock_ppm: each camera's clock runs fast or slow by up to this much (parts per million, uniform per
+            camera, the same in every trial): its video and audio both count camera time; 0: perfect clocks.
+        audio_latency_ms: each camera's soundtrack lags its video by a camera-specific latency, uniform in
+            ``[0, audio_latency_ms]`` (the same in every trial); 0: in step.
+        imu_offset_ms: the IMU recording's timestamps are off from the video's clock by an offset uniform in
+            ``±imu_offset_ms`` per trial; 0: the IMU clock is the video clock.
+        lens_units: each body camera is its own unit of one lens design (:mod:`bcmocap.sim.lens_units`: focal
+            length, centre and radial profile off the design, plus decentering and thin-prism terms; seeded),
+            rendered as a :class:`~bcmocap.cameras.ThinPrismFisheyeCamera`, outside the solver's lens families,
+            and kept in ``ground_truth/rig.json``; ``intrinsics/`` then holds the design's nominal lens in the
+            ``lens`` family (:func:`~bcmocap.sim.lens_units.nominal_lens`; ``focal_error_pct`` and
+            ``centre_error_px`` move it further); off: every camera renders the one ``lens``.
     """
 
     motion: str | tuple[str, str] = "walk"
@@ -194,6 +226,7 @@ class StudioSettings:
     width: int = 640
     height: int = 360
     lens: str = "fov"
+    room: str = "textured"
     reference_photos: int = 24
     reference_width: int = 1024
     reference_height: int = 768
@@ -216,6 +249,11 @@ class StudioSettings:
     video_bitrate_mbps: float = 0.0
     focal_error_pct: float = 0.0
     centre_error_px: float = 0.0
+    start_subframe: bool = False
+    clock_ppm: float = 0.0
+    audio_latency_ms: float = 0.0
+    imu_offset_ms: float = 0.0
+    lens_units: bool = False
 
     def __post_init__(self):
         if isinstance(self.motion, list):  # from JSON
@@ -231,6 +269,8 @@ class StudioSettings:
                              f"pair, got {motion!r}")
         if self.lens not in ("fov", "opencv_fisheye"):
             raise ValueError(f"StudioSettings.lens must be 'fov' or 'opencv_fisheye', got {self.lens!r}")
+        if self.room not in ROOMS:
+            raise ValueError(f"StudioSettings.room must be one of {list(ROOMS)}, got {self.room!r}")
         if self.container not in CONTAINERS:
             raise ValueError(f"StudioSettings.container must be one of {CONTAINERS}, got {self.container!r}")
         if self.container == "mp4-aac" and (int(self.width) % 2 or int(self.height) % 2):
@@ -267,12 +307,18 @@ class StudioSettings:
             raise ValueError(f"StudioSettings.vignetting must be in [0, 1), got {self.vignetting!r}")
         if isinstance(self.blur_samples, bool) or not isinstance(self.blur_samples, int) or not 1 <= self.blur_samples <= 64:
             raise ValueError(f"StudioSettings.blur_samples must be a whole number in [1, 64], got {self.blur_samples!r}")
-        for name in ("auto_exposure", "white_balance", "motion_blur", "rolling_shutter"):
+        for name in ("clock_ppm", "audio_latency_ms", "imu_offset_ms"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= _TIME_LIMITS[name]:
+                raise ValueError(f"StudioSettings.{name} must be a number in [0, {_TIME_LIMITS[name]:g}], got {value!r}")
+        for name in ("auto_exposure", "white_balance", "motion_blur", "rolling_shutter", "start_subframe"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"StudioSettings.{name} must be true or false, got {getattr(self, name)!r}")
         if self.video_bitrate_mbps > 0 and self.container != "mp4-aac":
             raise ValueError(f"StudioSettings.video_bitrate_mbps needs container 'mp4-aac' (H.264), got container "
                              f"{self.container!r}")
+        if not isinstance(self.lens_units, bool):
+            raise ValueError(f"StudioSettings.lens_units must be true or false, got {self.lens_units!r}")
 
     @property
     def motion_paths(self) -> tuple[str, ...]:
@@ -309,11 +355,18 @@ REALISTIC = {
     # bounded by the frame period: 8 ms at 60 fps, at most half a frame period.
     "motion_blur": "on",
     "exposure_ms": "8 ms (at most half a frame period)",
-    # Rolling-shutter readout of action cameras at 1080p: 14.8 ms for a GoPro Hero3+ Black at 1080p60 (Kalibr's
-    # rolling-shutter table, measured by panning), 17 ms for a GoPro Hero 8 Black (OpenDroneMap's rolling-shutter
-    # database): 15 ms, at most 0.95 frame periods.
+    # Rolling-shutter readout, drawn per capture from READOUT_RANGE_MS: a user does not know it (their config would
+    # take a data sheet's figure). Published figures: 14.8 ms (wide) and 14.3 ms (narrow field of view) for a GoPro
+    # Hero3+ Black at 1080p60, measured by panning (G. Thalin's Deshaker rolling-shutter list, reproduced in the
+    # rolling-shutter table of J. Huai's Kalibr fork): the only action-camera video figures found. Stills read the
+    # whole 4:3 sensor and are slower: 30 ms for a GoPro Hero4 Black (Vautherin et al. 2016, ISPRS Annals III-3),
+    # 17 ms for a Hero 8 Black, 16 ms in 16:9 and 21 ms in 4:3 for the DJI Mini 4 Pro's 1/1.3" sensor
+    # (OpenDroneMap's rolling-shutter database). GoPros since the HERO7 write the readout into each file (GPMF's
+    # SROT), so it differs by model and mode. Top of the range: the studio's cap, 0.95 of a 60 fps frame period (a
+    # readout cannot outlast its frame). Bottom, 10 ms: a judgement. At the Hero 8's still line time, 1080p's 16:9
+    # rows would take ~13 ms, and cameras that film 1080p at 240 fps read a frame in under 4.2 ms.
     "rolling_shutter": "on",
-    "readout_ms": "15 ms (at most 0.95 frame periods)",
+    "readout_ms": "drawn per capture, uniform in 10-15.8 ms (at most 0.95 frame periods)",
     # Soft-tissue artefact of skin-mounted marker clusters: peaks of ~10-18 mm and 5-10 deg on the thigh, less
     # on the shank (Leardini et al. 2005; Peters et al. 2010; bcmocap.sim.wobble): RMS 3 mm and 1.5 deg,
     # times 0.5-1.5 per camera.
@@ -339,12 +392,41 @@ REALISTIC = {
     # width is 3.2 px at 640 px.
     "focal_error_pct": "1 (errors of 0.3-1 %)",
     "centre_error_px": "0.5 % of the width (errors of 0.15-0.5 %)",
+    # Time. Cameras started by hand (or by a remote's radio command) start at arbitrary moments, not on a common
+    # frame grid: a uniform sub-frame phase.
+    "start_subframe": "on",
+    # Each camera's clock is its own quartz crystal: general-purpose crystals are specified at +-10 to +-50 ppm
+    # frequency tolerance at 25 C plus a similar temperature stability (e.g. the frequency tolerance classes of
+    # Epson's and Abracon's SMD crystal data sheets); issue 43 quotes tens of ppm between action cameras. The
+    # studio takes +-20 ppm per camera (so two cameras differ by up to 40 ppm: 24 ms, 1.4 frames at 60 fps, over
+    # a 10-minute take).
+    "clock_ppm": "20 ppm",
+    # Audio-video latency inside a camera (the audio path's buffering and the encoder's priming) is a property of
+    # the model and firmware, mostly common to cameras of one model, which only shifts the common time; what
+    # differs between units is a judgement here: up to 5 ms (0.3 frame periods at 60 fps), below the +-(15-45) ms
+    # audio/video tolerance of broadcast practice (ITU-R BT.1359), so nobody would notice it in a video.
+    "audio_latency_ms": "0-5 ms per camera (a judgement)",
+    # GoPro's GPMF gyro timestamps are known to be off from the video by tens of ms (why Gyroflow estimates a
+    # gyro-video offset per clip): +-30 ms per trial, a judgement of that order.
+    "imu_offset_ms": "+-30 ms per trial (a judgement)",
+    # Lenses: cameras of one model differ as manufactured units (bcmocap.sim.lens_units gives the sources): focal
+    # length sigma 0.3 % (a judgement below the 2-3 % of stock machine-vision lenses, optowiki.info), centre sigma
+    # 0.25 % of the width per axis (Parrot's ANAFI Thermal white paper: +-22 um after active alignment, 2.3 px
+    # here), the radial profile off the design, decentering and thin-prism terms (Weng et al. 1992) of a few tenths
+    # of a pixel at the corners (judgements); the user is given the design's nominal lens.
+    "lens_units": "on (bcmocap.sim.lens_units.UnitTolerances)",
 }
 PRESETS = ("realistic",)
+#: The rolling-shutter readouts (ms) the realistic preset draws from, uniformly, once per capture (seeded):
+#: action cameras at 1080p60 (:data:`REALISTIC` gives the sources).
+READOUT_RANGE_MS = (10.0, 15.8)
 
 
 def preset_settings(name: str, **fields) -> StudioSettings:
     """Settings of a named preset (``"realistic"``: every degradation of a real shoot on, :data:`REALISTIC`).
+
+    The readout (``readout_ms``) is drawn uniformly from :data:`READOUT_RANGE_MS` by the ``seed`` (one draw per
+    capture, at most 0.95 frame periods): the same seed gives the same readout.
 
     Args:
         name: the preset.
@@ -363,7 +445,7 @@ def preset_settings(name: str, **fields) -> StudioSettings:
         "motion_blur": True,
         "exposure_ms": round(min(8.0, 0.5 * frame_ms), 4),
         "rolling_shutter": True,
-        "readout_ms": round(min(15.0, 0.95 * frame_ms), 4),
+        "readout_ms": round(min(_rng(base.seed, 12).uniform(*READOUT_RANGE_MS), 0.95 * frame_ms), 4),
         "mount_wobble_mm": 3.0,
         "mount_wobble_deg": 1.5,
         "auto_exposure": True,
@@ -375,6 +457,11 @@ def preset_settings(name: str, **fields) -> StudioSettings:
         "video_bitrate_mbps": round(45.0 * pixels * base.fps / (1920 * 1080 * 60), 4),
         "focal_error_pct": 1.0,
         "centre_error_px": round(0.005 * base.width, 3),
+        "start_subframe": True,
+        "clock_ppm": 20.0,
+        "audio_latency_ms": 5.0,
+        "imu_offset_ms": 30.0,
+        "lens_units": True,
     }
     values.update({k: v for k, v in fields.items() if k in REALISTIC})
     return dataclasses.replace(base, **values)
@@ -552,7 +639,39 @@ def _timeline(num_frames: int, num_cameras: int, fps: float, rng: np.random.Gene
         "num_video_frames": (start + num_frames + tail).astype(np.int64),
         "clap_frames": np.array([-lead, num_frames - 1 + lead], np.int64),
         "audio_gain": rng.uniform(0.45, 1.0, num_cameras),
+        # the clocks (:func:`_clocks`): whole-frame starts, perfect clocks, no latency, no IMU offset
+        "video_start_time": start.astype(np.float64),
+        "clock_rate": np.ones(num_cameras),
+        "audio_latency_s": np.zeros(num_cameras),
+        "imu_clock_offset_s": np.float64(0.0),
     }
+
+
+def _clocks(settings: StudioSettings, timelines: dict[str, dict[str, np.ndarray]], num_cameras: int) -> None:
+    """Add each trial's clocks to its timeline (in place): ``video_start_time`` ``(C,)``, the video frame (fractional)
+    in which trial frame 0 happens; ``clock_rate`` ``(C,)``, camera seconds per true second; ``audio_latency_s``
+    ``(C,)``; ``imu_clock_offset_s`` ``()``, added to the IMU's timestamps. Video frame ``i`` of camera ``c`` shows
+    trial time ``(i - video_start_time[c]) / clock_rate[c]`` frames. Without time errors: whole-frame starts,
+    rates of 1, no latency and no offset."""
+    s = settings
+    camera_rng = _rng(s.seed, 13)  # a camera's crystal and audio path: the same in every trial
+    rate = 1.0 + camera_rng.uniform(-1.0, 1.0, num_cameras) * s.clock_ppm * 1e-6
+    latency = camera_rng.uniform(0.0, 1.0, num_cameras) * s.audio_latency_ms / 1000.0
+    for ti, timeline in enumerate(timelines.values()):
+        trial_rng = _rng(s.seed, 13, ti + 1)  # a new recording: its own sub-frame start and IMU clock offset
+        phase = trial_rng.uniform(0.0, 1.0, num_cameras) if s.start_subframe else np.zeros(num_cameras)
+        timeline["video_start_time"] = timeline["video_start_frame"] + phase
+        timeline["clock_rate"] = rate.copy()
+        timeline["audio_latency_s"] = latency.copy()
+        timeline["imu_clock_offset_s"] = np.float64(trial_rng.uniform(-1.0, 1.0) * s.imu_offset_ms / 1000.0)
+
+
+def video_frame_times(timeline: dict[str, np.ndarray], camera: int, num_frames: int) -> np.ndarray:
+    """``(N,)`` trial time (frames, clipped to ``[0, num_frames - 1]``: the subject holds still before and after)
+    shown in each video frame of ``camera`` (``N = num_video_frames[camera]``; module docstring)."""
+    index = np.arange(int(timeline["num_video_frames"][camera]), dtype=np.float64)
+    start, rate = float(timeline["video_start_time"][camera]), float(timeline["clock_rate"][camera])
+    return np.clip((index - start) / rate, 0.0, num_frames - 1.0)
 
 
 def _reference_poses(scene: TexturedScene, path_xy: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -607,6 +726,8 @@ class _Plan:
     mount_poses: dict[str, np.ndarray]  # per trial (T, C, 7) world_from_mount: the rigid camera poses
     camera_offsets: dict[str, np.ndarray]  # per trial (T, C, 6) (translation m, rotation rad) on the mount
     camera_poses: dict[str, np.ndarray]  # per trial (T, C, 7) world_from_camera: mount · exp(offset), rendered
+    nominal_lens: CameraModel | None = None  # with lens units: the design's lens the user is given for every camera
+    passerby: dict[str, TruthPasserby] = dataclasses.field(default_factory=dict)  # per trial, room "passerby"
 
 
 def _rng(seed: int, *stream: int) -> np.random.Generator:
@@ -656,12 +777,16 @@ def _plan(settings: StudioSettings) -> _Plan:
     if s.lens == "opencv_fisheye":
         rig = Rig(rig.names, rig.segments, rig.segment_from_camera, stack_cameras([fitted] * rig.num_cameras))
         fit_error = 0.0
+    nominal = None
+    if s.lens_units:
+        rig, nominal = _lens_units(s, rig)
     rom = studio_range_of_motion(skeleton, motion, s.rom_seconds, s.fps, _rng(s.seed, 5), s.rom_tempo)
     path_xy = np.asarray(motion.root_position)[:, :2]
-    scene = make_textured_scene(path_xy, seed=s.seed)
+    scene = make_room(s.room if s.room in ROOM_STYLES else "textured", path_xy, seed=s.seed)
     trials = {"rom": rom, "capture": motion}
     timelines = {name: _timeline(m.num_frames, rig.num_cameras, s.fps, _rng(s.seed, 1, i))
                  for i, (name, m) in enumerate(trials.items())}
+    _clocks(s, timelines, rig.num_cameras)
     focal = 0.5 * s.reference_width / math.tan(math.radians(s.reference_fov_deg) / 2)
     reference_camera = PinholeCamera(
         width=s.reference_width, height=s.reference_height, focal=[focal, focal],
@@ -670,7 +795,16 @@ def _plan(settings: StudioSettings) -> _Plan:
     reference_poses = _reference_poses(scene, path_xy, s.reference_photos, _rng(s.seed, 4))
     mounts, offsets, poses = _camera_truth(s, skeleton, rig, trials)
     return _Plan(s, skeleton, rig, scene, trials, timelines, reference_camera, reference_poses, fit_error, mounts,
-                 offsets, poses)
+                 offsets, poses, nominal, passerby=_passersby(s, skeleton, trials, scene))
+
+
+def _lens_units(settings: StudioSettings, rig: Rig) -> tuple[Rig, CameraModel]:
+    """``rig`` with every camera its own unit of the studio's lens design (:mod:`bcmocap.sim.lens_units`, seeded),
+    and the design's nominal lens in the settings' ``lens`` family (what the user is given)."""
+    design = lens_design(settings.width, settings.height)
+    units = manufactured_lens_units(design, rig.num_cameras, _rng(settings.seed, 11))
+    return (Rig(rig.names, rig.segments, rig.segment_from_camera, stack_cameras(units)),
+            nominal_lens(design, settings.lens))
 
 
 def _check_folder(path: Path, settings: StudioSettings) -> bool:
@@ -714,6 +848,42 @@ def capsule_ends(skeleton: Skeleton, motion: Motion) -> tuple[np.ndarray, np.nda
     world = np.asarray(forward_kinematics(skeleton, motion).wxyz_xyz)[:, segs]  # (T, K, 7)
     ends = np.asarray(SE3(world[:, :, None]) @ local[None])  # (T, K, 2, 3)
     return ends, np.array([c.radius for c in caps]), capsule_colors(caps, skeleton.names)
+
+
+def _passersby(settings: StudioSettings, skeleton: Skeleton, trials: dict[str, Motion],
+               scene: TexturedScene) -> dict[str, TruthPasserby]:
+    """The passer-by of each trial (room "passerby": :mod:`bcmocap.sim.passerby`, NaN while out of the room), or none.
+
+    A walking subject meets a runner, any other subject a walker (CMU's walk and run are two people).
+    """
+    if settings.room != "passerby":
+        return {}
+    gait = "run" if settings.motion == "walk" else "walk"
+    out = {}
+    for trial, motion in trials.items():
+        walker, walk, present, _ = passerby_motion(scene, skeleton, motion, settings.fps, motion=gait)
+        ends, radii, _ = capsule_ends(walker, walk)
+        ends, absent = np.array(ends), ~present
+        root, joints = np.array(walk.root_position), np.array(forward_kinematics(walker, walk).translation())
+        for a in (ends, root, joints):
+            a[absent] = np.nan
+        colors = capsule_colors(body_capsules(walker), walker.names, PASSERBY_PALETTE)
+        out[trial] = TruthPasserby(gait, present, tuple(walker.names), root, joints, ends, radii, colors)
+    return out
+
+
+_AWAY = np.array([0.0, 0.0, -1000.0])  # where an absent passer-by's capsules are rendered: under the floor, unseen
+
+
+def _trial_capsules(plan: _Plan, trial: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The capsules rendered in a trial: the subject's, then the passer-by's (as :func:`capsule_ends`)."""
+    ends, radii, colors = capsule_ends(plan.skeleton, plan.trials[trial])
+    walker = plan.passerby.get(trial)
+    if walker is None:
+        return ends, radii, colors
+    away = np.where(np.isnan(walker.capsules), _AWAY, walker.capsules)
+    return (np.concatenate([ends, away], axis=1), np.concatenate([radii, walker.radii]),
+            np.concatenate([colors, walker.colors]))
 
 
 class _VideoSink:
@@ -765,9 +935,11 @@ def _render_camera_trial(plan: _Plan, renderer: Renderer, trial_index: int, tria
     """
     s = plan.settings
     n = plan.trials[trial].num_frames
-    timeline = plan.timelines[trial]
-    head = int(timeline["video_start_frame"][camera])  # copies of frame 0 before the trial starts
-    tail = int(timeline["num_video_frames"][camera]) - head - n  # copies of frame n-1 after it ends
+    # The trial times the video shows, each rendered once and repeated while it holds (the subject stands still
+    # before and after the trial): with whole-frame starts and perfect clocks, frames 0..n-1 with copies of the
+    # first and the last.
+    times, repeats = np.unique(video_frame_times(plan.timelines[trial], camera, n), return_counts=True)
+    count = len(times)
     ends, radii, colors = capsules
     sink = pool.submit(_VideoSink, video, s.fps, (s.width, s.height),
                        audio, s.video_bitrate_mbps).result()
@@ -776,25 +948,26 @@ def _render_camera_trial(plan: _Plan, renderer: Renderer, trial_index: int, tria
         control = ExposureControl(s.fps, s.auto_exposure, s.white_balance, _rng(s.seed, 8, trial_index, camera),
                                   renderer.rays.valid)
     writes: list[concurrent.futures.Future] = []
-    for first in range(0, n, _BATCH):
-        frames = np.minimum(np.arange(first, first + _BATCH), n - 1)
+    for first in range(0, count, _BATCH):
+        rendered = np.minimum(np.arange(first, first + _BATCH), count - 1)  # positions in `times`: noise keys
+        frames = times[rendered]
         rot, org = renderer.poses_at(poses, frames)
         gains = None
+        real = min(_BATCH, count - first)
         if control is not None:
-            real = min(_BATCH, n - first)
             gains = control.gains(real)
             gains = np.concatenate([gains, np.repeat(gains[-1:], _BATCH - real, axis=0)])
         images = renderer.render(rot, org, renderer.capsules_at(ends, frames), radii, colors,
-                                 _frame_key(s.seed, trial_index, camera, frames), gains)
+                                 _frame_key(s.seed, trial_index, camera, rendered), gains)
         if control is not None:
             control.meter(images[real - 1], gains[real - 1])
         video = []
-        for k, image in zip(range(first, min(first + _BATCH, n)), images):
-            video.extend([image] * ((head if k == 0 else 0) + 1 + (tail if k == n - 1 else 0)))
+        for k, image in zip(range(first, first + real), images):
+            video.extend([image] * int(repeats[k]))
         writes.append(pool.submit(sink.write, video))
         if len(writes) > 2:  # back-pressure: at most a few batches wait for the encoder
             writes.pop(0).result()
-        advance(min(_BATCH, n - first))
+        advance(real)
     for w in writes:
         w.result()
     return pool.submit(sink.close)
@@ -869,8 +1042,7 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
                     timings[f"trial:{list(trial_data)[-1]}"] = time.perf_counter() - clock
                 timings[f"frames:{trial}"] = 0
                 clock = time.perf_counter()
-                motion = plan.trials[trial]
-                trial_data[trial] = (plan.camera_poses[trial], capsule_ends(skeleton, motion))
+                trial_data[trial] = (plan.camera_poses[trial], _trial_capsules(plan, trial))
             poses, capsules = trial_data[trial]
             cam = camera_at(rig.intrinsics, camera)
             key = np.concatenate([np.ravel(np.asarray(leaf)) for leaf in jax.tree.leaves(cam)]).tobytes()
@@ -893,9 +1065,11 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
 
 
 def _clap_samples(timeline: dict[str, np.ndarray], settings: StudioSettings) -> np.ndarray:
-    """``(C, 2)`` first sample of each clap in each camera's track."""
-    frames = timeline["clap_frames"][None, :] + timeline["video_start_frame"][:, None]
-    return np.round(frames * settings.audio_rate / settings.fps).astype(np.int64)
+    """``(C, 2)`` first sample of each clap in each camera's track: the clap's video time on the camera's clock
+    (:func:`video_frame_times` inverted), plus its audio latency."""
+    frames = timeline["clap_frames"][None, :] * timeline["clock_rate"][:, None] + timeline["video_start_time"][:, None]
+    latency = timeline["audio_latency_s"][:, None] * timeline["clock_rate"][:, None] * settings.fps
+    return np.round((frames + latency) * settings.audio_rate / settings.fps).astype(np.int64)
 
 
 def _soundtrack(plan: _Plan, trial_index: int, trial: str, camera: int) -> np.ndarray:
@@ -938,7 +1112,8 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
     cameras = []
     calibration_rng = _rng(s.seed, 6)
     for c, name in enumerate(rig.names):
-        cam = _given_intrinsics(camera_at(rig.intrinsics, c), s, calibration_rng)  # the rendered lens by default
+        given = camera_at(rig.intrinsics, c) if plan.nominal_lens is None else plan.nominal_lens
+        cam = _given_intrinsics(given, s, calibration_rng)  # the rendered lens by default
         fitted, err = fit_opencv_fisheye(cam)
         _write_opencv_yaml(intrinsics_path(folder, name), fitted)
         write_json(lens_path(folder, name), {**camera_to_dict(cam), "opencv_fisheye_fit_max_error_px": err})
@@ -982,8 +1157,12 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
             "markers": markers.positions,
         })
         write_bvh(trial_truth_path(folder, trial, ".bvh"), skeleton, motion, 1.0 / s.fps)
+        if trial in plan.passerby:
+            passerby_truth_path(folder, trial).parent.mkdir(exist_ok=True)
+            write_npz_atomic(passerby_truth_path(folder, trial), plan.passerby[trial].arrays())
         write_trial_sensors(trial_dir(folder, trial), skeleton, rig, motion, s.fps, plan.timelines[trial]["clap_frames"],
-                            seed=s.seed, trial_index=ti, world_from_camera=plan.camera_poses[trial] if wobble else None)
+                            seed=s.seed, trial_index=ti, world_from_camera=plan.camera_poses[trial] if wobble else None,
+                            clock_offset_s=float(plan.timelines[trial]["imu_clock_offset_s"]))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from pathlib import Path
 from ..compilation_cache import enable_compilation_cache
 
 PRESETS = ("realistic",)  # bcmocap.sim.studio.PRESETS (not imported here: the CLI starts without JAX)
+ROOMS = ("textured", "sparse", "repeated", "passerby")  # bcmocap.sim.studio.ROOMS
 
 
 def add_simulate_command(sub: argparse._SubParsersAction) -> None:
@@ -23,7 +24,8 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
         "files, the rig, and ground truth beside it (layout: bcmocap.sim.studio). The same arguments write the "
         "same files; running again resumes. Clean by default; --preset realistic adds what a real shoot has (mount "
         "wobble, rolling shutter, motion blur, auto exposure and white balance, vignetting, shot noise, H.264 at an "
-        "action camera's bit rate, calibration error; sources in bcmocap.sim.studio.REALISTIC), and each "
+        "action camera's bit rate, calibration error, a lens unit per camera; sources in "
+        "bcmocap.sim.studio.REALISTIC), and each "
         "degradation has its own option (which overrides the preset's value).",
     )
     _add_capture_arguments(cmd)
@@ -51,7 +53,8 @@ def _add_capture_arguments(cmd: argparse.ArgumentParser) -> None:
     cmd.add_argument("capture_dir", metavar="CAPTURE_DIR", nargs="?",
                      help="new or empty folder, or an unfinished capture to resume")
     cmd.add_argument("--motion", nargs="+", default=["walk"], metavar="MOTION",
-                     help="the capture's motion: a bundled CMU trial (walk, run, jump; default walk), a BVH file, or an "
+                     help="the capture's motion: a bundled CMU trial (walk, run, jump, scoop, hop; default walk; "
+                          "bcmocap.sim.motions.CMU_TRIALS), a BVH file, or an "
                           "ASF file and an AMC file (bones found by their usual names: bcmocap.sim.motions.BONE_ALIASES)")
     cmd.add_argument("--motion-fps", type=float, default=0.0,
                      help="frame rate of a motion file (Hz; default: a BVH file's Frame Time, 120 for AMC)")
@@ -68,6 +71,11 @@ def _add_capture_arguments(cmd: argparse.ArgumentParser) -> None:
     cmd.add_argument("--height", type=int, default=360, help="body-camera image height (px, default 360)")
     cmd.add_argument("--lens", default="fov", choices=["fov", "opencv_fisheye"],
                      help="lens model rendered: the paper's FOV model or its cv2.fisheye fit (default fov)")
+    cmd.add_argument("--room", default="textured", choices=list(ROOMS),
+                     help="textured (default: rich, non-repeating texture everywhere); sparse (weak texture, a blank "
+                          "wall, less clutter); repeated (exactly periodic floor tiles, ceiling panels, bricks and "
+                          "windows); passerby (the textured room and a second person walking across it in the "
+                          "videos, not in the reference photos; truth in ground_truth/passerby/)")
     cmd.add_argument("--reference-photos", type=int, default=24, help="number of reference photos (default 24)")
     cmd.add_argument("--reference-size", default="1024x768", metavar="WxH", help="reference photo size (default 1024x768)")
     cmd.add_argument("--preset", choices=list(PRESETS),
@@ -104,6 +112,19 @@ def _add_degradation_arguments(deg) -> None:
                      help="calibration given to the user: focal lengths off by 0.3-1 times this (%%; default 0)")
     deg.add_argument("--centre-error-px", type=float,
                      help="calibration given to the user: centres off by 0.3-1 times this (px; default 0)")
+    deg.add_argument("--start-subframe", action=argparse.BooleanOptionalAction, default=None,
+                     help="each camera starts at a random sub-frame time (default: on whole frames)")
+    deg.add_argument("--clock-ppm", type=float,
+                     help="each camera's clock runs fast or slow by up to this much (ppm; default 0: perfect clocks)")
+    deg.add_argument("--audio-latency-ms", type=float,
+                     help="each camera's audio lags its video by 0 to this much (ms; default 0)")
+    deg.add_argument("--imu-offset-ms", type=float,
+                     help="the IMU's timestamps are off from the video clock by up to +- this much per trial (ms; default 0)")
+    deg.add_argument("--lens-units", action=argparse.BooleanOptionalAction, default=None,
+                     help="each camera renders through its own manufactured unit of one lens design (focal length, "
+                          "centre, radial, decentering and thin-prism terms off the design: bcmocap.sim.lens_units), "
+                          "kept in the ground truth; intrinsics/ holds the design's nominal lens (default: every "
+                          "camera the one --lens)")
 
 
 def _add_mode_arguments(cmd: argparse.ArgumentParser) -> None:
@@ -170,7 +191,7 @@ def _simulate_capture(cmd: argparse.ArgumentParser, args: argparse.Namespace) ->
     fields = dict(
         motion=motion, motion_fps=args.motion_fps, motion_unit_m=args.motion_unit_m, seconds=args.seconds,
         rom_seconds=args.rom_seconds, rom_tempo=args.rom_tempo, seed=args.seed, fps=args.fps, width=args.width, height=args.height,
-        lens=args.lens, reference_photos=args.reference_photos, reference_width=ref_w, reference_height=ref_h,
+        lens=args.lens, room=args.room, reference_photos=args.reference_photos, reference_width=ref_w, reference_height=ref_h,
     )
     fields.update({name: getattr(args, name) for name in DEGRADATIONS if getattr(args, name) is not None})
     try:
@@ -193,7 +214,8 @@ def _simulate_capture(cmd: argparse.ArgumentParser, args: argparse.Namespace) ->
 #: Settings with an option of the same name that --preset may set.
 DEGRADATIONS = ("motion_blur", "exposure_ms", "blur_samples", "rolling_shutter", "readout_ms", "mount_wobble_mm",
                 "mount_wobble_deg", "auto_exposure", "white_balance", "vignetting", "read_noise_dn",
-                "full_scale_electrons", "container", "video_bitrate_mbps", "focal_error_pct", "centre_error_px")
+                "full_scale_electrons", "container", "video_bitrate_mbps", "focal_error_pct", "centre_error_px",
+                "start_subframe", "clock_ppm", "audio_latency_ms", "imu_offset_ms", "lens_units")
 
 
 def _motion_argument(values: list[str]) -> str | tuple[str, str] | ValueError:
