@@ -24,6 +24,14 @@ load_pycolmap()
 # on it under glog's handler). Commands run as subprocesses write it as usual.
 bcmocap.compilation_cache.MIN_COMPILE_SECONDS = 1e9
 
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """After each test file, free JAX's compiled programs if the worker's memory mappings near the kernel's limit: a
+    worker of the heavy tier compiles thousands of programs and would otherwise abort in XLA when mmap fails."""
+    yield
+    bcmocap.compilation_cache.release_compiled_programs()
+
 SEGMENTS = ("pelvis", "torso", "head", "thigh", "shin", "foot")
 PARENTS = (-1, 0, 1, 0, 3, 4)
 TYPES = ("free", "ball", "ball", "ball", "hinge", "fixed")

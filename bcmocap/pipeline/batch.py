@@ -19,6 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..atomic import write_json_atomic
+from ..compilation_cache import release_compiled_programs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,6 +81,7 @@ def run_one(item: BatchItem, config_dict: dict, executor=None, stop_after: str |
     except Exception as exc:  # an unexpected failure of one capture is reported, not raised, in a batch
         row["error"] = f"{type(exc).__name__}: {one_line_error(exc)}"
     row["seconds"] = round(time.perf_counter() - clock, 1)
+    release_compiled_programs()  # many captures in one process would run out of memory mappings
     return row
 
 
