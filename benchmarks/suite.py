@@ -1,0 +1,286 @@
+"""The evaluation suite (issue 42): seeds × motions × rooms × {clean, realistic}, each run through ``bcmocap batch``
+with only what a user knows, reported with its spread.
+
+Each run is a studio capture (``bcmocap.sim.studio``; ``--seconds`` of the motion, a ``--rom-seconds``
+range-of-motion trial at ``--rom-tempo`` (default 6 s at 0.5: a 3 s one left a foot's centre undetermined), 640×360 at 60 fps, the standard 18-camera rig):
+
+- ``clean``: the default studio in the run's room with the run's motion; the one rendered lens is calibrated
+  from its board video;
+- ``realistic``: the studio's ``realistic`` preset (``bcmocap.sim.studio.REALISTIC``: blur, rolling shutter with a
+  readout drawn per capture, wobble, exposure, noise, H.264, a lens unit per camera outside the solver's
+  families, sub-frame starts, drifting clocks, audio latencies, IMU clock offsets), each unit calibrated from its
+  own board video.
+
+As a user would, each capture's lenses are what ``bcmocap calibrate`` (``--lens-model``) makes of its board videos
+(``bcmocap simulate --board-videos``), written into the capture's ``intrinsics/`` (the rendered units stay in
+``ground_truth/``). Then every capture of a condition goes through one ``bcmocap batch`` (``--cluster`` spreads it
+over a Dask cluster) with that condition's config: the clean rows ``benchmarks/configs/tracking.toml``, the
+realistic rows ``benchmarks/configs/realistic_shoot.toml`` (a data-sheet readout, the documented wobble default,
+the solver estimating readout, time offsets and lens corrections).
+
+Reported per condition and overall: mean, sd, 90th percentile and worst of the runs' mean joint position and
+joint angle errors (after the §5.1 similarity alignment, from each run's ``metrics.json``), the same for the
+initial motion (registration and IK alone), how often the solve improved on it (both errors), the registered
+fractions, failures (counted, never dropped), the calibrated lenses' pixel error against the true lens (RMS and
+max over the part of the image within ``COVERED_DEG`` of the axis, and over the whole image), the sub-frame
+offsets and clock rates from the claps against the truth, and, where the solver estimated them, the cameras'
+time offsets against the truth (relative to their mean: a common offset is a shift of the whole motion).
+
+Everything lives in ``--out`` (``captures/NAME``, ``runs/CONDITION/NAME``); a rerun resumes (the studio, the
+calibration and ``bcmocap run`` all resume). ``--quick`` runs one clean and one realistic walk in the textured
+room (about 20 minutes on 2 cores); the full grid is every motion in every room realistic (20 runs) and every
+motion in two rooms clean (10 runs).
+
+    python benchmarks/suite.py --out /tmp/suite --quick --json benchmarks/results/suite_quick.json
+    python benchmarks/suite.py --out /tmp/suite --json benchmarks/results/suite.json [--cluster local:2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, write_json  # noqa: E402
+
+MOTIONS = ("walk", "run", "jump", "scoop", "hop")
+ROOMS = ("textured", "sparse", "repeated", "passerby")
+CLEAN_ROOMS = ("textured", "repeated")
+CONFIGS = {"clean": ROOT / "benchmarks" / "configs" / "tracking.toml",
+           "realistic": ROOT / "benchmarks" / "configs" / "realistic_shoot.toml"}
+COVERED_DEG = 80.0  # the part of the image the board covers well (and the body cameras use most)
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    condition: str
+    motion: str
+    room: str
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.condition}-{self.motion}-{self.room}-s{self.seed}"
+
+
+def planned_runs(quick: bool, seeds: int) -> list[Run]:
+    """The grid: ``--quick`` one clean and one realistic walk; else every motion in every room realistic and every
+    motion in :data:`CLEAN_ROOMS` clean, seeds cycling over ``range(seeds)``."""
+    if quick:
+        return [Run("clean", "walk", "textured", 0), Run("realistic", "walk", "textured", 0)]
+    realistic = [Run("realistic", m, r, i % seeds) for i, (m, r) in enumerate((m, r) for m in MOTIONS for r in ROOMS)]
+    clean = [Run("clean", m, r, i % seeds) for i, (m, r) in enumerate((m, r) for m in MOTIONS for r in CLEAN_ROOMS)]
+    return realistic + clean
+
+
+def capture_settings(run: Run, args):
+    from bcmocap.sim.studio import StudioSettings, preset_settings
+
+    fields = dict(motion=run.motion, room=run.room, seed=run.seed, seconds=args.seconds, rom_seconds=args.rom_seconds,
+                  rom_tempo=args.rom_tempo)
+    return preset_settings("realistic", **fields) if run.condition == "realistic" else StudioSettings(**fields)
+
+
+def _lens_error(calibrated, truth) -> dict:
+    """Pixel distance between the calibrated lens and the true one over the true lens's image: RMS and max within
+    :data:`COVERED_DEG` of the axis and over the whole image."""
+    v, u = np.mgrid[0:truth.height:4, 0:truth.width:4].astype(np.float64)
+    pixels = np.stack([u.ravel(), v.ravel()], axis=-1)
+    rays = np.asarray(truth.unproject(pixels))
+    back, ok = calibrated.project(rays)
+    d = np.linalg.norm(np.asarray(back) - pixels, axis=-1)
+    ok = np.asarray(ok)
+    covered = ok & (np.degrees(np.arccos(np.clip(rays[:, 2], -1, 1))) <= COVERED_DEG)
+    return {"covered_rms_px": float(np.sqrt(np.mean(d[covered] ** 2))), "covered_max_px": float(d[covered].max()),
+            "image_rms_px": float(np.sqrt(np.mean(d[ok] ** 2))), "image_max_px": float(d[ok].max())}
+
+
+def calibrate_capture(folder: Path, model: str, views: int, log) -> dict:
+    """Calibrate each lens of the capture's board videos and write it into ``intrinsics/`` for its cameras (as a user
+    would with ``bcmocap calibrate … --out intrinsics/CAMERA.yml``); per lens its error against the truth."""
+    from bcmocap.calibrate.fit import calibrate
+    from bcmocap.calibrate.report import write_calibration
+    from bcmocap.calibrate.views import detect_views, select_views
+    from bcmocap.cameras import camera_at
+    from bcmocap.io.board import parse_board
+    from bcmocap.sim.board_video import write_board_videos
+    from bcmocap.sim.studio import read_studio_model
+
+    done = folder / "calibration" / "suite_lenses.json"
+    if done.exists():
+        return json.loads(done.read_text())
+    if not (folder / "calibration" / "lenses.json").exists():
+        write_board_videos(folder, views=views, frames_per_view=2, progress=lambda name: log(f"  board video {name}"))
+    table = json.loads((folder / "calibration" / "lenses.json").read_text())
+    board = parse_board(table["board"])
+    _, _, _, rig = read_studio_model(folder)
+    report = {}
+    for lens, cameras in table["lenses"].items():
+        found = detect_views(folder / "calibration" / f"{lens}.mp4", board, max_frames=300)
+        result = calibrate(found.subset(select_views(found, 40)), model)
+        for camera in cameras:
+            write_calibration(folder / "intrinsics" / f"{camera}.yml", result)
+        truth = camera_at(rig.intrinsics, rig.index(cameras[0]))
+        report[lens] = {"cameras": cameras, "rms_px": float(result.rms_px), **_lens_error(result.camera, truth)}
+        log(f"  {lens}: {report[lens]['covered_max_px']:.2f} px max within {COVERED_DEG:g} deg of the true lens")
+    done.write_text(json.dumps(report, indent=1))
+    return report
+
+
+def clock_errors(folder: Path) -> dict:
+    """The claps' sub-frame offsets (first clap's video frame) and clock rates against the studio's truth."""
+    from bcmocap.frontend import read_capture, synchronize
+    from bcmocap.sim.studio import load_ground_truth
+
+    truth = load_ground_truth(folder).trials["capture"]
+    sync = synchronize(read_capture(folder), "capture")
+    first_clap = truth.video_frame_of(np.arange(len(sync.cameras)), truth.clap_frames[0])
+    rates = truth.clock_rate / np.median(truth.clock_rate)
+    return {"offset_error_frames_max": float(np.abs(sync.frame_offsets - first_clap).max()),
+            "rate_error_ppm_max": float(1e6 * np.abs(sync.clock_rates - rates).max()),
+            "offsets": np.asarray(sync.offsets).tolist(), "first_clap_true": first_clap.tolist()}
+
+
+def time_offset_errors(run_dir: Path, clocks: dict) -> dict | None:
+    """The solver's per-camera time offsets (``static:time_offset`` of ``solve/motion.npz``) against the truth: camera
+    ``c``'s frames are exposed ``offsets[c] - first_clap_true[c]`` frames after the solver's frame times. Both
+    relative to their mean over the cameras."""
+    path = run_dir / "solve" / "motion.npz"
+    if not path.exists():
+        return None
+    with np.load(path) as data:
+        if "static:time_offset" not in data.files:
+            return None
+        found = np.asarray(data["static:time_offset"]).reshape(-1)
+    true = np.asarray(clocks["offsets"], float) - np.asarray(clocks["first_clap_true"])
+    error = (found - found.mean()) - (true - true.mean())
+    return {"max_frames": float(np.abs(error).max()), "rms_frames": float(np.sqrt(np.mean(error**2)))}
+
+
+def _spread(values: list[float]) -> dict:
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], float)
+    if not len(v):
+        return {"mean": None, "sd": None, "p90": None, "max": None}
+    return {"mean": float(v.mean()), "sd": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
+            "p90": float(np.percentile(v, 90)), "max": float(v.max())}
+
+
+def summarise(rows: list[dict]) -> dict:
+    ok = [r for r in rows if r["ok"]]
+    improved = [r for r in ok if r["solved"]["joint_position_error_cm"] < r["initial"]["joint_position_error_cm"]
+                and r["solved"]["joint_angle_error_deg"] < r["initial"]["joint_angle_error_deg"]]
+    return {
+        "runs": len(rows), "failed": len(rows) - len(ok),
+        "joint_position_error_cm": _spread([r["solved"]["joint_position_error_cm"] for r in ok]),
+        "joint_angle_error_deg": _spread([r["solved"]["joint_angle_error_deg"] for r in ok]),
+        "initial_joint_position_error_cm": _spread([r["initial"]["joint_position_error_cm"] for r in ok]),
+        "initial_joint_angle_error_deg": _spread([r["initial"]["joint_angle_error_deg"] for r in ok]),
+        "solve_improved_fraction": len(improved) / len(ok) if ok else None,
+        "registered_capture": _spread([r.get("registered_capture") for r in ok]),
+        "lens_covered_max_px": _spread([lens["covered_max_px"] for r in rows for lens in r["lenses"].values()]),
+        "clap_offset_error_frames_max": _spread([r["clocks"]["offset_error_frames_max"] for r in rows]),
+        "clap_rate_error_ppm_max": _spread([r["clocks"]["rate_error_ppm_max"] for r in rows]),
+        "solver_time_offset_error_frames_max": _spread([(r.get("time_offsets") or {}).get("max_frames") for r in rows]),
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True, help="working folder (captures and runs; a rerun resumes)")
+    ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--quick", action="store_true", help="one clean and one realistic walk (development)")
+    ap.add_argument("--seeds", type=int, default=3, help="seeds cycled over the full grid (default 3)")
+    ap.add_argument("--seconds", type=float, default=2.0, help="capture trial length (s, default 2)")
+    ap.add_argument("--rom-seconds", type=float, default=6.0, help="range-of-motion trial length (s, default 6)")
+    ap.add_argument("--rom-tempo", type=float, default=0.5, help="range-of-motion sweep speed (default 0.5)")
+    ap.add_argument("--lens-model", default="fov", choices=["fov", "opencv_fisheye"], help="calibrated lens model")
+    ap.add_argument("--board-views", type=int, default=24, help="board placements per board video (default 24)")
+    ap.add_argument("--cluster", help="bcmocap batch --cluster (e.g. local:2)")
+    args = ap.parse_args()
+
+    from bcmocap.compilation_cache import enable_compilation_cache
+    from bcmocap.precision import enable_float64
+    from bcmocap.sim.studio import write_capture
+
+    enable_float64()
+    enable_compilation_cache()
+    out = Path(args.out)
+    runs = planned_runs(args.quick, args.seeds)
+    log = lambda text: print(text, flush=True)  # noqa: E731
+    clock = time.perf_counter()
+    prepared, rows = {}, []
+    for run in runs:  # captures, board videos and calibrations (resumable)
+        folder = out / "captures" / run.name
+        manifest = folder / "capture.json"
+        settings = capture_settings(run, args)
+        written = json.loads(manifest.read_text()) if manifest.exists() else {}
+        if written.get("complete"):  # its intrinsics/ hold the calibrated lenses now: never re-render over them
+            if written.get("settings") != json.loads(json.dumps(settings.to_dict())):
+                raise SystemExit(f"{folder}: a capture with other settings; give another --out")
+        else:
+            log(f"{run.name}: rendering")
+            write_capture(folder, settings, progress=False)
+        log(f"{run.name}: calibrating")
+        prepared[run] = {"lenses": calibrate_capture(folder, args.lens_model, args.board_views, log),
+                         "clocks": clock_errors(folder)}
+    setup_seconds = time.perf_counter() - clock
+    for condition in ("clean", "realistic"):
+        chosen = [r for r in runs if r.condition == condition]
+        if not chosen:
+            continue
+        command = [str(Path(sys.executable).with_name("bcmocap")), "batch", *[str(out / "captures" / r.name) for r in chosen],
+                   "--out", str(out / "runs" / condition), "--config", str(CONFIGS[condition])]
+        if args.cluster:
+            command += ["--cluster", args.cluster]
+        log(" ".join(command))
+        subprocess.run(command, check=False)
+        table = json.loads((out / "runs" / condition / "batch.json").read_text())["rows"]
+        for run, row in zip(chosen, table):
+            run_dir = Path(row["out"])
+            record = {**dataclasses.asdict(run), "name": run.name, "ok": bool(row and row.get("ok")),
+                      "seconds": row.get("seconds"), "error": row.get("error"),
+                      "registered_rom": row.get("registered_rom"), "registered_capture": row.get("registered_capture"),
+                      **prepared[run]}
+            metrics_path = run_dir / "metrics.json"
+            if record["ok"] and metrics_path.exists():
+                metrics = json.loads(metrics_path.read_text())
+                for which in ("initial", "solved"):
+                    record[which] = {k: metrics[which][k]["mean"] for k in ("joint_position_error_cm", "joint_angle_error_deg")}
+                record["time_offsets"] = time_offset_errors(run_dir, prepared[run]["clocks"])
+            else:
+                record["ok"] = False
+            rows.append(record)
+            if record["ok"]:
+                log(f"{run.name}: {record['solved']['joint_position_error_cm']:.2f} cm, "
+                    f"{record['solved']['joint_angle_error_deg']:.2f} deg (initial "
+                    f"{record['initial']['joint_position_error_cm']:.2f} cm, {record['initial']['joint_angle_error_deg']:.2f} deg)")
+            else:
+                log(f"{run.name}: FAILED {record.get('error')}")
+    conditions = {c: summarise([r for r in rows if r["condition"] == c]) for c in ("clean", "realistic")
+                  if any(r["condition"] == c for r in rows)}
+    conditions["all"] = summarise(rows)
+    result = {"quick": args.quick, "conditions": conditions, "runs": rows,
+              "settings": {k: v for k, v in vars(args).items() if k not in ("out", "json")},
+              "setup_seconds": round(setup_seconds, 1), "seconds": round(time.perf_counter() - clock, 1),
+              "machine": machine()}
+    for name, c in conditions.items():
+        p, a = c["joint_position_error_cm"], c["joint_angle_error_deg"]
+        if p["mean"] is not None:
+            log(f"{name:>10}: {c['runs']} runs, {c['failed']} failed; position {p['mean']:.2f} ± {p['sd']:.2f} cm "
+                f"(p90 {p['p90']:.2f}, max {p['max']:.2f}); angle {a['mean']:.2f} ± {a['sd']:.2f} deg (p90 {a['p90']:.2f}, "
+                f"max {a['max']:.2f}); solve improved {c['solve_improved_fraction']:.0%}")
+    if args.json:
+        write_json(args.json, result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
