@@ -155,6 +155,7 @@ __all__ = [
     "world_points_path",
     "write_json",
     "write_manifest",
+    "video_frame_at",
 ]
 
 CAPTURE_FORMAT = "bcmocap-capture"
@@ -567,9 +568,15 @@ class TrialTruth:
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)
 
-    def video_frame_of(self, camera: int, trial_frame) -> np.ndarray:
+    def video_frame_of(self, camera, trial_frame) -> np.ndarray:
         """Video frame (fractional) of ``camera`` in which trial time ``trial_frame`` (frames) happens."""
-        return self.video_start_time[camera] + self.clock_rate[camera] * np.asarray(trial_frame, np.float64)
+        return video_frame_at(self.video_start_time[camera], self.clock_rate[camera], trial_frame)
+
+
+def video_frame_at(video_start_time, clock_rate, trial_frame) -> np.ndarray:
+    """Video frame (fractional) in which trial time ``trial_frame`` (frames) happens for a camera whose frame
+    ``video_start_time`` shows trial frame 0 and whose clock runs ``clock_rate`` times true time (broadcasting)."""
+    return np.asarray(video_start_time) + np.asarray(clock_rate) * np.asarray(trial_frame, np.float64)
 
 
 @dataclasses.dataclass(frozen=True)

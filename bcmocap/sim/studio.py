@@ -98,6 +98,7 @@ from ..io.capture_folder import (
     truth_rig_path,
     truth_scene_path,
     truth_skeleton_path,
+    video_frame_at,
     world_points_path,
     write_json,
     write_manifest,
@@ -1067,7 +1068,8 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
 def _clap_samples(timeline: dict[str, np.ndarray], settings: StudioSettings) -> np.ndarray:
     """``(C, 2)`` first sample of each clap in each camera's track: the clap's video time on the camera's clock
     (:func:`video_frame_times` inverted), plus its audio latency."""
-    frames = timeline["clap_frames"][None, :] * timeline["clock_rate"][:, None] + timeline["video_start_time"][:, None]
+    frames = video_frame_at(timeline["video_start_time"][:, None], timeline["clock_rate"][:, None],
+                            timeline["clap_frames"][None, :])
     latency = timeline["audio_latency_s"][:, None] * timeline["clock_rate"][:, None] * settings.fps
     return np.round((frames + latency) * settings.audio_rate / settings.fps).astype(np.int64)
 
