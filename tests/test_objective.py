@@ -141,3 +141,30 @@ def test_registered_pose_sigmas_are_both_zero_or_both_positive():
         with pytest.raises(ValueError, match=r"ObjectiveWeights.registered_pose must be \(m, rad\), both 0 or both > 0"):
             ObjectiveWeights(registered_pose=bad)
     assert ObjectiveWeights(registered_pose=(0.02, 0.01)).registered_pose == (0.02, 0.01)
+
+
+def test_measured_time_offsets_centre_their_prior():
+    """Time offsets measured beforehand (the cameras' gyros) are the centre of the prior on the solver's offsets, in
+    the solver's frame periods; a measurement per camera is required."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from bcmocap.correspondences import Correspondences
+    from bcmocap.residuals.rolling_shutter import TIME_OFFSET
+    from bcmocap.solver.objective import CameraEffects, paper_terms
+
+    t, c, n, m = 4, 3, 5, 2
+    corr = Correspondences(np.zeros((n, 3)), np.zeros((t, c, n), np.int32), np.zeros((t, c, n, 2)), np.ones((t, c, n)),
+                           np.zeros((t, c, m, 2)), np.zeros((t, c, m, 2)), np.zeros((t, c, m)),
+                           np.tile([1.0, 0, 0, 0, 0, 0, 0], (t, c, 1)), np.ones((t, c), bool), 30.0)
+    effects = CameraEffects(estimate_time_offsets=True, time_offset_sigma_seconds=0.001,
+                            time_offsets_measured=(0.002, -0.004, 0.002))
+    prior = next(term for term in paper_terms(corr, make_skeleton(), effects=effects) if term.label == "time offset prior")
+    at_measurement = jnp.asarray([[0.06], [-0.12], [0.06]])  # s × 30 frames/s
+    r, _ = prior.residual(None, jnp.asarray(1.0), {TIME_OFFSET: at_measurement})
+    np.testing.assert_allclose(np.asarray(r), 0.0, atol=1e-12)
+    r, _ = prior.residual(None, jnp.asarray(1.0), {TIME_OFFSET: at_measurement + 0.03})
+    np.testing.assert_allclose(np.asarray(r), 1.0)  # 1 ms off is one σ
+    with pytest.raises(ValueError, match="time_offsets_measured: 2 values for 3 cameras"):
+        paper_terms(corr, make_skeleton(), effects=dataclasses.replace(effects, time_offsets_measured=(0.0, 0.0)))

@@ -42,6 +42,8 @@ MAX_MEASUREMENTS = 300
 SETTINGS_VERSION = 2
 """Bumped when registration changes for the same settings (2: the tracking frontend's rounds work on every
 third frame left, :func:`~.tracking.round_seeds`), so an earlier ``registration.json`` is not reused."""
+#: Version of :mod:`~.gyro_timing`'s estimate, in the saved settings of registrations that used it.
+GYRO_TIMING_VERSION = 1
 
 CHUNK_FRAMES = 400
 """Default chunk: registration holds about 1 GB per 1000 images of a chunk (measured: 1080 images of the
@@ -150,6 +152,11 @@ class TrialOptions:
         points: which 3D points the solver measures: "all", or "reference" (the reference model's only).
         rolling_shutter_readout: s from the first row to the last; > 0 corrects every frame for the rolling
             shutter by the cameras' gyros first (0: global shutter).
+        gyro_timing: with a readout, when each frame was exposed on its gyro's clock: "clock" (the frame time the
+            clap sync gives, on the clock of ``imu.npz``), or "frames" (each camera's shift found in its own frames,
+            :mod:`~.gyro_timing`).
+        estimate_readout: with ``gyro_timing`` "frames", also find the readout there (``rolling_shutter_readout``
+            is then only the starting value of the search, e.g. a data sheet's).
     """
 
     stride: int = 1
@@ -161,6 +168,14 @@ class TrialOptions:
     max_measurements: int | None = None
     points: str = "all"
     rolling_shutter_readout: float = 0.0
+    gyro_timing: str = "clock"
+    estimate_readout: bool = False
+
+    def __post_init__(self):
+        if self.gyro_timing not in ("clock", "frames"):
+            raise ValueError(f"gyro_timing must be 'clock' or 'frames', got {self.gyro_timing!r}")
+        if self.estimate_readout and self.gyro_timing != "frames":
+            raise ValueError("estimate_readout needs gyro_timing = 'frames' (the readout is found with the gyro's timing)")
 
     def saved_settings(self, gyro: str | None = None) -> dict:
         """:func:`trial_settings` of these options (``gyro``: the gyros' fingerprint, with a rolling-shutter
@@ -168,8 +183,19 @@ class TrialOptions:
         return trial_settings(**dataclasses.asdict(self), gyro=gyro)
 
 
+def trial_frames(capture, trial: str, sync, frames: int | None = None) -> int:
+    """Frames per camera :func:`process_trial` uses from each camera's first clap (``sync``): up to the second clap (or
+    the end of the shortest video when the offsets were given), at most ``frames``."""
+    import numpy as np
+
+    available = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(capture.camera_names, sync.offsets))
+    if np.isfinite(sync.duration_s):  # the take ends at the second clap
+        available = min(available, int(round(sync.duration_s * capture.fps)) + 1)
+    return available if frames is None else min(available, frames)
+
+
 def process_trial(capture, index, trial: str, out, options: TrialOptions = TrialOptions(), *, offsets=None,
-                  extra_settings: dict | None = None, log=print, map_tasks=None) -> dict:
+                  extra_settings: dict | None = None, log=print, map_tasks=None, gyro_timing=None) -> dict:
     """One trial, from its first clap to its second (or to the end of the shortest video when ``offsets``
     are given), through sync, features, registration and homographies, written under ``out``, as ``options``
     say (:class:`TrialOptions`).
@@ -185,7 +211,11 @@ def process_trial(capture, index, trial: str, out, options: TrialOptions = Trial
     (:meth:`~.relative.CaptureRegistration.correspondences`). With ``options.rolling_shutter_readout`` > 0 (s,
     first row to last), every frame is first corrected for the rolling shutter
     by the cameras' gyros (``trials/<trial>/imu.npz``; :mod:`~.rolling_shutter`), so the poses and measurements are
-    those of a global shutter at the frame times (the camera's translation across the readout aside).
+    those of a global shutter at the frame times (the camera's translation across the readout aside). With
+    ``options.gyro_timing`` "frames" the gyro is read at the times :mod:`~.gyro_timing` finds in the frames, with the
+    readout found there too under ``options.estimate_readout`` (``gyro_timing``: a
+    :class:`~.gyro_timing.GyroTiming` found beforehand, e.g. for several trials together; None: found for this
+    trial alone); its report is saved as ``"gyro_timing"``.
     ``extra_settings`` join the settings saved with the result (e.g. the lens correction a caller applied to
     ``capture``), so a saved registration is reused only with them.
 
@@ -208,17 +238,27 @@ def process_trial(capture, index, trial: str, out, options: TrialOptions = Trial
     o = options
     sync = given_offsets(capture, offsets) if offsets is not None else synchronize(capture, trial)
     starts = np.asarray(sync.offsets, np.int64)
-    available = min(capture.video_info(trial, n).num_frames - int(s) for n, s in zip(capture.camera_names, starts))
-    if np.isfinite(sync.duration_s):  # the take ends at the second clap
-        available = min(available, int(round(sync.duration_s * capture.fps)) + 1)
-    frames = available if o.frames is None else min(available, o.frames)
+    frames = trial_frames(capture, trial, sync, o.frames)
     log(f"{trial}: first clap at video frames {starts.tolist()}; {frames} frames per camera up to the second clap")
+    timing = None
     if o.rolling_shutter_readout > 0:
         from .rolling_shutter import gyro_unwarp
 
-        capture = capture.corrected(trial, gyro_unwarp(capture, trial, starts, o.rolling_shutter_readout))
-        log(f"{trial}: frames corrected for a {1e3 * o.rolling_shutter_readout:g} ms rolling-shutter readout by the "
-            f"gyros")
+        readout, shifts = o.rolling_shutter_readout, None
+        if o.gyro_timing == "frames":
+            from .gyro_timing import timing_of_trials
+
+            timing = gyro_timing or timing_of_trials(capture, {trial: starts}, o.rolling_shutter_readout,
+                                                     spans={trial: frames}, estimate_readout=o.estimate_readout,
+                                                     log=log)[trial]
+            readout, shifts = timing.readout_s, timing.time_shift_s
+            log(f"{trial}: gyro timing from the frames: shifts {np.round(1e3 * shifts, 2).tolist()} ms, readout "
+                f"{1e3 * readout:.2f} ms ({'estimated' if o.estimate_readout else 'given'})")
+        if readout > 0:
+            capture = capture.corrected(trial, gyro_unwarp(capture, trial, starts, readout, time_shifts=shifts))
+            log(f"{trial}: frames corrected for a {1e3 * readout:.3g} ms rolling-shutter readout by the gyros")
+        else:
+            log(f"{trial}: the frames show no rolling shutter (readout 0): not corrected")
     if o.registration not in ("tracking", "global"):
         raise ValueError(f"registration must be 'tracking' or 'global', got {o.registration!r}")
     clock = time.perf_counter()
@@ -274,6 +314,8 @@ def process_trial(capture, index, trial: str, out, options: TrialOptions = Trial
 
     gyro = gyro_fingerprint(capture, trial) if o.rolling_shutter_readout > 0 else None
     report["settings"] = o.saved_settings(gyro) | (extra_settings or {})
+    if timing is not None:
+        report["gyro_timing"] = timing.as_dict()
     for key in ("registered_absolute", "registered_tracked", "registered_relocalised", "registered_relative",
                 "tracked_after_rounds", "points", "new_points", "filled_by_homographies", "homography_pairs"):
         report[key] = int(sum(c.get(key, 0) for c in chunks))
@@ -291,7 +333,8 @@ def process_trial(capture, index, trial: str, out, options: TrialOptions = Trial
 
 def trial_settings(*, stride: int, frames: int | None, max_features: int, homographies: bool, chunk_frames: int,
                    registration: str, max_measurements: int | None, points: str = "all",
-                   rolling_shutter_readout: float = 0.0, gyro: str | None = None) -> dict:
+                   rolling_shutter_readout: float = 0.0, gyro_timing: str = "clock", estimate_readout: bool = False,
+                   gyro: str | None = None) -> dict:
     """The settings of :func:`process_trial` that its result depends on (:class:`TrialOptions`' fields), as saved in
     ``registration.json`` (``"settings"``): a saved registration is reused only when they are all the same."""
     from .tracking import ROUND_PARTNERS
@@ -302,7 +345,9 @@ def trial_settings(*, stride: int, frames: int | None, max_features: int, homogr
             **({} if points == "all" else {"points": str(points)}),  # registrations saved before the setting: "all"
             **({"round_partners": ROUND_PARTNERS} if registration == "tracking" else {}),
             **({"rolling_shutter_readout": float(rolling_shutter_readout), "gyro": gyro}
-               if rolling_shutter_readout > 0 else {})}
+               if rolling_shutter_readout > 0 else {}),
+            **({"gyro_timing": "frames", "estimate_readout": bool(estimate_readout), "gyro_timing_version": GYRO_TIMING_VERSION}
+               if rolling_shutter_readout > 0 and gyro_timing == "frames" else {})}
 
 
 @dataclasses.dataclass(frozen=True)

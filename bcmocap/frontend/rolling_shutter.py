@@ -17,9 +17,10 @@ turned to the time of the row it falls in (a fixed point: that row depends on wh
 projected, and the frame is sampled there (``cv2.remap``, bicubic, edges replicated). The map is computed on a
 grid every ``grid_px`` pixels and interpolated bilinearly in between (the displacement is smooth).
 
-Frame times: video frame ``i`` of camera ``c`` shows the synchronised time ``(i − offsets[c]) / fps`` (``offsets``:
-each camera's video frame of the first clap, :mod:`~.sync`), on the clock of ``imu.npz`` (0 at the first clap).
-Frames outside the gyro's time span take the nearest span's angular velocity.
+Frame times: video frame ``i`` of camera ``c`` shows the synchronised time ``(i − offsets[c]) / fps + time_shifts[c]``
+(``offsets``: each camera's video frame of the first clap, :mod:`~.sync`), on the clock of ``imu.npz`` (0 at the first
+clap). The shifts are 0 when the clocks are trusted, or what :mod:`~.gyro_timing` found in the frames (a sub-frame
+start, the IMU clock's offset). Frames outside the gyro's time span take the nearest span's angular velocity.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from ..geometry import matrix_from_quat, quat_exp, quat_log
 from ..io.sensors import IMU_FILE, ImuRecording, integrate_gyro, read_imu
 from .capture import lens_fingerprint
 
-__all__ = ["GyroUnwarp", "check_readout", "gyro_file", "gyro_fingerprint", "gyro_unwarp"]
+__all__ = ["GyroUnwarp", "check_readout", "gyro_file", "gyro_fingerprint", "gyro_unwarp", "imu_indices"]
 
 #: Fixed-point iterations for the row an output pixel falls in (the row moves by the displacement's
 #: vertical part, a few pixels: 3 iterations leave it to well below 0.01 px).
@@ -64,6 +65,7 @@ class GyroUnwarp:
         fps: video frame rate (Hz).
         readout_s: time from the first row to the last (s), in ``(0, 1 / fps]``.
         grid_px: spacing of the grid the map is computed on (px).
+        time_shifts: ``(C,)`` s added to each camera's frame times (None: zeros).
     """
 
     lenses: tuple
@@ -73,8 +75,14 @@ class GyroUnwarp:
     fps: float
     readout_s: float
     grid_px: int = 8
+    time_shifts: tuple[float, ...] | None = None
 
     def __post_init__(self):
+        if self.time_shifts is None:
+            object.__setattr__(self, "time_shifts", (0.0,) * len(self.offsets))
+        object.__setattr__(self, "time_shifts", tuple(float(t) for t in np.asarray(self.time_shifts).ravel()))
+        if len(self.time_shifts) != len(self.offsets) or not np.all(np.isfinite(self.time_shifts)):
+            raise ValueError(f"GyroUnwarp: time_shifts must be {len(self.offsets)} finite values (s), got {self.time_shifts}")
         if not 0.0 < self.readout_s <= 1.0 / self.fps:
             raise ValueError(f"rolling-shutter readout {self.readout_s} s must lie in (0, {1.0 / self.fps:.6g}] s "
                              f"(one frame period at {self.fps:g} fps)")
@@ -90,7 +98,7 @@ class GyroUnwarp:
         the map's grid, and hashes of the lenses and of the gyro recording."""
         gyro = hashlib.sha256()
         for array in (self.imu.time, self.imu.gyro, self.imu.camera_from_imu, np.asarray(self.imu_index),
-                      np.asarray(self.offsets)):
+                      np.asarray(self.offsets), *([np.asarray(self.time_shifts)] if any(self.time_shifts) else [])):
             gyro.update(np.ascontiguousarray(array, np.float64).tobytes())
         return {"gyro_unwarp": {"readout_s": float(self.readout_s), "grid_px": int(self.grid_px),
                                 "iterations": ROW_ITERATIONS, "lenses": lens_fingerprint(self.lenses),
@@ -98,7 +106,7 @@ class GyroUnwarp:
 
     def frame_time(self, camera: int, index: int) -> float:
         """Synchronised time (s) of video frame ``index`` of camera ``camera``."""
-        return (int(index) - int(self.offsets[camera])) / self.fps
+        return (int(index) - int(self.offsets[camera])) / self.fps + self.time_shifts[camera]
 
     def angular_velocity(self, camera: int, index: int) -> np.ndarray:
         """``(3,)`` mean angular velocity of the camera over the frame's readout, in the camera frame (rad/s)."""
@@ -178,8 +186,20 @@ def gyro_fingerprint(capture, trial: str) -> str:
     return hashlib.sha256(gyro_file(capture, trial).read_bytes()).hexdigest()[:16]
 
 
-def gyro_unwarp(capture, trial: str, offsets, readout_s: float, *, grid_px: int = 8) -> GyroUnwarp:
-    """The :class:`GyroUnwarp` of a capture's trial, from ``trials/<trial>/imu.npz`` and the cameras' intrinsics.
+def imu_indices(capture, path: Path, imu: ImuRecording) -> tuple[int, ...]:
+    """Each capture camera's sensor in ``imu`` (read from ``path``; ValueError naming it for a camera without one)."""
+    index = []
+    for camera in capture.cameras:
+        if camera.name not in imu.cameras:
+            raise ValueError(f"{path}: no IMU for camera {camera.name!r} (IMUs: {list(imu.cameras)}); "
+                             f"frontend.rolling_shutter_readout needs one in every camera")
+        index.append(imu.cameras.index(camera.name))
+    return tuple(index)
+
+
+def gyro_unwarp(capture, trial: str, offsets, readout_s: float, *, grid_px: int = 8, time_shifts=None) -> GyroUnwarp:
+    """The :class:`GyroUnwarp` of a capture's trial, from ``trials/<trial>/imu.npz`` and the cameras' intrinsics
+    (``time_shifts``: ``(C,)`` s added to the frame times, e.g. from :mod:`~.gyro_timing`; None: zeros).
 
     Raises:
         ValueError: naming the file when the trial has no gyro recording, or the camera that carries no IMU.
@@ -190,12 +210,7 @@ def gyro_unwarp(capture, trial: str, offsets, readout_s: float, *, grid_px: int 
     if imu.time[-1] - imu.time[0] < readout_s:
         raise ValueError(f"{path}: the gyro recording lasts {imu.time[-1] - imu.time[0]:.4g} s, less than one "
                          f"{readout_s:g} s readout")
-    index = []
-    for camera in capture.cameras:
-        if camera.name not in imu.cameras:
-            raise ValueError(f"{path}: no IMU for camera {camera.name!r} (IMUs: {list(imu.cameras)}); "
-                             f"frontend.rolling_shutter_readout needs one in every camera")
-        index.append(imu.cameras.index(camera.name))
+    index = imu_indices(capture, path, imu)
     offsets = tuple(int(o) for o in np.asarray(offsets).ravel())
-    return GyroUnwarp(tuple(c.intrinsics for c in capture.cameras), imu, tuple(index), offsets, float(capture.fps),
-                      float(readout_s), grid_px)
+    return GyroUnwarp(tuple(c.intrinsics for c in capture.cameras), imu, index, offsets, float(capture.fps),
+                      float(readout_s), grid_px, None if time_shifts is None else tuple(np.asarray(time_shifts, float)))

@@ -21,6 +21,10 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     rolling_shutter_readout = 0.0   # s from the first row to the last, at most a frame period: every frame is
                               # corrected for it by the cameras' gyros (trials/<trial>/imu.npz) before
                               # registration; 0: global shutter (bcmocap.frontend.rolling_shutter)
+    gyro_timing = "clock"     # with a readout, when each frame was exposed on its gyro's clock: clock (the clap
+                              # sync's frame time on imu.npz's clock) | frames (each camera's shift found in its
+                              # own frames: sub-frame starts, an IMU clock offset; bcmocap.frontend.gyro_timing)
+    estimate_readout = false  # with gyro_timing = "frames", find the readout there too (the one given is the start)
     self_calibration = false  # register both trials, estimate each camera's focal length and centre from them
                               # (reference points fixed), then register again through the corrected lenses,
                               # which the later stages start from (DIR/frontend/intrinsics.npz); twice the time
@@ -104,6 +108,8 @@ class FrontendConfig:
     max_measurements: int = 300
     points: str = "reference"
     rolling_shutter_readout: float = 0.0
+    gyro_timing: str = "clock"
+    estimate_readout: bool = False
     self_calibration: bool = False
 
 
@@ -192,6 +198,10 @@ class RunConfig:
         _check(not (f.rolling_shutter_readout > 0 and s.rolling_shutter_readout > 0), "solver.rolling_shutter_readout",
                "must be 0 when frontend.rolling_shutter_readout corrects the frames by the gyros (the measurements are "
                "a global shutter's then)", s.rolling_shutter_readout)
+        _check(f.gyro_timing in ("clock", "frames"), "frontend.gyro_timing", "must be 'clock' or 'frames'", f.gyro_timing)
+        _check(not f.estimate_readout or (f.gyro_timing == "frames" and f.rolling_shutter_readout > 0),
+               "frontend.estimate_readout", "needs gyro_timing = 'frames' and a rolling_shutter_readout to start from",
+               f.estimate_readout)
         _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)

@@ -78,7 +78,8 @@ class RunContext:
 #: runs stay reusable.
 _LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 0.0], "registered_pose_below": 20},
                    "skeleton": {"centre_trials": ["rom"]},
-                   "frontend": {"rolling_shutter_readout": 0.0, "self_calibration": False}}
+                   "frontend": {"rolling_shutter_readout": 0.0, "self_calibration": False, "gyro_timing": "clock",
+                                "estimate_readout": False}}
 
 
 #: ``solver`` settings the ``world`` stage also reads (the camera model it re-fits the registered poses under), with
@@ -240,7 +241,8 @@ def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None 
         options = TrialOptions(stride=stride, frames=f.frames or None, max_features=f.max_features,
                                homographies=homographies, chunk_frames=f.chunk_frames, registration=f.registration,
                                max_measurements=f.max_measurements or None, points=f.points,
-                               rolling_shutter_readout=f.rolling_shutter_readout)
+                               rolling_shutter_readout=f.rolling_shutter_readout, gyro_timing=f.gyro_timing,
+                               estimate_readout=f.estimate_readout)
         gyro = gyro_fingerprint(capture, trial) if f.rolling_shutter_readout > 0 else None
         settings = options.saved_settings(gyro) | (extra or {})
         if done.is_file() and (folder / trial / "correspondences" / "index.json").is_file():
@@ -253,15 +255,32 @@ def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None 
     if todo:
         index = reference_index(prepare_reference(capture, folder / "reference", log=ctx.log))
         map_tasks = ctx.executor.map if ctx.executor.distributed else None
+        timings = _gyro_timings(ctx, capture) if f.rolling_shutter_readout > 0 and f.gyro_timing == "frames" else {}
 
         def register(trial: str, options: TrialOptions) -> dict:
             return process_trial(capture, index, trial, folder, options=options, extra_settings=extra, log=ctx.log,
-                                 map_tasks=map_tasks)
+                                 map_tasks=map_tasks, gyro_timing=timings.get(trial))
 
         with ThreadPoolExecutor(max_workers=len(todo) if map_tasks is not None else 1) as pool:
             for (trial, *_), report in zip(todo, pool.map(lambda job: register(*job), todo)):
                 reports[trial] = report
     return reports
+
+
+def _gyro_timings(ctx: RunContext, capture) -> dict:
+    """Both trials' gyro timing found in their frames together (:func:`~bcmocap.frontend.gyro_timing.timing_of_trials`:
+    one readout for the capture's cameras, a shift per camera and trial), whichever trial is registered now, so a
+    trial's timing does not depend on which was saved before."""
+    from ..frontend.command import trial_frames
+    from ..frontend.gyro_timing import timing_of_trials
+    from ..frontend.sync import synchronize
+
+    f = ctx.config.frontend
+    syncs = {trial: synchronize(capture, trial) for trial in ("rom", "capture")}
+    ctx.log(f"gyro timing: finding each camera's gyro time shift{' and the readout' * f.estimate_readout} in both trials' frames")
+    return timing_of_trials(capture, {t: sync.offsets for t, sync in syncs.items()}, f.rolling_shutter_readout,
+                            spans={t: trial_frames(capture, t, sync, f.frames or None) for t, sync in syncs.items()},
+                            estimate_readout=f.estimate_readout, log=ctx.log)
 
 
 def readouts_in_frames(readout_s: float, stores) -> list[float]:
@@ -556,6 +575,23 @@ def _user_terms(ctx: RunContext) -> list:
     return [UserTerms(import_term_factory(u.factory), u.settings, u.factory) for u in ctx.config.solver.user_terms]
 
 
+#: σ of the prior on a camera's time offset measured by its gyro (s): the gyro timing's error on the studio's walk
+#: (benchmarks/results/gyro_timing.json) with margin.
+GYRO_TIME_OFFSET_SIGMA_S = 0.001
+
+
+def gyro_time_offsets(ctx: RunContext) -> np.ndarray | None:
+    """``(C,)`` s: each camera's exposure after the capture trial's frame times as its gyro timed it (the frontend's
+    ``gyro_timing`` shifts, relative to their mean: the IMU clock's offset is common, a common offset is a shift of
+    the whole motion), or None when the frontend did not time the gyros from the frames."""
+    path = ctx.path("frontend", "capture", "registration.json")
+    timing = read_json(path).get("gyro_timing") if path.is_file() else None
+    if timing is None:
+        return None
+    shifts = np.asarray(timing["time_shift_ms"], np.float64) / 1e3
+    return shifts - shifts.mean()
+
+
 def solve_problem(ctx: RunContext):
     """The solve stage's problem (:class:`~bcmocap.solver.objective.StoredProblem` on the run's metric store,
     ``DIR/solve/correspondences``, and the estimated model) and its :class:`~bcmocap.solver.SolverOptions`."""
@@ -566,9 +602,14 @@ def solve_problem(ctx: RunContext):
     s = ctx.config.solver
     corr = CorrespondenceStore.open(ctx.path("solve", "correspondences"))
     skeleton, rig = load_model(ctx.out)
+    effects = camera_effects(s)
+    measured = gyro_time_offsets(ctx) if s.estimate_time_offsets else None
+    if measured is not None:
+        effects = dataclasses.replace(effects, time_offsets_measured=tuple(measured),
+                                      time_offset_sigma_seconds=GYRO_TIME_OFFSET_SIGMA_S)
     problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None,
                             extra_terms=_user_terms(ctx), trial_folder=ctx.capture.path / "trials" / "capture",
-                            effects=camera_effects(s))
+                            effects=effects)
     return problem, SolverOptions(window=s.window, overlap=s.overlap)
 
 
@@ -593,6 +634,13 @@ def _stage_solve(ctx: RunContext) -> dict:
             reports = saved["reports"]
             skip = len(reports)
             ctx.log(f"solve: resuming after window {skip} of {len(window_starts(corr.num_frames, min(s.window, corr.num_frames), s.overlap))}")
+
+    if not statics and problem.effects.time_offsets_measured is not None:  # start where the gyros put them
+        from ..residuals.rolling_shutter import TIME_OFFSET
+
+        statics = {TIME_OFFSET: np.asarray(problem.effects.time_offsets_measured)[:, None] * corr.fps}
+        ctx.log(f"solve: time offsets start from the gyros' (prior σ {1e3 * GYRO_TIME_OFFSET_SIGMA_S:g} ms): "
+                f"{np.round(np.asarray(problem.effects.time_offsets_measured) * 1e3, 2).tolist()} ms")
 
     def save(index, report, so_far):
         reports.append(dataclasses.asdict(report))

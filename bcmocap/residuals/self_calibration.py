@@ -63,23 +63,25 @@ class SelfCalibratingReprojection(Reprojection):
 
 
 class StaticPrior(FrameTerm):
-    """A Gaussian prior ``(value / sigma)²`` on a Euclidean (or :class:`PerCamera` Euclidean) static block.
+    """A Gaussian prior ``((value − mean) / sigma)²`` on a Euclidean (or :class:`PerCamera` Euclidean) static block.
 
     A frame term counts once per frame, so ``data`` ``(T,)`` holds each frame's share of the prior: with windows
     of ``W`` frames, ``1 / W`` per frame gives the prior once per window.
 
     Attributes:
         block: the static block's name; variable: its declaration; sigma: standard deviations broadcasting to
-            its value's shape.
+            its value's shape; mean: the prior's centre, broadcasting likewise (default 0: a correction expected
+            to be small; a measured value, e.g. the cameras' time offsets from their gyros).
     """
 
     block: str = eqx.field(static=True, kw_only=True)
     variable: PerCamera | Euclidean = eqx.field(kw_only=True)
     sigma: jax.Array = eqx.field(kw_only=True, converter=jnp.asarray)
+    mean: jax.Array = eqx.field(default=0.0, kw_only=True, converter=jnp.asarray)
 
     def static_variables(self):
         return {self.block: self.variable}
 
     def residual(self, x, data, variables):
-        value = jnp.reshape(variables[self.block] / self.sigma, (1, -1))
+        value = jnp.reshape((variables[self.block] - self.mean) / self.sigma, (1, -1))
         return value * jnp.sqrt(data), jnp.ones(1, bool)
