@@ -141,28 +141,42 @@ def clock_errors(folder: Path) -> dict:
     from bcmocap.sim.studio import load_ground_truth
 
     truth = load_ground_truth(folder).trials["capture"]
-    sync = synchronize(read_capture(folder), "capture")
+    capture = read_capture(folder)
+    sync = synchronize(capture, "capture")
     first_clap = truth.video_frame_of(np.arange(len(sync.cameras)), truth.clap_frames[0])
     rates = truth.clock_rate / np.median(truth.clock_rate)
     return {"offset_error_frames_max": float(np.abs(sync.frame_offsets - first_clap).max()),
             "rate_error_ppm_max": float(1e6 * np.abs(sync.clock_rates - rates).max()),
-            "offsets": np.asarray(sync.offsets).tolist(), "first_clap_true": first_clap.tolist()}
+            "offsets": np.asarray(sync.offsets).tolist(), "first_clap_true": first_clap.tolist(), "fps": float(capture.fps)}
 
 
 def time_offset_errors(run_dir: Path, clocks: dict) -> dict | None:
-    """The solver's per-camera time offsets (``static:time_offset`` of ``solve/motion.npz``) against the truth: camera
-    ``c``'s frames are exposed ``offsets[c] - first_clap_true[c]`` frames after the solver's frame times. Both
-    relative to their mean over the cameras."""
-    path = run_dir / "solve" / "motion.npz"
-    if not path.exists():
+    """The cameras' time offsets against the truth, in video frames, relative to their mean over the cameras (a common
+    offset is a shift of the whole motion): camera ``c``'s frames are exposed ``offsets[c] - first_clap_true[c]``
+    video frames after the run's frame times. Two estimates: the frontend's gyro timing (``gyro_timing`` of
+    ``frontend/capture/registration.json``, ms) and the solver's (``static:time_offset`` of ``solve/motion.npz``, in
+    the solver's frame periods, ``stride`` video frames each). None without either."""
+    registration = run_dir / "frontend" / "capture" / "registration.json"
+    if not registration.exists():
         return None
-    with np.load(path) as data:
-        if "static:time_offset" not in data.files:
-            return None
-        found = np.asarray(data["static:time_offset"]).reshape(-1)
+    report = json.loads(registration.read_text())
     true = np.asarray(clocks["offsets"], float) - np.asarray(clocks["first_clap_true"])
-    error = (found - found.mean()) - (true - true.mean())
-    return {"max_frames": float(np.abs(error).max()), "rms_frames": float(np.sqrt(np.mean(error**2)))}
+    true -= true.mean()
+    out = {}
+    if report.get("gyro_timing"):
+        fps = float(clocks.get("fps", 60.0))
+        gyro = np.asarray(report["gyro_timing"]["time_shift_ms"], float) * fps / 1e3
+        error = (gyro - gyro.mean()) - true
+        out["gyro"] = {"max_frames": float(np.abs(error).max()), "rms_frames": float(np.sqrt(np.mean(error**2))),
+                       "readout_ms": report["gyro_timing"]["readout_ms"]}
+    path = run_dir / "solve" / "motion.npz"
+    if path.exists():
+        with np.load(path) as data:
+            if "static:time_offset" in data.files:
+                found = np.asarray(data["static:time_offset"]).reshape(-1) * int(report["stride"])
+                error = (found - found.mean()) - true
+                out["solver"] = {"max_frames": float(np.abs(error).max()), "rms_frames": float(np.sqrt(np.mean(error**2)))}
+    return out or None
 
 
 def _spread(values: list[float]) -> dict:
@@ -188,7 +202,10 @@ def summarise(rows: list[dict]) -> dict:
         "lens_covered_max_px": _spread([lens["covered_max_px"] for r in rows for lens in r["lenses"].values()]),
         "clap_offset_error_frames_max": _spread([r["clocks"]["offset_error_frames_max"] for r in rows]),
         "clap_rate_error_ppm_max": _spread([r["clocks"]["rate_error_ppm_max"] for r in rows]),
-        "solver_time_offset_error_frames_max": _spread([(r.get("time_offsets") or {}).get("max_frames") for r in rows]),
+        "gyro_time_offset_error_frames_max": _spread([((r.get("time_offsets") or {}).get("gyro") or {}).get("max_frames")
+                                                      for r in rows]),
+        "solver_time_offset_error_frames_max": _spread([((r.get("time_offsets") or {}).get("solver") or {}).get("max_frames")
+                                                        for r in rows]),
     }
 
 
@@ -204,6 +221,8 @@ def main() -> int:
     ap.add_argument("--lens-model", default="fov", choices=["fov", "opencv_fisheye"], help="calibrated lens model")
     ap.add_argument("--board-views", type=int, default=24, help="board placements per board video (default 24)")
     ap.add_argument("--cluster", help="bcmocap batch --cluster (e.g. local:2)")
+    ap.add_argument("--only", help="comma-separated run names of the grid to run (e.g. realistic-run-sparse-s1); the "
+                                   "results then hold those runs only, marked partial")
     args = ap.parse_args()
 
     from bcmocap.compilation_cache import enable_compilation_cache
@@ -214,6 +233,12 @@ def main() -> int:
     enable_compilation_cache()
     out = Path(args.out)
     runs = planned_runs(args.quick, args.seeds)
+    if args.only:
+        wanted = [name.strip() for name in args.only.split(",") if name.strip()]
+        unknown = sorted(set(wanted) - {r.name for r in runs})
+        if unknown:
+            raise SystemExit(f"--only: {unknown} are not in the grid ({', '.join(r.name for r in runs)})")
+        runs = [r for r in runs if r.name in wanted]
     log = lambda text: print(text, flush=True)  # noqa: E731
     clock = time.perf_counter()
     prepared, rows = {}, []
@@ -267,7 +292,7 @@ def main() -> int:
     conditions = {c: summarise([r for r in rows if r["condition"] == c]) for c in ("clean", "realistic")
                   if any(r["condition"] == c for r in rows)}
     conditions["all"] = summarise(rows)
-    result = {"quick": args.quick, "conditions": conditions, "runs": rows,
+    result = {"quick": args.quick, "partial": bool(args.only), "conditions": conditions, "runs": rows,
               "settings": {k: v for k, v in vars(args).items() if k not in ("out", "json")},
               "setup_seconds": round(setup_seconds, 1), "seconds": round(time.perf_counter() - clock, 1),
               "machine": machine()}
