@@ -14,6 +14,11 @@ def test_frontend_command_errors(tmp_path, capsys):
     assert "no trial 'walk' (trials: rom, capture)" in capsys.readouterr().err
     assert main(["frontend", str(capture), "--out", str(tmp_path / "out"), "--offsets", "1,2,3"]) == 2
     assert "--offsets gives 3 values for 2 cameras" in capsys.readouterr().err
+    assert main(["frontend", str(capture), "--out", str(tmp_path / "out"), "--gyro-timing", "frames"]) == 2
+    assert "need a --rolling-shutter-readout to start from" in capsys.readouterr().err
+    assert main(["frontend", str(capture), "--out", str(tmp_path / "out"), "--rolling-shutter-readout", "0.01",
+                 "--estimate-readout"]) == 2
+    assert "--estimate-readout needs --gyro-timing frames" in capsys.readouterr().err
     a_file = tmp_path / "file"
     a_file.write_text("keep me")
     assert main(["frontend", str(capture), "--out", str(a_file)]) == 2

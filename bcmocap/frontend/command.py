@@ -82,6 +82,13 @@ def add_frontend_command(sub: argparse._SubParsersAction) -> None:
     cmd.add_argument("--rolling-shutter-readout", type=float, default=0.0, metavar="SECONDS",
                      help="correct every frame for a rolling shutter with this readout (s from the first row to the "
                           "last) by the cameras' gyros (trials/<trial>/imu.npz); default 0: global shutter")
+    cmd.add_argument("--gyro-timing", choices=["clock", "frames"], default="clock",
+                     help="with a readout, when each frame was exposed on its gyro's clock: clock (the clap sync's frame "
+                          "time, default) or frames (each camera's shift found in its own frames; "
+                          "bcmocap.frontend.gyro_timing)")
+    cmd.add_argument("--estimate-readout", action="store_true",
+                     help="with --gyro-timing frames, find the readout in the frames too (--rolling-shutter-readout "
+                          "only starts the search)")
 
     def run(args: argparse.Namespace) -> int:
         if args.stride < 1:
@@ -613,6 +620,10 @@ def run_frontend(args: argparse.Namespace) -> int:
             from .rolling_shutter import check_readout
 
             check_readout(args.rolling_shutter_readout, capture.fps)
+        if (args.gyro_timing == "frames" or args.estimate_readout) and args.rolling_shutter_readout <= 0:
+            raise ValueError("--gyro-timing frames and --estimate-readout need a --rolling-shutter-readout to start from")
+        if args.estimate_readout and args.gyro_timing != "frames":
+            raise ValueError("--estimate-readout needs --gyro-timing frames")
         offsets = None
         if args.offsets:
             offsets = [int(v) for v in args.offsets.split(",")]
@@ -628,6 +639,7 @@ def run_frontend(args: argparse.Namespace) -> int:
             options = TrialOptions(stride=args.stride, frames=args.frames, max_features=args.max_features,
                                    chunk_frames=args.chunk_frames, registration=args.registration,
                                    max_measurements=args.max_measurements or None, points=args.points,
-                                   rolling_shutter_readout=args.rolling_shutter_readout)
+                                   rolling_shutter_readout=args.rolling_shutter_readout, gyro_timing=args.gyro_timing,
+                                   estimate_readout=args.estimate_readout)
             process_trial(capture, index, trial, out, options, offsets=offsets, log=lambda m: print(m, flush=True))
     return 0
