@@ -1,0 +1,45 @@
+"""benchmarks/suite.py (issue 42): the grid, the realistic config a user would write, and the time offsets compared
+with the truth in one unit."""
+
+import json
+
+import numpy as np
+import pytest
+
+from benchmarks import suite
+from bcmocap.pipeline.config import load_config
+
+
+def test_the_grid_covers_every_motion_and_room_and_names_are_unique():
+    full = suite.planned_runs(False, 3)
+    realistic = [r for r in full if r.condition == "realistic"]
+    clean = [r for r in full if r.condition == "clean"]
+    assert len(realistic) == 20 and len(clean) == 10 and len({r.name for r in full}) == 30
+    assert {r.motion for r in realistic} == set(suite.MOTIONS) and {r.room for r in realistic} == set(suite.ROOMS)
+    assert [r.name for r in suite.planned_runs(True, 3)] == ["clean-walk-textured-s0", "realistic-walk-textured-s0"]
+
+
+def test_the_realistic_config_is_told_only_what_a_user_knows():
+    config = load_config(suite.CONFIGS["realistic"])
+    f, s = config.frontend, config.solver
+    assert f.rolling_shutter_readout == pytest.approx(0.0148)  # a data sheet's, not the capture's
+    assert f.gyro_timing == "frames" and f.estimate_readout  # timing and readout found in the frames
+    assert s.rolling_shutter_readout == 0 and s.estimate_time_offsets and s.self_calibration
+    assert tuple(s.mount_compliance) == (0.003, 2.0)  # the documented default, not the rendered wobble
+
+
+def test_time_offsets_are_compared_in_video_frames_relative_to_their_mean(tmp_path):
+    true = np.array([0.1, -0.3, 0.2])  # video frames after the run's frame times
+    clocks = {"offsets": [10, 20, 30], "first_clap_true": (np.array([10, 20, 30]) - true).tolist(), "fps": 60.0}
+    run = tmp_path / "run"
+    (run / "frontend" / "capture").mkdir(parents=True)
+    assert suite.time_offset_errors(tmp_path / "nothing", clocks) is None
+    gyro_ms = (true + 0.5) / 60.0 * 1e3 + 25.0  # a common IMU clock offset drops out
+    gyro_ms[1] += 0.6  # 0.036 frames off
+    (run / "frontend" / "capture" / "registration.json").write_text(json.dumps(
+        {"stride": 2, "gyro_timing": {"time_shift_ms": gyro_ms.tolist(), "readout_ms": 13.0}}))
+    (run / "solve").mkdir()
+    np.savez(run / "solve" / "motion.npz", **{"static:time_offset": ((true + 0.2) / 2)[:, None]})  # solver frames
+    found = suite.time_offset_errors(run, clocks)
+    assert found["solver"]["max_frames"] == pytest.approx(0.0, abs=1e-12)
+    assert found["gyro"]["max_frames"] == pytest.approx(0.6 * 60 / 1e3 * 2 / 3) and found["gyro"]["readout_ms"] == 13.0
