@@ -204,3 +204,17 @@ def test_video_source_and_charuco(tmp_path):
     assert views.names[0].startswith("frame ")
     assert (~views.seen).any()  # some partial views
     assert views.seen.sum(axis=1).min() >= 6
+
+
+def test_a_board_seen_as_one_row_of_corners_gives_no_pose_not_nan():
+    """Five corners of one row (a board at the frame's edge in a rendered lens unit's board video): IPPE reports a
+    pose of NaNs as found; it is no pose, so the view is left out instead of the fit diverging."""
+    import math
+
+    from bcmocap.calibrate.fit import _equidistant_rays, _pose_from_rays
+
+    points = np.array([[0.06, 0.06, 0.0], [0.12, 0.06, 0.0], [0.18, 0.06, 0.0], [0.24, 0.06, 0.0], [0.30, 0.06, 0.0]])
+    pixels = np.array([[120.66281891, 40.16259003], [98.64673615, 46.35504913], [75.45358276, 54.3748436],
+                       [52.04242706, 64.29270172], [28.15530396, 76.20808411]])
+    focal = 0.5 * math.hypot(640, 360) / math.radians(95.0)
+    assert _pose_from_rays(points, _equidistant_rays(pixels, focal, np.array([319.5, 179.5]))) is None

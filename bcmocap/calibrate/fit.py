@@ -136,7 +136,7 @@ def _equidistant_rays(pixels: np.ndarray, focal: float, centre: np.ndarray) -> n
 
 
 def _pose_from_rays(points: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """camera_from_board (R, t) by planar PnP on rays within 80° of the axis; None if too few."""
+    """camera_from_board (R, t) by planar PnP on rays within 80° of the axis; None if too few, or no finite pose."""
     import cv2
 
     front = rays[:, 2] > math.cos(math.radians(80))
@@ -144,8 +144,8 @@ def _pose_from_rays(points: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, n
         return None
     normalised = rays[front, :2] / rays[front, 2:]
     ok, rvec, tvec = cv2.solvePnP(points[front], normalised, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        return None
+    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):  # IPPE reports NaN poses as found
+        return None  # (corners on one line: a board seen edge-on or at the frame's edge)
     return cv2.Rodrigues(rvec)[0], tvec.reshape(3)
 
 
