@@ -91,6 +91,10 @@ def test_a_camera_that_does_not_turn_gets_the_others_median_shift_and_none_raise
     assert found.time_shift_s[3] == pytest.approx(np.median(found.time_shift_s[:3])) and "[3]" in notes[0]
     with pytest.raises(ValueError, match="no camera turned enough"):
         estimate_gyro_timing([still], imu, [1], [4], FPS, READOUT)
+    # a shift beyond the search: its least cost at the search's edge, so not found
+    beyond = estimate_gyro_timing([*turning, _pairs(imu, 0, 4, 0.15, READOUT, seed=7)], imu, [0, 0, 0, 0], [4] * 4, FPS,
+                                  READOUT, estimate_readout=False)
+    assert beyond.determined.tolist() == [True, True, True, False]
     with pytest.raises(ValueError, match="2 cameras' pairs, 1 IMU indices"):
         estimate_gyro_timing([still, still], imu, [1], [4, 4], FPS, READOUT)
 
@@ -141,6 +145,8 @@ def test_the_settings_say_how_the_gyro_is_timed():
         RunConfig().with_overrides({"frontend.estimate_readout": True})
     with pytest.raises(ValueError, match="frontend.gyro_timing"):
         RunConfig().with_overrides({"frontend.gyro_timing": "audio"})
+    with pytest.raises(ValueError, match="needs a rolling_shutter_readout"):
+        RunConfig().with_overrides({"frontend.gyro_timing": "frames"})
     assert MOUNT.shape == (4,)
 
 
@@ -184,5 +190,13 @@ def test_the_solve_reads_the_gyro_time_offsets_relative_to_their_mean(tmp_path):
     (tmp_path / "frontend" / "capture" / "registration.json").write_text(json.dumps({"trial": "capture"}))
     assert gyro_time_offsets(ctx) is None  # registered with the clock's timing
     (tmp_path / "frontend" / "capture" / "registration.json").write_text(
-        json.dumps({"gyro_timing": {"time_shift_ms": [31.0, 29.0, 36.0]}}))
-    np.testing.assert_allclose(gyro_time_offsets(ctx), [-0.001, -0.003, 0.004])
+        json.dumps({"gyro_timing": {"time_shift_ms": [31.0, 29.0, 36.0], "determined": [True, True, True]}}))
+    offsets, measured = gyro_time_offsets(ctx)
+    np.testing.assert_allclose(offsets, [-0.001, -0.003, 0.004])
+    assert measured.all()
+    # a camera its gyro could not time is no measurement: left out of the mean, and the solver's default prior
+    (tmp_path / "frontend" / "capture" / "registration.json").write_text(json.dumps(
+        {"gyro_timing": {"time_shift_ms": [31.0, 30.0, 36.0], "determined": [True, False, True]}}))
+    offsets, measured = gyro_time_offsets(ctx)
+    np.testing.assert_allclose(offsets, [-0.0025, 0.0, 0.0025])
+    assert measured.tolist() == [True, False, True]

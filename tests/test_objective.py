@@ -166,5 +166,11 @@ def test_measured_time_offsets_centre_their_prior():
     np.testing.assert_allclose(np.asarray(r), 0.0, atol=1e-12)
     r, _ = prior.residual(None, jnp.asarray(1.0), {TIME_OFFSET: at_measurement + 0.03})
     np.testing.assert_allclose(np.asarray(r), 1.0)  # 1 ms off is one σ
+    per_camera = next(term for term in paper_terms(corr, make_skeleton(), effects=dataclasses.replace(
+        effects, time_offset_sigma_seconds=(0.001, 0.01, 0.001))) if term.label == "time offset prior")
+    r, _ = per_camera.residual(None, jnp.asarray(1.0), {TIME_OFFSET: at_measurement + 0.03})
+    np.testing.assert_allclose(np.asarray(r), [[1.0, 0.1, 1.0]])  # σ 10 ms on the camera that was not measured
+    with pytest.raises(ValueError, match="time_offset_sigma_seconds: 2 values for 3 cameras"):
+        paper_terms(corr, make_skeleton(), effects=dataclasses.replace(effects, time_offset_sigma_seconds=(0.1, 0.1)))
     with pytest.raises(ValueError, match="time_offsets_measured: 2 values for 3 cameras"):
         paper_terms(corr, make_skeleton(), effects=dataclasses.replace(effects, time_offsets_measured=(0.0, 0.0)))

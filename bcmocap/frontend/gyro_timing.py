@@ -22,7 +22,7 @@ translation between two frames (2 cm at 1.3 m/s) and the scene's parallax are wh
 rotations they are weighed against are degrees.
 
 A camera that barely turned in the frames used (its cost does not rise by :data:`MIN_CONTRAST` away from its
-minimum) gets the median shift of the others, with a note.
+minimum), or whose least cost lies at the edge of the search, gets the median shift of the others, with a note.
 """
 
 from __future__ import annotations
@@ -196,14 +196,18 @@ def _parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
 
 
 def _best_shift(cost: Callable[[float], float], centre: float, search_s: float) -> tuple[float, float, float]:
-    """``(shift, cost there, contrast)``: coarse grid over ``centre ± search_s``, then a fine one around the best."""
+    """``(shift, cost there, contrast)``: coarse grid over ``centre ± search_s``, then a fine one around the best
+    (contrast 0 when the coarse grid's least cost is at its edge: the shift lies beyond the search)."""
     coarse = centre + np.arange(-search_s, search_s + 1e-12, COARSE_STEP_S)
     values = np.array([cost(s) for s in coarse])
-    best = coarse[int(np.argmin(values))]
+    k = int(np.argmin(values))
+    best = coarse[k]
     fine = best + np.arange(-2 * COARSE_STEP_S, 2 * COARSE_STEP_S + 1e-12, FINE_STEP_S)
     fine_values = np.array([cost(s) for s in fine])
     shift = _parabola_minimum(fine, fine_values)
     low = min(float(fine_values.min()), float(values.min()))
+    if k in (0, len(coarse) - 1):  # the least cost at the search's edge: the shift lies beyond it, not found
+        return shift, cost(shift), 0.0
     return shift, cost(shift), (float(np.median(values)) - low) / max(low, 1e-300)
 
 
@@ -227,6 +231,7 @@ def estimate_gyro_timing(pairs: list[RotationPairs], imu, imu_index, offsets, fp
     count = len(pairs)
     if not count == len(imu_index) == len(offsets):
         raise ValueError(f"estimate_gyro_timing: {count} cameras' pairs, {len(imu_index)} IMU indices, {len(offsets)} offsets")
+    found = np.array([len(p) for p in pairs])
     pairs = [_subsample(p, MAX_PAIRS) for p in pairs]
     recordings = [imu] * count if isinstance(imu, ImuRecording) else list(imu)
     if len(recordings) != count:
@@ -272,7 +277,7 @@ def estimate_gyro_timing(pairs: list[RotationPairs], imu, imu_index, offsets, fp
             log(f"gyro timing: camera(s) {np.flatnonzero(mine & ~determined).tolist()} turned too little to time their "
                 f"gyro; given the others' median shift {1e3 * median:.2f} ms")
         shifts[mine & ~determined] = median
-    return GyroTiming(shifts, readout, np.array([len(p) for p in pairs]), determined, bool(estimate_readout))
+    return GyroTiming(shifts, readout, found, determined, bool(estimate_readout))
 
 
 def turning_windows(imu: ImuRecording, sensor: int, span: int, fps: float, count: int, length: int) -> np.ndarray:

@@ -199,6 +199,9 @@ class RunConfig:
                "must be 0 when frontend.rolling_shutter_readout corrects the frames by the gyros (the measurements are "
                "a global shutter's then)", s.rolling_shutter_readout)
         _check(f.gyro_timing in ("clock", "frames"), "frontend.gyro_timing", "must be 'clock' or 'frames'", f.gyro_timing)
+        _check(f.gyro_timing == "clock" or f.rolling_shutter_readout > 0, "frontend.gyro_timing",
+               "'frames' needs a rolling_shutter_readout to correct (and to start the readout's search from)",
+               f.gyro_timing)
         _check(not f.estimate_readout or (f.gyro_timing == "frames" and f.rolling_shutter_readout > 0),
                "frontend.estimate_readout", "needs gyro_timing = 'frames' and a rolling_shutter_readout to start from",
                f.estimate_readout)

@@ -580,16 +580,20 @@ def _user_terms(ctx: RunContext) -> list:
 GYRO_TIME_OFFSET_SIGMA_S = 0.001
 
 
-def gyro_time_offsets(ctx: RunContext) -> np.ndarray | None:
-    """``(C,)`` s: each camera's exposure after the capture trial's frame times as its gyro timed it (the frontend's
-    ``gyro_timing`` shifts, relative to their mean: the IMU clock's offset is common, a common offset is a shift of
-    the whole motion), or None when the frontend did not time the gyros from the frames."""
+def gyro_time_offsets(ctx: RunContext) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(offsets (C,) s, measured (C,) bool)``: each camera's exposure after the capture trial's frame times as its
+    gyro timed it (the frontend's ``gyro_timing`` shifts, relative to the mean of those it determined: the IMU
+    clock's offset is common, a common offset is a shift of the whole motion; a camera whose gyro it could not time
+    is not measured, offset 0), or None when the frontend did not time the gyros from the frames."""
     path = ctx.path("frontend", "capture", "registration.json")
     timing = read_json(path).get("gyro_timing") if path.is_file() else None
     if timing is None:
         return None
     shifts = np.asarray(timing["time_shift_ms"], np.float64) / 1e3
-    return shifts - shifts.mean()
+    measured = np.asarray(timing.get("determined", [True] * len(shifts)), bool)
+    if not measured.any():
+        return None
+    return np.where(measured, shifts - shifts[measured].mean(), 0.0), measured
 
 
 def solve_problem(ctx: RunContext):
@@ -603,10 +607,12 @@ def solve_problem(ctx: RunContext):
     corr = CorrespondenceStore.open(ctx.path("solve", "correspondences"))
     skeleton, rig = load_model(ctx.out)
     effects = camera_effects(s)
-    measured = gyro_time_offsets(ctx) if s.estimate_time_offsets else None
-    if measured is not None:
-        effects = dataclasses.replace(effects, time_offsets_measured=tuple(measured),
-                                      time_offset_sigma_seconds=GYRO_TIME_OFFSET_SIGMA_S)
+    gyro = gyro_time_offsets(ctx) if s.estimate_time_offsets else None
+    if gyro is not None:  # the prior is the gyro's where it measured, the default elsewhere
+        offsets, measured = gyro
+        sigma = np.where(measured, GYRO_TIME_OFFSET_SIGMA_S, effects.time_offset_sigma_seconds)
+        effects = dataclasses.replace(effects, time_offsets_measured=tuple(offsets.tolist()),
+                                      time_offset_sigma_seconds=tuple(sigma.tolist()))
     problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None,
                             extra_terms=_user_terms(ctx), trial_folder=ctx.capture.path / "trials" / "capture",
                             effects=effects)
@@ -635,12 +641,15 @@ def _stage_solve(ctx: RunContext) -> dict:
             skip = len(reports)
             ctx.log(f"solve: resuming after window {skip} of {len(window_starts(corr.num_frames, min(s.window, corr.num_frames), s.overlap))}")
 
-    if not statics and problem.effects.time_offsets_measured is not None:  # start where the gyros put them
+    first_statics = {}  # where a solve of the whole sequence starts its static variables
+    if problem.effects.time_offsets_measured is not None:  # the time offsets where the gyros put them
         from ..residuals.rolling_shutter import TIME_OFFSET
 
-        statics = {TIME_OFFSET: np.asarray(problem.effects.time_offsets_measured)[:, None] * corr.fps}
-        ctx.log(f"solve: time offsets start from the gyros' (prior σ {1e3 * GYRO_TIME_OFFSET_SIGMA_S:g} ms): "
-                f"{np.round(np.asarray(problem.effects.time_offsets_measured) * 1e3, 2).tolist()} ms")
+        first_statics = {TIME_OFFSET: np.asarray(problem.effects.time_offsets_measured)[:, None] * corr.fps}
+        if not statics:
+            ctx.log(f"solve: time offsets start from the gyros' (prior σ {1e3 * GYRO_TIME_OFFSET_SIGMA_S:g} ms where "
+                    f"timed): {np.round(np.asarray(problem.effects.time_offsets_measured) * 1e3, 2).tolist()} ms")
+    statics = statics or first_statics
 
     def save(index, report, so_far):
         reports.append(dataclasses.asdict(report))
@@ -651,7 +660,8 @@ def _stage_solve(ctx: RunContext) -> dict:
         """The whole sequence: sequential windows (``resume``: where a checkpoint left them), or independent ones
         (tasks on a cluster; they start from ``motion``, so a checkpoint does not apply)."""
         if s.windows == "independent":
-            return solve_windows_independently(problem, motion, options, map=_window_map(ctx.executor))
+            return solve_windows_independently(problem, motion, options, map=_window_map(ctx.executor),
+                                               initial_statics=first_statics)
         return solve(problem, motion, options, progress=True, **resume)
 
     if s.windows == "independent":  # every window from the initial motion (no checkpoint)
@@ -669,7 +679,7 @@ def _stage_solve(ctx: RunContext) -> dict:
         ctx.log(f"solve: refinement moved offsets ≤ {1e3 * refinement.report.offset_change_m:.2f} mm, mounts ≤ "
                 f"{1e3 * refinement.report.mount_translation_change_m:.2f} mm / {refinement.report.mount_rotation_change_deg:.3f}°")
         problem = dataclasses.replace(problem, skeleton=refinement.skeleton, rig=refinement.rig)
-        solution = solve_all(problem, refinement.motion)
+        solution = solve_all(problem, refinement.motion, initial_statics=first_statics)
     for name in ("skeleton.json", "rig.json"):  # a refined model lives in solve/ (a rerun without refinement drops it)
         ctx.path("solve", name).unlink(missing_ok=True)
     if refinements:

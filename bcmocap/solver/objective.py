@@ -80,9 +80,10 @@ class CameraEffects:
             variables with a prior σ ``intrinsics_sigma``: log focal scale, px).
         estimate_time_offsets: solve for each camera's time offset, when its frames are exposed after the
             frames' times (sub-frame starts, audio latencies; a per-camera static variable of the rolling-shutter
-            reprojection, prior σ ``time_offset_sigma_seconds``).
+            reprojection, prior σ ``time_offset_sigma_seconds``: s, one for all cameras or ``(C,)``).
         time_offsets_measured: ``(C,)`` s, the cameras' time offsets as measured (e.g. by their gyros,
-            :mod:`bcmocap.frontend.gyro_timing`): the prior's centre and the solve's start (None: 0).
+            :mod:`bcmocap.frontend.gyro_timing`): the prior's centre (None: 0); ``bcmocap run`` also starts the
+            solve there.
         mount_sigma: ``(m, rad)`` σ of each camera's per-frame offset from its mount
             (:class:`~bcmocap.residuals.mount_compliance.MountCompliance`; (0, 0): rigid mounts); offsets change
             between frames with σ half as large.
@@ -94,7 +95,7 @@ class CameraEffects:
     self_calibration: bool = False
     intrinsics_sigma: tuple[float, float] = (0.01, 5.0)
     estimate_time_offsets: bool = False
-    time_offset_sigma_seconds: float = 0.01
+    time_offset_sigma_seconds: float | tuple[float, ...] = 0.01
     time_offsets_measured: tuple[float, ...] | None = None
     mount_sigma: tuple[float, float] = (0.0, 0.0)
 
@@ -121,8 +122,12 @@ def _camera_terms(c: Correspondences, effects: CameraEffects, loss, mask: np.nda
             if measured is not None and len(measured) != c.num_cameras:
                 raise ValueError(f"CameraEffects.time_offsets_measured: {len(measured)} values for {c.num_cameras} cameras")
             mean = 0.0 if measured is None else np.asarray(measured, np.float64)[:, None] * c.fps
+            sigma = np.asarray(effects.time_offset_sigma_seconds, np.float64)
+            if sigma.ndim and sigma.shape != (c.num_cameras,):
+                raise ValueError(f"CameraEffects.time_offset_sigma_seconds: {sigma.shape[0]} values for {c.num_cameras} cameras")
             terms.append(StaticPrior(share, block=TIME_OFFSET, variable=time_offsets(c.num_cameras),
-                                     sigma=effects.time_offset_sigma_seconds * c.fps, mean=mean, name="time offset prior"))
+                                     sigma=(sigma[:, None] if sigma.ndim else sigma) * c.fps, mean=mean,
+                                     name="time offset prior"))
     elif effects.self_calibration:
         terms = [SelfCalibratingReprojection(data, points=c.points, num_cameras=c.num_cameras, loss=loss, name="reprojection")]
     else:
