@@ -236,6 +236,8 @@ def _register_trials(ctx: RunContext, capture, folder: Path, extra: dict | None 
 
     f = ctx.config.frontend
     reports, todo = {}, []
+    if f.rolling_shutter_readout > 0 and f.gyro_timing == "frames":  # both trials' gyros set each one's timing
+        extra = (extra or {}) | {"gyros_timed_together": {t: gyro_fingerprint(capture, t) for t in ("rom", "capture")}}
     for trial, stride, homographies in (("rom", f.rom_stride, False), ("capture", f.stride, True)):
         done = folder / trial / "registration.json"
         options = TrialOptions(stride=stride, frames=f.frames or None, max_features=f.max_features,
