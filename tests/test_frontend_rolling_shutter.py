@@ -171,3 +171,14 @@ def test_the_frontend_readout_is_a_setting_that_excludes_the_solvers():
         RunConfig().with_overrides({"frontend.rolling_shutter_readout": 0.015, "solver.rolling_shutter_readout": 0.015})
     with pytest.raises(ValueError, match="frontend.rolling_shutter_readout"):
         RunConfig().with_overrides({"frontend.rolling_shutter_readout": -0.01})
+
+
+def test_a_frame_before_the_gyros_first_sample_reads_its_first_readout():
+    """A frame time before the recording is clipped to its first readout; (t0 + half) − half can fall an ulp before
+    t0, which integrate_gyro refused (a realistic capture whose gyro timing moved frames before the IMU's start)."""
+    ramp = np.array([0.5, 1.0, -2.0])
+    imu = _imu(lambda t: ramp * t)
+    late = dataclasses.replace(imu, time=imu.time + 0.010018)  # (0.010018 + 0.0075) − 0.0075 < 0.010018
+    assert (0.010018 + READOUT / 2) - READOUT / 2 < 0.010018
+    unwarp = GyroUnwarp((_lens(),), late, (0,), (12,), FPS, READOUT, time_shifts=(-0.05,))
+    np.testing.assert_allclose(unwarp.angular_velocity(0, 0), ramp * READOUT / 2, atol=1e-6)

@@ -116,9 +116,11 @@ class GyroUnwarp:
         s = self.imu_index[camera]
         # the samples around the readout only (the integration reads the 4 nearest to each instant): the cost of a
         # frame does not grow with the recording's length
-        lo = max(int(np.searchsorted(time, t - half)) - 4, 0)
-        hi = min(int(np.searchsorted(time, t + half)) + 4, len(time))
-        q = integrate_gyro(time[lo:hi], self.imu.gyro[lo:hi, s:s + 1], t - half, t + half)[0]  # (4,) IMU frame
+        # (t ± half within the span: clipped to it, t − half can land an ulp before the first sample)
+        start, stop = max(t - half, float(time[0])), min(t + half, float(time[-1]))
+        lo = max(int(np.searchsorted(time, start)) - 4, 0)
+        hi = min(int(np.searchsorted(time, stop)) + 4, len(time))
+        q = integrate_gyro(time[lo:hi], self.imu.gyro[lo:hi, s:s + 1], start, stop)[0]  # (4,) IMU frame
         camera_from_imu = matrix_from_quat(self.imu.camera_from_imu[s, :4])
         return camera_from_imu @ quat_log(q) / self.readout_s
 
