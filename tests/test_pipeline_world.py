@@ -180,3 +180,15 @@ def test_a_readout_longer_than_two_processed_frames_names_the_setting():
     assert readouts_in_frames(0.015, stores) == pytest.approx([0.3, 0.45])
     with pytest.raises(ValueError, match=r"solver.rolling_shutter_readout = 0.08 s spans 2.4 frame periods of the 30 fps"):
         readouts_in_frames(0.08, stores)
+
+
+def test_a_range_of_motion_trial_with_nothing_registered_is_one_line_not_a_division_by_zero(tmp_path, monkeypatch):
+    """A room whose repeated pattern matched nothing of the reference (the suite's realistic scoop in the repeated
+    room): the world stage names what happened instead of dividing by a zero span."""
+    from bcmocap.pipeline import run
+
+    monkeypatch.setattr(run, "_refine_registered_poses", lambda ctx: None)
+    monkeypatch.setattr(run, "_rom_inputs", lambda ctx: (np.zeros((5, 3, 7)), np.zeros((5, 3), bool), np.ones(5, bool)))
+    ctx = run.RunContext(capture=None, config=RunConfig(), out=tmp_path, log=print)
+    with pytest.raises(ValueError, match=r"registered no camera-frame of the range-of-motion trial \(see .*rom"):
+        run._stage_world(ctx)

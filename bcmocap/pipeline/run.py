@@ -497,12 +497,16 @@ def _stage_world(ctx: RunContext) -> dict:
 
     _refine_registered_poses(ctx)
     poses, registered, rest = _rom_inputs(ctx)
+    if not registered.any():
+        raise ValueError(f"world: the frontend registered no camera-frame of the range-of-motion trial (see "
+                         f"{ctx.path('frontend', 'rom', 'registration.json')}): the scene did not match the reference "
+                         f"model")
     # A provisional scale (a body ~1.7 m across its cameras) only brings the estimator's thresholds, in
     # metres, to the right order; the measurements then fix the scale.
     centres = poses[rest][..., 4:]
     spans = [np.nanmax(np.linalg.norm(c[:, None] - c[None], axis=-1)) for c in centres
              if np.isfinite(c).all(axis=-1).sum() >= 2]
-    if not spans:
+    if not spans or float(np.median(spans)) <= 0:
         raise ValueError("world: no rest frame with two registered cameras in the range-of-motion trial")
     provisional = Similarity(1.7 / float(np.median(spans)), np.eye(3), np.zeros(3))
     est = _estimate_skeleton(ctx, provisional.poses, poses, registered, rest)
