@@ -76,6 +76,20 @@ class RotationPairs:
     def __len__(self) -> int:
         return len(self.frame)
 
+    def take(self, keep: np.ndarray) -> RotationPairs:
+        """The pairs at indices (or a mask) ``keep``."""
+        return RotationPairs(self.frame[keep], self.bearing_a[keep], self.bearing_b[keep], self.row_a[keep],
+                             self.row_b[keep], self.height)
+
+    @staticmethod
+    def joined(parts: list[RotationPairs], height: int) -> RotationPairs:
+        """All of ``parts``' pairs, in order (none for no parts), of an image ``height`` px high."""
+        if not parts:
+            empty = np.zeros((0, 3))
+            return RotationPairs(np.zeros(0, np.int64), empty, empty, np.zeros(0), np.zeros(0), height)
+        return RotationPairs(*(np.concatenate([getattr(p, name) for p in parts])
+                               for name in ("frame", "bearing_a", "bearing_b", "row_a", "row_b")), height)
+
 
 def rotation_pairs(frames, lens, *, max_corners: int = 150, quality: float = 0.01, min_distance: int = 12,
                    max_error_px: float = 0.5) -> RotationPairs:
@@ -103,8 +117,7 @@ def rotation_pairs(frames, lens, *, max_corners: int = 150, quality: float = 0.0
         previous = (index, image)
     height = int(lens.height)
     if not chunks:
-        empty = np.zeros((0, 3))
-        return RotationPairs(np.zeros(0, np.int64), empty, empty, np.zeros(0), np.zeros(0), height)
+        return RotationPairs.joined([], height)
     frame = np.concatenate([c[0] for c in chunks]).astype(np.int64)
     a = np.concatenate([c[1] for c in chunks]).astype(np.float64)
     b = np.concatenate([c[2] for c in chunks]).astype(np.float64)
@@ -178,9 +191,7 @@ def _subsample(pairs: RotationPairs, count: int) -> RotationPairs:
     """At most ``count`` of the pairs, evenly spaced in their order (all when there are fewer)."""
     if len(pairs) <= count:
         return pairs
-    keep = np.linspace(0, len(pairs) - 1, count).round().astype(np.int64)
-    return RotationPairs(pairs.frame[keep], pairs.bearing_a[keep], pairs.bearing_b[keep], pairs.row_a[keep],
-                         pairs.row_b[keep], pairs.height)
+    return pairs.take(np.linspace(0, len(pairs) - 1, count).round().astype(np.int64))
 
 
 def _parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
@@ -299,10 +310,10 @@ def turning_windows(imu: ImuRecording, sensor: int, span: int, fps: float, count
     return np.sort(np.asarray(chosen, np.int64))
 
 
-def trial_pairs(capture, trial: str, offsets, span: int | None = None, *, windows: int = 8, window_frames: int = 20):
+def trial_pairs(capture, trial: str, offsets, span: int, *, windows: int = 8, window_frames: int = 20):
     """The trial's gyro recording, each camera's sensor in it, and each camera's :func:`rotation_pairs` from
     ``windows`` stretches of ``window_frames`` consecutive frames of its first ``span`` frames from its first clap
-    (None: the shortest video's) where its gyro turns fastest (:func:`turning_windows`).
+    (:func:`~.command.trial_frames`) where its gyro turns fastest (:func:`turning_windows`).
 
     Raises:
         ValueError: naming the file when the trial has no gyro recording or a camera none.
@@ -314,23 +325,19 @@ def trial_pairs(capture, trial: str, offsets, span: int | None = None, *, window
     imu = read_imu(path)
     index = imu_indices(capture, path, imu)
     offsets = np.asarray(offsets, np.int64).ravel()
-    if span is None:
-        span = min(capture.video_info(trial, c).num_frames - int(s) for c, s in zip(capture.camera_names, offsets))
     pairs = []
     for c, camera in enumerate(capture.cameras):
         starts = turning_windows(imu, index[c], span, float(capture.fps), windows, window_frames)
         found = [rotation_pairs(capture.frames(trial, c, start=int(offsets[c] + a), stop=int(offsets[c] + a + window_frames),
                                                gray=True), camera.intrinsics) for a in starts]
-        pairs.append(RotationPairs(np.concatenate([p.frame for p in found]), np.concatenate([p.bearing_a for p in found]),
-                                   np.concatenate([p.bearing_b for p in found]), np.concatenate([p.row_a for p in found]),
-                                   np.concatenate([p.row_b for p in found]), int(camera.intrinsics.height)))
+        pairs.append(RotationPairs.joined(found, int(camera.intrinsics.height)))
     return imu, index, pairs
 
 
-def timing_of_trials(capture, offsets: dict, readout_s: float, *, spans: dict | None = None,
+def timing_of_trials(capture, offsets: dict, readout_s: float, *, spans: dict,
                      estimate_readout: bool = True, log: Callable[[str], None] | None = None) -> dict[str, GyroTiming]:
     """:func:`estimate_gyro_timing` of a capture's trials together (``offsets``: trial → each camera's video frame of
-    its first clap; ``spans``: trial → frames used from there, default the shortest video's): each camera's shift per
+    its first clap; ``spans``: trial → frames used from there, :func:`~.command.trial_frames`): each camera's shift per
     trial (each trial is its own gyro recording), one readout for all (the same cameras), pairs from
     :func:`trial_pairs`. Trial → its :class:`GyroTiming`.
 
@@ -338,10 +345,9 @@ def timing_of_trials(capture, offsets: dict, readout_s: float, *, spans: dict | 
         ValueError: naming the file when a trial has no gyro recording or a camera none; a trial where no camera
             turned enough.
     """
-    spans = spans or {}
     recordings, indices, pairs, zero, groups = [], [], [], [], []
     for trial, trial_offsets in offsets.items():
-        imu, index, found = trial_pairs(capture, trial, trial_offsets, spans.get(trial))
+        imu, index, found = trial_pairs(capture, trial, trial_offsets, spans[trial])
         recordings += [imu] * len(found)
         indices += list(index)
         pairs += found
