@@ -300,10 +300,17 @@ def test_rooms_are_deterministic_per_seed_and_round_trip():
         assert again.to_json() == scene.to_json() and again.has_finishes == (style != "textured")
     textured, sparse, repeated = (make_room(style, PATH, seed=4) for style in ("textured", "sparse", "repeated"))
     assert len(sparse.boxes) + len(sparse.pillars) < len(textured.boxes) + len(textured.pillars)
-    assert sparse.finish_kinds[3] == BLANK and np.all(sparse.finish_gains[:6] < 0.5)  # x+: the wall ahead
+    assert sparse.finish_kinds[3] == BLANK and np.all(sparse.finish_gains[1:6] < 0.5)  # x+: the wall ahead
+    assert sparse.finish_gains[0] > 0.5 and sparse.texture == textured.texture  # a concrete floor; the fine octaves
     np.testing.assert_array_equal(repeated.boxes, textured.boxes)  # the same clutter, periodic surfaces
     # Floor and ceiling tiles, bricks ahead (x+), windows behind (x-); the side walls and the clutter as usual.
     assert set(np.flatnonzero(repeated.finish_kinds == TILED)) == {0, 1, 2, 3} and repeated.tiles[3, 2] == 0.5
+    assert repeated.tiles[0, 4] == 8 and np.all(repeated.tiles[1:4, 4] == 1)  # floor tiles of 8 faces
+    # A scene file written before tiles had faces reads with one face per material.
+    old = dict(repeated.to_dict(), tiles=np.asarray(repeated.tiles)[:, :4].tolist())
+    np.testing.assert_array_equal(TexturedScene.from_dict(old).tiles[:, 4], 1.0)
+    with pytest.raises(ValueError, match="whole number of faces"):
+        dataclasses.replace(repeated, tiles=np.column_stack([repeated.tiles[:, :4], np.full(repeated.num_materials, 0.5)]))
     assert np.all(repeated.finish_kinds[4:] == NOISE)
     with pytest.raises(ValueError, match="given together"):
         dataclasses.replace(textured, finish_kinds=np.zeros(textured.num_materials, int))
@@ -313,29 +320,41 @@ def test_rooms_are_deterministic_per_seed_and_round_trip():
         make_room("cave", PATH)
 
 
-def test_repeated_room_is_exactly_periodic():
+def test_repeated_room_repeats_its_tiles():
     scene = make_room("repeated", PATH, seed=2)
     tiled = np.flatnonzero(scene.finish_kinds == TILED)
     assert {0, 1} <= set(tiled.tolist()) and len(tiled) == 4  # floor, ceiling and two walls
+    assert len({tuple(scene.tiles[m, :2]) for m in tiled}) == 4  # four sizes: no lattice shared by two surfaces
     rng = np.random.default_rng(0)
-    u = rng.integers(-4096, 4096, 400) / 256.0  # exact in float32, as are u + width and v + height
-    v = rng.integers(0, 1024, 400) / 256.0
+    u = rng.uniform(-16, 16, 400)
+    v = rng.uniform(0, 4, 400)
     texture = jax.jit(finished_texture, static_argnums=4)  # one compilation rather than op by op
     for m in tiled:
-        width, height, shift, _ = scene.tiles[m]
+        width, height, shift, _, faces = scene.tiles[m]
 
-        def grey(du, dv, m=m):
+        def grey(du, dv, m=m, u=u, v=v):
             return np.asarray(texture(u + du, v + dv, m, np.full(u.shape, 0.003), scene.texture, TILED,
                                       scene.finish_gains[m], tuple(scene.tiles[m])))
 
         base = grey(0.0, 0.0)
-        np.testing.assert_array_equal(grey(width, 0.0), base)  # bit for bit: feature matching sees aliases
-        np.testing.assert_array_equal(grey(-3 * width, (2.0 if shift else 1.0) * height), base)
-        assert np.abs(grey(0.5 * width, 0.0) - base).mean() > 0.03  # not constant: half a tile over differs
-        assert base.std() > 0.05
-        edge = np.asarray(texture(np.zeros(3), np.array([0.3, 0.4, 0.45]) * height, m, np.full(3, 1e-3),
+        assert base.std() > 0.05 and np.abs(grey(0.5 * width, 0.0) - base).mean() > 0.03
+        edge = np.asarray(texture(np.full(3, 0.3 * width), np.array([0.0, height, 2 * height]), m, np.full(3, 1e-3),
                                   scene.texture, TILED, 1.0, tuple(scene.tiles[m])))
         np.testing.assert_allclose(edge, 0.2, atol=1e-6)  # on a joint: the joints' grey
+        if faces == 1:  # every tile alike: a tile over is the same grey (to float32's rounding of u + width)
+            np.testing.assert_allclose(grey(width, 0.0), base, atol=2e-3)
+            np.testing.assert_allclose(grey(-3 * width, (2.0 if shift else 1.0) * height), base, atol=2e-3)
+            continue
+        # Tiles of a few faces: the same point of 60 x 40 tiles shows exactly `faces` patterns, each many times.
+        inside = np.stack(np.meshgrid(np.linspace(0.1, 0.9, 5) * width, np.linspace(0.1, 0.9, 5) * height), -1)
+        corners = np.stack(np.meshgrid(np.arange(60) * width, np.arange(40) * height), -1).reshape(-1, 1, 2)
+        points = (corners + inside.reshape(1, -1, 2)).reshape(-1, 2)
+        patterns = np.asarray(texture(points[:, 0], points[:, 1], m, np.full(len(points), 0.003), scene.texture,
+                                      TILED, scene.finish_gains[m], tuple(scene.tiles[m]))).reshape(len(corners), -1)
+        same = np.abs(patterns[:, None] - patterns[None]).max(-1) < 2e-3  # alike to float32's rounding of u
+        groups = {int(np.argmax(row)) for row in same}  # each tile's first alike tile names its face
+        counts = same[sorted(groups)].sum(1)
+        assert len(groups) == faces and counts.min() > 0.5 * len(corners) / faces
 
 
 def test_sparse_room_has_a_blank_wall():

@@ -138,7 +138,9 @@ def prepare_reference(capture, ref_dir, log=print):
                                 camera=capture.reference_camera, workdir=ref_dir / "work")
         save_reference(model, ref_dir)
     log(f"reference: {model.num_registered}/{len(model.image_names)} photos registered, "
-        f"{model.num_points3D} points, mean reprojection error {model.mean_reprojection_error_px:.3f} px")
+        f"{model.num_points3D} points, mean reprojection error {model.mean_reprojection_error_px:.3f} px; "
+        f"{len(model.pair_inliers)} photo pairs used; rotation check: {model.rotation_check} "
+        f"({model.inconsistent_pairs} pairs inconsistent in rotation)")
     return model
 
 

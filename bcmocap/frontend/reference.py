@@ -15,6 +15,10 @@ test, fundamental-matrix RANSAC, then pycolmap's incremental mapper.
    its mean reprojection error is poor (``attempts``, ``good_error_px``); the best model is kept. Steps 2–3
    are deterministic (FLANN's trees from :data:`FLANN_SEED`; OpenCV's RANSAC seeds itself), so they run once.
 
+6. with the photos' camera known, the model is checked against one built from only the pairs whose relative
+   rotations agree with one set of absolute rotations (:mod:`~bcmocap.frontend.pair_rotations`: pairs verified
+   on a repeated pattern's aliases make a model metres wrong); if the two disagree, the second is kept.
+
 The result, :class:`ReferenceModel`, holds the largest ``pycolmap.Reconstruction`` and reports how many
 photos were registered and the mean reprojection error.
 """
@@ -35,7 +39,8 @@ from ..io.colmap import to_pycolmap
 from ..native_crashes import load_pycolmap
 from .threads import default_threads
 
-__all__ = ["DescriptorIndex", "ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "verify_matches"]
+__all__ = ["DescriptorIndex", "ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "models_agree",
+           "verify_matches"]
 
 
 def extract_sift(image: np.ndarray, *, max_features: int = 8000) -> tuple[np.ndarray, np.ndarray]:
@@ -192,6 +197,11 @@ class ReferenceModel:
         pair_inliers: ``{(name_a, name_b): number of F-RANSAC inliers}`` of the pairs written.
         seconds: wall time per stage (``features``, ``matching``, ``mapping``).
         mapping_attempts: how many times the mapper ran (see ``attempts`` of :func:`build_reference`).
+        inconsistent_pairs: verified pairs whose rotations disagreed with the others'
+            (``consistent_rotations`` of :func:`build_reference`).
+        rotation_check: "agreed" (the model from every verified pair was checked against the one from the
+            rotation-consistent pairs, or every pair was consistent), "replaced" (it disagreed, and the model is
+            the one from the consistent pairs) or "not checked" (no camera, no consistent pairs, or turned off).
     """
 
     reconstruction: object
@@ -203,6 +213,8 @@ class ReferenceModel:
     pair_inliers: dict
     seconds: dict
     mapping_attempts: int = 1
+    inconsistent_pairs: int = 0
+    rotation_check: str = "not checked"
 
     @property
     def num_registered(self) -> int:
@@ -265,7 +277,8 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
                     camera: CameraModel | object | None = None, workdir: str | os.PathLike | None = None,
                     max_features: int = 8000, ratio: float = 0.8, threshold_px: float = 1.5,
                     min_inliers: int = 15, refine_intrinsics: bool = True, random_seed: int = 0,
-                    attempts: int = 3, good_error_px: float = 0.5) -> ReferenceModel:
+                    attempts: int = 3, good_error_px: float = 0.5, consistent_rotations: bool = True,
+                    rotation_tolerance_deg: float = 1.5, centre_tolerance: float = 0.05) -> ReferenceModel:
     """Build the reference model of a set of photos (the module docstring lists the steps).
 
     Args:
@@ -283,6 +296,13 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
             off). pycolmap's verification and mapping are repeated with seeds ``random_seed + k`` until a model
             registers every photo with mean reprojection error <= ``good_error_px``, at most ``attempts``
             times; the model with most photos, then least error, is kept.
+        consistent_rotations: with a ``camera``, check the model against a second one built from only the
+            verified pairs whose relative rotations agree with one set of absolute rotations within
+            ``rotation_tolerance_deg`` (:mod:`~bcmocap.frontend.pair_rotations`): pairs verified on the aliases
+            of a repeated pattern lead the mapper to a model metres wrong with a small reprojection error. When
+            the two models place their common photos differently (RMS of the camera centres, after a similarity,
+            over ``centre_tolerance`` of their spread) or share fewer than three, the second replaces the first;
+            when they agree the first, with more photos, is kept.
 
     Raises:
         ValueError: if the folder or a photo is missing or unreadable, or nothing could be reconstructed.
@@ -317,11 +337,46 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
     verified = _match_pairs(names, features, ratio=ratio, threshold_px=threshold_px, min_inliers=min_inliers)
     seconds["matching"] = time.perf_counter() - clock
     seconds["mapping"] = 0.0
+    mapping = dict(image_dir=image_dir, names=names, camera=camera, features=features, threshold_px=threshold_px,
+                   refine_intrinsics=refine_intrinsics, random_seed=random_seed, attempts=attempts,
+                   good_error_px=good_error_px, seconds=seconds)
+    best = _map(work, verified, **mapping)
+    check, inconsistent = "not checked", 0
+    if camera is not None and consistent_rotations and best is not None:
+        clock = time.perf_counter()
+        kept = _rotation_consistent(names, features, verified, camera, threshold_px, rotation_tolerance_deg)
+        seconds["rotations"] = time.perf_counter() - clock
+        inconsistent = len(verified) - len(kept)
+        check = "agreed" if not inconsistent else "not checked"
+        if inconsistent and kept:
+            consistent = _map(work / "consistent", {p: m for p, m in verified.items() if p in kept}, **mapping)
+            if consistent is not None:
+                if models_agree(_camera_centres(consistent[1]), _camera_centres(best[1]), centre_tolerance):
+                    check = "agreed"
+                else:
+                    check, best = "replaced", consistent
+    if best is None:
+        raise ValueError(f"{image_dir}: pycolmap could not reconstruct the photos "
+                         f"({len(verified)} of {len(names) * (len(names) - 1) // 2} pairs verified)")
+    _, rec, used, db_path, tries = best
+    registered = tuple(sorted(rec.image(i).name for i in rec.reg_image_ids()))
+    return ReferenceModel(rec, names, registered, float(rec.compute_mean_reprojection_error()), int(rec.num_points3D()),
+                          db_path, {k: len(v) for k, v in used.items()}, seconds, tries, inconsistent, check)
+
+
+def _map(work: Path, verified: dict, *, image_dir, names, camera, features, threshold_px, refine_intrinsics,
+         random_seed, attempts, good_error_px, seconds) -> tuple | None:
+    """pycolmap's verification and incremental mapping of ``verified`` in ``work``, repeated with new seeds while
+    the model leaves photos out or its error is poor: ``(score, reconstruction, verified, database, attempts)`` of
+    the best model, or None when the mapper built nothing."""
+    pycolmap = load_pycolmap()
+
     best = None
     for attempt in range(attempts):
         seed = random_seed + attempt
         clock = time.perf_counter()
         db_name = "database.db" if attempt == 0 else f"database_attempt{attempt}.db"
+        work.mkdir(parents=True, exist_ok=True)
         db_path = _write_database(work / db_name, image_dir, names, camera, features, verified)
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = seed
@@ -344,16 +399,53 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
         rec = max(models.values(), key=lambda r: r.num_reg_images())
         score = (rec.num_reg_images(), -float(rec.compute_mean_reprojection_error()))
         if best is None or score > best[0]:
-            best = (score, rec, verified, db_path)
+            best = (score, rec, verified, db_path, attempt + 1)
         if score[0] == len(names) and -score[1] <= good_error_px:
             break
-    if best is None:
-        raise ValueError(f"{image_dir}: pycolmap could not reconstruct the photos "
-                         f"({len(verified)} of {len(names) * (len(names) - 1) // 2} pairs verified)")
-    _, rec, verified, db_path = best
-    registered = tuple(sorted(rec.image(i).name for i in rec.reg_image_ids()))
-    return ReferenceModel(rec, names, registered, float(rec.compute_mean_reprojection_error()), int(rec.num_points3D()),
-                          db_path, {k: len(v) for k, v in verified.items()}, seconds, attempt + 1)
+    return best
+
+
+def _camera_centres(reconstruction) -> dict:
+    """``{photo name: (3,) camera centre}`` of a reconstruction's registered photos."""
+    return {reconstruction.image(i).name: np.asarray(reconstruction.image(i).projection_center(), np.float64)
+            for i in reconstruction.reg_image_ids()}
+
+
+def models_agree(centres: dict, other: dict, tolerance: float) -> bool:
+    """Whether two models place their common photos alike: at least three in common, and their camera centres
+    (``{name: (3,)}``, each model's own frame and scale) within ``tolerance`` × their spread (RMS distance from
+    their mean in ``other``) of each other after the best similarity (Umeyama's)."""
+    common = sorted(set(centres) & set(other))
+    if len(common) < 3:
+        return False
+    a = np.array([centres[n] for n in common], np.float64)
+    b = np.array([other[n] for n in common], np.float64)
+    a, b = a - a.mean(0), b - b.mean(0)
+    spread = float(np.sqrt((b**2).sum(1).mean()))
+    u, sv, vt = np.linalg.svd(b.T @ a)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ d @ vt
+    scale = float(np.trace(np.diag(sv) @ d) / max(float((a**2).sum()), 1e-300))
+    rms = float(np.sqrt(((b - scale * a @ rotation.T) ** 2).sum(1).mean()))
+    return rms <= tolerance * spread
+
+
+def _rotation_consistent(names, features, verified: dict, camera, threshold_px: float, tolerance_deg: float) -> set:
+    """The verified pairs that :func:`~.pair_rotations.rotation_consistent_pairs` keeps (keypoints turned into
+    rays by ``camera``; the RANSAC threshold is ``threshold_px`` at the image centre)."""
+    from ..io.colmap import from_pycolmap
+    from .pair_rotations import pair_rotations, rotation_consistent_pairs
+
+    if not isinstance(camera, CameraModel):
+        camera = from_pycolmap(camera)
+    centre = np.array([[0.5 * (camera.width - 1), 0.5 * (camera.height - 1)]])
+    ray0, ray1 = np.asarray(camera.unproject(np.concatenate([centre, centre + [[1.0, 0.0]]])), np.float64)
+    radians_per_px = float(np.arccos(np.clip(ray0 @ ray1, -1.0, 1.0)))
+    bearings = {name: np.asarray(camera.unproject(np.asarray(features[name][0][:, :2], np.float64)), np.float64)
+                for name in names}
+    rotations = pair_rotations(verified, bearings, threshold_rad=threshold_px * radians_per_px)
+    return rotation_consistent_pairs(names, rotations, {pair: len(m) for pair, m in verified.items()},
+                                     tolerance_deg=tolerance_deg)
 
 
 def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
@@ -368,7 +460,8 @@ def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
               "mean_reprojection_error_px": model.mean_reprojection_error_px, "num_points3D": model.num_points3D,
               "database": os.path.relpath(model.database_path, folder),
               "pair_inliers": [[a, b, n] for (a, b), n in model.pair_inliers.items()],
-              "seconds": model.seconds, "mapping_attempts": model.mapping_attempts}
+              "seconds": model.seconds, "mapping_attempts": model.mapping_attempts,
+              "inconsistent_pairs": model.inconsistent_pairs, "rotation_check": model.rotation_check}
     from ..atomic import atomic_path
 
     path = folder / "reference.json"
@@ -403,4 +496,5 @@ def load_reference(folder: str | os.PathLike) -> ReferenceModel:
     return ReferenceModel(rec, tuple(report["image_names"]), tuple(report["registered"]),
                           float(report["mean_reprojection_error_px"]), int(report["num_points3D"]), database,
                           {(a, b): n for a, b, n in report["pair_inliers"]}, dict(report["seconds"]),
-                          int(report["mapping_attempts"]))
+                          int(report["mapping_attempts"]), int(report.get("inconsistent_pairs", 0)),
+                          str(report.get("rotation_check", "not checked")))

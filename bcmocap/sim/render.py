@@ -211,8 +211,8 @@ class _Shader(eqx.Module):
 
     Attributes:
         scene: the scene's float32 arrays (:func:`_scene_arrays`: room bounds and boxes in m, pillars
-            ``(x, y, radius)`` in m, material colours RGB in [0, 1]; with finishes ``finishes`` ``(M, 6)``: kind,
-            gain, tile width, height, row shift, joint, :func:`~bcmocap.sim.scene.finished_texture`).
+            ``(x, y, radius)`` in m, material colours RGB in [0, 1]; with finishes ``finishes`` ``(M, 7)``: kind,
+            gain, tile width, height, row shift, joint, faces: :func:`~bcmocap.sim.scene.finished_texture`).
         light: ``(3,)`` float32 unit direction towards the light (world frame).
         one: a runtime int32 1 (see :func:`_materialize`).
         texture: static: the procedural texture; ambient: static: the ambient share of the light, in [0, 1].
@@ -507,7 +507,7 @@ def _shade_terms(shader: _Shader, d, o, pixel_angle, body: _Body, box_active=Non
     u = jnp.where(kind == 0, p[1], jnp.where(is_pillar, jnp.arctan2(p[1] - cy, p[0] - cx) * radius, p[0]))
     v = jnp.where(kind == 2, p[1], p[2])
     footprint = t * pixel_angle / jnp.sqrt(jnp.maximum(cos_view, 0.05))
-    if "finishes" in scene:  # (M, 6): kind, gain, tile width, height, row shift, joint
+    if "finishes" in scene:  # (M, 7): kind, gain, tile width, height, row shift, joint, faces
         finish = _select(material, scene["finishes"])
         grey = finished_texture(u, v, material, footprint, texture, finish[0], finish[1], tuple(finish[2:]))
     else:

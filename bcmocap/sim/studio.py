@@ -172,7 +172,7 @@ class StudioSettings:
             .yml calibration is exact).
         room: where the capture takes place (:func:`~bcmocap.sim.scene.make_room`): "textured" (rich
             non-repeating texture everywhere), "sparse" (weak texture, a blank wall, less clutter), "repeated"
-            (exactly periodic tiles, bricks and windows on the floor, ceiling and two walls) or "passerby" (the
+            (tiles of 8 faces on the floor; identical ceiling panels, bricks and windows) or "passerby" (the
             textured room, and a second person pacing across it ahead of the subject, in every camera's frames
             but not in the reference photos: :mod:`bcmocap.sim.passerby`, ``ground_truth/passerby/<trial>.npz``).
         reference_photos: number of reference photos; reference_width, reference_height their size (px);

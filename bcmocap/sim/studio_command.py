@@ -73,7 +73,7 @@ def _add_capture_arguments(cmd: argparse.ArgumentParser) -> None:
                      help="lens model rendered: the paper's FOV model or its cv2.fisheye fit (default fov)")
     cmd.add_argument("--room", default="textured", choices=list(ROOMS),
                      help="textured (default: rich, non-repeating texture everywhere); sparse (weak texture, a blank "
-                          "wall, less clutter); repeated (exactly periodic floor tiles, ceiling panels, bricks and "
+                          "wall, less clutter); repeated (floor tiles of 8 faces; identical ceiling panels, bricks and "
                           "windows); passerby (the textured room and a second person walking across it in the "
                           "videos, not in the reference photos; truth in ground_truth/passerby/)")
     cmd.add_argument("--reference-photos", type=int, default=24, help="number of reference photos (default 24)")
