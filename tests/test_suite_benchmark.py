@@ -43,3 +43,19 @@ def test_time_offsets_are_compared_in_video_frames_relative_to_their_mean(tmp_pa
     found = suite.time_offset_errors(run, clocks)
     assert found["solver"]["max_frames"] == pytest.approx(0.0, abs=1e-12)
     assert found["gyro"]["max_frames"] == pytest.approx(0.6 * 60 / 1e3 * 2 / 3) and found["gyro"]["readout_ms"] == 13.0
+
+
+def test_lens_error_separates_what_a_turn_of_the_camera_undoes():
+    from bcmocap.cameras import FOVCamera
+
+    truth = FOVCamera(width=640, height=360, focal=[250.0, 250.0], principal_point=[319.5, 179.5], omega=0.9)
+    same = suite._lens_error(truth, truth)
+    assert same["covered_max_px"] < 1e-9 and same["covered_max_after_rotation_px"] < 1e-9
+    shifted = suite._lens_error(FOVCamera(width=640, height=360, focal=[250.0, 250.0],
+                                          principal_point=[319.5, 180.0], omega=0.9), truth)
+    assert shifted["covered_max_px"] == pytest.approx(0.5, abs=1e-6)  # half a pixel everywhere
+    assert shifted["covered_rms_after_rotation_px"] < 0.25 * shifted["covered_rms_px"]  # mostly a turn
+    assert 0.05 < shifted["rotation_deg"] < 0.2
+    longer = suite._lens_error(FOVCamera(width=640, height=360, focal=[251.0, 251.0],
+                                         principal_point=[319.5, 179.5], omega=0.9), truth)
+    assert longer["covered_max_after_rotation_px"] > 0.99 * longer["covered_max_px"]  # a focal error is not a turn
