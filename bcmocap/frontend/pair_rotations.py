@@ -21,17 +21,14 @@ import itertools
 
 import numpy as np
 
+from ..geometry import rotation_from_covariance
+
 __all__ = ["pair_rotations", "rotation_consistent_pairs"]
 
 
 def _angle_deg(rotation: np.ndarray) -> float:
     """Angle (degrees) of a 3×3 rotation matrix."""
     return float(np.degrees(np.arccos(np.clip(0.5 * (np.trace(rotation) - 1.0), -1.0, 1.0))))
-
-
-def _nearest_rotation(matrix: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(matrix)
-    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
 
 
 def pair_rotations(verified: dict, bearings: dict, *, threshold_rad: float) -> dict:
@@ -108,6 +105,6 @@ def _grow(names, neighbours: dict, absolute: dict, tolerance_deg: float) -> dict
                 continue
             agreeing = max(([q for q in votes if _angle_deg(q @ p.T) <= tolerance_deg] for p in votes), key=len)
             if len(agreeing) >= 2:
-                absolute[name] = _nearest_rotation(sum(agreeing))
+                absolute[name] = rotation_from_covariance(sum(agreeing))
                 changed = True
     return absolute

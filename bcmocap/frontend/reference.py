@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cameras import CameraModel
+from ..geometry import similarity
 from ..io.colmap import to_pycolmap
 from ..native_crashes import load_pycolmap
 from .threads import default_threads
@@ -420,13 +421,9 @@ def models_agree(centres: dict, other: dict, tolerance: float) -> bool:
         return False
     a = np.array([centres[n] for n in common], np.float64)
     b = np.array([other[n] for n in common], np.float64)
-    a, b = a - a.mean(0), b - b.mean(0)
-    spread = float(np.sqrt((b**2).sum(1).mean()))
-    u, sv, vt = np.linalg.svd(b.T @ a)
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rotation = u @ d @ vt
-    scale = float(np.trace(np.diag(sv) @ d) / max(float((a**2).sum()), 1e-300))
-    rms = float(np.sqrt(((b - scale * a @ rotation.T) ** 2).sum(1).mean()))
+    scale, rotation, shift = similarity(a, b)
+    spread = float(np.sqrt(((b - b.mean(0)) ** 2).sum(1).mean()))
+    rms = float(np.sqrt(((b - (scale * a @ rotation.T + shift)) ** 2).sum(1).mean()))
     return rms <= tolerance * spread
 
 
