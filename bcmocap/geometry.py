@@ -201,6 +201,26 @@ def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = 
     return r, mu_t - np.einsum("...ij,...j->...i", r, mu_s)
 
 
+def rotation_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(..., 3, 3)`` smallest rotations taking directions ``a`` onto ``b`` (``(..., 3)``, any length; numpy);
+    where they are opposite, a half turn about an axis perpendicular to ``a``."""
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    a = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-300)
+    b = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-300)
+    v = np.cross(a, b)
+    c = np.sum(a * b, axis=-1)
+    k = np.zeros((*v.shape[:-1], 3, 3))
+    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    k = k - np.swapaxes(k, -1, -2)
+    opposite = c < -1 + 1e-9
+    rot = np.eye(3) + k + k @ k / np.where(opposite, 1.0, 1.0 + c)[..., None, None]
+    perp = np.cross(a, np.where(np.abs(a[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]))
+    perp /= np.maximum(np.linalg.norm(perp, axis=-1, keepdims=True), 1e-300)
+    half = 2 * perp[..., :, None] * perp[..., None, :] - np.eye(3)
+    return np.where(opposite[..., None, None], half, rot)
+
+
 def similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Umeyama: ``(s, R, t)`` minimising ``Σ |s R source_i + t − target_i|²`` over points ``(N, 3)`` (numpy),
     e.g. to align a reconstruction to the world by its camera centres (§5.1)."""

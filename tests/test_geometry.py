@@ -299,3 +299,21 @@ def test_invert_pose_undoes_a_pose_from_either_side():
         np.testing.assert_allclose(both[:, 1:4], 0.0, atol=1e-12)
     points = rng.normal(size=(6, 3))
     np.testing.assert_allclose(apply_pose(inverse, apply_pose(pose, points)), points, atol=1e-12)
+
+
+def test_rotation_onto_turns_a_direction_onto_another_by_the_smallest_rotation():
+    from bcmocap.geometry import rotation_onto
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    r = rotation_onto(a, 2.0 * b)  # any length
+    unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)  # noqa: E731
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", r, unit(a)), unit(b), atol=1e-12)
+    np.testing.assert_allclose(r @ np.swapaxes(r, -1, -2), np.broadcast_to(np.eye(3), r.shape), atol=1e-12)
+    # The smallest: its angle is the angle between them, about their cross product.
+    angle = np.arccos(np.clip((np.trace(r, axis1=-2, axis2=-1) - 1) / 2, -1, 1))
+    np.testing.assert_allclose(angle, np.arccos(np.sum(unit(a) * unit(b), -1)), atol=1e-9)
+    np.testing.assert_allclose(rotation_onto(a[0], a[0]), np.eye(3), atol=1e-12)
+    half = rotation_onto(a[0], -a[0])  # opposite: a half turn
+    np.testing.assert_allclose(half @ unit(a[0]), -unit(a[0]), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(half), 1.0)

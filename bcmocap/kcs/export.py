@@ -4,29 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import quat_from_matrix, rotation_from_covariance
+from ..geometry import quat_from_matrix, rotation_from_covariance, rotation_onto
 from ..kinematics.skeleton import JointType, Motion, Skeleton
 from .chain_space import KinematicChainSpace
 
 __all__ = ["motion_from_joints"]
-
-
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``(F, 3, 3)`` smallest rotations taking directions ``a`` to ``b`` (``(F, 3)``, any length)."""
-    a = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-300)
-    b = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-300)
-    v = np.cross(a, b)
-    c = np.sum(a * b, axis=-1)
-    k = np.zeros((*v.shape[:-1], 3, 3))
-    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    k = k - np.swapaxes(k, -1, -2)
-    opposite = c < -1 + 1e-9
-    rot = np.eye(3) + k + k @ k / np.where(opposite, 1.0, 1.0 + c)[..., None, None]
-    # Half turn about any axis perpendicular to a where a and b are opposite.
-    perp = np.cross(a, np.where(np.abs(a[..., :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-    perp /= np.maximum(np.linalg.norm(perp, axis=-1, keepdims=True), 1e-300)
-    half = 2 * perp[..., :, None] * perp[..., None, :] - np.eye(3)
-    return np.where(opposite[..., None, None], half, rot)
 
 
 def motion_from_joints(
@@ -88,7 +70,7 @@ def motion_from_joints(
             world[:, j] = parent_rot
         elif len(kids) == 1:
             c = kids[0]
-            swing = _rotation_between(np.einsum("fij,j->fi", parent_rot, offsets[c]), x[:, c] - x[:, j])
+            swing = rotation_onto(np.einsum("fij,j->fi", parent_rot, offsets[c]), x[:, c] - x[:, j])
             world[:, j] = swing @ parent_rot
         else:
             src = np.stack([offsets[c] for c in kids], axis=-1)  # (3, n)

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import kabsch, matrix_from_quat
+from ..geometry import kabsch, matrix_from_quat, rotation_onto
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.ik import fill_gaps
 from ..kinematics.skeleton import Motion, Skeleton
@@ -81,14 +81,10 @@ def _quaternions(r: np.ndarray) -> np.ndarray:
 
 def _swing(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """``(..., 3, 3)`` smallest rotations turning the directions ``u`` onto ``v`` (``(..., 3)``, any length)."""
-    u = u / np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-12)
-    v = v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
-    k = np.cross(u, v)
-    c = np.sum(u * v, -1)[..., None, None]
-    zero = np.zeros(k.shape[:-1])
-    hat = np.stack([np.stack([zero, -k[..., 2], k[..., 1]], -1), np.stack([k[..., 2], zero, -k[..., 0]], -1),
-                    np.stack([-k[..., 1], k[..., 0], zero], -1)], -2)
-    out = np.eye(3) + hat + hat @ hat / np.maximum(1.0 + c, 1e-9)
+    u = np.asarray(u, np.float64)
+    v = np.asarray(v, np.float64)
+    c = (np.sum(u * v, -1) / np.maximum(np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1), 1e-24))[..., None, None]
+    out = rotation_onto(u, v)
     return np.where(c > -0.999, out, np.eye(3))  # (anti-parallel: leave it to inverse kinematics)
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import matrix_from_quat, quat_from_matrix
+from ..geometry import matrix_from_quat, quat_from_matrix, rotation_onto
 from ..io.run_folder import SIMILARITY, read_json
 from ..kinematics.fk import forward_kinematics
 from ..kinematics.rig import Rig
@@ -137,21 +137,10 @@ def upright_frame(skeleton: Skeleton, rest_motion: Motion, up_from: Sequence[str
     up = (joints[:, skeleton.index(up_to)] - feet).mean(axis=0)
     if not np.linalg.norm(up) > 0:
         raise ValueError("skeleton.up: the head and the feet coincide in the rest pose")
-    rot = _rotation_onto(up / np.linalg.norm(up), np.array([0.0, 0.0, 1.0]))
+    rot = rotation_onto(up / np.linalg.norm(up), np.array([0.0, 0.0, 1.0]))
     root = scale * rot @ joints[:, 0].mean(axis=0)
     floor = scale * rot @ feet.mean(axis=0)
     return Similarity(scale, rot, -np.array([root[0], root[1], floor[2]]))
-
-
-def _rotation_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit vector ``a`` to unit vector ``b``."""
-    v, c = np.cross(a, b), float(a @ b)
-    if c < -1 + 1e-12:
-        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + k + k @ k / (1 + c)
 
 
 def transform_model(skeleton: Skeleton, rig: Rig | None, motion: Motion, sim: Similarity
