@@ -67,7 +67,8 @@ def rotation_consistent_pairs(names, rotations: dict, inliers: dict, *, toleranc
         names: the photos; rotations: :func:`pair_rotations`'s; inliers: ``{(a, b): matches}`` counts, which
             order the seed triplets (strongest first).
         tolerance_deg: how far a loop may be from closing, and a pair from the absolute rotations (degrees).
-        seeds: seed triplets tried (the ``seeds`` whose loops close, of those with the most inliers).
+        seeds: seed triplets tried (the ``seeds`` whose loops close, of those with the most inliers; a seed whose
+            pairs the best set holds already is skipped).
 
     Returns:
         The kept pairs (a subset of ``rotations``' keys); empty when no triplet closes.
@@ -76,13 +77,18 @@ def rotation_consistent_pairs(names, rotations: dict, inliers: dict, *, toleranc
     for (a, b), rotation in rotations.items():
         neighbours[a][b] = rotation  # b_from_a
         neighbours[b][a] = rotation.T
-    triplets = [t for t in itertools.combinations(names, 3)
-                if t[1] in neighbours[t[0]] and t[2] in neighbours[t[0]] and t[2] in neighbours[t[1]]]
+    order = {n: i for i, n in enumerate(names)}
+    triplets = [(a, b, c) for a in names for b in neighbours[a] if order[b] > order[a]
+                for c in neighbours[a] if order[c] > order[b] and c in neighbours[b]]  # the graph's triangles
     strength = {t: sum(inliers.get(p, 0) for p in itertools.combinations(t, 2)) for t in triplets}
     closing = [t for t in sorted(triplets, key=lambda t: -strength[t])
                if _angle_deg(neighbours[t[2]][t[0]] @ neighbours[t[1]][t[2]] @ neighbours[t[0]][t[1]]) <= tolerance_deg]
     best: set = set()
     for a, b, c in closing[:seeds]:
+        if len(best) == len(rotations):
+            break
+        if {(a, b), (a, c), (b, c)} <= best:  # grown already from a seed of the same consistent set
+            continue
         absolute = _grow(names, neighbours, {a: np.eye(3), b: neighbours[a][b], c: neighbours[a][c]}, tolerance_deg)
         kept = {p for p in rotations if p[0] in absolute and p[1] in absolute
                 and _angle_deg(rotations[p] @ absolute[p[0]] @ absolute[p[1]].T) <= tolerance_deg}
