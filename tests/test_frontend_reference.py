@@ -73,3 +73,12 @@ def test_errors(tmp_path):
         build_reference(tmp_path)
     with pytest.raises(ValueError, match=r"nope\.jpg: missing or not a readable image"):
         build_reference(SCEAUX, [NAMES[0], "nope.jpg"])
+
+
+def test_a_camera_bcmocap_does_not_read_leaves_the_model_unchecked(tmp_path):
+    pycolmap.logging.minloglevel = 2
+    camera = pycolmap.Camera(model="SIMPLE_RADIAL", width=640, height=481,
+                             params=[2905.88 * SCALE, 1416 * SCALE + 0.5, 1064 * SCALE + 0.5, 0.0])
+    model = build_reference(SCEAUX, NAMES[:3], camera=camera, workdir=tmp_path, max_features=1000)
+    assert model.registered == tuple(NAMES[:3])
+    assert model.rotation_check == "not checked" and model.inconsistent_pairs == 0 and model.mapping_attempts >= 1

@@ -196,13 +196,17 @@ class ReferenceModel:
         num_points3D: 3D points in the model.
         database_path: the pycolmap database (keypoints, descriptors, matches, two-view geometries).
         pair_inliers: ``{(name_a, name_b): number of F-RANSAC inliers}`` of the pairs written.
-        seconds: wall time per stage (``features``, ``matching``, ``mapping``).
-        mapping_attempts: how many times the mapper ran (see ``attempts`` of :func:`build_reference`).
-        inconsistent_pairs: verified pairs whose rotations disagreed with the others'
-            (``consistent_rotations`` of :func:`build_reference`).
+        seconds: wall time per stage (``features``, ``matching``, ``mapping`` — every run of the mapper —, and
+            ``rotations`` where the pairs' rotations were checked).
+        mapping_attempts: how many times the mapper ran (see ``attempts`` of :func:`build_reference`; the check's
+            second model included).
+        inconsistent_pairs: verified pairs whose rotations disagreed with the consistent set's
+            (``consistent_rotations`` of :func:`build_reference`; 0 where nothing was checked).
         rotation_check: "agreed" (the model from every verified pair was checked against the one from the
             rotation-consistent pairs, or every pair was consistent), "replaced" (it disagreed, and the model is
-            the one from the consistent pairs) or "not checked" (no camera, no consistent pairs, or turned off).
+            the one from the consistent pairs) or "not checked" (no camera, or one bcmocap does not read; no
+            three photos whose rotations close a loop; the consistent pairs' model registered fewer than three
+            photos; or turned off).
     """
 
     reconstruction: object
@@ -301,9 +305,9 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
             verified pairs whose relative rotations agree with one set of absolute rotations within
             ``rotation_tolerance_deg`` (:mod:`~bcmocap.frontend.pair_rotations`): pairs verified on the aliases
             of a repeated pattern lead the mapper to a model metres wrong with a small reprojection error. When
-            the two models place their common photos differently (RMS of the camera centres, after a similarity,
-            over ``centre_tolerance`` of their spread) or share fewer than three, the second replaces the first;
-            when they agree the first, with more photos, is kept.
+            the second registers at least three photos and the two place their common photos differently (RMS of
+            the camera centres, after a similarity, over ``centre_tolerance`` of their spread, or fewer than three
+            in common), the second replaces the first; when they agree the first, with more photos, is kept.
 
     Raises:
         ValueError: if the folder or a photo is missing or unreadable, or nothing could be reconstructed.
@@ -341,17 +345,20 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
     mapping = dict(image_dir=image_dir, names=names, camera=camera, features=features, threshold_px=threshold_px,
                    refine_intrinsics=refine_intrinsics, random_seed=random_seed, attempts=attempts,
                    good_error_px=good_error_px, seconds=seconds)
-    best = _map(work, verified, **mapping)
+    best, runs = _map(work, verified, **mapping)
     check, inconsistent = "not checked", 0
     if camera is not None and consistent_rotations and best is not None:
         clock = time.perf_counter()
-        kept = _rotation_consistent(names, features, verified, camera, threshold_px, rotation_tolerance_deg)
+        estimated, kept = _rotation_consistent(names, features, verified, camera, threshold_px,
+                                               rotation_tolerance_deg)
         seconds["rotations"] = time.perf_counter() - clock
-        inconsistent = len(verified) - len(kept)
-        check = "agreed" if not inconsistent else "not checked"
-        if inconsistent and kept:
-            consistent = _map(work / "consistent", {p: m for p, m in verified.items() if p in kept}, **mapping)
-            if consistent is not None:
+        inconsistent = len(estimated - kept) if kept else 0
+        if kept and not inconsistent:
+            check = "agreed"
+        elif kept:
+            consistent, more = _map(work / "consistent", {p: m for p, m in verified.items() if p in kept}, **mapping)
+            runs += more
+            if consistent is not None and consistent[1].num_reg_images() >= 3:
                 if models_agree(_camera_centres(consistent[1]), _camera_centres(best[1]), centre_tolerance):
                     check = "agreed"
                 else:
@@ -359,17 +366,17 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
     if best is None:
         raise ValueError(f"{image_dir}: pycolmap could not reconstruct the photos "
                          f"({len(verified)} of {len(names) * (len(names) - 1) // 2} pairs verified)")
-    _, rec, used, db_path, tries = best
+    _, rec, used, db_path = best
     registered = tuple(sorted(rec.image(i).name for i in rec.reg_image_ids()))
     return ReferenceModel(rec, names, registered, float(rec.compute_mean_reprojection_error()), int(rec.num_points3D()),
-                          db_path, {k: len(v) for k, v in used.items()}, seconds, tries, inconsistent, check)
+                          db_path, {k: len(v) for k, v in used.items()}, seconds, runs, inconsistent, check)
 
 
 def _map(work: Path, verified: dict, *, image_dir, names, camera, features, threshold_px, refine_intrinsics,
-         random_seed, attempts, good_error_px, seconds) -> tuple | None:
+         random_seed, attempts, good_error_px, seconds) -> tuple[tuple | None, int]:
     """pycolmap's verification and incremental mapping of ``verified`` in ``work``, repeated with new seeds while
-    the model leaves photos out or its error is poor: ``(score, reconstruction, verified, database, attempts)`` of
-    the best model, or None when the mapper built nothing."""
+    the model leaves photos out or its error is poor: ``((score, reconstruction, verified, database), runs)``, the
+    best model (None when the mapper built nothing) and how many times the mapper ran."""
     pycolmap = load_pycolmap()
 
     best = None
@@ -400,10 +407,10 @@ def _map(work: Path, verified: dict, *, image_dir, names, camera, features, thre
         rec = max(models.values(), key=lambda r: r.num_reg_images())
         score = (rec.num_reg_images(), -float(rec.compute_mean_reprojection_error()))
         if best is None or score > best[0]:
-            best = (score, rec, verified, db_path, attempt + 1)
+            best = (score, rec, verified, db_path)
         if score[0] == len(names) and -score[1] <= good_error_px:
             break
-    return best
+    return best, attempt + 1
 
 
 def _camera_centres(reconstruction) -> dict:
@@ -427,22 +434,27 @@ def models_agree(centres: dict, other: dict, tolerance: float) -> bool:
     return rms <= tolerance * spread
 
 
-def _rotation_consistent(names, features, verified: dict, camera, threshold_px: float, tolerance_deg: float) -> set:
-    """The verified pairs that :func:`~.pair_rotations.rotation_consistent_pairs` keeps (keypoints turned into
-    rays by ``camera``; the RANSAC threshold is ``threshold_px`` at the image centre)."""
+def _rotation_consistent(names, features, verified: dict, camera, threshold_px: float,
+                         tolerance_deg: float) -> tuple[set, set]:
+    """``(pairs with a rotation estimate, those that rotation_consistent_pairs keeps)`` (keypoints turned into rays
+    by ``camera``; the RANSAC threshold is ``threshold_px`` at the image centre). Both empty for a pycolmap camera
+    model that bcmocap does not read."""
     from ..io.colmap import from_pycolmap
     from .pair_rotations import pair_rotations, rotation_consistent_pairs
 
     if not isinstance(camera, CameraModel):
-        camera = from_pycolmap(camera)
+        try:
+            camera = from_pycolmap(camera)
+        except ValueError:
+            return set(), set()
     centre = np.array([[0.5 * (camera.width - 1), 0.5 * (camera.height - 1)]])
     ray0, ray1 = np.asarray(camera.unproject(np.concatenate([centre, centre + [[1.0, 0.0]]])), np.float64)
     radians_per_px = float(np.arccos(np.clip(ray0 @ ray1, -1.0, 1.0)))
     bearings = {name: np.asarray(camera.unproject(np.asarray(features[name][0][:, :2], np.float64)), np.float64)
                 for name in names}
     rotations = pair_rotations(verified, bearings, threshold_rad=threshold_px * radians_per_px)
-    return rotation_consistent_pairs(names, rotations, {pair: len(m) for pair, m in verified.items()},
-                                     tolerance_deg=tolerance_deg)
+    return set(rotations), rotation_consistent_pairs(names, rotations, {pair: len(m) for pair, m in verified.items()},
+                                                     tolerance_deg=tolerance_deg)
 
 
 def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
