@@ -450,8 +450,10 @@ def _rotation_consistent(names, features, verified: dict, camera, threshold_px: 
     centre = np.array([[0.5 * (camera.width - 1), 0.5 * (camera.height - 1)]])
     ray0, ray1 = np.asarray(camera.unproject(np.concatenate([centre, centre + [[1.0, 0.0]]])), np.float64)
     radians_per_px = float(np.arccos(np.clip(ray0 @ ray1, -1.0, 1.0)))
-    bearings = {name: np.asarray(camera.unproject(np.asarray(features[name][0][:, :2], np.float64)), np.float64)
-                for name in names}
+    pixels = [np.asarray(features[name][0][:, :2], np.float64) for name in names]  # one unprojection for all
+    rays = np.split(np.asarray(camera.unproject(np.concatenate(pixels)), np.float64),
+                    np.cumsum([len(p) for p in pixels])[:-1])
+    bearings = dict(zip(names, rays))
     rotations = pair_rotations(verified, bearings, threshold_rad=threshold_px * radians_per_px)
     return set(rotations), rotation_consistent_pairs(names, rotations, {pair: len(m) for pair, m in verified.items()},
                                                      tolerance_deg=tolerance_deg)
