@@ -4,20 +4,25 @@ ground-truth start frames."""
 
 import numpy as np
 import pytest
+from test_frontend_capture import CAMERAS, make_capture
 
-from bcmocap.frontend import clap_candidates, given_offsets, read_capture, synchronize, synchronize_tracks
+from bcmocap.frontend import (
+    clap_candidates,
+    given_offsets,
+    read_capture,
+    synchronize,
+    synchronize_tracks,
+)
 from bcmocap.io.wav import write_wav
 from bcmocap.sim.audio import soundtrack
-from bcmocap.sim.studio import StudioSettings, _clap_samples, _timeline
-
-from test_frontend_capture import CAMERAS, make_capture
+from bcmocap.sim.studio import StudioSettings, _timeline, clap_samples
 
 
 def studio_tracks(seed: int, cameras: int = 6, frames: int = 12, rate: int = 16000, fps: float = 60.0):
     settings = StudioSettings(seconds=frames / fps, fps=fps, audio_rate=rate)
     rng = np.random.default_rng(seed)
     timeline = _timeline(frames, cameras, fps, rng)
-    claps = _clap_samples(timeline, settings)
+    claps = clap_samples(timeline, settings)
     tracks = [soundtrack(int(round(n * rate / fps)), claps[c].tolist(), rate, rng, gain=g)
               for c, (n, g) in enumerate(zip(timeline["num_video_frames"], timeline["audio_gain"]))]
     return tracks, timeline, claps

@@ -8,11 +8,9 @@ import pytest
 from bcmocap.io.capture_folder import TrialTruth
 from bcmocap.sim.studio import (
     StudioSettings,
-    _clap_samples,
-    _clocks,
-    _rng,
-    _timeline,
+    clap_samples,
     preset_settings,
+    trial_timelines,
     video_frame_times,
 )
 
@@ -20,10 +18,7 @@ CAMERAS = 18
 
 
 def _timelines(settings: StudioSettings, frames=(30, 60)):
-    timelines = {name: _timeline(n, CAMERAS, settings.fps, _rng(settings.seed, 1, i))
-                 for i, (name, n) in enumerate(zip(("rom", "capture"), frames))}
-    _clocks(settings, timelines, CAMERAS)
-    return timelines
+    return trial_timelines(settings, dict(zip(("rom", "capture"), frames)), CAMERAS)
 
 
 def test_without_time_errors_the_clocks_are_the_whole_frame_timeline():
@@ -39,7 +34,7 @@ def test_without_time_errors_the_clocks_are_the_whole_frame_timeline():
         np.testing.assert_array_equal(times, np.clip(np.arange(len(times)) - start, 0, 59))
         # the claps at the samples the studio always wrote
         expected = np.round((timeline["clap_frames"][None] + timeline["video_start_frame"][:, None]) * 800)
-        np.testing.assert_array_equal(_clap_samples(timeline, settings), expected)
+        np.testing.assert_array_equal(clap_samples(timeline, settings), expected)
 
 
 def test_clocks_are_drawn_per_camera_within_their_settings():
@@ -82,7 +77,7 @@ def test_video_times_and_claps_follow_each_cameras_clock():
         step = np.diff(times[inside]).mean()
         np.testing.assert_allclose(step, 1.0 / timeline["clock_rate"][camera], rtol=1e-12)
     # each clap lands at its video time on the camera's clock plus the camera's audio latency
-    samples = _clap_samples(timeline, settings)
+    samples = clap_samples(timeline, settings)
     at_video = truth.video_frame_of(np.arange(CAMERAS)[:, None], timeline["clap_frames"][None]) * 800
     lag = samples - at_video
     expected = np.broadcast_to((timeline["audio_latency_s"] * timeline["clock_rate"] * 48000)[:, None], lag.shape)
@@ -109,14 +104,14 @@ def test_claps_give_sub_frame_offsets_and_clock_rates_to_the_audio_latency():
     """synchronize_tracks on the studio's soundtracks: the first clap's video time to a fraction of a frame (its
     error is the camera's audio latency, which audio cannot tell) and each clock's rate against the median."""
     from bcmocap.frontend.sync import synchronize_tracks
-    from bcmocap.sim.studio import _plan, _soundtrack
+    from bcmocap.sim.studio import _plan, camera_soundtrack
 
     for latency_ms in (0.0, 5.0):
         settings = StudioSettings(seconds=10.0, rom_seconds=0.1, seed=6, start_subframe=True, clock_ppm=50.0,
                                   audio_latency_ms=latency_ms)
         plan = _plan(settings)
         timeline = plan.timelines["capture"]
-        tracks = [_soundtrack(plan, 1, "capture", c) for c in range(CAMERAS)]
+        tracks = [camera_soundtrack(plan.settings, timeline, 1, c) for c in range(CAMERAS)]
         sync = synchronize_tracks(tracks, settings.audio_rate, settings.fps)
         first_clap = timeline["video_start_time"] + timeline["clock_rate"] * timeline["clap_frames"][0]
         lag = timeline["audio_latency_s"] * timeline["clock_rate"] * settings.fps

@@ -126,11 +126,14 @@ __all__ = [  # the format's names (CAPTURE_FORMAT, GroundTruth, TrialTruth, ...)
     "READOUT_RANGE_MS",
     "REALISTIC",
     "StudioSettings",
+    "camera_soundtrack",
     "capsule_ends",
+    "clap_samples",
     "load_ground_truth",
     "preset_settings",
     "read_studio_model",
     "studio_subject",
+    "trial_timelines",
     "write_capture",
 ]
 
@@ -667,6 +670,17 @@ def _clocks(settings: StudioSettings, timelines: dict[str, dict[str, np.ndarray]
         timeline["imu_clock_offset_s"] = np.float64(trial_rng.uniform(-1.0, 1.0) * s.imu_offset_ms / 1000.0)
 
 
+def trial_timelines(settings: StudioSettings, num_frames: dict[str, int], num_cameras: int) -> dict[str, dict]:
+    """Each trial's timeline, as :func:`write_capture` records it for trials of ``num_frames`` frames (in trial
+    order, ``{"rom": ..., "capture": ...}``): the cameras' start and stop frames, the claps' trial frames, the
+    audio gains and the clocks (:func:`_clocks`). Deterministic in the settings' seed and time errors; nothing is
+    rendered."""
+    timelines = {name: _timeline(int(n), num_cameras, settings.fps, _rng(settings.seed, 1, i))
+                 for i, (name, n) in enumerate(num_frames.items())}
+    _clocks(settings, timelines, num_cameras)
+    return timelines
+
+
 def video_frame_times(timeline: dict[str, np.ndarray], camera: int, num_frames: int) -> np.ndarray:
     """``(N,)`` trial time (frames, clipped to ``[0, num_frames - 1]``: the subject holds still before and after)
     shown in each video frame of ``camera`` (``N = num_video_frames[camera]``; module docstring)."""
@@ -785,9 +799,7 @@ def _plan(settings: StudioSettings) -> _Plan:
     path_xy = np.asarray(motion.root_position)[:, :2]
     scene = make_room(s.room if s.room in ROOM_STYLES else "textured", path_xy, seed=s.seed)
     trials = {"rom": rom, "capture": motion}
-    timelines = {name: _timeline(m.num_frames, rig.num_cameras, s.fps, _rng(s.seed, 1, i))
-                 for i, (name, m) in enumerate(trials.items())}
-    _clocks(s, timelines, rig.num_cameras)
+    timelines = trial_timelines(s, {name: m.num_frames for name, m in trials.items()}, rig.num_cameras)
     focal = 0.5 * s.reference_width / math.tan(math.radians(s.reference_fov_deg) / 2)
     reference_camera = PinholeCamera(
         width=s.reference_width, height=s.reference_height, focal=[focal, focal],
@@ -1050,7 +1062,7 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
             if key not in renderers:
                 renderers[key] = Renderer(plan.scene, cam, options)
             video = trial_video_path(folder, trial, rig.names[camera])
-            track = _soundtrack(plan, trial_index, trial, camera)
+            track = camera_soundtrack(s, plan.timelines[trial], trial_index, camera)
             if not embedded:
                 write_wav(trial_audio_path(folder, trial, rig.names[camera]), track, s.audio_rate)
             closing.append(_render_camera_trial(plan, renderers[key], trial_index, trial, camera, poses[:, camera],
@@ -1065,7 +1077,7 @@ def write_capture(path: str | os.PathLike, settings: StudioSettings = StudioSett
     return folder
 
 
-def _clap_samples(timeline: dict[str, np.ndarray], settings: StudioSettings) -> np.ndarray:
+def clap_samples(timeline: dict[str, np.ndarray], settings: StudioSettings) -> np.ndarray:
     """``(C, 2)`` first sample of each clap in each camera's track: the clap's video time on the camera's clock
     (:func:`video_frame_times` inverted), plus its audio latency."""
     frames = video_frame_at(timeline["video_start_time"][:, None], timeline["clock_rate"][:, None],
@@ -1074,13 +1086,14 @@ def _clap_samples(timeline: dict[str, np.ndarray], settings: StudioSettings) -> 
     return np.round((frames + latency) * settings.audio_rate / settings.fps).astype(np.int64)
 
 
-def _soundtrack(plan: _Plan, trial_index: int, trial: str, camera: int) -> np.ndarray:
-    """One camera's soundtrack of one trial (samples in [-1, 1] at ``audio_rate``, sample 0 at video frame 0)."""
-    s = plan.settings
-    tl = plan.timelines[trial]
+def camera_soundtrack(settings: StudioSettings, timeline: dict[str, np.ndarray], trial_index: int,
+                      camera: int) -> np.ndarray:
+    """One camera's soundtrack of a trial (the ``trial_index``-th of :func:`trial_timelines`, whose ``timeline`` it
+    is): samples in [-1, 1] at ``audio_rate``, sample 0 at video frame 0, the claps at :func:`clap_samples`."""
+    s, tl = settings, timeline
     per_frame = s.audio_rate / s.fps
     num_samples = int(round(int(tl["num_video_frames"][camera]) * per_frame))
-    claps = _clap_samples(tl, s)[camera].tolist()
+    claps = clap_samples(tl, s)[camera].tolist()
     return soundtrack(num_samples, claps, s.audio_rate, _rng(s.seed, 2, trial_index, camera),
                       gain=float(tl["audio_gain"][camera]))
 
@@ -1150,7 +1163,7 @@ def _write_static_files(folder: Path, plan: _Plan) -> None:
             "world_from_mount": plan.mount_poses[trial],
             "camera_offsets": plan.camera_offsets[trial],
             **plan.timelines[trial],
-            "clap_samples": _clap_samples(plan.timelines[trial], s),
+            "clap_samples": clap_samples(plan.timelines[trial], s),
             "fps": np.float64(s.fps),
             "audio_rate": np.int64(s.audio_rate),
             "marker_names": np.array(markers.names),
