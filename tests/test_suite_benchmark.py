@@ -59,3 +59,13 @@ def test_lens_error_separates_what_a_turn_of_the_camera_undoes():
     longer = suite._lens_error(FOVCamera(width=640, height=360, focal=[251.0, 251.0],
                                          principal_point=[319.5, 179.5], omega=0.9), truth)
     assert longer["covered_max_after_rotation_px"] > 0.99 * longer["covered_max_px"]  # a focal error is not a turn
+
+
+def test_the_sparse_room_is_photographed_with_more_overlap():
+    import argparse
+
+    args = argparse.Namespace(seconds=2.0, rom_seconds=6.0, rom_tempo=0.5)
+    sparse = suite.capture_settings(suite.Run("realistic", "run", "sparse", 2), args)
+    textured = suite.capture_settings(suite.Run("clean", "run", "textured", 2), args)
+    assert sparse.reference_photos == 48 and textured.reference_photos == 24
+    assert sparse.room == "sparse" and sparse.clock_ppm > 0 and textured.clock_ppm == 0  # the presets themselves
