@@ -1,18 +1,20 @@
 """Clock rates and clap offsets from the soundtracks, against take length (issue 42: "clock rates within 10 ppm").
 
-The suite's takes are 2 s long, too short to date a clock rate: one audio sample in a 2.5 s span between the
-claps is 8 ppm. This benchmark renders no pictures, only what the studio's ``realistic`` preset records as sound:
-for each seed and take length, the 18 cameras' soundtracks of the capture trial (:func:`bcmocap.sim.studio.
-trial_timelines` and :func:`~bcmocap.sim.studio.camera_soundtrack`: the clocks' rates of ±20 ppm, sub-frame starts,
-audio latencies, the claps and the room noise), each encoded as the AAC track of an MP4 the way the studio writes
-one (:class:`bcmocap.io.media.MediaWriter`, 192 kbit/s) and read back as ``bcmocap run`` reads it
-(:func:`bcmocap.io.media.read_audio_track`). :func:`bcmocap.frontend.sync.synchronize_tracks` then finds the claps.
+The suite's takes are 2 s long, too short to date a clock rate: one audio sample in the 2.48 s between their claps
+is 8 ppm. This benchmark renders no pictures, only what the studio's ``realistic`` preset records as sound: for
+each seed and take length, the 18 cameras' soundtracks of the capture trial (:func:`bcmocap.sim.studio.
+trial_timelines` and :func:`~bcmocap.sim.studio.camera_soundtrack`: clocks within ±20 ppm of nominal, sub-frame
+starts, audio latencies, the claps and the room noise), each written as the studio writes it and read back as
+``bcmocap run`` reads it: ``aac``, the AAC track of an MP4 (:class:`bcmocap.io.media.MediaWriter`, 192 kbit/s;
+the realistic preset's container), and ``wav``, 16-bit PCM (:func:`bcmocap.io.wav.write_wav`; the default
+container's), the control. :func:`bcmocap.frontend.sync.synchronize_tracks` then finds the claps. A seed draws the
+same clocks, starts and latencies at every length, so the lengths compare the same cameras.
 
-Reported per take length (the time between the two claps is the length plus 0.5 s), over seeds × cameras:
+Reported per container and take length (the claps are the length plus 0.5 s less a frame apart), over seeds ×
+cameras:
 
 - ``rate_error_ppm``: the clock rate against the truth (each relative to the cameras' median, as sync gives it);
-- ``onset_error_samples``: each clap's first sample against where the studio put it (the AAC encoder smears an
-  onset now and then);
+- ``onset_error_samples``: each clap's first sample against where the studio put it (rounded to a sample);
 - ``audio_offset_error_frames``: the first clap's time in each camera's video against the truth's, latency
   included (the audio latency itself is not observable from sound; the suite's time offsets come from the gyros).
 
@@ -48,7 +50,19 @@ def aac_roundtrip(track: np.ndarray, rate: int, fps: float, path: Path) -> np.nd
     return samples
 
 
-def take(seed: int, seconds: float, cameras: int, workdir: Path) -> dict:
+def wav_roundtrip(track: np.ndarray, rate: int, path: Path) -> np.ndarray:
+    """``track`` written as a 16-bit PCM WAV (the studio's default container) and read back."""
+    from bcmocap.io.wav import read_wav, write_wav
+
+    write_wav(path, track, rate)
+    samples, got = read_wav(path)
+    if got != rate:
+        raise RuntimeError(f"{path}: read back at {got} Hz, written at {rate} Hz")
+    return samples
+
+
+def take(seed: int, seconds: float, cameras: int, workdir: Path, container: str = "aac") -> dict:
+    """One take's sync against its truth; ``container`` "aac" or "wav" (see the module docstring)."""
     from bcmocap.frontend.sync import synchronize_tracks
     from bcmocap.io.capture_folder import video_frame_at
     from bcmocap.sim.studio import (
@@ -63,15 +77,20 @@ def take(seed: int, seconds: float, cameras: int, workdir: Path) -> dict:
     timeline = trial_timelines(settings, {"rom": round(settings.rom_seconds * settings.fps), "capture": frames},
                                cameras)["capture"]
     truth_samples = clap_samples(timeline, settings)
-    tracks = [aac_roundtrip(camera_soundtrack(settings, timeline, 1, c), settings.audio_rate, settings.fps,
-                            workdir / f"s{seed}-{seconds:g}-{c}.mp4") for c in range(cameras)]
+    if container not in ("aac", "wav"):
+        raise ValueError(f"container must be 'aac' or 'wav', got {container!r}")
+    tracks = []
     for c in range(cameras):
-        (workdir / f"s{seed}-{seconds:g}-{c}.mp4").unlink()
+        path = workdir / f"s{seed}-{seconds:g}-{c}.{'mp4' if container == 'aac' else 'wav'}"
+        track = camera_soundtrack(settings, timeline, 1, c)
+        tracks.append(aac_roundtrip(track, settings.audio_rate, settings.fps, path) if container == "aac"
+                      else wav_roundtrip(track, settings.audio_rate, path))
+        path.unlink()
     sync = synchronize_tracks(tracks, settings.audio_rate, settings.fps)
     rates = timeline["clock_rate"] / np.median(timeline["clock_rate"])
     audio_first_clap = (video_frame_at(timeline["video_start_time"], timeline["clock_rate"], timeline["clap_frames"][0])
                         + timeline["audio_latency_s"] * timeline["clock_rate"] * settings.fps)
-    return {"seed": seed, "seconds": seconds, "clap_span_s": float(sync.duration_s),
+    return {"container": container, "seed": seed, "seconds": seconds, "clap_span_s": float(sync.duration_s),
             "rate_error_ppm": (1e6 * (sync.clock_rates - rates)).tolist(),
             "onset_error_samples": (np.asarray(sync.clap_samples) - truth_samples).ravel().tolist(),
             "audio_offset_error_frames": (sync.frame_offsets - audio_first_clap).tolist()}
@@ -87,40 +106,41 @@ def _summary(values: list[float]) -> dict:
     return {"rms": float(np.sqrt(np.mean(a**2))), "p90": float(np.percentile(a, 90)), "max": float(a.max())}
 
 
+def _length_summary(rows: list[dict]) -> dict:
+    onset = np.asarray(_pooled(rows, "onset_error_samples"))
+    return {"takes": len(rows), "rate_error_ppm": _summary(_pooled(rows, "rate_error_ppm")),
+            "onsets_off": int((onset != 0).sum()), "onsets": int(onset.size),
+            "onset_error_samples_max": int(np.abs(onset).max()),
+            "audio_offset_error_frames": _summary(_pooled(rows, "audio_offset_error_frames"))}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1 (default 5)")
+    ap.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
     ap.add_argument("--seconds", type=float, nargs="+", default=[2.0, 30.0, 120.0, 600.0],
                     help="take lengths (s; default 2 30 120 600)")
+    ap.add_argument("--containers", nargs="+", default=["aac", "wav"], choices=["aac", "wav"],
+                    help="how the soundtracks are written and read back (default: both)")
     ap.add_argument("--cameras", type=int, default=18)
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args()
 
     clock = time.perf_counter()
-    rows = []
+    rows, results = [], {}
     with tempfile.TemporaryDirectory(prefix="bcmocap-clock-sync-") as tmp:
-        for seconds in args.seconds:
-            for seed in range(args.seeds):
-                rows.append(take(seed, seconds, args.cameras, Path(tmp)))
-            chosen = [r for r in rows if r["seconds"] == seconds]
-            rate = _summary(_pooled(chosen, "rate_error_ppm"))
-            onset = np.asarray(_pooled(chosen, "onset_error_samples"))
-            offset = _summary(_pooled(chosen, "audio_offset_error_frames"))
-            print(f"{seconds:6.1f} s takes: clock rate error {rate['rms']:.2f} ppm RMS, p90 {rate['p90']:.2f}, max "
-                  f"{rate['max']:.2f}; onsets off in {int((onset != 0).sum())} of {onset.size} claps (max "
-                  f"{int(np.abs(onset).max())} samples); first clap {offset['max']:.4f} frames max", flush=True)
-    lengths = {}
-    for seconds in args.seconds:
-        chosen = [r for r in rows if r["seconds"] == seconds]
-        onset = np.asarray(_pooled(chosen, "onset_error_samples"))
-        lengths[f"{seconds:g}"] = {
-            "takes": len(chosen), "cameras": args.cameras,
-            "rate_error_ppm": _summary(_pooled(chosen, "rate_error_ppm")),
-            "onsets_off": int((onset != 0).sum()), "onsets": int(onset.size),
-            "onset_error_samples_max": int(np.abs(onset).max()),
-            "audio_offset_error_frames": _summary(_pooled(chosen, "audio_offset_error_frames"))}
+        for container in args.containers:
+            for seconds in args.seconds:
+                chosen = [take(seed, seconds, args.cameras, Path(tmp), container) for seed in range(args.seeds)]
+                rows += chosen
+                row = results.setdefault(container, {})[f"{seconds:g}"] = _length_summary(chosen)
+                rate, offset = row["rate_error_ppm"], row["audio_offset_error_frames"]
+                print(f"{container} {seconds:6.1f} s takes: clock rate error {rate['rms']:.2f} ppm RMS, p90 "
+                      f"{rate['p90']:.2f}, max {rate['max']:.2f}; onsets off in {row['onsets_off']} of {row['onsets']} "
+                      f"claps (max {row['onset_error_samples_max']} samples); first clap {offset['max']:.4f} frames max",
+                      flush=True)
     if args.json:
-        write_json(args.json, {"lengths": lengths, "takes": rows, "settings": vars(args) | {"json": None},
+        write_json(args.json, {"containers": results, "cameras": args.cameras, "takes": rows,
+                               "settings": vars(args) | {"json": None},
                                "seconds": round(time.perf_counter() - clock, 1), "machine": machine()})
     return 0
 
