@@ -63,6 +63,8 @@ def wav_roundtrip(track: np.ndarray, rate: int, path: Path) -> np.ndarray:
 
 def take(seed: int, seconds: float, cameras: int, workdir: Path, container: str = "aac") -> dict:
     """One take's sync against its truth; ``container`` "aac" or "wav" (see the module docstring)."""
+    if container not in ("aac", "wav"):
+        raise ValueError(f"container must be 'aac' or 'wav', got {container!r}")
     from bcmocap.frontend.sync import synchronize_tracks
     from bcmocap.io.capture_folder import video_frame_at
     from bcmocap.sim.studio import (
@@ -77,8 +79,6 @@ def take(seed: int, seconds: float, cameras: int, workdir: Path, container: str 
     timeline = trial_timelines(settings, {"rom": round(settings.rom_seconds * settings.fps), "capture": frames},
                                cameras)["capture"]
     truth_samples = clap_samples(timeline, settings)
-    if container not in ("aac", "wav"):
-        raise ValueError(f"container must be 'aac' or 'wav', got {container!r}")
     tracks = []
     for c in range(cameras):
         path = workdir / f"s{seed}-{seconds:g}-{c}.{'mp4' if container == 'aac' else 'wav'}"

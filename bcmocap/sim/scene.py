@@ -19,7 +19,8 @@ Finishes. A scene may also give each material a finish (:class:`TexturedScene`'s
 ``finish_gains`` and ``tiles``; :func:`finished_texture`): ``NOISE`` (the texture above, its contrast times
 a gain), ``TILED`` (tiles, bricks or windows: the noise of one tile repeated, exactly for sizes that are powers of
 two and to float32's rounding otherwise, every tile alike or each showing one of a few faces, with darker joints
-between them, box-filtered over the pixel footprint) or ``BLANK`` (uniform grey: nothing to track). A scene without finishes is rendered by the plain texture's code, so it keeps its pixels.
+between them, box-filtered over the pixel footprint) or ``BLANK`` (uniform grey: nothing to track). A scene
+without finishes is rendered by the plain texture's code, so it keeps its pixels.
 :func:`make_room` builds the studio's rooms: "textured" (:func:`make_textured_scene`), "sparse" (painted,
 weakly textured surfaces, one blank wall, less clutter) and "repeated" (a floor of tiles of a few faces, a
 ceiling of identical panels, a wall of identical bricks, a wall of identical windows).
