@@ -14,7 +14,7 @@ from conftest import KNEE_AXIS, quat_distance, random_motion, random_quaternions
 
 from bcmocap.eval import joint_position_errors
 from bcmocap.geometry import SE3
-from bcmocap.kinematics import JointType, Motion, camera_poses, forward_kinematics, world_rotations
+from bcmocap.kinematics import JointType, Motion, Skeleton, camera_poses, forward_kinematics, world_rotations
 from bcmocap.sim import (
     BODY_SEGMENTS,
     CMU_TRIALS,
@@ -314,6 +314,35 @@ def test_an_excerpt_of_an_added_trial_is_the_same_motion_on_the_same_skeleton(ad
     np.testing.assert_array_equal(np.asarray(part_skeleton.hinge_axes), np.asarray(skeleton.hinge_axes))
     np.testing.assert_allclose(np.asarray(part.root_position), np.asarray(motion.root_position)[120:150], atol=1e-12)
     np.testing.assert_allclose(np.asarray(part.rotations), np.asarray(motion.rotations)[120:150], atol=1e-12)
+
+
+def test_every_trial_rests_in_a_t_pose_and_turning_the_arms_up_moves_no_joint(added_trial):
+    """The rig mounts arm cameras on the arm's upper side at rest and the range-of-motion trial starts at rest, so
+    the studio's subjects rest in a T-pose: the hop's BVH rests with hanging arms and is turned up, with the same
+    joint positions over the motion; the ASF trials already rest in a T-pose and are left exactly as they were."""
+    from bcmocap.sim.motions import ARM_T_POSE_TOLERANCE_DEG, arms_in_t_pose
+
+    name, skeleton, motion = added_trial
+    rest = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        shoulder, hand = rest[skeleton.index(f"{side}_upper_arm")], rest[skeleton.index(f"{side}_hand")]
+        along = (hand - shoulder) / np.linalg.norm(hand - shoulder)
+        assert abs(along[2]) < np.sin(np.radians(ARM_T_POSE_TOLERANCE_DEG)) and sign * along[0] > 0.9
+    walk, walk_motion = load_body_motion("walk", fps=60.0, seconds=0.05)
+    same_skeleton, same_motion = arms_in_t_pose(walk, walk_motion)
+    assert same_skeleton is walk and same_motion is walk_motion
+    hanging = np.array(skeleton.offsets)  # the same body with the arms hanging: every joint where it was
+    for side in ("left", "right"):
+        for segment in ("forearm", "hand"):
+            j = skeleton.index(f"{side}_{segment}")
+            hanging[j] = [0.0, 0.0, -np.linalg.norm(hanging[j])]
+    down = Skeleton(skeleton.names, skeleton.parents, hanging, skeleton.joint_types, skeleton.hinge_axes)
+    turned, again = arms_in_t_pose(down, motion[:30])
+    assert not np.allclose(np.asarray(turned.offsets), hanging)
+    np.testing.assert_allclose(np.asarray(forward_kinematics(turned, again).translation()),
+                               np.asarray(forward_kinematics(down, motion[:30]).translation()), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(turned.project_rotations(again.rotations)), np.asarray(again.rotations),
+                               atol=1e-12)
 
 
 def test_added_trials_are_bundled_with_their_terms_and_accepted_by_simulate(tmp_path, capsys):

@@ -179,6 +179,52 @@ def reduce_motion(
     return reduced, Motion(root_pos, local)
 
 
+ARM_T_POSE_TOLERANCE_DEG = 20.0  # an upper arm further than this from horizontal at rest is turned up into the T-pose
+
+
+def arms_in_t_pose(skeleton: Skeleton, motion: Motion) -> tuple[Skeleton, Motion]:
+    """The same body and motion with a T-pose rest: arms straight out sideways with all joint angles zero.
+
+    The studio's rig mounts arm cameras on the arm's upper side at rest and its range-of-motion trial starts in the
+    rest pose (the T-pose, :mod:`bcmocap.sim.rom`). Some files rest with the arms hanging (CMU's BVH conversions), so
+    each arm whose upper arm is more than :data:`ARM_T_POSE_TOLERANCE_DEG` from sideways at rest is turned about its
+    shoulder by the rotation ``A`` that takes it sideways: the arm's offsets and hinge axes become ``A`` times
+    theirs, the upper arm's local rotations ``L A⁻¹`` and the forearm's and hand's ``A L A⁻¹``. Every segment's
+    world motion is unchanged; only the arm segments' frames turn with their rest. Arms already sideways (the ASF
+    trials) are left exactly as they are.
+
+    Args:
+        skeleton: a camera skeleton with the segment names of :data:`BODY_SEGMENTS`; motion: its ``(T, J)`` motion.
+    """
+    rest = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
+    left = rest[skeleton.index("left_thigh")] - rest[skeleton.index("right_thigh")]
+    left[2] = 0.0
+    left /= np.linalg.norm(left)
+    offsets, axes = np.array(skeleton.offsets), np.array(skeleton.hinge_axes)
+    rotations = np.array(motion.rotations)
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        upper, forearm, hand = (skeleton.index(f"{side}_{s}") for s in ("upper_arm", "forearm", "hand"))
+        along = rest[forearm] - rest[upper]
+        along /= np.linalg.norm(along)
+        target = sign * left
+        angle = float(np.arccos(np.clip(along @ target, -1.0, 1.0)))
+        if np.degrees(angle) <= ARM_T_POSE_TOLERANCE_DEG:
+            continue
+        axis = np.cross(along, target)
+        turn = SO3.exp(angle * axis / np.linalg.norm(axis))
+        matrix = np.asarray(turn.as_matrix())
+        for j in (forearm, hand):
+            offsets[j] = matrix @ offsets[j]
+        for j in (upper, forearm, hand):
+            axes[j] = matrix @ axes[j]
+            local = SO3(rotations[:, j]) @ turn.inverse()
+            rotations[:, j] = np.asarray((local if j == upper else turn @ local).wxyz)
+    if np.array_equal(offsets, np.asarray(skeleton.offsets)):
+        return skeleton, motion
+    turned = Skeleton(skeleton.names, skeleton.parents, offsets, skeleton.joint_types, axes)
+    return turned, Motion(np.asarray(motion.root_position), rotations)
+
+
 def resample(motion: Motion, source_fps: float, target_fps: float) -> Motion:
     """Resample a motion in time: linear for the root position, slerp for rotations."""
     n = motion.num_frames
@@ -245,7 +291,7 @@ def load_body_motion(
         raise ValueError(f"CMU trial '{name}' has {full_motion.num_frames} frames; nothing left from {start_seconds} s")
     if len(paths) == 1:
         segments = _body_segments_for(full_skeleton, str(paths[0]))
-        skeleton, motion = reduce_motion(full_skeleton, full_motion, segments, fit_hinges=True)
+        skeleton, motion = arms_in_t_pose(*reduce_motion(full_skeleton, full_motion, segments, fit_hinges=True))
         motion = motion[first:last]
     else:
         skeleton, motion = reduce_motion(full_skeleton, full_motion[first:last])
@@ -385,7 +431,7 @@ def load_motion_file(
         raise ValueError(f"{paths[-1]}: the motion has {full_motion.num_frames} frame(s); at least 2 are needed")
     last = full_motion.num_frames if seconds is None else min(full_motion.num_frames, int(round(seconds * source)) + 1)
     segments = _body_segments_for(full_skeleton, paths[0])
-    skeleton, motion = reduce_motion(full_skeleton, full_motion[:last], segments, fit_hinges=True)
+    skeleton, motion = arms_in_t_pose(*reduce_motion(full_skeleton, full_motion[:last], segments, fit_hinges=True))
     rest = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
     if rest[skeleton.index("head"), 2] <= rest[0, 2]:
         raise ValueError(f"{paths[0]}: the head is not above the pelvis at rest; the file must be Y up")
