@@ -93,7 +93,6 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
         pair_rotations,
         rotation_consistent_pairs,
     )
-    from bcmocap.io.colmap import to_pycolmap
 
     folder = out / f"{room}-s{seed}"
     if folder.exists():
@@ -108,10 +107,13 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
     right = {pair: true_match_fraction(features[pair[0]][0], features[pair[1]][0], m, truth[index[pair[0]]],
                                        truth[index[pair[1]]], camera) >= RIGHT_FRACTION
              for pair, m in verified.items()}
-    rotations, not_rigid = pair_rotations(verified, {n: features[n][0] for n in names}, to_pycolmap(camera),
-                                          threshold_px=1.5, random_seed=0)
-    rigid = {pair: m for pair, m in verified.items() if pair not in not_rigid}
-    kept = rotation_consistent_pairs(names, rotations, {p: len(m) for p, m in rigid.items()})
+    pixels = [np.asarray(features[n][0][:, :2], np.float64) for n in names]
+    rays = np.split(np.asarray(camera.unproject(np.concatenate(pixels)), np.float64), np.cumsum([len(p) for p in pixels])[:-1])
+    centre = np.array([[0.5 * (camera.width - 1), 0.5 * (camera.height - 1)]])
+    ray0, ray1 = np.asarray(camera.unproject(np.concatenate([centre, centre + [[1.0, 0.0]]])), np.float64)
+    rotations = pair_rotations(verified, dict(zip(names, rays)),
+                               threshold_rad=1.5 * float(np.arccos(np.clip(ray0 @ ray1, -1.0, 1.0))))
+    kept = rotation_consistent_pairs(names, rotations, {p: len(m) for p, m in verified.items()})
     model = reference.build_reference(folder / "reference", names, camera=camera, workdir=folder / "work")
     errors = centre_errors(model, names, truth)
     row = {
@@ -119,7 +121,6 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
         "pairs_verified": len(verified), "pairs_right": int(sum(right.values())),
         "inliers_right": int(sum(len(m) for p, m in verified.items() if right[p])),
         "inliers_alias": int(sum(len(m) for p, m in verified.items() if not right[p])),
-        "not_rigid": len(not_rigid), "not_rigid_aliases": int(sum(not right[p] for p in not_rigid)),
         "rotation_kept": len(kept), "rotation_kept_aliases": int(sum(not right[p] for p in kept)),
         "rotation_kept_right_of_right": int(sum(right[p] for p in kept)),
         "rotation_kept_photos": len({n for p in kept for n in p}),
@@ -130,8 +131,7 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
         "photos_off": int((errors > OFF_M).sum()), "seconds": round(time.perf_counter() - clock, 1),
     }
     log(f"{room} s{seed}: {row['pairs_right']} of {row['pairs_verified']} verified pairs right "
-        f"({row['inliers_alias']} alias inliers against {row['inliers_right']}); {row['not_rigid']} not rigid "
-        f"({row['not_rigid_aliases']} aliases); the rotation check keeps "
+        f"({row['inliers_alias']} alias inliers against {row['inliers_right']}); the rotation check keeps "
         f"{row['rotation_kept']} ({row['rotation_kept_aliases']} aliases) over {row['rotation_kept_photos']} photos; "
         f"model: {row['model_registered']} photos, check {row['model_check']}, centres {row['centre_error_m_median']:.3f} m "
         f"median, {row['centre_error_m_max']:.2f} m max, {row['photos_off']} off by more than {OFF_M:g} m")

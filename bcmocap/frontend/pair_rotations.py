@@ -10,13 +10,8 @@ contradict (the loop constraints of Zach, Klopschitz and Pollefeys, CVPR 2010): 
 plane keeps the true rotation and passes: in the suite's repeated room the model from the consistent pairs
 still placed 5 of 24 photos 1.7–2.6 m off.
 
-:func:`pair_rotations` first asks of each pair whether a rigid motion of the photos' (known) camera explains its
-matches at all: an alias usually fits a fundamental matrix and no essential matrix of the camera, and such pairs are
-left out (in the studio's repeated room, 177 of 207 alias pairs and 37 of 65 right ones, seed 1). It takes the
-others' relative rotations from pycolmap's two-view geometry, which decomposes the homography of a planar or
-purely rotating pair where the five-point solution has two answers (on the textured room's 122 pairs, seed 0, a
-median error of 0.12° and 1.7° at the 80th percentile, against 0.64° and 5.6° from OpenCV's five-point RANSAC and
-``recoverPose``). :func:`rotation_consistent_pairs` then grows absolute rotations from triplets whose loop closes:
+:func:`rotation_consistent_pairs` estimates each pair's relative rotation (the essential matrix of its verified
+matches' bearings, OpenCV's five-point RANSAC), then grows absolute rotations from triplets whose loop closes:
 a photo joins when at least two of its pairs with photos already placed agree on its rotation. The pairs kept are
 those between placed photos whose relative rotation matches the absolute ones; the largest such set over the
 seed triplets wins. Photos that never join lose their pairs (the mapper leaves them out rather than placing them
@@ -39,50 +34,32 @@ def _angle_deg(rotation: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(0.5 * (np.trace(rotation) - 1.0), -1.0, 1.0))))
 
 
-def pair_rotations(verified: dict, keypoints: dict, camera, *, threshold_px: float,
-                   random_seed: int = 0) -> tuple[dict, set]:
-    """Each pair's relative rotation from the two-view geometry of its matches with the photos' camera known, and
-    the pairs no rigid motion of that camera explains.
-
-    pycolmap estimates each pair's geometry (``estimate_calibrated_two_view_geometry``: an essential matrix, a
-    homography and a fundamental matrix, LO-RANSAC) and its pose (``estimate_two_view_geometry_pose``, which
-    decomposes the homography of a planar or purely rotating pair, where the five-point solution is ambiguous).
-    A pair whose matches a fundamental matrix explains much better than any essential matrix of the camera
-    (COLMAP's "uncalibrated" configuration), or that is degenerate, is not a rigid two-view geometry of this camera:
-    the aliases of a repeated pattern mostly are such pairs (in the studio's repeated room, 179 of 207 alias pairs
-    against 37 of 65 right ones; ``benchmarks/reference_aliases.py``).
+def pair_rotations(verified: dict, bearings: dict, *, threshold_rad: float) -> dict:
+    """``{(a, b): (3, 3) R}`` with ``x_b = R x_a + t``: each pair's relative rotation from the essential matrix
+    of its matches (``cv2.findEssentialMat``, RANSAC, then ``cv2.recoverPose``).
 
     Args:
         verified: ``{(a, b): (M, 2) matches}`` (rows index the photos' keypoints).
-        keypoints: ``{name: (N, >=2)}`` keypoints in OpenCV pixels (x, y first).
-        camera: the photos' ``pycolmap.Camera`` (COLMAP's pixel convention).
-        threshold_px: RANSAC threshold (pixels); random_seed: RANSAC's seed (the same pairs give the same answer).
-
-    Returns:
-        ``({(a, b): (3, 3) R with x_b = R x_a + t}, {pairs that are not rigid})``; a pair whose pose could not be
-        recovered is in neither.
+        bearings: ``{name: (N, 3)}`` unit rays of each photo's keypoints (camera frame); rays with z ≤ 0.1 are
+            left out of the pair's estimate.
+        threshold_rad: RANSAC threshold on the normalised image plane (pixels × radians per pixel).
     """
-    from ..native_crashes import load_pycolmap
+    import cv2
 
-    pycolmap = load_pycolmap()
-    options = pycolmap.TwoViewGeometryOptions()
-    options.ransac.max_error = threshold_px
-    options.ransac.random_seed = random_seed
-    rigid = (pycolmap.TwoViewGeometryConfiguration.CALIBRATED, pycolmap.TwoViewGeometryConfiguration.PLANAR,
-             pycolmap.TwoViewGeometryConfiguration.PANORAMIC, pycolmap.TwoViewGeometryConfiguration.PLANAR_OR_PANORAMIC)
-    rotations, not_rigid = {}, set()
+    rotations = {}
     for (a, b), matches in verified.items():
-        if len(matches) < 8:
+        ra, rb = bearings[a][matches[:, 0]], bearings[b][matches[:, 1]]
+        front = (ra[:, 2] > 0.1) & (rb[:, 2] > 0.1)
+        if front.sum() < 8:
             continue
-        pa = np.asarray(keypoints[a][:, :2], np.float64) + 0.5  # COLMAP's pixel convention
-        pb = np.asarray(keypoints[b][:, :2], np.float64) + 0.5
-        geometry = pycolmap.estimate_calibrated_two_view_geometry(camera, pa, camera, pb,
-                                                                  np.asarray(matches, np.uint32), options)
-        if geometry.config not in rigid:
-            not_rigid.add((a, b))
-        elif pycolmap.estimate_two_view_geometry_pose(camera, pa, camera, pb, geometry):
-            rotations[(a, b)] = np.asarray(geometry.cam2_from_cam1.rotation.matrix(), np.float64)
-    return rotations, not_rigid
+        pa = ra[front, :2] / ra[front, 2:]
+        pb = rb[front, :2] / rb[front, 2:]
+        essential, mask = cv2.findEssentialMat(pa, pb, np.eye(3), cv2.RANSAC, 0.999, threshold_rad)
+        if essential is None or essential.shape != (3, 3):
+            continue
+        _, rotation, _, _ = cv2.recoverPose(essential, pa, pb, np.eye(3), mask=mask)
+        rotations[(a, b)] = rotation
+    return rotations
 
 
 def rotation_consistent_pairs(names, rotations: dict, inliers: dict, *, tolerance_deg: float = 1.5,

@@ -38,7 +38,6 @@ from ..cameras import CameraModel
 from ..geometry import similarity
 from ..io.colmap import to_pycolmap
 from ..native_crashes import load_pycolmap
-from .pair_rotations import rotation_consistent_pairs
 from .threads import default_threads
 
 __all__ = ["DescriptorIndex", "ReferenceModel", "build_reference", "extract_sift", "match_descriptors", "models_agree",
@@ -203,13 +202,11 @@ class ReferenceModel:
             second model included).
         inconsistent_pairs: verified pairs whose rotations disagreed with the consistent set's
             (``consistent_rotations`` of :func:`build_reference`; 0 where nothing was checked).
-        not_rigid_pairs: verified pairs that no rigid motion of the photos' camera explains, left out before
-            mapping (:func:`~bcmocap.frontend.pair_rotations.pair_rotations`; 0 where nothing was checked).
         rotation_check: "agreed" (the model from every verified pair was checked against the one from the
-            rotation-consistent pairs, or every pair was consistent), "replaced" (it disagreed, or held photos
-            the consistent pairs' model did not, and the model is the one from the consistent pairs) or "not
-            checked" (no camera, or one bcmocap does not read; no three photos whose rotations close a loop; the
-            consistent pairs' model registered fewer than three photos; or turned off).
+            rotation-consistent pairs, or every pair was consistent), "replaced" (it disagreed, and the model is
+            the one from the consistent pairs) or "not checked" (no camera, or one bcmocap does not read; no
+            three photos whose rotations close a loop; the consistent pairs' model registered fewer than three
+            photos; or turned off).
     """
 
     reconstruction: object
@@ -223,7 +220,6 @@ class ReferenceModel:
     mapping_attempts: int = 1
     inconsistent_pairs: int = 0
     rotation_check: str = "not checked"
-    not_rigid_pairs: int = 0
 
     @property
     def num_registered(self) -> int:
@@ -287,8 +283,7 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
                     max_features: int = 8000, ratio: float = 0.8, threshold_px: float = 1.5,
                     min_inliers: int = 15, refine_intrinsics: bool = True, random_seed: int = 0,
                     attempts: int = 3, good_error_px: float = 0.5, consistent_rotations: bool = True,
-                    rotation_tolerance_deg: float = 1.5, centre_tolerance: float = 0.05,
-                    min_shared: float = 0.8) -> ReferenceModel:
+                    rotation_tolerance_deg: float = 1.5, centre_tolerance: float = 0.05) -> ReferenceModel:
     """Build the reference model of a set of photos (the module docstring lists the steps).
 
     Args:
@@ -310,12 +305,9 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
             verified pairs whose relative rotations agree with one set of absolute rotations within
             ``rotation_tolerance_deg`` (:mod:`~bcmocap.frontend.pair_rotations`): pairs verified on the aliases
             of a repeated pattern lead the mapper to a model metres wrong with a small reprojection error. When
-            the second registers at least three photos, the first is kept only when the two place their common
-            photos alike (RMS of the camera centres, after a similarity, within ``centre_tolerance`` of their
-            spread) and the second holds at least ``min_shared`` of the first's photos; otherwise the second
-            replaces it. A photo only the first model holds was placed from pairs that failed the check: in the
-            studio's repeated room a second model of 7 photos agreed with a first of 18 that was 1 m off at its
-            median photo (``benchmarks/reference_aliases.py``).
+            the second registers at least three photos and the two place their common photos differently (RMS of
+            the camera centres, after a similarity, over ``centre_tolerance`` of their spread, or fewer than three
+            in common), the second replaces the first; when they agree the first, with more photos, is kept.
 
     Raises:
         ValueError: if the folder or a photo is missing or unreadable, or nothing could be reconstructed.
@@ -353,28 +345,21 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
     mapping = dict(image_dir=image_dir, names=names, camera=camera, features=features, threshold_px=threshold_px,
                    refine_intrinsics=refine_intrinsics, random_seed=random_seed, attempts=attempts,
                    good_error_px=good_error_px, seconds=seconds)
-    rotations, not_rigid = None, set()
-    if camera is not None and consistent_rotations:
-        clock = time.perf_counter()
-        found = _pair_rotations(names, features, verified, camera, threshold_px, random_seed)
-        seconds["rotations"] = time.perf_counter() - clock
-        if found is not None:
-            rotations, not_rigid = found
-            verified = {pair: m for pair, m in verified.items() if pair not in not_rigid}
     best, runs = _map(work, verified, **mapping)
     check, inconsistent = "not checked", 0
-    if rotations is not None and best is not None:
-        kept = rotation_consistent_pairs(names, rotations, {pair: len(m) for pair, m in verified.items()},
-                                         tolerance_deg=rotation_tolerance_deg)
-        inconsistent = len(set(rotations) - kept) if kept else 0
+    if camera is not None and consistent_rotations and best is not None:
+        clock = time.perf_counter()
+        estimated, kept = _rotation_consistent(names, features, verified, camera, threshold_px,
+                                               rotation_tolerance_deg)
+        seconds["rotations"] = time.perf_counter() - clock
+        inconsistent = len(estimated - kept) if kept else 0
         if kept and not inconsistent:
             check = "agreed"
         elif kept:
             consistent, more = _map(work / "consistent", {p: m for p, m in verified.items() if p in kept}, **mapping)
             runs += more
             if consistent is not None and consistent[1].num_reg_images() >= 3:
-                second, first = _camera_centres(consistent[1]), _camera_centres(best[1])
-                if len(second) >= min_shared * len(first) and models_agree(second, first, centre_tolerance):
+                if models_agree(_camera_centres(consistent[1]), _camera_centres(best[1]), centre_tolerance):
                     check = "agreed"
                 else:
                     check, best = "replaced", consistent
@@ -384,8 +369,7 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
     _, rec, used, db_path = best
     registered = tuple(sorted(rec.image(i).name for i in rec.reg_image_ids()))
     return ReferenceModel(rec, names, registered, float(rec.compute_mean_reprojection_error()), int(rec.num_points3D()),
-                          db_path, {k: len(v) for k, v in used.items()}, seconds, runs, inconsistent, check,
-                          len(not_rigid))
+                          db_path, {k: len(v) for k, v in used.items()}, seconds, runs, inconsistent, check)
 
 
 def _map(work: Path, verified: dict, *, image_dir, names, camera, features, threshold_px, refine_intrinsics,
@@ -450,22 +434,29 @@ def models_agree(centres: dict, other: dict, tolerance: float) -> bool:
     return rms <= tolerance * spread
 
 
-def _pair_rotations(names, features, verified: dict, camera, threshold_px: float,
-                    random_seed: int) -> tuple[dict, set] | None:
-    """:func:`~bcmocap.frontend.pair_rotations.pair_rotations` of the verified pairs with the photos' camera (a
-    :class:`~bcmocap.cameras.CameraModel` or a ``pycolmap.Camera``); None for a camera bcmocap does not read."""
+def _rotation_consistent(names, features, verified: dict, camera, threshold_px: float,
+                         tolerance_deg: float) -> tuple[set, set]:
+    """``(pairs with a rotation estimate, those that rotation_consistent_pairs keeps)`` (keypoints turned into rays
+    by ``camera``; the RANSAC threshold is ``threshold_px`` at the image centre). Both empty for a pycolmap camera
+    model that bcmocap does not read."""
     from ..io.colmap import from_pycolmap
-    from .pair_rotations import pair_rotations
+    from .pair_rotations import pair_rotations, rotation_consistent_pairs
 
-    if isinstance(camera, CameraModel):
-        camera = to_pycolmap(camera)
-    else:
+    if not isinstance(camera, CameraModel):
         try:
-            from_pycolmap(camera)
+            camera = from_pycolmap(camera)
         except ValueError:
-            return None
-    return pair_rotations(verified, {name: features[name][0] for name in names}, camera, threshold_px=threshold_px,
-                          random_seed=random_seed)
+            return set(), set()
+    centre = np.array([[0.5 * (camera.width - 1), 0.5 * (camera.height - 1)]])
+    ray0, ray1 = np.asarray(camera.unproject(np.concatenate([centre, centre + [[1.0, 0.0]]])), np.float64)
+    radians_per_px = float(np.arccos(np.clip(ray0 @ ray1, -1.0, 1.0)))
+    pixels = [np.asarray(features[name][0][:, :2], np.float64) for name in names]  # one unprojection for all
+    rays = np.split(np.asarray(camera.unproject(np.concatenate(pixels)), np.float64),
+                    np.cumsum([len(p) for p in pixels])[:-1])
+    bearings = dict(zip(names, rays))
+    rotations = pair_rotations(verified, bearings, threshold_rad=threshold_px * radians_per_px)
+    return set(rotations), rotation_consistent_pairs(names, rotations, {pair: len(m) for pair, m in verified.items()},
+                                                     tolerance_deg=tolerance_deg)
 
 
 def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
@@ -481,8 +472,7 @@ def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
               "database": os.path.relpath(model.database_path, folder),
               "pair_inliers": [[a, b, n] for (a, b), n in model.pair_inliers.items()],
               "seconds": model.seconds, "mapping_attempts": model.mapping_attempts,
-              "inconsistent_pairs": model.inconsistent_pairs, "rotation_check": model.rotation_check,
-              "not_rigid_pairs": model.not_rigid_pairs}
+              "inconsistent_pairs": model.inconsistent_pairs, "rotation_check": model.rotation_check}
     from ..atomic import atomic_path
 
     path = folder / "reference.json"
@@ -518,4 +508,4 @@ def load_reference(folder: str | os.PathLike) -> ReferenceModel:
                           float(report["mean_reprojection_error_px"]), int(report["num_points3D"]), database,
                           {(a, b): n for a, b, n in report["pair_inliers"]}, dict(report["seconds"]),
                           int(report["mapping_attempts"]), int(report.get("inconsistent_pairs", 0)),
-                          str(report.get("rotation_check", "not checked")), int(report.get("not_rigid_pairs", 0)))
+                          str(report.get("rotation_check", "not checked")))
