@@ -211,6 +211,8 @@ def arms_in_t_pose(skeleton: Skeleton, motion: Motion) -> tuple[Skeleton, Motion
         if np.degrees(angle) <= ARM_T_POSE_TOLERANCE_DEG:
             continue
         axis = np.cross(along, target)
+        if np.linalg.norm(axis) < 1e-9:  # the arm points straight across the body: turn it about the vertical
+            axis = np.array([0.0, 0.0, 1.0])
         turn = SO3.exp(angle * axis / np.linalg.norm(axis))
         matrix = np.asarray(turn.as_matrix())
         for j in (forearm, hand):
