@@ -13,7 +13,7 @@ import pytest
 from conftest import KNEE_AXIS, quat_distance, random_motion, random_quaternions
 
 from bcmocap.eval import joint_position_errors
-from bcmocap.geometry import SE3
+from bcmocap.geometry import SE3, SO3
 from bcmocap.kinematics import JointType, Motion, Skeleton, camera_poses, forward_kinematics, world_rotations
 from bcmocap.sim import (
     BODY_SEGMENTS,
@@ -343,6 +343,20 @@ def test_every_trial_rests_in_a_t_pose_and_turning_the_arms_up_moves_no_joint(ad
                                np.asarray(forward_kinematics(down, motion[:30]).translation()), atol=1e-12)
     np.testing.assert_allclose(np.asarray(turned.project_rotations(again.rotations)), np.asarray(again.rotations),
                                atol=1e-12)
+    # Each segment's world frame is the old one, turned by one fixed rotation for the arm's segments (its rest
+    # turned sideways: the cameras on the hand move with it) and by none elsewhere.
+    before = np.asarray(world_rotations(down, motion[:30]))  # (T, J, 4)
+    after = np.asarray(world_rotations(turned, again))
+    offset = np.asarray((SO3(before).inverse() @ SO3(after)).as_matrix())  # (T, J, 3, 3)
+    np.testing.assert_allclose(offset, np.broadcast_to(offset[:1], offset.shape), atol=1e-9)
+    arms = [skeleton.index(f"{side}_{segment}") for side in ("left", "right") for segment in ("upper_arm", "forearm", "hand")]
+    others = [j for j in range(len(skeleton.names)) if j not in arms]
+    np.testing.assert_allclose(offset[0, others], np.broadcast_to(np.eye(3), (len(others), 3, 3)), atol=1e-9)
+    assert all(np.degrees(np.arccos(np.clip((np.trace(offset[0, j]) - 1) / 2, -1, 1))) > 45 for j in arms)
+    rest = np.asarray(forward_kinematics(turned, turned.rest_motion()).translation())
+    for side, sign in (("left", 1.0), ("right", -1.0)):  # and the turned body rests in a T-pose
+        along = rest[turned.index(f"{side}_hand")] - rest[turned.index(f"{side}_upper_arm")]
+        assert sign * along[0] / np.linalg.norm(along) > 0.99
 
 
 def test_added_trials_are_bundled_with_their_terms_and_accepted_by_simulate(tmp_path, capsys):

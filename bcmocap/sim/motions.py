@@ -179,7 +179,7 @@ def reduce_motion(
     return reduced, Motion(root_pos, local)
 
 
-ARM_T_POSE_TOLERANCE_DEG = 20.0  # an upper arm further than this from horizontal at rest is turned up into the T-pose
+ARM_T_POSE_TOLERANCE_DEG = 20.0  # an upper arm further than this from sideways at rest is turned into the T-pose
 
 
 def arms_in_t_pose(skeleton: Skeleton, motion: Motion) -> tuple[Skeleton, Motion]:
@@ -433,10 +433,11 @@ def load_motion_file(
         raise ValueError(f"{paths[-1]}: the motion has {full_motion.num_frames} frame(s); at least 2 are needed")
     last = full_motion.num_frames if seconds is None else min(full_motion.num_frames, int(round(seconds * source)) + 1)
     segments = _body_segments_for(full_skeleton, paths[0])
-    skeleton, motion = arms_in_t_pose(*reduce_motion(full_skeleton, full_motion[:last], segments, fit_hinges=True))
+    skeleton, motion = reduce_motion(full_skeleton, full_motion[:last], segments, fit_hinges=True)
     rest = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
     if rest[skeleton.index("head"), 2] <= rest[0, 2]:
         raise ValueError(f"{paths[0]}: the head is not above the pelvis at rest; the file must be Y up")
+    skeleton, motion = arms_in_t_pose(skeleton, motion)
     motion = _on_the_floor(skeleton, resample(motion, source, fps))
     if seconds is not None:
         wanted = int(round(seconds * fps))
