@@ -89,10 +89,6 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
     import cv2
 
     from bcmocap.frontend import reference
-    from bcmocap.frontend.pair_rotations import (
-        pair_rotations,
-        rotation_consistent_pairs,
-    )
 
     folder = out / f"{room}-s{seed}"
     if folder.exists():
@@ -107,13 +103,7 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
     right = {pair: true_match_fraction(features[pair[0]][0], features[pair[1]][0], m, truth[index[pair[0]]],
                                        truth[index[pair[1]]], camera) >= RIGHT_FRACTION
              for pair, m in verified.items()}
-    pixels = [np.asarray(features[n][0][:, :2], np.float64) for n in names]
-    rays = np.split(np.asarray(camera.unproject(np.concatenate(pixels)), np.float64), np.cumsum([len(p) for p in pixels])[:-1])
-    centre = np.array([[0.5 * (camera.width - 1), 0.5 * (camera.height - 1)]])
-    ray0, ray1 = np.asarray(camera.unproject(np.concatenate([centre, centre + [[1.0, 0.0]]])), np.float64)
-    rotations = pair_rotations(verified, dict(zip(names, rays)),
-                               threshold_rad=1.5 * float(np.arccos(np.clip(ray0 @ ray1, -1.0, 1.0))))
-    kept = rotation_consistent_pairs(names, rotations, {p: len(m) for p, m in verified.items()})
+    _, kept = reference._rotation_consistent(names, features, verified, camera, 1.5, 1.5)  # as build_reference
     model = reference.build_reference(folder / "reference", names, camera=camera, workdir=folder / "work")
     errors = centre_errors(model, names, truth)
     row = {

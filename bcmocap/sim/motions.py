@@ -196,10 +196,10 @@ def arms_in_t_pose(skeleton: Skeleton, motion: Motion) -> tuple[Skeleton, Motion
     Args:
         skeleton: a camera skeleton with the segment names of :data:`BODY_SEGMENTS`; motion: its ``(T, J)`` motion.
     """
+    from .rig import body_axes
+
     rest = np.asarray(forward_kinematics(skeleton, skeleton.rest_motion()).translation())
-    left = rest[skeleton.index("left_thigh")] - rest[skeleton.index("right_thigh")]
-    left[2] = 0.0
-    left /= np.linalg.norm(left)
+    _, left, _ = body_axes(skeleton)
     offsets, axes = np.array(skeleton.offsets), np.array(skeleton.hinge_axes)
     rotations = np.array(motion.rotations)
     for side, sign in (("left", 1.0), ("right", -1.0)):
