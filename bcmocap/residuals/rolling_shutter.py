@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from ..cameras import CameraModel
-from ..geometry import SE3
+from ..geometry import SE3, transform_points
 from .base import CameraPairTerm, CameraView
 from .reprojection import check_measurements, window_data
 from .self_calibration import INTRINSICS_CORRECTION, corrected_camera, intrinsics_correction
@@ -59,9 +59,31 @@ def rolling_shutter_projection(camera: CameraModel, cam_from_world: SE3, velocit
     ``time_offset`` frame periods after the frame's time), projected through ``camera``. The one rolling-shutter
     projection of bcmocap: :class:`RollingShutterReprojection` and :mod:`bcmocap.solver.registered_poses` predict
     with it."""
-    at_row = rolling_shutter_motion(camera, velocity, readout, rows, time_offset) @ SE3(
-        jnp.broadcast_to(cam_from_world.wxyz_xyz, (rows.shape[0], 7)))
-    return camera.project(at_row.apply(points))
+    s = rows / max(camera.height - 1, 1) - 0.5
+    return camera.project(moved_points(transform_points(cam_from_world, points), velocity, s * readout + time_offset))
+
+
+def moved_points(points: jax.Array, velocity: jax.Array, periods: jax.Array) -> jax.Array:
+    """``exp(periods[i] · velocity) · points[i]`` ``(N, 3)`` for camera-frame ``points`` ``(N, 3)``, a ``velocity``
+    ``(6,)`` (translation, rotation) per frame period and ``periods`` ``(N,)``: the SE(3) exponential in closed form
+    (Rodrigues), ``q + A ω×q + B ω×(ω×q) + ε v + B ω×v + C ω×(ω×v)`` with ``θ = |ω|``, ``A = sin(εθ)/θ``,
+    ``B = (1 − cos εθ)/θ²`` and ``C = (εθ − sin εθ)/θ³`` (their Taylor series where ``θ < 10⁻³``). Equal to
+    :func:`rolling_shutter_motion`'s ``SE3.exp`` applied to the points, about three times cheaper in the solver's
+    Jacobians (one sine and cosine per measurement; no quaternions)."""
+    v, w = velocity[:3], velocity[3:]
+    theta2 = w @ w
+    small = theta2 < 1e-6
+    safe2 = jnp.where(small, 1.0, theta2)
+    theta = jnp.sqrt(safe2)
+    e = periods
+    sin, cos = jnp.sin(e * theta), jnp.cos(e * theta)
+    a = jnp.where(small, e - e**3 * theta2 / 6.0, sin / theta)
+    b = jnp.where(small, e**2 / 2.0 - e**4 * theta2 / 24.0, (1.0 - cos) / safe2)
+    c = jnp.where(small, e**3 / 6.0 - e**5 * theta2 / 120.0, (e * theta - sin) / (safe2 * theta))
+    wq = jnp.cross(w, points)
+    wv = jnp.cross(w, v)
+    return (points + a[:, None] * wq + b[:, None] * (jnp.cross(w, wq) + wv) + e[:, None] * v
+            + c[:, None] * jnp.cross(w, wv))
 
 
 class RollingShutterReprojection(CameraPairTerm):
