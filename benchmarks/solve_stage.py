@@ -3,7 +3,8 @@ equations, to compare two revisions of the solver on a real run (``benchmarks/co
 
 The run folder ``--run`` (e.g. one of ``benchmarks/suite.py``'s realistic runs) is copied into ``--out`` (its
 frontend's large folders hard-linked, read only by the solve), its ``solve`` and ``outputs`` stages are forgotten,
-and ``bcmocap run`` redoes them with the run's own config (``DIR/config.json``) on its capture. Reported:
+and ``bcmocap run`` redoes them with the run's own config (``DIR/config.json``; ``--config`` another, e.g. with
+another solver setting) on its capture. Reported:
 
 - ``solve_seconds``: the stage's time (compilation included unless the compilation cache is warm);
 - ``steps``, ``seconds_per_step``: the LM steps of all windows and the stage's seconds per step;
@@ -96,6 +97,8 @@ def main() -> int:
     ap.add_argument("--out", required=True, help="a new folder for the copy")
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--window-frames", type=int, default=60, help="frames of the timed window (default 60)")
+    ap.add_argument("--config", help="solve with this config instead of the run's own (its frontend, world, skeleton "
+                                     "and initial settings must be the run's, or those stages are redone)")
     args = ap.parse_args()
 
     from bcmocap.compilation_cache import enable_compilation_cache
@@ -108,7 +111,12 @@ def main() -> int:
     enable_compilation_cache()
     run, out = Path(args.run), Path(args.out)
     copy_run(run, out)
-    config = RunConfig.from_dict(json.loads((out / "config.json").read_text()), where=str(out / "config.json"))
+    if args.config:
+        from bcmocap.pipeline.config import load_config
+
+        config = load_config(args.config)
+    else:
+        config = RunConfig.from_dict(json.loads((out / "config.json").read_text()), where=str(out / "config.json"))
     capture = read_capture(json.loads((out / "run.json").read_text())["capture"])
     clock = time.perf_counter()
     run_pipeline(capture, out, config, log=lambda line: print(line, flush=True))

@@ -76,7 +76,8 @@ class RunContext:
 
 #: Settings added after runs were made, left out of the fingerprints at these (default) values, so that those
 #: runs stay reusable.
-_LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 0.0], "registered_pose_below": 20},
+_LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 0.0], "registered_pose_below": 20,
+                              "gyro_turn": 0.0},
                    "skeleton": {"centre_trials": ["rom"]},
                    "frontend": {"rolling_shutter_readout": 0.0, "self_calibration": False, "gyro_timing": "clock",
                                 "estimate_readout": False}}
@@ -581,6 +582,35 @@ def _user_terms(ctx: RunContext) -> list:
     return [UserTerms(import_term_factory(u.factory), u.settings, u.factory) for u in ctx.config.solver.user_terms]
 
 
+def _gyro_terms(ctx: RunContext, trial_folder: Path) -> list:
+    """``[solver] gyro_turn``: the cameras' gyro turns (:func:`~bcmocap.pipeline.gyro_turns.gyro_turns`), the solver's
+    frame times read on the gyro's clock by the frontend's gyro timing: each camera at its own shift, or, where the
+    solver estimates each camera's time offset (its exposure after the frame times), every camera at the shifts'
+    mean, which the offsets are centred on (:func:`gyro_time_offsets`): the solver's poses are the body's at the frame
+    times. Without the gyro timing, at the trial's times."""
+    from ..solver.objective import UserTerms
+    from .gyro_turns import gyro_turns
+
+    sigma = ctx.config.solver.gyro_turn
+    if not sigma:
+        return []
+    if not (trial_folder / "imu.npz").is_file():
+        raise ValueError(f"{trial_folder / 'imu.npz'}: missing; [solver] gyro_turn needs the cameras' gyros")
+    path = ctx.path("frontend", "capture", "registration.json")
+    timing = read_json(path).get("gyro_timing") if path.is_file() else None
+    shifts = None
+    if timing is not None:
+        shifts = np.asarray(timing["time_shift_ms"], np.float64) / 1e3
+        if shifts.shape != (len(ctx.capture.cameras),):
+            raise ValueError(f"{path}: gyro_timing.time_shift_ms has {shifts.size} values for "
+                             f"{len(ctx.capture.cameras)} cameras")
+        if ctx.config.solver.estimate_time_offsets:  # the solver's frame times are the cameras' mean exposure,
+            measured = np.asarray(timing.get("determined", [True] * len(shifts)), bool)  # as gyro_time_offsets
+            shifts = np.full(len(shifts), shifts[measured].mean() if measured.any() else shifts.mean())
+        shifts = shifts.tolist()
+    return [UserTerms(gyro_turns, {"sigma_deg": sigma, "time_shifts_s": shifts}, "gyro turns")]
+
+
 #: σ of the prior on a camera's time offset measured by its gyro (s): the gyro timing's error on the studio's walk
 #: (benchmarks/results/gyro_timing.json) with margin.
 GYRO_TIME_OFFSET_SIGMA_S = 0.001
@@ -619,8 +649,9 @@ def solve_problem(ctx: RunContext):
         sigma = np.where(measured, GYRO_TIME_OFFSET_SIGMA_S, effects.time_offset_sigma_seconds)
         effects = dataclasses.replace(effects, time_offsets_measured=tuple(offsets.tolist()),
                                       time_offset_sigma_seconds=tuple(sigma.tolist()))
+    trial_folder = ctx.capture.path / "trials" / "capture"
     problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None,
-                            extra_terms=_user_terms(ctx), trial_folder=ctx.capture.path / "trials" / "capture",
+                            extra_terms=[*_gyro_terms(ctx, trial_folder), *_user_terms(ctx)], trial_folder=trial_folder,
                             effects=effects)
     return problem, SolverOptions(window=s.window, overlap=s.overlap)
 

@@ -1,0 +1,146 @@
+"""The cameras' gyro turns (bcmocap.residuals.gyro, bcmocap.pipeline.gyro_turns): read at each camera's shift on the gyro's clock they vanish at the
+true motion, the solver's gradient is the finite-difference one, and ``[solver] gyro_turn`` reaches them."""
+
+from __future__ import annotations
+
+import json
+import types
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bcmocap.io.sensors import read_imu, write_imu
+from bcmocap.pipeline.config import RunConfig, SolverConfig
+from bcmocap.residuals import TermWindow
+from bcmocap.pipeline.gyro_turns import gyro_turns
+from bcmocap.residuals.gyro import GyroTurn
+from bcmocap.sim import standard_capture
+from bcmocap.sim.sensors import simulate_imu
+from bcmocap.solver.window import cost, make_window_problem, normal_equations, residuals, window_history
+
+CLOCK_OFFSET_S = 0.02  # the IMU's clock is ahead of the video's by this much
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory):
+    """Eighteen frames of the standard walk and its exact gyros, their clock 20 ms ahead, in a trial folder."""
+    capture = standard_capture("walk", seconds=0.3, width=64, height=36)
+    folder = tmp_path_factory.mktemp("trial")
+    imu = simulate_imu(capture.skeleton, capture.rig, capture.motion, capture.fps, np.array([0, capture.num_frames - 1]),
+                       seed=1, gyro_noise=0.0, gyro_bias=0.0, accel_noise=0.0, accel_bias=0.0)
+    write_imu(folder / "imu.npz", type(imu)(**{**imu.__dict__, "time": imu.time + CLOCK_OFFSET_S}))
+    return capture, folder
+
+
+def _window_problem(capture, term, start=3, stop=13):
+    cut = [term.window(start, stop)]
+    h = window_history(cut)
+    reference = jax.tree.map(lambda a: a[start - h : stop], capture.motion)
+    return make_window_problem(capture.skeleton, capture.rig, cut, reference, h)
+
+
+def _term(capture, folder, shift_s, sigma_deg=0.5) -> GyroTurn:
+    window = TermWindow(0, capture.num_frames, capture.fps, capture.skeleton, capture.rig, trial_folder=folder)
+    return gyro_turns(window, sigma_deg, [shift_s] * capture.rig.num_cameras)
+
+
+def test_gyro_turns_vanish_at_the_true_motion_when_read_at_the_gyros_clock(walk):
+    capture, folder = walk
+    term = _term(capture, folder, CLOCK_OFFSET_S)
+    term.check(capture.num_frames, capture.rig.num_cameras)
+    weights = np.asarray(term.data["weights"])
+    assert (weights[0] == 0).all() and (weights[1:] > 0).all()  # the first frame's interval starts before the gyro
+    problem = _window_problem(capture, term)
+    (r,) = residuals(problem, jnp.zeros((problem.num_frames, problem.frame_size)))
+    assert np.abs(np.asarray(r)).max() < 1e-6  # rad × √weight (1/σ = 115 per rad): 1e-8 rad
+    (off,) = residuals(_window_problem(capture, _term(capture, folder, 0.0)),
+                       jnp.zeros((problem.num_frames, problem.frame_size)))
+    assert np.abs(np.asarray(off)).max() > 1e-2  # read 20 ms early, the turns are the earlier ones
+
+
+def test_gyro_turn_gradient_is_the_finite_difference_one(walk):
+    """The normal equations' gradient (the exact gradient) against central differences of the window's cost, at a
+    motion off the truth."""
+    capture, folder = walk
+    problem = _window_problem(capture, _term(capture, folder, CLOCK_OFFSET_S))
+    rng = np.random.default_rng(3)
+    y = jnp.asarray(rng.normal(scale=0.03, size=(problem.num_frames, problem.frame_size)))
+    grad = np.asarray(normal_equations(problem, y).grad)
+    assert np.abs(grad).max() > 1.0
+    eps = 1e-6
+    for _ in range(8):
+        i, j = rng.integers(problem.num_frames), rng.integers(problem.frame_size)
+        step = jnp.zeros_like(y).at[i, j].set(eps)
+        fd = (float(cost(problem, y + step)) - float(cost(problem, y - step))) / (2 * eps)
+        assert abs(fd - grad[i, j]) <= 1e-6 * max(1.0, abs(grad[i, j])), (i, j, fd, grad[i, j])
+
+
+def test_gyro_turns_say_what_is_wrong(walk, tmp_path):
+    capture, folder = walk
+    window = TermWindow(0, capture.num_frames, capture.fps, capture.skeleton, capture.rig, trial_folder=folder)
+    with pytest.raises(ValueError, match="σ must be > 0"):
+        gyro_turns(window, 0.0)
+    with pytest.raises(ValueError, match="2 time shifts for 18 cameras"):
+        gyro_turns(window, 0.5, [0.0, 0.0])
+    empty = TermWindow(0, capture.num_frames, capture.fps, capture.skeleton, capture.rig, trial_folder=tmp_path)
+    with pytest.raises(ValueError, match="imu.npz: missing"):
+        gyro_turns(empty, 0.5)
+    imu = read_imu(folder / "imu.npz")
+    write_imu(tmp_path / "imu.npz", type(imu)(**{**imu.__dict__, "cameras": tuple(f"cam{i}" for i in range(18))}))
+    with pytest.raises(ValueError, match="imu.npz: holds none of the rig's cameras"):
+        gyro_turns(empty, 0.5)
+    bad = GyroTurn({"turn": np.zeros((4, 18, 1, 4)), "weights": np.ones((4, 18, 2))}, name="gyro turns")
+    with pytest.raises(ValueError, match=r"gyro turns: data\['weights'\] has shape \(4, 18, 2\)"):
+        bad.check(4, 18)
+
+
+def test_the_run_reads_the_gyros_at_the_frontends_shifts(walk, tmp_path):
+    """``[solver] gyro_turn``: off by default, redoing only the solve when set, one line for a capture without gyros,
+    else the term read at the frontend's absolute gyro shifts."""
+    from bcmocap.pipeline.run import RunContext, _gyro_terms, fingerprints
+
+    capture, folder = walk
+    with pytest.raises(ValueError, match="solver.gyro_turn"):
+        RunConfig(solver=SolverConfig(gyro_turn=-1.0))
+    default, config = RunConfig(), RunConfig(solver=SolverConfig(gyro_turn=0.5))
+    before, after = fingerprints(default), fingerprints(config)
+    assert [before[s] == after[s] for s in before] == [True] * 4 + [False] * 2  # only the solve and outputs redone
+    ctx = RunContext(capture=None, config=default, out=tmp_path, log=print)
+    assert _gyro_terms(ctx, folder) == []
+    ctx = RunContext(capture=None, config=config, out=tmp_path, log=print)
+    with pytest.raises(ValueError, match="imu.npz: missing; \\[solver\\] gyro_turn needs the cameras' gyros"):
+        _gyro_terms(ctx, tmp_path)
+    registration = tmp_path / "frontend" / "capture" / "registration.json"
+    registration.parent.mkdir(parents=True)
+    # each camera's own shift; the second camera's 4 ms off the others', the third's not determined
+    shifts_ms = [1e3 * CLOCK_OFFSET_S] * capture.rig.num_cameras
+    shifts_ms[1] += 4.0
+    determined = [True] * len(shifts_ms)
+    determined[2] = False
+    shifts_ms[2] = 50.0
+    registration.write_text(json.dumps({"gyro_timing": {"time_shift_ms": shifts_ms, "determined": determined}}))
+    window = TermWindow(0, capture.num_frames, capture.fps, capture.skeleton, capture.rig, trial_folder=folder)
+    cameras = types.SimpleNamespace(cameras=[None] * capture.rig.num_cameras)
+
+    def read(config):
+        (factory,) = _gyro_terms(RunContext(capture=cameras, config=config, out=tmp_path, log=print), folder)
+        (term,) = factory(window)
+        return np.asarray(term.data["turn"]), np.asarray(term.data["weights"])
+
+    turn, weights = read(config)
+    alone = {shift: _term(capture, folder, shift / 1e3) for shift in set(shifts_ms)}
+    for c, shift in enumerate(shifts_ms):
+        np.testing.assert_array_equal(turn[:, c], np.asarray(alone[shift].data["turn"])[:, c])
+        np.testing.assert_array_equal(weights[:, c], np.asarray(alone[shift].data["weights"])[:, c])
+    # with the solver's time offsets, its frame times are the determined shifts' mean for every camera
+    turn, weights = read(RunConfig(solver=SolverConfig(gyro_turn=0.5, estimate_time_offsets=True)))
+    mean = np.mean([v for v, d in zip(shifts_ms, determined) if d]) / 1e3
+    common = _term(capture, folder, mean)
+    np.testing.assert_allclose(turn, np.asarray(common.data["turn"]), atol=1e-12)  # the mean's last bit
+    np.testing.assert_array_equal(weights, np.asarray(common.data["weights"]))
+    assert np.abs(turn[:, 1] - np.asarray(alone[shifts_ms[1]].data["turn"])[:, 1]).max() > 1e-4
+    registration.write_text(json.dumps({"gyro_timing": {"time_shift_ms": [1.0, 2.0]}}))
+    with pytest.raises(ValueError, match="registration.json: gyro_timing.time_shift_ms has 2 values for 18 cameras"):
+        read(config)
