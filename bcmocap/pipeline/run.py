@@ -596,19 +596,32 @@ def _gyro_terms(ctx: RunContext, trial_folder: Path) -> list:
         return []
     if not (trial_folder / "imu.npz").is_file():
         raise ValueError(f"{trial_folder / 'imu.npz'}: missing; [solver] gyro_turn needs the cameras' gyros")
-    path = ctx.path("frontend", "capture", "registration.json")
-    timing = read_json(path).get("gyro_timing") if path.is_file() else None
+    timing = _gyro_shifts(ctx)
     shifts = None
     if timing is not None:
-        shifts = np.asarray(timing["time_shift_ms"], np.float64) / 1e3
+        shifts, measured = timing
         if shifts.shape != (len(ctx.capture.cameras),):
-            raise ValueError(f"{path}: gyro_timing.time_shift_ms has {shifts.size} values for "
+            raise ValueError(f"{_registration_path(ctx)}: gyro_timing.time_shift_ms has {shifts.size} values for "
                              f"{len(ctx.capture.cameras)} cameras")
-        if ctx.config.solver.estimate_time_offsets:  # the solver's frame times are the cameras' mean exposure,
-            measured = np.asarray(timing.get("determined", [True] * len(shifts)), bool)  # as gyro_time_offsets
+        if ctx.config.solver.estimate_time_offsets:  # the solver's frame times are the cameras' mean exposure
             shifts = np.full(len(shifts), shifts[measured].mean() if measured.any() else shifts.mean())
         shifts = shifts.tolist()
     return [UserTerms(gyro_turns, {"sigma_deg": sigma, "time_shifts_s": shifts}, "gyro turns")]
+
+
+def _registration_path(ctx: RunContext) -> Path:
+    return ctx.path("frontend", "capture", "registration.json")
+
+
+def _gyro_shifts(ctx: RunContext) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(shifts (C,) s, determined (C,) bool)``: where the frontend's gyro timing put each camera's capture frames on
+    the gyro's clock after the trial's times, and which it determined; None when it did not time the gyros."""
+    path = _registration_path(ctx)
+    timing = read_json(path).get("gyro_timing") if path.is_file() else None
+    if timing is None:
+        return None
+    shifts = np.asarray(timing["time_shift_ms"], np.float64) / 1e3
+    return shifts, np.asarray(timing.get("determined", [True] * len(shifts)), bool)
 
 
 #: σ of the prior on a camera's time offset measured by its gyro (s): the gyro timing's error on the studio's walk
@@ -621,14 +634,10 @@ def gyro_time_offsets(ctx: RunContext) -> tuple[np.ndarray, np.ndarray] | None:
     gyro timed it (the frontend's ``gyro_timing`` shifts, relative to the mean of those it determined: the IMU
     clock's offset is common, a common offset is a shift of the whole motion; a camera whose gyro it could not time
     is not measured, offset 0), or None when the frontend did not time the gyros from the frames."""
-    path = ctx.path("frontend", "capture", "registration.json")
-    timing = read_json(path).get("gyro_timing") if path.is_file() else None
-    if timing is None:
+    timing = _gyro_shifts(ctx)
+    if timing is None or not timing[1].any():
         return None
-    shifts = np.asarray(timing["time_shift_ms"], np.float64) / 1e3
-    measured = np.asarray(timing.get("determined", [True] * len(shifts)), bool)
-    if not measured.any():
-        return None
+    shifts, measured = timing
     return np.where(measured, shifts - shifts[measured].mean(), 0.0), measured
 
 

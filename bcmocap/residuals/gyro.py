@@ -16,7 +16,6 @@ gyro. ``bcmocap run``: ``[solver] gyro_turn = σ`` (degrees).
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -55,6 +54,5 @@ class GyroTurn(CameraPairTerm):
     def residual(self, x: CameraView, data, variables):
         # cam_from_world rotations C: the camera-frame turn R_wc(t-1)^T R_wc(t) is C(t-1) C(t)^T
         turn = x[0].cam_from_world.rotation() @ x[1].cam_from_world.rotation().inverse()
-        measured = SO3(data["turn"])  # (1,)
-        r = jax.vmap(lambda m: (m.inverse() @ turn).log())(measured) * jnp.sqrt(data["weights"])[:, None]
+        r = (SO3(data["turn"][0]).inverse() @ turn).log()[None] * jnp.sqrt(data["weights"])[:, None]
         return r, data["weights"] > 0
