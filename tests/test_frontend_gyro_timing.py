@@ -179,6 +179,15 @@ def test_the_windows_are_where_the_gyro_turns_fastest():
     assert len(turning_windows(burst, 0, 40, FPS, 8, 15)) == 2  # as many as fit without overlapping
 
 
+def test_a_cameras_windows_are_cut_from_one_read_of_its_video():
+    from bcmocap.frontend.gyro_timing import _windows
+
+    frames = ((i, f"image {i}") for i in range(40, 100))
+    out = _windows(frames, np.array([40, 60, 85]), 5)
+    assert [[i for i, _ in w] for w in out] == [[40, 41, 42, 43, 44], [60, 61, 62, 63, 64], [85, 86, 87, 88, 89]]
+    assert out[1][0][1] == "image 60"
+
+
 def test_the_solve_reads_the_gyro_time_offsets_relative_to_their_mean(tmp_path):
     import json
 

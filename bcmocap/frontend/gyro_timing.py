@@ -318,20 +318,40 @@ def trial_pairs(capture, trial: str, offsets, span: int, *, windows: int = 8, wi
     Raises:
         ValueError: naming the file when the trial has no gyro recording or a camera none.
     """
+    from concurrent.futures import ThreadPoolExecutor
+
     from ..io.sensors import read_imu
     from .rolling_shutter import gyro_file, imu_indices
+    from .threads import default_threads
 
     path = gyro_file(capture, trial)
     imu = read_imu(path)
     index = imu_indices(capture, path, imu)
     offsets = np.asarray(offsets, np.int64).ravel()
-    pairs = []
-    for c, camera in enumerate(capture.cameras):
-        starts = turning_windows(imu, index[c], span, float(capture.fps), windows, window_frames)
-        found = [rotation_pairs(capture.frames(trial, c, start=int(offsets[c] + a), stop=int(offsets[c] + a + window_frames),
-                                               gray=True), camera.intrinsics) for a in starts]
-        pairs.append(RotationPairs.joined(found, int(camera.intrinsics.height)))
+
+    def one_camera(c: int) -> RotationPairs:
+        camera = capture.cameras[c]
+        starts = offsets[c] + turning_windows(imu, index[c], span, float(capture.fps), windows, window_frames)
+        found = [rotation_pairs(frames, camera.intrinsics)
+                 for frames in _windows(capture.frames(trial, c, start=int(starts[0]), stop=int(starts[-1] + window_frames),
+                                                       gray=True), starts, window_frames)]
+        return RotationPairs.joined(found, int(camera.intrinsics.height))
+
+    # Cameras in threads (decoding and KLT release the GIL), each video read once from its first window to its last
+    with ThreadPoolExecutor(max_workers=default_threads()) as pool:
+        pairs = list(pool.map(one_camera, range(len(capture.cameras))))
     return imu, index, pairs
+
+
+def _windows(frames, starts: np.ndarray, length: int) -> list[list]:
+    """The ``(index, image)`` of ``frames`` (in order) within each window ``starts[k] … starts[k] + length − 1``
+    (``starts`` increasing, windows apart), one list per window."""
+    out: list[list] = [[] for _ in starts]
+    for index, image in frames:
+        k = int(np.searchsorted(starts, index, side="right")) - 1
+        if k >= 0 and index < starts[k] + length:
+            out[k].append((index, image))
+    return out
 
 
 def timing_of_trials(capture, offsets: dict, readout_s: float, *, spans: dict,
