@@ -38,24 +38,6 @@ def test_sift_flann_ratio_and_fundamental_ransac():
     assert len(verify_matches(ka, kb, shuffled, min_inliers=len(inliers) // 2)) == 0
 
 
-def test_the_ratio_test_weighs_the_nearest_descriptor_of_another_point():
-    """The index holds one descriptor per observation: a feature close to two observations of one point is that
-    point (the old test, against the second row, rejected it); one close to two different points is ambiguous."""
-    from bcmocap.frontend.register import ReferenceIndex, match_to_reference
-
-    rng = np.random.default_rng(0)
-    points = rng.uniform(0, 120, (50, 128))
-    seen_twice = points[7] + rng.normal(0, 1.0, 128)
-    descriptors = np.vstack([points, seen_twice]).astype(np.float32)  # rows 7 and 50 observe point 7
-    ids = np.r_[np.arange(50), 7]
-    index = ReferenceIndex(descriptors, ids, rng.normal(size=(51, 3)))
-    query = np.vstack([points[7] + rng.normal(0, 2.0, 128), (points[3] + points[4]) / 2]).astype(np.float32)
-    rows_query, rows = match_to_reference(query, index, 0.8, checks=64)
-    assert rows_query.tolist() == [0] and ids[rows].tolist() == [7]
-    _, plain = index.search(64).nearest(query, 0.8)  # the second row as it comes: point 7 again
-    assert not plain[0]
-
-
 def test_reference_model_on_real_photos(tmp_path):
     pycolmap.logging.minloglevel = 2
     camera = PinholeCamera(width=640, height=481, focal=[2905.88 * SCALE] * 2,

@@ -106,14 +106,9 @@ class DescriptorIndex:
         self.descriptors, self.trees, self.checks = state["descriptors"], state["trees"], state["checks"]
         self._local = threading.local()
 
-    def nearest(self, query: np.ndarray, ratio: float, labels: np.ndarray | None = None,
-                neighbours: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    def nearest(self, query: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
         """``(nearest (N,), good (N,))``: index of each query row's nearest neighbour (−1 when the index holds
-        fewer than two rows) and whether it passes Lowe's ratio test (distance < ``ratio`` × second).
-
-        With ``labels`` ``(M,)`` (e.g. the 3D point each row observes), the second is the nearest row of another
-        label among the ``neighbours`` nearest (none there: the match passes, every close row agreeing on it).
-        """
+        fewer than two rows) and whether it passes Lowe's ratio test (distance < ``ratio`` × second)."""
         import cv2
 
         query = np.ascontiguousarray(query, np.float32).reshape(-1, 128)
@@ -123,15 +118,8 @@ class DescriptorIndex:
         if flann is None:
             cv2.setRNGSeed(FLANN_SEED)  # this thread's RNG: the trees do not depend on timing or history
             flann = self._local.flann = cv2.flann_Index(self.descriptors, {"algorithm": 1, "trees": self.trees})
-        k = 2 if labels is None else int(np.clip(neighbours, 2, len(self.descriptors)))
-        idx, dist2 = flann.knnSearch(query, k, params={"checks": self.checks})  # squared L2 distances
-        if labels is None:
-            return idx[:, 0].astype(np.int64), dist2[:, 0] < ratio**2 * dist2[:, 1]
-        found = idx >= 0
-        label = np.where(found, np.asarray(labels)[np.where(found, idx, 0)], -1)
-        other = found & (label != label[:, :1])
-        second = np.where(other.any(axis=1), dist2[np.arange(len(idx)), np.argmax(other, axis=1)], np.inf)
-        return idx[:, 0].astype(np.int64), found[:, 0] & (dist2[:, 0] < ratio**2 * second)
+        idx, dist2 = flann.knnSearch(query, 2, params={"checks": self.checks})
+        return idx[:, 0].astype(np.int64), dist2[:, 0] < ratio**2 * dist2[:, 1]  # squared L2 distances
 
 
 def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, *, ratio: float = 0.8,

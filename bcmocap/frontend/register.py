@@ -33,14 +33,8 @@ from ..native_crashes import load_pycolmap
 from .poses import world_from_camera_wxyz_xyz
 from .reference import DescriptorIndex, ReferenceModel, extract_sift
 
-__all__ = ["RATIO_NEIGHBOURS", "ReferenceIndex", "FrameRegistration", "RegistrationOptions", "TrialRegistration",
+__all__ = ["ReferenceIndex", "FrameRegistration", "RegistrationOptions", "TrialRegistration",
            "match_to_reference", "reference_index", "register_frame", "register_trial"]
-
-
-#: Rows of the index searched per feature for the ratio test's second, the nearest of another 3D point
-#: (:func:`match_to_reference`): a reference point is observed in 3.6 photos on average (at most 11, a rendered
-#: room's 24 photos), and 16 rows cost 5 % more search than 2.
-RATIO_NEIGHBOURS = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -162,15 +156,8 @@ def _failed(num_matches: int, num_inliers: int = 0, error: float = np.inf, pose=
 def match_to_reference(descriptors: np.ndarray, index: ReferenceIndex, ratio: float,
                        checks: int = 32) -> tuple[np.ndarray, np.ndarray]:
     """2D–3D candidates: ``(query, rows)`` indices into ``descriptors`` and into ``index``, nearest neighbours
-    passing the ratio test, one 2D feature per 3D point (the first in keypoint order).
-
-    The index holds a descriptor per observation of a point, so a feature's second nearest row is often the same
-    point seen in another photo; the ratio test weighs the nearest row of another point instead (among the
-    :data:`RATIO_NEIGHBOURS` nearest). Against the second row as it came, the test rejected most true matches:
-    on a rendered walk's body-camera frames 2.5-3x fewer 2D-3D matches and RANSAC inliers (a chest frame 89 / 71
-    against 224 / 184), and limb cameras fell below ``min_inliers``."""
-    nearest, good = index.search(checks).nearest(descriptors, ratio, labels=index.point3D_ids,
-                                                 neighbours=RATIO_NEIGHBOURS)
+    passing the ratio test, one 2D feature per 3D point (the first in keypoint order)."""
+    nearest, good = index.search(checks).nearest(descriptors, ratio)
     query = np.flatnonzero(good)
     _, first = np.unique(index.point3D_ids[nearest[query]], return_index=True)
     return query[first], nearest[query][first]
