@@ -183,9 +183,10 @@ def test_a_cameras_windows_are_cut_from_one_read_of_its_video():
     from bcmocap.frontend.gyro_timing import _windows
 
     frames = ((i, f"image {i}") for i in range(40, 100))
-    out = _windows(frames, np.array([40, 60, 85]), 5)
+    out = list(_windows(frames, np.array([40, 60, 85]), 5))
     assert [[i for i, _ in w] for w in out] == [[40, 41, 42, 43, 44], [60, 61, 62, 63, 64], [85, 86, 87, 88, 89]]
     assert out[1][0][1] == "image 60"
+    assert [len(w) for w in _windows(((i, None) for i in range(0, 10)), np.array([0, 8]), 5)] == [5, 2]  # cut short
 
 
 def test_the_solve_reads_the_gyro_time_offsets_relative_to_their_mean(tmp_path):

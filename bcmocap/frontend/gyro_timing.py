@@ -343,15 +343,23 @@ def trial_pairs(capture, trial: str, offsets, span: int, *, windows: int = 8, wi
     return imu, index, pairs
 
 
-def _windows(frames, starts: np.ndarray, length: int) -> list[list]:
+def _windows(frames, starts: np.ndarray, length: int):
     """The ``(index, image)`` of ``frames`` (in order) within each window ``starts[k] … starts[k] + length − 1``
-    (``starts`` increasing, windows apart), one list per window."""
-    out: list[list] = [[] for _ in starts]
+    (``starts`` increasing, windows apart), one list per window, each yielded once the stream has passed it (one
+    window's frames held at a time)."""
+    current: list = []
+    k_current = -1
     for index, image in frames:
         k = int(np.searchsorted(starts, index, side="right")) - 1
-        if k >= 0 and index < starts[k] + length:
-            out[k].append((index, image))
-    return out
+        if k < 0 or index >= starts[k] + length:
+            continue
+        if k != k_current and k_current >= 0:
+            yield current
+            current = []
+        k_current = k
+        current.append((index, image))
+    if k_current >= 0:
+        yield current
 
 
 def timing_of_trials(capture, offsets: dict, readout_s: float, *, spans: dict,

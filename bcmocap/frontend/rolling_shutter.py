@@ -45,9 +45,11 @@ __all__ = ["GyroUnwarp", "check_readout", "gyro_file", "gyro_fingerprint", "gyro
 ROW_ITERATIONS = 3
 #: How the map is made (saved with the settings, so frames corrected by an older map are not taken for these): 2, a
 #: grid covering the image (its last row and column at or past the image's) interpolated by ``cv2.warpAffine``; 1
-#: (unmarked), a grid ending on the last pixel, interpolated in numpy (maps within 1e-4 px of these, 0.003 px in the
-#: last grid cell of rows and columns).
+#: (unmarked), a grid ending on the last pixel, interpolated in numpy (at the default 8 px grid, maps within 1e-4 px of
+#: these, 0.003 px in the last grid cell of rows and columns).
 MAP_VERSION = 2
+#: Frames whose mean angular velocity is kept (a few hundred bytes each; the oldest dropped first).
+OMEGA_CACHE = 20000
 
 
 def _turned(rotvec, vector):
@@ -56,7 +58,7 @@ def _turned(rotvec, vector):
     small = theta2 < 1e-12
     theta = jnp.sqrt(jnp.where(small, 1.0, theta2))
     sin_over = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
-    cos_term = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / jnp.where(small, 1.0, theta2))
+    cos_term = jnp.where(small, 0.5 - theta2 / 24.0, 2.0 * jnp.sin(0.5 * theta) ** 2 / jnp.where(small, 1.0, theta2))
     return vector + sin_over * jnp.cross(rotvec, vector) + cos_term * jnp.cross(rotvec, jnp.cross(rotvec, vector))
 
 
@@ -133,7 +135,12 @@ class GyroUnwarp:
         key = (int(camera), int(index))
         found = self._omegas.get(key)
         if found is None:
-            found = self._omegas[key] = self._angular_velocity(*key)
+            found = self._angular_velocity(*key)
+            found.setflags(write=False)
+            with self._omega_lock:
+                self._omegas[key] = found
+                while len(self._omegas) > OMEGA_CACHE:  # the oldest first (frames are read roughly in order)
+                    self._omegas.pop(next(iter(self._omegas)))
         return found
 
     def _angular_velocity(self, camera: int, index: int) -> np.ndarray:
@@ -153,7 +160,17 @@ class GyroUnwarp:
 
     @functools.cached_property
     def _omegas(self) -> dict:
-        return {}  # (camera, video frame) -> (3,) rad/s; one entry per frame read (a few floats each)
+        return {}  # (camera, video frame) -> (3,) rad/s, at most OMEGA_CACHE of them
+
+    @functools.cached_property
+    def _omega_lock(self):
+        import threading
+
+        return threading.Lock()
+
+    def __getstate__(self) -> dict:
+        """Pickled without what is kept per camera and frame (a cluster task builds its own)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_tables", "_omegas", "_omega_lock")}
 
     @functools.cached_property
     def _tables(self) -> list:
@@ -174,13 +191,15 @@ class GyroUnwarp:
         """``(H, W, 2)`` float32: where output pixel ``(x, y)`` of video frame ``index`` of ``camera`` lies in the
         rolling-shutter frame (OpenCV pixels), for ``cv2.remap``. The displacement is computed on the grid and
         interpolated bilinearly in between (``cv2.warpAffine`` at ``1 / grid_px``: its sample positions, multiples
-        of ``1 / grid_px``, are exact in its 1/32 pixel steps for a grid of 1, 2, 4, 8, 16 or 32 px)."""
+        of ``1 / grid_px``, are exact in its 1/32 grid-cell steps for a grid of 2, 4, 8, 16 or 32 px; for other
+        spacings a position is rounded to 1/32 of a cell, about 1e-3 px of a smooth map)."""
         import cv2
 
         grid, bearing, pixels = self._tables[camera]
         lens = self.lenses[camera]
-        shift = np.asarray(_grid_shift(lens, bearing, grid, self.angular_velocity(camera, index), self.readout_s,
-                                       float(max(int(lens.height) - 1, 1))), np.float32)
+        shift = np.asarray(_grid_shift(lens, bearing, grid, self.angular_velocity(camera, index),  # arrays: traced,
+                                       np.float64(self.readout_s), np.float64(max(int(lens.height) - 1, 1))),  # not static
+                           np.float32)
         scale = 1.0 / self.grid_px
         full = cv2.warpAffine(shift, np.array([[scale, 0.0, 0.0], [0.0, scale, 0.0]]), (pixels.shape[1], pixels.shape[0]),
                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
