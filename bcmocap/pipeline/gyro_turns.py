@@ -3,12 +3,11 @@ read at the camera's shift on the gyro's clock, as a :class:`~bcmocap.residuals.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
-import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import SO3
+from ..geometry import quat_conjugate, quat_multiply
 from ..io.sensors import integrate_gyro, read_imu
 from ..residuals.gyro import GyroTurn
 from ..residuals.term_window import TermWindow
@@ -46,7 +45,7 @@ def gyro_turns(window: TermWindow, sigma_deg: float, time_shifts_s: Sequence[flo
         if not ok.any():
             continue
         q = integrate_gyro(imu.time, imu.gyro[:, s : s + 1], np.where(ok, t0, imu.time[0]), np.where(ok, t1, imu.time[0]))
-        mount = SO3(jnp.asarray(imu.camera_from_imu[s, :4]))
-        turn[:, c, 0] = np.asarray((mount @ SO3(jnp.asarray(q[:, 0])) @ mount.inverse()).wxyz)
+        mount = np.asarray(imu.camera_from_imu[s, :4], np.float64)  # the turn in the camera: mount · q · mount⁻¹
+        turn[:, c, 0] = quat_multiply(quat_multiply(mount, q[:, 0]), quat_conjugate(mount))
         weights[:, c, 0] = np.where(ok, 1.0 / np.radians(sigma_deg) ** 2, 0.0)
     return GyroTurn({"turn": turn, "weights": weights}, name="gyro turns")
