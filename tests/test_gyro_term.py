@@ -3,6 +3,7 @@ true motion, the solver's gradient is the finite-difference one, and ``[solver] 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import types
 
@@ -144,3 +145,79 @@ def test_the_run_reads_the_gyros_at_the_frontends_shifts(walk, tmp_path):
     registration.write_text(json.dumps({"gyro_timing": {"time_shift_ms": [1.0, 2.0]}}))
     with pytest.raises(ValueError, match="registration.json: gyro_timing.time_shift_ms has 2 values for 18 cameras"):
         read(config)
+
+
+def test_a_gyro_carries_a_camera_to_the_rest_pose_it_was_not_registered_in():
+    # A range-of-motion trial (the leg model, 30 fps, the rest held for 0.5 s first) whose shin camera registers in
+    # 12 frames 3.3 s after the rest frames only: its gyro carries it back to the rest pose, within 0.05° with the
+    # studio's gyro noise and no bias; with the studio's turn-on bias (up to 0.5°/s per axis), which is not taken
+    # off, within |bias| times the 3.4 s carried.
+    from test_sim_rom import TRIAL, leg_model
+
+    from bcmocap.pipeline.gyro_turns import rest_orientations_from_gyros
+    from bcmocap.sim import range_of_motion_trial
+
+    skeleton, rig = leg_model()
+    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0, **TRIAL)
+    frames = trial.registered.shape[0]
+    shin = rig.index("shin")
+    registered = trial.registered.copy()
+    registered[:, shin] = False
+    registered[100:112, shin] = True
+    rest = np.zeros(frames, bool)
+    rest[trial.rest_frames] = True
+    truth = trial.world_from_camera[rest, shin, :4].mean(axis=0)
+    truth /= np.linalg.norm(truth)
+    angles = []
+    for bias in (0.0, np.radians(0.5)):
+        imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, frames - 1), seed=3, gyro_bias=bias)
+        carried, report = rest_orientations_from_gyros(trial.world_from_camera, registered, rest, TRIAL["fps"], imu,
+                                                       rig.names)
+        assert np.isnan(np.delete(carried, shin, axis=0)).all() and list(report) == ["shin"]
+        assert report["shin"]["frames"] == 12 and 3.0 < report["shin"]["nearest_s"] < 3.5
+        angles.append(np.degrees(2 * np.arccos(min(1.0, abs(carried[shin] @ truth)))))
+    assert angles[0] < 0.05 and angles[1] < 0.05 + 3.7 * 0.5 * np.sqrt(3), angles
+    with pytest.raises(ValueError, match=r"3 time shifts for 7 cameras"):
+        rest_orientations_from_gyros(trial.world_from_camera, registered, rest, TRIAL["fps"], imu, rig.names, [0.0] * 3)
+
+
+def test_the_skeleton_stage_carries_rest_orientations_on_the_gyro_clock_of_the_frontends_timing(tmp_path, monkeypatch):
+    # The run's glue: the ROM trial's imu.npz, read at the shifts the frontend's gyro timing found for that trial
+    # (here the IMU clock runs 40 ms behind the frames: read on the frames' clock, the shin is carried 10° off), only for cameras no rest frame registered.
+    from test_sim_rom import TRIAL, leg_model
+
+    import bcmocap.correspondence_store as store_module
+    from bcmocap.pipeline import run
+    from bcmocap.sim import range_of_motion_trial
+
+    skeleton, rig = leg_model()
+    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0, **TRIAL)
+    frames = trial.registered.shape[0]
+    imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, frames - 1), seed=3, gyro_bias=0.0)
+    capture = tmp_path / "capture"
+    (capture / "trials" / "rom").mkdir(parents=True)
+    write_imu(capture / "trials" / "rom" / "imu.npz", dataclasses.replace(imu, time=imu.time + 0.04))
+    out = tmp_path / "run"
+    (out / "frontend" / "rom").mkdir(parents=True)
+    shifts = [40.0] * rig.num_cameras
+    (out / "frontend" / "rom" / "registration.json").write_text(json.dumps({"gyro_timing": {"time_shift_ms": shifts}}))
+    monkeypatch.setattr(store_module.CorrespondenceStore, "open", staticmethod(lambda path: types.SimpleNamespace(fps=TRIAL["fps"])))
+    cameras = [types.SimpleNamespace(name=n) for n in rig.names]
+    logged = []
+    ctx = run.RunContext(capture=types.SimpleNamespace(path=capture, cameras=cameras), config=RunConfig(), out=out,
+                         log=logged.append)
+    rest = np.zeros(frames, bool)
+    rest[trial.rest_frames] = True
+    assert run._gyro_rest_orientations(ctx, trial.world_from_camera, trial.registered, rest) is None
+    shin = rig.index("shin")
+    registered = trial.registered.copy()
+    registered[:, shin] = False
+    registered[150:162, shin] = True  # while the knee flexes
+    carried = run._gyro_rest_orientations(ctx, trial.world_from_camera, registered, rest)
+    truth = trial.world_from_camera[rest, shin, :4].mean(axis=0)
+    assert np.degrees(2 * np.arccos(min(1.0, abs(carried[shin] @ truth / np.linalg.norm(truth))))) < 0.05
+    assert np.isnan(np.delete(carried, shin, axis=0)).all()
+    assert len(logged) == 1 and "camera 'shin' is registered in no rest frame" in logged[0] and "12 registered frames" in logged[0]
+    (out / "frontend" / "rom" / "registration.json").write_text("{}")  # without the timing: read 40 ms off
+    off = run._gyro_rest_orientations(ctx, trial.world_from_camera, registered, rest)
+    assert np.degrees(2 * np.arccos(min(1.0, abs(off[shin] @ truth / np.linalg.norm(truth))))) > 3.0

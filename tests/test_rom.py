@@ -146,6 +146,46 @@ def test_more_trials_determine_a_joint_the_rom_trial_did_not_move(model, noisele
         rom.estimate(more_trials=[(noiseless.world_from_camera[:, :6], noiseless.registered[:, :6])])
 
 
+def test_a_segment_unregistered_at_rest_takes_a_carried_rest_orientation(model, noiseless):
+    # The shin's camera registers in 12 frames of the ROM trial, none at rest (a limb facing a blank wall there):
+    # the capture's frames count towards its registrations and fit the knee, and its rest orientation, carried
+    # from elsewhere (a gyro), places the segment; the knee's centre on its hinge axis is placed by the shin hung
+    # from the thigh at rest. Exact on noiseless poses; without the carried orientation, an error naming it.
+    skeleton, rig = model
+    shin = rig.index("shin")
+    rest = np.asarray(noiseless.rest_frames)
+    registered = noiseless.registered.copy()
+    registered[:, shin] = False
+    registered[100:112, shin] = True
+    assert not registered[rest, shin].any()
+    args = (skeleton, noiseless.assignment, noiseless.world_from_camera, registered)
+    more = [(noiseless.world_from_camera, noiseless.registered)]
+    with pytest.raises(ValueError, match=r"camera 'shin' is registered in only 12 frames of the range-of-motion trial"):
+        skeleton_from_range_of_motion(*args, rest_frames=rest)
+    with pytest.raises(ValueError, match=r"segment 'shin': none of its cameras is registered in the rest frames, and "
+                       r"none has a rest orientation carried"):
+        skeleton_from_range_of_motion(*args, rest_frames=rest, more_trials=more)
+    carried = np.full((len(rig.names), 4), np.nan)
+    carried[shin] = noiseless.world_from_camera[rest[0], shin, :4]
+    est = skeleton_from_range_of_motion(*args, rest_frames=rest, more_trials=more, rest_orientations=carried,
+                                        root_origin=["torso"])
+    np.testing.assert_allclose(est.skeleton.offsets, skeleton.offsets, atol=1e-9)
+    np.testing.assert_allclose(est.skeleton.hinge_axes, skeleton.hinge_axes, atol=1e-9)
+    assert_same_mounts(est.segment_from_camera, np.asarray(rig.segment_from_camera), 1e-9)
+    # a carried orientation 2° off turns the shin's frame (and its mount) by 2°
+    off = carried.copy()
+    off[shin] = np.asarray((SO3(carried[shin]) @ SO3.exp(np.radians([2.0, 0.0, 0.0]))).wxyz)
+    est = skeleton_from_range_of_motion(*args, rest_frames=rest, more_trials=more, rest_orientations=off,
+                                        root_origin=["torso"])
+    mounts = est.segment_from_camera
+    np.testing.assert_allclose(np.degrees(quat_distance(mounts[shin, :4], np.asarray(rig.segment_from_camera)[shin, :4])),
+                               2.0, atol=0.05)
+    with pytest.raises(ValueError, match=r"rest_orientations: expected \(7, 4\)"):
+        skeleton_from_range_of_motion(*args, rest_frames=rest, more_trials=more, rest_orientations=carried[:6])
+    with pytest.raises(ValueError, match=r"rest_orientations: rows must be unit quaternions"):
+        skeleton_from_range_of_motion(*args, rest_frames=rest, more_trials=more, rest_orientations=2 * carried)
+
+
 def test_uncertain_centre_says_which_limit_it_exceeds(model):
     skeleton, rig = model
     trial = range_of_motion_trial(skeleton, rig, seed=1, **TRIAL)

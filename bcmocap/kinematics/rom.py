@@ -307,7 +307,9 @@ def _as_pairs(cameras) -> list[tuple[str, str]]:
     return [(str(c), str(s)) for c, s in pairs]
 
 
-def _check_assignment(topology: Topology, pairs, world_from_camera, registered, options: RomOptions):
+def _check_assignment(topology: Topology, pairs, world_from_camera, registered, options: RomOptions, more_registered=()):
+    """The cameras of each segment (indices into ``pairs``); ValueError for an assignment the trials cannot
+    estimate (counting each camera's registrations over the range-of-motion trial and ``more_registered``)."""
     names = [c for c, _ in pairs]
     if len(set(names)) != len(names):
         raise ValueError(f"camera assignment: duplicate camera names {sorted({n for n in names if names.count(n) > 1})}")
@@ -333,7 +335,8 @@ def _check_assignment(topology: Topology, pairs, world_from_camera, registered, 
                 f"segment '{topology.names[j]}' has a FIXED joint: its centre cannot be found from motion; merge it "
                 "into its parent or declare it a ball joint"
             )
-    counts = registered.sum(axis=0)
+    counts = registered.sum(axis=0) + sum((np.asarray(r, bool).sum(axis=0) for r in more_registered), np.zeros(c, int))
+    trials = "the range-of-motion trial" if not more_registered else f"the {1 + len(more_registered)} trials"
     for j, cams in enumerate(seg_cams):
         usable = [i for i in cams if counts[i] >= options.min_frames]
         for i in cams:
@@ -341,13 +344,13 @@ def _check_assignment(topology: Topology, pairs, world_from_camera, registered, 
                 continue
             if not usable:
                 raise ValueError(
-                    f"camera '{names[i]}' is registered in only {counts[i]} frames of the range-of-motion trial "
+                    f"camera '{names[i]}' is registered in only {counts[i]} frames of {trials} "
                     f"(< {options.min_frames}) and segment '{topology.names[j]}' has no better camera: its joint and "
                     "frame cannot be estimated"
                 )
             if counts[i] == 0:
                 raise ValueError(
-                    f"camera '{names[i]}' is never registered in the range-of-motion trial: its mount on "
+                    f"camera '{names[i]}' is never registered in {trials}: its mount on "
                     f"'{topology.names[j]}' is unknown; re-register it or remove it from the assignment"
                 )
     return seg_cams
@@ -369,6 +372,7 @@ def skeleton_from_range_of_motion(
     root_origin: Sequence[str] | None = None,
     world_from_rest: np.ndarray | None = None,
     more_trials: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+    rest_orientations: np.ndarray | None = None,
     options: RomOptions = RomOptions(),
 ) -> RomEstimate:
     """Estimate a skeleton and its camera mounts from the camera poses of a range-of-motion trial.
@@ -390,14 +394,20 @@ def skeleton_from_range_of_motion(
         more_trials: ``(world_from_camera (T', C, 7), registered (T', C))`` of other trials with the same
             mounts, in the same world frame (e.g. the capture itself): their parent→child poses join each
             joint's centre fit, so a joint the range-of-motion trial moved too little (or registered too
-            rarely) is determined by all the motion there is. The virtual cameras, the rest pose and the
-            hinges' flexion sides come from the range-of-motion trial alone.
+            rarely) is determined by all the motion there is; their frames also count towards each camera's
+            registrations, the virtual cameras and the hinges' flexion sides. The rest pose comes from the
+            range-of-motion trial's rest frames alone.
+        rest_orientations: ``(C, 4)`` each camera's world orientation (wxyz) in the rest pose where it is known
+            other than by a registration in the rest frames (e.g. carried there by the camera's gyro from the
+            frames it registered in), NaN where not. Read only for a segment none of whose cameras is
+            registered in the rest frames; its position there follows from its parent's and the joint centre.
         options: thresholds and choices (:class:`RomOptions`).
 
     Raises:
         ValueError: an assignment naming unknown segments; a segment without cameras; a camera with
-            too few registered frames and no other camera on its segment; a joint the trial did not
-            exercise (naming it and what is missing); no rest frame for a segment.
+            too few registered frames in all trials and no other camera on its segment; a joint the trials
+            did not exercise (naming it and what is missing); a segment neither registered in the rest frames
+            nor given a rest orientation.
 
     Warns:
         UserWarning: a camera registered with its segment's other cameras in few frames; a hinge whose
@@ -409,7 +419,10 @@ def skeleton_from_range_of_motion(
     pairs = _as_pairs(cameras)
     world_from_camera = np.asarray(world_from_camera, dtype=np.float64)
     registered = np.asarray(registered, dtype=bool)
-    seg_cams = _check_assignment(topology, pairs, world_from_camera, registered, options)
+    _check_more_trials(pairs, more_trials)
+    seg_cams = _check_assignment(topology, pairs, world_from_camera, registered, options,
+                                 [reg for _, reg in more_trials])
+    carried = _check_rest_orientations(rest_orientations, len(pairs))
     rest = np.zeros(registered.shape[0], bool)
     rest[rest_frames] = True
     if not rest.any():
@@ -418,8 +431,10 @@ def skeleton_from_range_of_motion(
     vcs, pooled = _segment_virtual_cameras(topology, pairs, seg_cams, world_from_camera, registered, more_trials, options)
     world_v, known = pooled[0]
     joints, families = _estimate_joint_centres(topology, pooled, more_trials, options)
-    world_from_v_rest = _rest_pose(topology, joints, families, world_v, known, rest)
-    skeleton, seg_from_v = _segment_frames(topology, joints, world_from_v_rest, world_from_rest, root_origin, world_v, known)
+    world_from_v_rest = _rest_pose(topology, joints, families, world_v, known, rest,
+                                   _carried_segment_rest(topology, seg_cams, vcs, carried))
+    all_v, all_known = (np.concatenate(x) for x in zip(*pooled))
+    skeleton, seg_from_v = _segment_frames(topology, joints, world_from_v_rest, world_from_rest, root_origin, all_v, all_known)
     camera_segments = tuple(topology.index(s) for _, s in pairs)
     mounts = np.zeros((len(pairs), 7))
     for j, cams in enumerate(seg_cams):
@@ -430,22 +445,56 @@ def skeleton_from_range_of_motion(
     return RomEstimate(skeleton, rig, mounts, names, camera_segments, joints, vcs, seg_from_v)
 
 
-def _segment_virtual_cameras(topology, pairs, seg_cams, world_from_camera, registered, more_trials, options):
-    """One virtual camera per segment from the range-of-motion trial, and the ``(world_v, known)`` virtual-camera
-    poses of that trial and of each of ``more_trials`` (in that order; see :func:`_virtual_poses`)."""
-    vcs: dict[str, VirtualCamera] = {
-        topology.names[j]: estimate_virtual_camera(
-            [pairs[i][0] for i in cams], world_from_camera[:, cams], registered[:, cams], name=topology.names[j],
-            centred=options.centred_virtual, min_frames=options.min_frames,
-        )
-        for j, cams in enumerate(seg_cams)
-    }
+def _check_more_trials(pairs, more_trials) -> None:
     for k, (poses, reg) in enumerate(more_trials):
         if np.ndim(poses) != 3 or np.shape(poses)[1:] != (len(pairs), 7) or np.shape(reg) != np.shape(poses)[:2]:
             raise ValueError(
                 f"skeleton_from_range_of_motion: more_trials[{k}]: expected world_from_camera (T, {len(pairs)}, 7) and "
                 f"registered (T, {len(pairs)}) for the {len(pairs)} assigned cameras, got {np.shape(poses)} and {np.shape(reg)}"
             )
+
+
+def _check_rest_orientations(rest_orientations, num_cameras: int) -> np.ndarray:
+    """``(C, 4)`` unit quaternions (NaN rows where none is given) from the ``rest_orientations`` argument."""
+    if rest_orientations is None:
+        return np.full((num_cameras, 4), np.nan)
+    q = np.asarray(rest_orientations, dtype=np.float64)
+    if q.shape != (num_cameras, 4):
+        raise ValueError(f"skeleton_from_range_of_motion: rest_orientations: expected ({num_cameras}, 4) for the "
+                         f"{num_cameras} assigned cameras, got {q.shape}")
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    given = np.isfinite(q).all(axis=1)
+    if np.any(np.abs(norm[given] - 1.0) > 1e-6):
+        raise ValueError("skeleton_from_range_of_motion: rest_orientations: rows must be unit quaternions (wxyz) or NaN")
+    return np.where(given[:, None], q / np.where(given[:, None], norm, 1.0), np.nan)
+
+
+def _carried_segment_rest(topology, seg_cams, vcs, carried) -> np.ndarray:
+    """``(J, 4)`` each segment's world_from_virtual rest orientation from its cameras' ``carried`` ``(C, 4)`` rest
+    orientations (their robust mean through the virtual camera), NaN where no camera of the segment has one."""
+    out = np.full((len(topology.names), 4), np.nan)
+    for j, cams in enumerate(seg_cams):
+        vc = vcs[topology.names[j]]
+        qs = [quat_multiply(carried[i], quat_conjugate(vc.virtual_from_camera[k, :4]))
+              for k, i in enumerate(cams) if np.isfinite(carried[i]).all()]
+        if qs:
+            out[j] = _average_rotation(np.array(qs))
+    return out
+
+
+def _segment_virtual_cameras(topology, pairs, seg_cams, world_from_camera, registered, more_trials, options):
+    """One virtual camera per segment from the frames of all trials (the range-of-motion trial and
+    ``more_trials``), and the ``(world_v, known)`` virtual-camera poses of each trial (in that order; see
+    :func:`_virtual_poses`)."""
+    all_poses = np.concatenate([world_from_camera, *(np.asarray(p, np.float64) for p, _ in more_trials)])
+    all_registered = np.concatenate([registered, *(np.asarray(r, bool) for _, r in more_trials)])
+    vcs: dict[str, VirtualCamera] = {
+        topology.names[j]: estimate_virtual_camera(
+            [pairs[i][0] for i in cams], all_poses[:, cams], all_registered[:, cams], name=topology.names[j],
+            centred=options.centred_virtual, min_frames=options.min_frames,
+        )
+        for j, cams in enumerate(seg_cams)
+    }
     pooled = [_virtual_poses(vcs, topology, seg_cams, poses, reg, options)
               for poses, reg in [(world_from_camera, registered), *more_trials]]
     return vcs, pooled
@@ -509,15 +558,33 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
     return joints, families
 
 
-def _rest_pose(topology, joints, families, world_v, known, rest) -> np.ndarray:
+def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest) -> np.ndarray:
     """Rest pose (Eq. 17): ``(J, 4)`` world_from_virtual orientations of the segments in the ``rest`` frames
-    ``(T,)``; places each hinge-like family's centre on its axis, updating ``joints`` in place."""
+    ``(T,)``; places each hinge-like family's centre on its axis, updating ``joints`` in place.
+
+    A segment none of whose cameras is registered in the rest frames takes its ``carried_rest`` ``(J, 4)``
+    orientation (NaN: none, ValueError), and its virtual camera's pose in each rest frame where its parent's is
+    known is put where that orientation and the joint centre hang it from the parent (for the families' placement).
+    """
+    world_v, known = world_v.copy(), known.copy()
     world_from_v_rest = np.zeros((len(topology.names), 4))
-    for j in range(len(topology.names)):
+    for j in range(len(topology.names)):  # parents first
         ok = rest & known[:, j]
-        if not ok.any():
-            raise ValueError(f"segment '{topology.names[j]}': none of its cameras is registered in the rest frames")
-        world_from_v_rest[j] = _average_rotation(world_v[ok, j, :4])
+        if ok.any():
+            world_from_v_rest[j] = _average_rotation(world_v[ok, j, :4])
+            continue
+        if not np.isfinite(carried_rest[j]).all():
+            raise ValueError(f"segment '{topology.names[j]}': none of its cameras is registered in the rest frames, "
+                             "and none has a rest orientation carried from other frames (e.g. by its gyro)")
+        world_from_v_rest[j] = carried_rest[j]
+        p = topology.parents[j]
+        hang = rest & known[:, p] if p >= 0 else np.zeros_like(rest)
+        if hang.any():
+            est = joints[topology.names[j]]
+            centre = apply_pose(world_v[hang, p], est.centre_in_parent)
+            q = np.broadcast_to(carried_rest[j], (int(hang.sum()), 4))
+            world_v[hang, j] = np.concatenate([q, centre - rotate_by_quat(q, est.centre_in_child)], axis=1)
+            known[hang, j] = True
     # A family's placement reads its neighbours' centres; where neighbours are families too (an elbow next to a
     # wrist moved about one axis), alternate until the placements settle.
     _check_neighbouring_axes(topology, families, world_from_v_rest)

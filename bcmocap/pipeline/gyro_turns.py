@@ -1,5 +1,6 @@
-"""The gyro turns of a solver window (``[solver] gyro_turn``): each camera's gyro integrated over each pair of frames,
-read at the camera's shift on the gyro's clock, as a :class:`~bcmocap.residuals.gyro.GyroTurn`."""
+"""What the cameras' gyros say of their turns: over each pair of a solver window's frames (``[solver] gyro_turn``,
+read at the camera's shift on the gyro's clock, as a :class:`~bcmocap.residuals.gyro.GyroTurn`), and from the frames
+a camera registered in to the rest pose of a range-of-motion trial where it registered in none of the rest frames."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..geometry import quat_conjugate, quat_multiply
-from ..io.sensors import integrate_gyro, read_imu
+from ..io.sensors import ImuRecording, integrate_gyro, read_imu
+from ..kinematics.virtual import robust_average_poses
 from ..residuals.gyro import GyroTurn
 from ..residuals.term_window import TermWindow
 
@@ -49,3 +51,61 @@ def gyro_turns(window: TermWindow, sigma_deg: float, time_shifts_s: Sequence[flo
         turn[:, c, 0] = quat_multiply(quat_multiply(mount, q[:, 0]), quat_conjugate(mount))
         weights[:, c, 0] = np.where(ok, 1.0 / np.radians(sigma_deg) ** 2, 0.0)
     return GyroTurn({"turn": turn, "weights": weights}, name="gyro turns")
+
+
+def rest_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.ndarray, rest: np.ndarray, fps: float,
+                                 imu: ImuRecording, cameras: Sequence[str],
+                                 time_shifts_s: Sequence[float] | None = None) -> tuple[np.ndarray, dict]:
+    """Each camera's orientation in the rest pose of a range-of-motion trial, where no rest frame registered it,
+    carried by its gyro from the frames that did.
+
+    Each registered frame's orientation is turned by the gyro's integral from that frame to the middle of the rest
+    frames (on the gyro's clock: the frame times plus the camera's shift), and the turned orientations are averaged
+    robustly. The gyro's bias is not taken off: its mean over the rest frames is not a bias where the cameras wobble
+    on their straps while the body holds still (on the studio's realistic sparse walk it read up to 2.1°/s where the
+    turn-on bias is at most 0.9°/s, and carried the cameras 0.4–3.8° off the truth against 0.6–2.1° without it), so a
+    bias ``b`` leaves up to ``|b| · t`` over the ``t`` seconds carried.
+
+    Args:
+        world_from_camera: ``(T, C, 7)`` registered poses (wxyz_xyz); only registered rows are read.
+        registered: ``(T, C)`` bool. rest: ``(T,)`` bool, the rest frames. fps: frame rate (frame ``k`` at ``k/fps`` s).
+        imu: the trial's recording. cameras: ``(C,)`` names, matched to ``imu.cameras``.
+        time_shifts_s: ``(C,)`` where each camera's frames lie on the gyro's clock after the frame times (None: 0).
+
+    Returns:
+        ``(C, 4)`` wxyz orientations (NaN for cameras registered in a rest frame, without a gyro, or registered in no
+        frame the recording covers) and, per carried camera name, ``{"frames", "nearest_s", "spread_deg"}``: the
+        frames carried from, the nearest one's distance from the rest frames, and the turned orientations' median
+        angle from their mean.
+    """
+    world_from_camera = np.asarray(world_from_camera, np.float64)
+    registered = np.asarray(registered, bool)
+    rest = np.asarray(rest, bool)
+    c = len(cameras)
+    if world_from_camera.shape != (len(rest), c, 7) or registered.shape != (len(rest), c):
+        raise ValueError(f"rest orientations from gyros: expected poses ({len(rest)}, {c}, 7) and registered "
+                         f"({len(rest)}, {c}), got {world_from_camera.shape} and {registered.shape}")
+    shifts = np.zeros(c) if time_shifts_s is None else np.asarray(time_shifts_s, np.float64)
+    if shifts.shape != (c,):
+        raise ValueError(f"rest orientations from gyros: {shifts.size} time shifts for {c} cameras")
+    out = np.full((c, 4), np.nan)
+    report = {}
+    times = np.arange(len(rest)) / fps
+    for i, name in enumerate(cameras):
+        if registered[rest, i].any() or name not in imu.cameras or not rest.any():
+            continue
+        s = imu.cameras.index(name)
+        t_mid = float(np.mean(times[rest])) + shifts[i]
+        frames = np.flatnonzero(registered[:, i] & (times + shifts[i] >= imu.time[0]) & (times + shifts[i] <= imu.time[-1]))
+        if not frames.size or not imu.time[0] <= t_mid <= imu.time[-1]:
+            continue
+        q = integrate_gyro(imu.time, imu.gyro[:, s : s + 1], times[frames] + shifts[i], np.full(frames.size, t_mid))
+        mount = np.asarray(imu.camera_from_imu[s, :4], np.float64)
+        turn = quat_multiply(quat_multiply(mount, q[:, 0]), quat_conjugate(mount))  # camera(frame) → camera(rest)
+        carried = quat_multiply(world_from_camera[frames, i, :4], turn)
+        mean = robust_average_poses(np.concatenate([carried, np.zeros((frames.size, 3))], axis=1))[0][:4]
+        angles = 2.0 * np.arccos(np.clip(np.abs(carried @ mean), 0.0, 1.0))
+        out[i] = mean
+        report[name] = {"frames": int(frames.size), "nearest_s": float(np.min(np.abs(times[frames] - times[rest].mean()))),
+                        "spread_deg": float(np.degrees(np.median(angles)))}
+    return out, report

@@ -457,14 +457,41 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest):
     cams = [(c.name, c.segment) for c in ctx.capture.cameras]
     settings = ctx.config.skeleton
     options = RomOptions(max_centre_std_m=settings.max_centre_std_cm / 100, degenerate=settings.degenerate)
+    carried = _gyro_rest_orientations(ctx, poses, registered, rest)
+    if carried is not None:  # the similarity turns orientations as it turns poses
+        carried = to_world(np.concatenate([carried, np.zeros((len(carried), 3))], axis=1)[None])[0, :, :4]
     try:
         return skeleton_from_range_of_motion(
             _topology(ctx), cams, to_world(poses), registered, rest_frames=rest, options=options,
             intrinsics=_stacked_intrinsics(ctx), root_origin=list(settings.root_origin),
-            more_trials=_more_trials(ctx, to_world))
+            more_trials=_more_trials(ctx, to_world), rest_orientations=carried)
     except ValueError as exc:
         raise ValueError(f"{exc} (run settings: [skeleton] max_centre_std_cm = {settings.max_centre_std_cm:g}, "
                          f"degenerate = {settings.degenerate!r}, centre_trials = {list(settings.centre_trials)})") from None
+
+
+def _gyro_rest_orientations(ctx: RunContext, poses, registered, rest) -> np.ndarray | None:
+    """``(C, 4)`` the rest orientations (reference model frame) of the ROM trial's cameras that no rest frame
+    registered, carried there by their gyros (:func:`~bcmocap.pipeline.gyro_turns.rest_orientations_from_gyros`, on
+    the gyro's clock as the frontend's gyro timing found it), NaN for the others; None when every camera registered
+    at rest or the trial has no ``imu.npz``."""
+    from ..correspondence_store import CorrespondenceStore
+    from ..io.sensors import read_imu
+    from .gyro_turns import rest_orientations_from_gyros
+
+    path = ctx.capture.path / "trials" / "rom" / "imu.npz"
+    if registered[rest].any(axis=0).all() or not path.is_file():
+        return None
+    timing = _gyro_shifts(ctx, "rom")
+    names = [c.name for c in ctx.capture.cameras]
+    fps = CorrespondenceStore.open(ctx.path("frontend", "rom", "correspondences")).fps
+    carried, report = rest_orientations_from_gyros(poses, registered, rest, fps, read_imu(path), names,
+                                                   None if timing is None else timing[0])
+    for name, r in report.items():
+        ctx.log(f"skeleton: camera '{name}' is registered in no rest frame of the range-of-motion trial; its gyro carries "
+                f"its rest orientation from {r['frames']} registered frames (the nearest {r['nearest_s']:.2f} s away; "
+                f"their median spread {r['spread_deg']:.2f}°)")
+    return carried
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -613,10 +640,11 @@ def _registration_path(ctx: RunContext) -> Path:
     return ctx.path("frontend", "capture", "registration.json")
 
 
-def _gyro_shifts(ctx: RunContext) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(shifts (C,) s, determined (C,) bool)``: where the frontend's gyro timing put each camera's capture frames on
-    the gyro's clock after the trial's times, and which it determined; None when it did not time the gyros."""
-    path = _registration_path(ctx)
+def _gyro_shifts(ctx: RunContext, trial: str = "capture") -> tuple[np.ndarray, np.ndarray] | None:
+    """``(shifts (C,) s, determined (C,) bool)``: where the frontend's gyro timing put each camera's frames of
+    ``trial`` on the gyro's clock after the trial's times, and which it determined; None when it did not time the
+    gyros."""
+    path = ctx.path("frontend", trial, "registration.json")
     timing = read_json(path).get("gyro_timing") if path.is_file() else None
     if timing is None:
         return None
