@@ -182,8 +182,29 @@ def test_a_segment_unregistered_at_rest_takes_a_carried_rest_orientation(model, 
                                2.0, atol=0.05)
     with pytest.raises(ValueError, match=r"rest_orientations: expected \(7, 4\)"):
         skeleton_from_range_of_motion(*args, rest_frames=rest, more_trials=more, rest_orientations=carried[:6])
-    with pytest.raises(ValueError, match=r"rest_orientations: rows must be unit quaternions"):
+    with pytest.raises(ValueError, match=r"rest_orientations: row 5 is \[.*\]; rows must be unit quaternions"):
         skeleton_from_range_of_motion(*args, rest_frames=rest, more_trials=more, rest_orientations=2 * carried)
+    partial = carried.copy()
+    partial[0, 0] = 1.0
+    with pytest.raises(ValueError, match=r"rest_orientations: row 0 is \[1.0, nan, nan, nan\]"):
+        skeleton_from_range_of_motion(*args, rest_frames=rest, more_trials=more, rest_orientations=partial)
+
+
+def test_a_segment_of_several_cameras_unregistered_at_rest_takes_their_carried_orientations(model, noiseless):
+    # The pelvis's three cameras (its virtual camera turned from each of them) all miss the rest frames: their
+    # carried orientations, through the virtual camera, place it exactly.
+    skeleton, rig = model
+    pelvis = [i for i, s in enumerate(rig.segments) if s == 0]
+    assert len(pelvis) == 3
+    rest = np.asarray(noiseless.rest_frames)
+    registered = noiseless.registered.copy()
+    registered[np.ix_(rest, pelvis)] = False
+    carried = np.full((len(rig.names), 4), np.nan)
+    carried[pelvis] = noiseless.world_from_camera[rest[0], pelvis, :4]
+    est = skeleton_from_range_of_motion(skeleton, noiseless.assignment, noiseless.world_from_camera, registered,
+                                        rest_frames=rest, rest_orientations=carried, root_origin=["torso"])
+    np.testing.assert_allclose(est.skeleton.offsets, skeleton.offsets, atol=1e-9)
+    assert_same_mounts(est.segment_from_camera, np.asarray(rig.segment_from_camera), 1e-9)
 
 
 def test_uncertain_centre_says_which_limit_it_exceeds(model):

@@ -464,8 +464,10 @@ def _check_rest_orientations(rest_orientations, num_cameras: int) -> np.ndarray:
                          f"{num_cameras} assigned cameras, got {q.shape}")
     norm = np.linalg.norm(q, axis=1, keepdims=True)
     given = np.isfinite(q).all(axis=1)
-    if np.any(np.abs(norm[given] - 1.0) > 1e-6):
-        raise ValueError("skeleton_from_range_of_motion: rest_orientations: rows must be unit quaternions (wxyz) or NaN")
+    bad = np.flatnonzero(~given & ~np.isnan(q).all(axis=1) | given & (np.abs(norm[:, 0] - 1.0) > 1e-6))
+    if bad.size:
+        raise ValueError(f"skeleton_from_range_of_motion: rest_orientations: row {bad[0]} is {q[bad[0]].tolist()}; rows "
+                         "must be unit quaternions (wxyz) or all NaN")
     return np.where(given[:, None], q / np.where(given[:, None], norm, 1.0), np.nan)
 
 

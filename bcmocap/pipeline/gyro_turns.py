@@ -54,8 +54,9 @@ def gyro_turns(window: TermWindow, sigma_deg: float, time_shifts_s: Sequence[flo
 
 
 def rest_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.ndarray, rest: np.ndarray, fps: float,
-                                 imu: ImuRecording, cameras: Sequence[str],
-                                 time_shifts_s: Sequence[float] | None = None) -> tuple[np.ndarray, dict]:
+                                 imu: ImuRecording, names: Sequence[str],
+                                 time_shifts_s: Sequence[float] | None = None, *,
+                                 cameras: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Each camera's orientation in the rest pose of a range-of-motion trial, where no rest frame registered it,
     carried by its gyro from the frames that did.
 
@@ -69,8 +70,10 @@ def rest_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.n
     Args:
         world_from_camera: ``(T, C, 7)`` registered poses (wxyz_xyz); only registered rows are read.
         registered: ``(T, C)`` bool. rest: ``(T,)`` bool, the rest frames. fps: frame rate (frame ``k`` at ``k/fps`` s).
-        imu: the trial's recording. cameras: ``(C,)`` names, matched to ``imu.cameras``.
+        imu: the trial's recording. names: ``(C,)`` camera names, matched to ``imu.cameras``.
         time_shifts_s: ``(C,)`` where each camera's frames lie on the gyro's clock after the frame times (None: 0).
+        cameras: ``(C,)`` bool, the cameras to carry (None: every camera registered in no rest frame; a camera
+            registered in a rest frame is never carried).
 
     Returns:
         ``(C, 4)`` wxyz orientations (NaN for cameras registered in a rest frame, without a gyro, or registered in no
@@ -81,18 +84,21 @@ def rest_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.n
     world_from_camera = np.asarray(world_from_camera, np.float64)
     registered = np.asarray(registered, bool)
     rest = np.asarray(rest, bool)
-    c = len(cameras)
+    c = len(names)
     if world_from_camera.shape != (len(rest), c, 7) or registered.shape != (len(rest), c):
         raise ValueError(f"rest orientations from gyros: expected poses ({len(rest)}, {c}, 7) and registered "
                          f"({len(rest)}, {c}), got {world_from_camera.shape} and {registered.shape}")
     shifts = np.zeros(c) if time_shifts_s is None else np.asarray(time_shifts_s, np.float64)
     if shifts.shape != (c,):
         raise ValueError(f"rest orientations from gyros: {shifts.size} time shifts for {c} cameras")
+    chosen = np.ones(c, bool) if cameras is None else np.asarray(cameras, bool)
+    if chosen.shape != (c,):
+        raise ValueError(f"rest orientations from gyros: cameras has shape {chosen.shape}, expected ({c},)")
     out = np.full((c, 4), np.nan)
     report = {}
     times = np.arange(len(rest)) / fps
-    for i, name in enumerate(cameras):
-        if registered[rest, i].any() or name not in imu.cameras or not rest.any():
+    for i, name in enumerate(names):
+        if not chosen[i] or registered[rest, i].any() or name not in imu.cameras or not rest.any():
             continue
         s = imu.cameras.index(name)
         t_mid = float(np.mean(times[rest])) + shifts[i]

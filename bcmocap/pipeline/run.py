@@ -447,7 +447,7 @@ def _more_trials(ctx: RunContext, to_world) -> list[tuple[np.ndarray, np.ndarray
     return out
 
 
-def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest):
+def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest, log=None):
     """Skeleton and mounts from the ROM trial (camera poses through ``to_world``), its joint centres fitted to the
     motion of ``skeleton.centre_trials``. Pixel-registered poses are noisier than the 2 cm default certainty of
     :class:`~bcmocap.kinematics.rom.RomOptions` allows for a small joint like the ankle (3.0 cm for the left ankle
@@ -457,7 +457,7 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest):
     cams = [(c.name, c.segment) for c in ctx.capture.cameras]
     settings = ctx.config.skeleton
     options = RomOptions(max_centre_std_m=settings.max_centre_std_cm / 100, degenerate=settings.degenerate)
-    carried = _gyro_rest_orientations(ctx, poses, registered, rest)
+    carried = _gyro_rest_orientations(ctx, poses, registered, rest, ctx.log if log is None else log)
     if carried is not None:  # the similarity turns orientations as it turns poses
         carried = to_world(np.concatenate([carried, np.zeros((len(carried), 3))], axis=1)[None])[0, :, :4]
     try:
@@ -470,25 +470,31 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest):
                          f"degenerate = {settings.degenerate!r}, centre_trials = {list(settings.centre_trials)})") from None
 
 
-def _gyro_rest_orientations(ctx: RunContext, poses, registered, rest) -> np.ndarray | None:
-    """``(C, 4)`` the rest orientations (reference model frame) of the ROM trial's cameras that no rest frame
-    registered, carried there by their gyros (:func:`~bcmocap.pipeline.gyro_turns.rest_orientations_from_gyros`, on
-    the gyro's clock as the frontend's gyro timing found it), NaN for the others; None when every camera registered
-    at rest or the trial has no ``imu.npz``."""
+def _gyro_rest_orientations(ctx: RunContext, poses, registered, rest, log) -> np.ndarray | None:
+    """``(C, 4)`` the rest orientations (reference model frame) of the cameras of the ROM trial's segments that no rest
+    frame registered, carried there by their gyros (:func:`~bcmocap.pipeline.gyro_turns.rest_orientations_from_gyros`,
+    on the gyro's clock as the frontend's gyro timing found it; each one ``log``-ged), NaN for the others; None when
+    every segment registered at rest or the trial has no ``imu.npz``."""
     from ..correspondence_store import CorrespondenceStore
     from ..io.sensors import read_imu
     from .gyro_turns import rest_orientations_from_gyros
 
     path = ctx.capture.path / "trials" / "rom" / "imu.npz"
-    if registered[rest].any(axis=0).all() or not path.is_file():
+    segments = np.array([c.segment for c in ctx.capture.cameras])
+    at_rest = registered[rest].any(axis=0)
+    unplaced = np.array([not at_rest[segments == s].any() for s in segments])  # per camera: its segment, nowhere at rest
+    if not unplaced.any() or not path.is_file():
         return None
     timing = _gyro_shifts(ctx, "rom")
     names = [c.name for c in ctx.capture.cameras]
+    if timing is not None and timing[0].shape != (len(names),):
+        raise ValueError(f"{ctx.path('frontend', 'rom', 'registration.json')}: gyro_timing.time_shift_ms has "
+                         f"{timing[0].size} values for {len(names)} cameras")
     fps = CorrespondenceStore.open(ctx.path("frontend", "rom", "correspondences")).fps
     carried, report = rest_orientations_from_gyros(poses, registered, rest, fps, read_imu(path), names,
-                                                   None if timing is None else timing[0])
+                                                   None if timing is None else timing[0], cameras=unplaced)
     for name, r in report.items():
-        ctx.log(f"skeleton: camera '{name}' is registered in no rest frame of the range-of-motion trial; its gyro carries "
+        log(f"skeleton: camera '{name}' is registered in no rest frame of the range-of-motion trial; its gyro carries "
                 f"its rest orientation from {r['frames']} registered frames (the nearest {r['nearest_s']:.2f} s away; "
                 f"their median spread {r['spread_deg']:.2f}°)")
     return carried
@@ -537,7 +543,13 @@ def _stage_world(ctx: RunContext) -> dict:
     if not spans or float(np.median(spans)) <= 0:
         raise ValueError("world: no rest frame with two registered cameras in the range-of-motion trial")
     provisional = Similarity(1.7 / float(np.median(spans)), np.eye(3), np.zeros(3))
-    est = _estimate_skeleton(ctx, provisional.poses, poses, registered, rest)
+    root = _topology(ctx).names[0]
+    root_cameras = [i for i, c in enumerate(ctx.capture.cameras) if c.segment == root]
+    if not registered[rest][:, root_cameras].any():
+        raise ValueError(f"world: no camera of the root segment '{root}' ({', '.join(ctx.capture.cameras[i].name for i in root_cameras)}) "
+                         f"is registered in the rest frames of the range-of-motion trial ({list(_rest_seconds(ctx))} s "
+                         "after the first clap), which set the world's up direction and floor")
+    est = _estimate_skeleton(ctx, provisional.poses, poses, registered, rest, log=lambda text: None)  # logged by the skeleton stage
     measurements = _subject(ctx)["measurements"]
     factor = scale_from_measurements(est.skeleton, measurements, f"{ctx.capture.path / 'capture.json'}: subject.measurements")
     rest_motion = motion_from_camera_poses(est.skeleton, est.rig, provisional.poses(poses)[rest], registered[rest], robust=True)
