@@ -47,10 +47,15 @@ def gyro_turns(window: TermWindow, sigma_deg: float, time_shifts_s: Sequence[flo
         if not ok.any():
             continue
         q = integrate_gyro(imu.time, imu.gyro[:, s : s + 1], np.where(ok, t0, imu.time[0]), np.where(ok, t1, imu.time[0]))
-        mount = np.asarray(imu.camera_from_imu[s, :4], np.float64)  # the turn in the camera: mount · q · mount⁻¹
-        turn[:, c, 0] = quat_multiply(quat_multiply(mount, q[:, 0]), quat_conjugate(mount))
+        turn[:, c, 0] = _in_camera(imu, s, q[:, 0])
         weights[:, c, 0] = np.where(ok, 1.0 / np.radians(sigma_deg) ** 2, 0.0)
     return GyroTurn({"turn": turn, "weights": weights}, name="gyro turns")
+
+
+def _in_camera(imu: ImuRecording, sensor: int, turn: np.ndarray) -> np.ndarray:
+    """``(K, 4)`` turns of ``sensor``'s IMU frame (wxyz) as turns of its camera: mount · q · mount⁻¹."""
+    mount = np.asarray(imu.camera_from_imu[sensor, :4], np.float64)
+    return quat_multiply(quat_multiply(mount, turn), quat_conjugate(mount))
 
 
 def rest_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.ndarray, rest: np.ndarray, fps: float,
@@ -96,22 +101,23 @@ def rest_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.n
         raise ValueError(f"rest orientations from gyros: cameras has shape {chosen.shape}, expected ({c},)")
     out = np.full((c, 4), np.nan)
     report = {}
+    if not rest.any():
+        return out, report
     times = np.arange(len(rest)) / fps
+    rest_mid = float(np.mean(times[rest]))
     for i, name in enumerate(names):
-        if not chosen[i] or registered[rest, i].any() or name not in imu.cameras or not rest.any():
+        if not chosen[i] or registered[rest, i].any() or name not in imu.cameras:
             continue
         s = imu.cameras.index(name)
-        t_mid = float(np.mean(times[rest])) + shifts[i]
+        t_mid = rest_mid + shifts[i]
         frames = np.flatnonzero(registered[:, i] & (times + shifts[i] >= imu.time[0]) & (times + shifts[i] <= imu.time[-1]))
         if not frames.size or not imu.time[0] <= t_mid <= imu.time[-1]:
             continue
         q = integrate_gyro(imu.time, imu.gyro[:, s : s + 1], times[frames] + shifts[i], np.full(frames.size, t_mid))
-        mount = np.asarray(imu.camera_from_imu[s, :4], np.float64)
-        turn = quat_multiply(quat_multiply(mount, q[:, 0]), quat_conjugate(mount))  # camera(frame) → camera(rest)
-        carried = quat_multiply(world_from_camera[frames, i, :4], turn)
+        carried = quat_multiply(world_from_camera[frames, i, :4], _in_camera(imu, s, q[:, 0]))  # turned frame → rest
         mean = robust_average_poses(np.concatenate([carried, np.zeros((frames.size, 3))], axis=1))[0][:4]
         angles = 2.0 * np.arccos(np.clip(np.abs(carried @ mean), 0.0, 1.0))
         out[i] = mean
-        report[name] = {"frames": int(frames.size), "nearest_s": float(np.min(np.abs(times[frames] - times[rest].mean()))),
+        report[name] = {"frames": int(frames.size), "nearest_s": float(np.min(np.abs(times[frames] - rest_mid))),
                         "spread_deg": float(np.degrees(np.median(angles)))}
     return out, report

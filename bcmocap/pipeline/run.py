@@ -487,16 +487,13 @@ def _gyro_rest_orientations(ctx: RunContext, poses, registered, rest, log) -> np
         return None
     timing = _gyro_shifts(ctx, "rom")
     names = [c.name for c in ctx.capture.cameras]
-    if timing is not None and timing[0].shape != (len(names),):
-        raise ValueError(f"{ctx.path('frontend', 'rom', 'registration.json')}: gyro_timing.time_shift_ms has "
-                         f"{timing[0].size} values for {len(names)} cameras")
     fps = CorrespondenceStore.open(ctx.path("frontend", "rom", "correspondences")).fps
     carried, report = rest_orientations_from_gyros(poses, registered, rest, fps, read_imu(path), names,
                                                    None if timing is None else timing[0], cameras=unplaced)
     for name, r in report.items():
         log(f"skeleton: camera '{name}' is registered in no rest frame of the range-of-motion trial; its gyro carries "
-                f"its rest orientation from {r['frames']} registered frames (the nearest {r['nearest_s']:.2f} s away; "
-                f"their median spread {r['spread_deg']:.2f}°)")
+            f"its rest orientation from {r['frames']} registered frames (the nearest {r['nearest_s']:.2f} s away; "
+            f"their median spread {r['spread_deg']:.2f}°)")
     return carried
 
 
@@ -639,28 +636,24 @@ def _gyro_terms(ctx: RunContext, trial_folder: Path) -> list:
     shifts = None
     if timing is not None:
         shifts, measured = timing
-        if shifts.shape != (len(ctx.capture.cameras),):
-            raise ValueError(f"{_registration_path(ctx)}: gyro_timing.time_shift_ms has {shifts.size} values for "
-                             f"{len(ctx.capture.cameras)} cameras")
         if ctx.config.solver.estimate_time_offsets:  # the solver's frame times are the cameras' mean exposure
             shifts = np.full(len(shifts), shifts[measured].mean() if measured.any() else shifts.mean())
         shifts = shifts.tolist()
     return [UserTerms(gyro_turns, {"sigma_deg": sigma, "time_shifts_s": shifts}, "gyro turns")]
 
 
-def _registration_path(ctx: RunContext) -> Path:
-    return ctx.path("frontend", "capture", "registration.json")
-
-
 def _gyro_shifts(ctx: RunContext, trial: str = "capture") -> tuple[np.ndarray, np.ndarray] | None:
     """``(shifts (C,) s, determined (C,) bool)``: where the frontend's gyro timing put each camera's frames of
     ``trial`` on the gyro's clock after the trial's times, and which it determined; None when it did not time the
-    gyros."""
+    gyros. ValueError (naming the file) when it holds a shift count other than the capture's cameras."""
     path = ctx.path("frontend", trial, "registration.json")
     timing = read_json(path).get("gyro_timing") if path.is_file() else None
     if timing is None:
         return None
     shifts = np.asarray(timing["time_shift_ms"], np.float64) / 1e3
+    if shifts.shape != (len(ctx.capture.cameras),):
+        raise ValueError(f"{path}: gyro_timing.time_shift_ms has {shifts.size} values for {len(ctx.capture.cameras)} "
+                         "cameras")
     return shifts, np.asarray(timing.get("determined", [True] * len(shifts)), bool)
 
 
