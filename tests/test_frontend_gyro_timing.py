@@ -194,7 +194,10 @@ def test_the_solve_reads_the_gyro_time_offsets_relative_to_their_mean(tmp_path):
 
     from bcmocap.pipeline.run import RunContext, gyro_time_offsets
 
-    ctx = RunContext(capture=None, config=RunConfig(), out=tmp_path, log=print)
+    from types import SimpleNamespace
+
+    three_cameras = SimpleNamespace(cameras=[None] * 3)  # the check reads only the capture's camera count
+    ctx = RunContext(capture=three_cameras, config=RunConfig(), out=tmp_path, log=print)
     assert gyro_time_offsets(ctx) is None
     (tmp_path / "frontend" / "capture").mkdir(parents=True)
     (tmp_path / "frontend" / "capture" / "registration.json").write_text(json.dumps({"trial": "capture"}))
@@ -210,3 +213,8 @@ def test_the_solve_reads_the_gyro_time_offsets_relative_to_their_mean(tmp_path):
     offsets, measured = gyro_time_offsets(ctx)
     np.testing.assert_allclose(offsets, [-0.0025, 0.0, 0.0025])
     assert measured.tolist() == [True, False, True]
+    # a shift count other than the capture's cameras is refused, naming the file
+    (tmp_path / "frontend" / "capture" / "registration.json").write_text(
+        json.dumps({"gyro_timing": {"time_shift_ms": [31.0, 30.0], "determined": [True, True]}}))
+    with pytest.raises(ValueError, match=r"registration\.json: gyro_timing\.time_shift_ms has 2 values for 3"):
+        gyro_time_offsets(ctx)
