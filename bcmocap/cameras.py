@@ -42,6 +42,7 @@ __all__ = [
     "OpenCVFisheyeCamera",
     "PinholeCamera",
     "ThinPrismFisheyeCamera",
+    "TiltedThinPrismFisheyeCamera",
     "stack_cameras",
     "camera_at",
     "single_camera_intrinsics",
@@ -538,6 +539,21 @@ def _thin_prism_max_angle_single(k: Array, ps: Array) -> Array:
     return jnp.where(c > 0, jnp.minimum(kb, limit), kb)
 
 
+#: The thin-prism fisheye's distortion fields: name -> (length, what it holds).
+_THIN_PRISM_FIELDS = {"distortion": (4, "k1, k2, k3, k4"), "tangential": (2, "p1, p2"), "thin_prism": (2, "sx1, sy1")}
+
+
+def _check_thin_prism_fields(camera: CameraModel, fields: dict[str, tuple[int, str]]) -> None:
+    """Focal length and principal point, then each of ``fields`` (name -> (length, what)): shape, finite, one batch."""
+    cls = type(camera).__name__
+    _check_common(camera)
+    for name, (length, what) in fields.items():
+        _check_shape(cls, name, getattr(camera, name), (length,), what)
+    _check_batch(cls, {name: (getattr(camera, name), 1) for name in ("focal", "principal_point", *fields)})
+    for name in fields:
+        _check_finite_positive(cls, name, getattr(camera, name), positive=False)
+
+
 class ThinPrismFisheyeCamera(CameraModel):
     """Kannala-Brandt fisheye with decentering and thin-prism distortion (COLMAP "THIN_PRISM_FISHEYE").
 
@@ -571,15 +587,7 @@ class ThinPrismFisheyeCamera(CameraModel):
     thin_prism: Array = eqx.field(converter=_float_array)
 
     def __check_init__(self) -> None:
-        cls = type(self).__name__
-        _check_common(self)
-        _check_shape(cls, "distortion", self.distortion, (4,), "k1, k2, k3, k4")
-        _check_shape(cls, "tangential", self.tangential, (2,), "p1, p2")
-        _check_shape(cls, "thin_prism", self.thin_prism, (2,), "sx1, sy1")
-        _check_batch(cls, {name: (getattr(self, name), 1) for name in
-                           ("focal", "principal_point", "distortion", "tangential", "thin_prism")})
-        for name in ("distortion", "tangential", "thin_prism"):
-            _check_finite_positive(cls, name, getattr(self, name), positive=False)
+        _check_thin_prism_fields(self, _THIN_PRISM_FIELDS)
 
     @property
     def max_angle(self) -> Array:
@@ -668,6 +676,75 @@ class ThinPrismFisheyeCamera(CameraModel):
 
         sinc, cos = _sinc_cos(jnp.sum(w * w, axis=-1))
         return _normalize(jnp.concatenate([w * sinc[..., None], cos[..., None]], axis=-1))
+
+
+def _tilt_matrix(tilt: Array) -> Array:
+    """(..., 3, 3) OpenCV's ``computeTiltProjectionMatrix(tau_x, tau_y)`` for ``tilt`` (..., 2) rad: the sensor turned
+    by ``tau_x`` about x, then ``tau_y`` about y, and the image projected onto it along the optical axis."""
+    cx, sx = jnp.cos(tilt[..., 0]), jnp.sin(tilt[..., 0])
+    cy, sy = jnp.cos(tilt[..., 1]), jnp.sin(tilt[..., 1])
+    zero, one = jnp.zeros_like(cx), jnp.ones_like(cx)
+    rot_x = jnp.stack([jnp.stack([one, zero, zero], -1), jnp.stack([zero, cx, sx], -1),
+                       jnp.stack([zero, -sx, cx], -1)], -2)
+    rot_y = jnp.stack([jnp.stack([cy, zero, -sy], -1), jnp.stack([zero, one, zero], -1),
+                       jnp.stack([sy, zero, cy], -1)], -2)
+    rot = rot_y @ rot_x
+    project_z = jnp.stack([jnp.stack([rot[..., 2, 2], zero, -rot[..., 0, 2]], -1),
+                           jnp.stack([zero, rot[..., 2, 2], -rot[..., 1, 2]], -1),
+                           jnp.stack([zero, zero, one], -1)], -2)
+    return project_z @ rot
+
+
+def _apply_homography(h: Array, m: Array) -> Array:
+    """(..., 2) the points ``m`` (..., 2) mapped by the (..., 3, 3) homographies ``h``."""
+    v = jnp.einsum("...ij,...j->...i", h, jnp.concatenate([m, jnp.ones_like(m[..., :1])], axis=-1))
+    return v[..., :2] / v[..., 2:]
+
+
+class TiltedThinPrismFisheyeCamera(CameraModel):
+    """A :class:`ThinPrismFisheyeCamera` lens in front of a slightly tilted sensor: the studio's manufactured lens
+    units (:mod:`bcmocap.sim.lens_units`), a model that no calibration family here contains.
+
+    The lens maps a ray to the normalised image point ``m`` as :class:`ThinPrismFisheyeCamera` does; the sensor,
+    turned by ``tau_x`` about x and then ``tau_y`` about y, records it at ``H(tau) (m, 1)`` (dehomogenised), ``H`` as
+    OpenCV's tilted sensor model builds it (``cv::computeTiltProjectionMatrix``, ``CALIB_TILTED_MODEL``, applied as
+    there after the distortion); ``pixel = focal * that + principal_point``. With ``tau = 0`` this is the thin-prism
+    fisheye. Its first-order effect is of the thin-prism and decentering form, but it acts on the distorted point
+    where those act on the equidistant one, so a thin-prism calibration absorbs most of it, not all. Unprojection
+    inverts ``H`` exactly, then the lens; the largest valid angle is the lens's.
+
+    Attributes:
+        focal, principal_point, distortion, tangential, thin_prism: as :class:`ThinPrismFisheyeCamera`.
+        tilt: (..., 2) the sensor's tilt ``(tau_x, tau_y)`` (rad).
+    """
+
+    focal: Array = eqx.field(converter=_float_array)
+    principal_point: Array = eqx.field(converter=_float_array)
+    distortion: Array = eqx.field(converter=_float_array)
+    tangential: Array = eqx.field(converter=_float_array)
+    thin_prism: Array = eqx.field(converter=_float_array)
+    tilt: Array = eqx.field(converter=_float_array)
+
+    def __check_init__(self) -> None:
+        _check_thin_prism_fields(self, {**_THIN_PRISM_FIELDS, "tilt": (2, "tau_x, tau_y in rad")})
+
+    @property
+    def lens(self) -> ThinPrismFisheyeCamera:
+        """The lens alone (the sensor untilted)."""
+        return ThinPrismFisheyeCamera(self.width, self.height, focal=self.focal, principal_point=self.principal_point,
+                                      distortion=self.distortion, tangential=self.tangential,
+                                      thin_prism=self.thin_prism)
+
+    @property
+    def max_angle(self) -> Array:
+        """The lens's largest valid angle (rad)."""
+        return self.lens.max_angle
+
+    def _project_normalized(self, p: Array) -> Array:
+        return _apply_homography(_tilt_matrix(self.tilt), self.lens._project_normalized(p))
+
+    def _unproject_normalized(self, m: Array) -> Array:
+        return self.lens._unproject_normalized(_apply_homography(jnp.linalg.inv(_tilt_matrix(self.tilt)), m))
 
 
 def _solve_2x2(a: Array, b: Array) -> Array:

@@ -11,7 +11,8 @@ range-of-motion trial at ``--rom-tempo`` (default 6 s at 0.5: a 3 s one left a f
   families, sub-frame starts, drifting clocks, audio latencies, IMU clock offsets), each unit calibrated from its
   own board video.
 
-As a user would, each capture's lenses are what ``bcmocap calibrate`` (``--lens-model``) makes of its board videos
+As a user would, each capture's lenses are what ``bcmocap calibrate`` (the model of ``LENS_MODELS``, or
+``--lens-model``) makes of its board videos
 (``bcmocap simulate --board-videos``), written into the capture's ``intrinsics/`` (the rendered units stay in
 ``ground_truth/``). Then every capture of a condition goes through one ``bcmocap batch`` (``--cluster`` spreads it
 over a Dask cluster) with that condition's config: the clean rows ``benchmarks/configs/tracking.toml``, the
@@ -56,6 +57,12 @@ ROOMS = ("textured", "sparse", "repeated", "passerby")
 CLEAN_ROOMS = ("textured", "repeated")
 CONFIGS = {"clean": ROOT / "benchmarks" / "configs" / "tracking.toml",
            "realistic": ROOT / "benchmarks" / "configs" / "realistic_shoot.toml"}
+# The lens model each condition calibrates: the clean studio renders the paper's FOV lens; a realistic capture's
+# units (lenses with decentering and thin-prism terms, in front of tilted sensors) are calibrated as a user with
+# such a box of cameras would, with the thin-prism fisheye (COLMAP's THIN_PRISM_FISHEYE), which leaves only the
+# part of the tilt that acts on the distorted image (bcmocap.sim.lens_units).
+LENS_MODELS = {"clean": "fov", "realistic": "thin_prism_fisheye"}
+FIT_VIEWS = 120  # bcmocap calibrate --views: well-spread board views kept for each fit
 COVERED_DEG = 80.0  # the part of the image the board covers well (and the body cameras use most)
 # Reference photos of a room, where not the studio's 24: in the sparse room a user takes twice as many, with more
 # overlap (15 degree steps around the room rather than 30), as photogrammetry guides advise where texture is weak
@@ -99,29 +106,16 @@ def _lens_error(calibrated, truth) -> dict:
     :data:`COVERED_DEG` of the axis and over the whole image; and, within :data:`COVERED_DEG`, RMS and max after the
     small camera rotation that best aligns the two (``*_after_rotation_px``: a lens error that a turn of the camera
     undoes, such as a principal point shifted by a decentred lens, is absorbed by the camera's mount rotation, which
-    the skeleton stage estimates), with that rotation (degrees)."""
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
+    the skeleton stage estimates; :func:`bcmocap.calibrate.compare.turned_difference`), with that rotation (degrees)."""
+    from bcmocap.calibrate.compare import camera_difference, turned_difference
 
-    v, u = np.mgrid[0:truth.height:4, 0:truth.width:4].astype(np.float64)
-    pixels = np.stack([u.ravel(), v.ravel()], axis=-1)
-    rays = np.asarray(truth.unproject(pixels))
-    back, ok = calibrated.project(rays)
-    d = np.linalg.norm(np.asarray(back) - pixels, axis=-1)
-    ok = np.asarray(ok)
-    covered = ok & (np.degrees(np.arccos(np.clip(rays[:, 2], -1, 1))) <= COVERED_DEG)
-
-    def turned(w):
-        moved, _ = calibrated.project(rays[covered] @ Rotation.from_rotvec(w).as_matrix().T)
-        return (np.asarray(moved) - pixels[covered]).ravel()
-
-    fit = least_squares(turned, np.zeros(3))
-    after = np.linalg.norm(fit.fun.reshape(-1, 2), axis=-1)
-    return {"covered_rms_px": float(np.sqrt(np.mean(d[covered] ** 2))), "covered_max_px": float(d[covered].max()),
-            "image_rms_px": float(np.sqrt(np.mean(d[ok] ** 2))), "image_max_px": float(d[ok].max()),
-            "covered_rms_after_rotation_px": float(np.sqrt(np.mean(after**2))),
-            "covered_max_after_rotation_px": float(after.max()),
-            "rotation_deg": float(np.degrees(np.linalg.norm(fit.x)))}
+    image = camera_difference(calibrated, truth, step=4)
+    covered = camera_difference(calibrated, truth, step=4, max_angle_deg=COVERED_DEG)
+    after, turn_deg = turned_difference(calibrated, truth, step=4, max_angle_deg=COVERED_DEG)
+    return {"covered_rms_px": float(np.sqrt(np.mean(covered.distance**2))), "covered_max_px": float(covered.distance.max()),
+            "image_rms_px": float(np.sqrt(np.mean(image.distance**2))), "image_max_px": image.max_px,
+            "covered_rms_after_rotation_px": float(np.sqrt(np.mean(after.distance**2))),
+            "covered_max_after_rotation_px": after.max_px, "rotation_deg": turn_deg}
 
 
 def calibrate_capture(folder: Path, model: str, views: int, log) -> dict:
@@ -137,9 +131,10 @@ def calibrate_capture(folder: Path, model: str, views: int, log) -> dict:
     from bcmocap.sim.studio import read_studio_model
 
     done = folder / "calibration" / "suite_lenses.json"
-    if done.exists():
-        report = json.loads(done.read_text())
-    else:
+    report = json.loads(done.read_text()) if done.exists() else None
+    if report is not None and any(row.get("model", "fov") != model for row in report.values()):
+        report = None  # calibrated with another model before: again with this one
+    if report is None:
         if not (folder / "calibration" / "lenses.json").exists():
             write_board_videos(folder, views=views, frames_per_view=2,
                                progress=lambda name: log(f"  board video {name}"))
@@ -148,10 +143,10 @@ def calibrate_capture(folder: Path, model: str, views: int, log) -> dict:
         report = {}
         for lens, cameras in table["lenses"].items():
             found = detect_views(folder / "calibration" / f"{lens}.mp4", board, max_frames=300)
-            result = calibrate(found.subset(select_views(found, 40)), model)
+            result = calibrate(found.subset(select_views(found, FIT_VIEWS)), model)
             for camera in cameras:
                 write_calibration(folder / "intrinsics" / f"{camera}.yml", result)
-            report[lens] = {"cameras": cameras, "rms_px": float(result.rms_px)}
+            report[lens] = {"cameras": cameras, "model": model, "rms_px": float(result.rms_px)}
         done.write_text(json.dumps(report, indent=1))
     # Against the truth with this code, from the lenses the run reads (the capture's intrinsics/).
     _, _, _, rig = read_studio_model(folder)
@@ -250,8 +245,10 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=2.0, help="capture trial length (s, default 2)")
     ap.add_argument("--rom-seconds", type=float, default=6.0, help="range-of-motion trial length (s, default 6)")
     ap.add_argument("--rom-tempo", type=float, default=0.5, help="range-of-motion sweep speed (default 0.5)")
-    ap.add_argument("--lens-model", default="fov", choices=["fov", "opencv_fisheye"], help="calibrated lens model")
-    ap.add_argument("--board-views", type=int, default=24, help="board placements per board video (default 24)")
+    ap.add_argument("--lens-model", choices=["fov", "opencv_fisheye", "thin_prism_fisheye"],
+                    help="calibrated lens model of every run (default: LENS_MODELS, per condition)")
+    ap.add_argument("--board-views", type=int, default=64, help="board placements per board video (default 64: about "
+                    "a minute of waving the board, which the thin-prism fit needs; benchmarks/lens_units.py)")
     ap.add_argument("--cluster", help="bcmocap batch --cluster (e.g. local:2)")
     ap.add_argument("--only", help="comma-separated run names of the grid to run (e.g. realistic-run-sparse-s1); the "
                                    "results then hold those runs only, marked partial")
@@ -286,7 +283,8 @@ def main() -> int:
             log(f"{run.name}: rendering")
             write_capture(folder, settings, progress=False)
         log(f"{run.name}: calibrating")
-        prepared[run] = {"lenses": calibrate_capture(folder, args.lens_model, args.board_views, log),
+        model = args.lens_model or LENS_MODELS[run.condition]
+        prepared[run] = {"lenses": calibrate_capture(folder, model, args.board_views, log),
                          "clocks": clock_errors(folder)}
     setup_seconds = time.perf_counter() - clock
     for condition in ("clean", "realistic"):

@@ -14,14 +14,15 @@ def add_calibrate_command(sub: argparse._SubParsersAction) -> None:
         description="Detect a calibration board (OpenCV) in a video (frames spread over it, then a well-spread "
                     "subset) or in a folder of images, fit the lens model, and write CAMERA.yml (cv2.fisheye), "
                     "CAMERA.json (the exact lens and a report) and CAMERA.coverage.png (where on the sensor the "
-                    "board was seen). The FOV and equidistant models are fitted with bcmocap's own cameras and "
-                    "Levenberg-Marquardt, the OpenCV Kannala-Brandt model with cv2.fisheye.")
+                    "board was seen). The FOV, equidistant and thin-prism fisheye models are fitted with bcmocap's own "
+                    "cameras and Levenberg-Marquardt, the OpenCV Kannala-Brandt model with cv2.fisheye.")
     cmd.add_argument("source", metavar="VIDEO_OR_IMAGES", help="a video file, an image folder, or one image")
     cmd.add_argument("--board", required=True,
                      help="chessboard:COLSxROWS:SQUARE_M (inner corners), circles:COLSxROWS:SPACING_M[:asymmetric] "
                           "or charuco:COLSxROWS:SQUARE_M:MARKER_M[:DICT] (squares; partial views are used)")
-    cmd.add_argument("--model", default="fov", choices=["fov", "opencv_fisheye", "equidistant"],
-                     help="lens model (default fov: the paper's)")
+    cmd.add_argument("--model", default="fov", choices=["fov", "opencv_fisheye", "equidistant", "thin_prism_fisheye"],
+                     help="lens model (default fov: the paper's; thin_prism_fisheye: Kannala-Brandt with decentering "
+                          "and thin-prism terms, for a lens unit whose elements or sensor sit off the axis)")
     cmd.add_argument("--out", required=True, help="output file NAME.yml or NAME.json (all three files are written)")
     cmd.add_argument("--views", type=int, default=40, help="views kept for the fit at most (default 40)")
     cmd.add_argument("--stride", type=int, default=None,

@@ -5,9 +5,13 @@ Models (``model``):
 * ``"fov"`` — the paper's Devernay–Faugeras FOV model (:class:`~bcmocap.cameras.FOVCamera`: fx, fy, cx, cy, ω);
 * ``"equidistant"`` — ``r = f θ`` (:class:`~bcmocap.cameras.OpenCVFisheyeCamera` with k1..k4 = 0: fx, fy, cx, cy);
 * ``"opencv_fisheye"`` — Kannala–Brandt (fx, fy, cx, cy, k1..k4) through ``cv2.fisheye.calibrate``, started
-  from the equidistant fit; should OpenCV fail, the same model is fitted like the others.
+  from the equidistant fit; should OpenCV fail, the same model is fitted like the others;
+* ``"thin_prism_fisheye"`` — Kannala–Brandt with decentering and thin-prism terms (COLMAP's THIN_PRISM_FISHEYE,
+  :class:`~bcmocap.cameras.ThinPrismFisheyeCamera`: fx, fy, cx, cy, k1..k4, p1, p2, sx1, sy1), started from the
+  Kannala–Brandt fit: a lens whose elements sit off their axis or whose sensor is tilted (a manufactured unit)
+  leaves the Kannala–Brandt fit a few tenths of a pixel off, which these four terms take up.
 
-The FOV and equidistant models are fitted with bcmocap's own differentiable cameras and its one
+The FOV, equidistant and thin-prism models are fitted with bcmocap's own differentiable cameras and its one
 Levenberg–Marquardt (:func:`bcmocap.solver.levenberg_marquardt`): the board poses are the solver's
 frames (6 variables each: a rotation vector applied to the initial rotation, and the translation in m),
 the intrinsics its static variables, so the normal equations are block diagonal over views bordered by
@@ -33,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..cameras import CameraModel, FOVCamera, OpenCVFisheyeCamera
+from ..cameras import CameraModel, FOVCamera, OpenCVFisheyeCamera, ThinPrismFisheyeCamera
 from ..geometry import SO3
 from ..precision import require_float64
 from ..solver.levenberg_marquardt import NormalEquations, levenberg_marquardt, static_schur_complement
@@ -41,11 +45,12 @@ from .views import BoardViews
 
 __all__ = ["MODELS", "Calibration", "calibrate", "camera_from_params", "params_of"]
 
-MODELS = ("fov", "opencv_fisheye", "equidistant")
+MODELS = ("fov", "opencv_fisheye", "equidistant", "thin_prism_fisheye")
 PARAM_NAMES = {
     "fov": ("fx", "fy", "cx", "cy", "omega"),
     "equidistant": ("fx", "fy", "cx", "cy"),
     "opencv_fisheye": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
+    "thin_prism_fisheye": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2", "sx1", "sy1"),
 }
 MIN_VIEWS = 3
 # A view fitting worse than this many times the median view (and worse than REJECT_FLOOR_PX) is dropped once.
@@ -64,6 +69,9 @@ def camera_from_params(model: str, params, width: int, height: int) -> CameraMod
         return OpenCVFisheyeCamera(width, height, focal=p[0:2], principal_point=p[2:4], distortion=jnp.zeros(4))
     if model == "opencv_fisheye":
         return OpenCVFisheyeCamera(width, height, focal=p[0:2], principal_point=p[2:4], distortion=p[4:8])
+    if model == "thin_prism_fisheye":
+        return ThinPrismFisheyeCamera(width, height, focal=p[0:2], principal_point=p[2:4], distortion=p[4:8],
+                                      tangential=p[8:10], thin_prism=p[10:12])
     raise ValueError(f"--model must be one of {', '.join(MODELS)}, got {model!r}")
 
 
@@ -74,6 +82,9 @@ def params_of(model: str, camera: CameraModel) -> np.ndarray:
         return np.array([*base, float(camera.omega)])
     if model == "equidistant":
         return np.array(base)
+    if model == "thin_prism_fisheye":
+        return np.array([*base, *(float(x) for name in ("distortion", "tangential", "thin_prism")
+                                   for x in np.asarray(getattr(camera, name)))])
     return np.array([*base, *np.asarray(camera.distortion)])
 
 
@@ -339,17 +350,25 @@ def calibrate(views: BoardViews, model: str = "fov", *, max_steps: int = 200, re
     if views.num_views < MIN_VIEWS:
         raise ValueError(f"too few views: the board was found in {views.num_views} of {views.examined} images or "
                          f"frames; at least {MIN_VIEWS} are needed (10-40 spread over the image are better)")
-    given = views.names
-    views, params, rotations, translations, residuals, std, steps, method = _fit(views, model, max_steps)
-    posed = set(views.names)
-    rejected: tuple[str, ...] = tuple(n for n in given if n not in posed)  # no board pose
-    if reject_outliers:
-        view_rms = np.sqrt((residuals**2).sum(axis=(1, 2)) / np.maximum(views.seen.sum(axis=1), 1))
-        bad = view_rms > max(REJECT_FACTOR * float(np.median(view_rms)), REJECT_FLOOR_PX)
-        if bad.any() and (~bad).sum() >= MIN_VIEWS:
-            rejected += tuple(n for n, b in zip(views.names, bad) if b)
-            views, params, rotations, translations, residuals, std, steps, method = _fit(views.subset(~bad), model,
-                                                                                       max_steps)
+    if model == "thin_prism_fisheye":  # from the Kannala-Brandt calibration, its bad views already left out
+        kb = calibrate(views, "opencv_fisheye", max_steps=max_steps, reject_outliers=reject_outliers)
+        views, rejected = kb.views, kb.rejected
+        start = np.array([*params_of("opencv_fisheye", kb.camera), 0.0, 0.0, 0.0, 0.0])
+        params, rotations, translations, residuals, std, steps = _lm(views, model, start, kb.rotations,
+                                                                     kb.translations, max_steps)
+        method = f"bcmocap Levenberg-Marquardt from {kb.method}"
+    else:
+        given = views.names
+        views, params, rotations, translations, residuals, std, steps, method = _fit(views, model, max_steps)
+        posed = set(views.names)
+        rejected: tuple[str, ...] = tuple(n for n in given if n not in posed)  # no board pose
+        if reject_outliers:
+            view_rms = np.sqrt((residuals**2).sum(axis=(1, 2)) / np.maximum(views.seen.sum(axis=1), 1))
+            bad = view_rms > max(REJECT_FACTOR * float(np.median(view_rms)), REJECT_FLOOR_PX)
+            if bad.any() and (~bad).sum() >= MIN_VIEWS:
+                rejected += tuple(n for n, b in zip(views.names, bad) if b)
+                views, params, rotations, translations, residuals, std, steps, method = _fit(
+                    views.subset(~bad), model, max_steps)
     camera = camera_from_params(model, params, views.width, views.height)
     focal_scale = float(np.mean(params[:2]))
     if not np.all(np.isfinite(std[:4])) or np.max(std[:4]) > DEGENERATE_FRACTION * focal_scale:

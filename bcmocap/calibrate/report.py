@@ -5,7 +5,7 @@ For ``--out DIR/NAME.yml`` (or ``.json``):
 * ``NAME.yml`` — ``cv2.fisheye`` calibration (``image_width``, ``image_height``, ``camera_matrix``,
   ``dist_coeff``) read by :func:`bcmocap.io.opencv_calibration.read_opencv_fisheye_calibration` and by
   OpenCV; exact for the Kannala–Brandt and equidistant models, the closest Kannala–Brandt fit of the lens
-  for the FOV model (its largest difference over the image is in the report);
+  for the FOV and thin-prism models (its largest difference over the image is in the report);
 * ``NAME.json`` — the exact lens (``{"model", "width", "height", "params"}``, OpenCV pixel convention, as
   :func:`bcmocap.frontend.capture.read_camera_json` reads and a capture's ``intrinsics/<camera>.json``
   holds) with a ``"calibration"`` record: model, method, board, RMS and per-view errors (px), parameter
@@ -118,7 +118,7 @@ def write_calibration(out: str | os.PathLike, calibration: Calibration, seconds:
     with atomic_path(yml, suffix=yml.suffix) as tmp:  # OpenCV picks the format from the suffix
         write_opencv_fisheye_calibration(tmp, fitted)
     record = calibration_record(calibration, seconds)
-    if calibration.model == "fov":
+    if calibration.model in ("fov", "thin_prism_fisheye"):
         record["opencv_fisheye_fit_max_error_px"] = fit_error
     with atomic_path(lens) as tmp:
         tmp.write_text(json.dumps({**camera_to_dict(camera), "calibration": record}, indent=1) + "\n")

@@ -11,6 +11,7 @@ from ..cameras import (
     OpenCVFisheyeCamera,
     PinholeCamera,
     ThinPrismFisheyeCamera,
+    TiltedThinPrismFisheyeCamera,
     camera_at,
     stack_cameras,
 )
@@ -19,18 +20,22 @@ from ..kinematics.skeleton import JointType, Skeleton
 
 
 def camera_to_dict(camera: CameraModel) -> dict:
-    """``{"model": "FOV" | "OPENCV_FISHEYE" | "THIN_PRISM_FISHEYE" | "PINHOLE", "width", "height", "params": [fx, fy, cx,
-    cy, ...]}``; a thin-prism fisheye's params in COLMAP's order (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, sx1, sy1)."""
+    """``{"model": "FOV" | "OPENCV_FISHEYE" | "THIN_PRISM_FISHEYE" | "THIN_PRISM_FISHEYE_TILTED" | "PINHOLE", "width",
+    "height", "params": [fx, fy, cx, cy, ...]}``; a thin-prism fisheye's params in COLMAP's order (fx, fy, cx, cy, k1,
+    k2, p1, p2, k3, k4, sx1, sy1), the tilted one's followed by the sensor tilt (tau_x, tau_y, rad; not a COLMAP
+    model: the studio's lens units, :class:`~bcmocap.cameras.TiltedThinPrismFisheyeCamera`)."""
     fx, fy = (float(x) for x in np.asarray(camera.focal))
     cx, cy = (float(x) for x in np.asarray(camera.principal_point))
     if isinstance(camera, FOVCamera):
         model, extra = "FOV", [float(camera.omega)]
     elif isinstance(camera, OpenCVFisheyeCamera):
         model, extra = "OPENCV_FISHEYE", [float(x) for x in np.asarray(camera.distortion)]
-    elif isinstance(camera, ThinPrismFisheyeCamera):
+    elif isinstance(camera, (ThinPrismFisheyeCamera, TiltedThinPrismFisheyeCamera)):
         (k1, k2, k3, k4), (p1, p2), (sx1, sy1) = (np.asarray(x, np.float64).tolist() for x in
                                                   (camera.distortion, camera.tangential, camera.thin_prism))
         model, extra = "THIN_PRISM_FISHEYE", [k1, k2, p1, p2, k3, k4, sx1, sy1]
+        if isinstance(camera, TiltedThinPrismFisheyeCamera):
+            model, extra = "THIN_PRISM_FISHEYE_TILTED", [*extra, *np.asarray(camera.tilt, np.float64).tolist()]
     elif isinstance(camera, PinholeCamera):
         model, extra = "PINHOLE", []
     else:
@@ -51,6 +56,10 @@ def camera_from_dict(data: dict, where: str) -> CameraModel:
         if model == "THIN_PRISM_FISHEYE" and len(p) == 12:
             return ThinPrismFisheyeCamera(**size, focal=p[0:2], principal_point=p[2:4], distortion=[*p[4:6], *p[8:10]],
                                           tangential=p[6:8], thin_prism=p[10:12])
+        if model == "THIN_PRISM_FISHEYE_TILTED" and len(p) == 14:
+            return TiltedThinPrismFisheyeCamera(**size, focal=p[0:2], principal_point=p[2:4],
+                                                distortion=[*p[4:6], *p[8:10]], tangential=p[6:8],
+                                                thin_prism=p[10:12], tilt=p[12:14])
         if model == "PINHOLE" and len(p) == 4:
             return PinholeCamera(**size, focal=p[0:2], principal_point=p[2:4])
     except KeyError as err:

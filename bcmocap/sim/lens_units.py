@@ -3,12 +3,14 @@
 Cameras of one model share a lens design, but no two units image alike: each lens is focused and glued
 onto its sensor separately, its elements sit micrometres off their nominal places, and the sensor is
 slightly tilted. :func:`manufactured_lens_units` draws such units of a design as
-:class:`~bcmocap.cameras.ThinPrismFisheyeCamera` (COLMAP's THIN_PRISM_FISHEYE), a model outside the families
-the solver and ``bcmocap calibrate`` fit (FOV and Kannala-Brandt): the decentering and thin-prism terms are
-what neither family has. :func:`lens_design` is the studio's design: the Kannala-Brandt fit of the paper's
-170° FOV-model lens (:func:`~bcmocap.sim.rig.fov_camera_for`) with a higher-order term added, so that the
-design itself is not in the FOV family either; :func:`nominal_lens` is the design as a user would be given
-it in a family the pipeline reads (its data sheet, or the FOV-model lens closest to it).
+:class:`~bcmocap.cameras.TiltedThinPrismFisheyeCamera`: a thin-prism fisheye (COLMAP's THIN_PRISM_FISHEYE) in
+front of a sensor tilted as OpenCV's tilted model has it, a model outside every family the solver and
+``bcmocap calibrate`` fit (FOV, Kannala-Brandt, thin-prism fisheye): the decentering and thin-prism terms are
+what the first two lack, and the tilt acts on the distorted image, where the thin-prism family's terms act
+before the distortion. :func:`lens_design` is the studio's design: the Kannala-Brandt fit of the paper's 170°
+FOV-model lens (:func:`~bcmocap.sim.rig.fov_camera_for`) with a higher-order term added, so that the design
+itself is not in the FOV family either; :func:`nominal_lens` is the design as a user would be given it in a
+family the pipeline reads (its data sheet, or the FOV-model lens closest to it).
 
 Magnitudes (:class:`UnitTolerances`) are for a 1/2.3" action-camera sensor (6.17 mm wide: 9.6 µm per pixel
 at 640 px) behind a fisheye of about 2.9 mm focal length; pixel figures scale with the image width.
@@ -47,7 +49,7 @@ import math
 
 import numpy as np
 
-from ..cameras import FOVCamera, OpenCVFisheyeCamera, ThinPrismFisheyeCamera
+from ..cameras import FOVCamera, OpenCVFisheyeCamera, TiltedThinPrismFisheyeCamera
 from ..io.opencv_calibration import fit_opencv_fisheye
 from .rig import fov_camera_for
 
@@ -69,6 +71,7 @@ class UnitTolerances:
         radial: each of the four relative radial terms ``a_i`` (dimensionless).
         decentering: p1 and p2 (dimensionless).
         thin_prism: sx1 and sy1 (dimensionless).
+        tilt_deg: the sensor's tilt about x and about y (degrees).
         clip_sigmas: draws are clipped at this many standard deviations.
     """
 
@@ -77,6 +80,7 @@ class UnitTolerances:
     radial: float = 5e-4
     decentering: float = 2e-4
     thin_prism: float = 1e-4
+    tilt_deg: float = 0.1
     clip_sigmas: float = 3.0
 
     def __post_init__(self):
@@ -111,7 +115,7 @@ def lens_design(width: int = 640, height: int = 360, fov_deg: float = 170.0) -> 
 
 
 def manufactured_lens_units(design: OpenCVFisheyeCamera, count: int, rng: np.random.Generator,
-                            tolerances: UnitTolerances = UnitTolerances()) -> list[ThinPrismFisheyeCamera]:
+                            tolerances: UnitTolerances = UnitTolerances()) -> list[TiltedThinPrismFisheyeCamera]:
     """``count`` units of a lens design, each off it as manufactured lenses are (module docstring).
 
     Args:
@@ -121,7 +125,7 @@ def manufactured_lens_units(design: OpenCVFisheyeCamera, count: int, rng: np.ran
         tolerances: their standard deviations.
 
     Returns:
-        ``count`` :class:`~bcmocap.cameras.ThinPrismFisheyeCamera` of the design's image size.
+        ``count`` :class:`~bcmocap.cameras.TiltedThinPrismFisheyeCamera` of the design's image size.
     """
     if not isinstance(design, OpenCVFisheyeCamera) or design.batch_shape != ():
         raise ValueError(f"manufactured_lens_units: design must be a single OpenCVFisheyeCamera, got "
@@ -142,9 +146,10 @@ def manufactured_lens_units(design: OpenCVFisheyeCamera, count: int, rng: np.ran
         scale = 1.0 + normal(t.focal_pct / 100.0, 1)[0]
         shift = normal(t.centre_fraction * design.width, 2)
         radial = normal(t.radial, 4) / edge ** (2.0 * np.arange(1, 5))  # theta_d / theta gains a_i (theta / edge)^(2i)
-        units.append(ThinPrismFisheyeCamera(
+        tangential, thin_prism = normal(t.decentering, 2), normal(t.thin_prism, 2)
+        units.append(TiltedThinPrismFisheyeCamera(
             design.width, design.height, focal=focal * scale, principal_point=centre + shift, distortion=k + radial,
-            tangential=normal(t.decentering, 2), thin_prism=normal(t.thin_prism, 2)))
+            tangential=tangential, thin_prism=thin_prism, tilt=np.deg2rad(normal(t.tilt_deg, 2))))
     return units
 
 

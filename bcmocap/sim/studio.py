@@ -212,8 +212,9 @@ class StudioSettings:
         imu_offset_ms: the IMU recording's timestamps are off from the video's clock by an offset uniform in
             ``±imu_offset_ms`` per trial; 0: the IMU clock is the video clock.
         lens_units: each body camera is its own unit of one lens design (:mod:`bcmocap.sim.lens_units`: focal
-            length, centre and radial profile off the design, plus decentering and thin-prism terms; seeded),
-            rendered as a :class:`~bcmocap.cameras.ThinPrismFisheyeCamera`, outside the solver's lens families,
+            length, centre and radial profile off the design, plus decentering and thin-prism terms and a tilted
+            sensor; seeded), rendered as a :class:`~bcmocap.cameras.TiltedThinPrismFisheyeCamera`, outside the
+            solver's and the calibration's lens families,
             and kept in ``ground_truth/rig.json``; ``intrinsics/`` then holds the design's nominal lens in the
             ``lens`` family (:func:`~bcmocap.sim.lens_units.nominal_lens`; ``focal_error_pct`` and
             ``centre_error_px`` move it further); off: every camera renders the one ``lens``.
