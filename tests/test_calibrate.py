@@ -244,3 +244,32 @@ def test_thin_prism_model_takes_up_a_units_decentering_and_tilt():
     near, _ = turned_difference(prism.camera, unit, max_angle_deg=80.0)
     far, _ = turned_difference(kannala_brandt.camera, unit, max_angle_deg=80.0)
     assert near.max_px < 0.3 and far.max_px > 3 * near.max_px, (near.max_px, far.max_px)
+
+
+def test_views_a_refit_puts_off_are_dropped_in_further_rounds(monkeypatch):
+    """On a studio board video the refit after dropping one bad view put another view's planar pose on its wrong
+    side (674 px off) and left the intrinsics undetermined; each refit's bad views are dropped in turn, for at most
+    REJECT_ROUNDS rounds. The fits are stood in for (each round's residuals given) to pin the rounds' logic."""
+    from bcmocap.calibrate import fit as fit_module
+
+    truth = fov_camera_for(640, 360)
+    views = _synthetic(truth, 8)
+    params = fit_module.params_of("fov", truth)
+    fits = []
+
+    def fake_fit(subset, model, max_steps):
+        residuals = np.full(subset.pixels.shape, 0.1)
+        off = {0: "view 2", 1: "view 5"}.get(len(fits))  # the first fit's bad view, then the refit's
+        if off in subset.names:
+            residuals[subset.names.index(off)] = 50.0
+        fits.append(subset.names)
+        eye = np.broadcast_to(np.eye(3), (subset.num_views, 3, 3))
+        return (subset, params, eye, np.zeros((subset.num_views, 3)), residuals, np.full(5, 0.01), 3, "stand-in")
+
+    monkeypatch.setattr(fit_module, "_fit", fake_fit)
+    fitted = calibrate(views, "fov")
+    assert fitted.rejected == ("view 2", "view 5") and len(fits) == 3
+    assert fitted.views.names == tuple(f"view {i}" for i in range(8) if i not in (2, 5))
+    fits.clear()
+    monkeypatch.setattr(fit_module, "REJECT_ROUNDS", 1)
+    assert calibrate(views, "fov").rejected == ("view 2",)  # one round: the refit's bad view stays
