@@ -221,7 +221,7 @@ def test_a_board_seen_as_one_row_of_corners_gives_no_pose_not_nan():
 
 
 @pytest.mark.slow  # two fits to compile (Kannala-Brandt, then thin prism from it)
-def test_thin_prism_model_takes_up_a_units_decentering_and_tilt():
+def test_thin_prism_model_takes_up_a_units_decentering_and_tilt(tmp_path):
     """A manufactured lens unit (decentering, thin prism, a sensor tilted by ~0.25 deg) on 60 simulated board views
     with 0.1 px noise: the thin-prism fit, started from the Kannala-Brandt one, comes within 0.3 px of the unit within
     80 deg of the axis after the turn a camera's mount takes up (0.25 px); the Kannala-Brandt fit stays several
@@ -244,6 +244,13 @@ def test_thin_prism_model_takes_up_a_units_decentering_and_tilt():
     near, _ = turned_difference(prism.camera, unit, max_angle_deg=80.0)
     far, _ = turned_difference(kannala_brandt.camera, unit, max_angle_deg=80.0)
     assert near.max_px < 0.3 and far.max_px > 3 * near.max_px, (near.max_px, far.max_px)
+    # written as a capture's intrinsics/<camera>.json and read back by the frontend: the same lens
+    from bcmocap.calibrate.report import write_calibration
+
+    write_calibration(tmp_path / "chest.yml", prism)
+    lens = read_camera_json(tmp_path / "chest.json")
+    assert isinstance(lens, ThinPrismFisheyeCamera)
+    assert camera_difference(lens, prism.camera).max_px < 1e-9
 
 
 def test_views_a_refit_puts_off_are_dropped_in_further_rounds(monkeypatch):

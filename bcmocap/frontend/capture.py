@@ -61,8 +61,8 @@ def lens_fingerprint(lenses) -> str:
 
 
 def read_camera_json(path: str | os.PathLike) -> CameraModel:
-    """A lens file ``{"model": "FOV" | "OPENCV_FISHEYE" | "PINHOLE", "width", "height", "params"}``
-    (OpenCV pixel convention) as a camera model."""
+    """A lens file ``{"model": "FOV" | "OPENCV_FISHEYE" | "THIN_PRISM_FISHEYE" | "PINHOLE", "width", "height",
+    "params"}`` (COLMAP's parameter order, OpenCV pixel convention) as a camera model."""
     pycolmap = load_pycolmap()
 
     path = Path(path)
@@ -77,7 +77,7 @@ def read_camera_json(path: str | os.PathLike) -> CameraModel:
     if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE) or not all(map(math.isfinite, params)):
         raise ValueError(f"{path}: width and height must be in [1, {MAX_IMAGE_SIDE}] px and params finite, got "
                          f"{width} x {height}, {params}")
-    expected = {"FOV": 5, "OPENCV_FISHEYE": 8, "PINHOLE": 4}
+    expected = {"FOV": 5, "OPENCV_FISHEYE": 8, "THIN_PRISM_FISHEYE": 12, "PINHOLE": 4}
     if expected.get(model) != len(params):
         raise ValueError(f"{path}: model {model!r} with {len(params)} params; expected one of "
                          f"{', '.join(f'{m} ({n} params)' for m, n in expected.items())}")

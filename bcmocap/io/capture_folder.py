@@ -24,9 +24,10 @@ Folder layout::
     intrinsics/<camera>.yml       cv2.fisheye calibration (image_width, image_height, camera_matrix,
                                   dist_coeff), as bcmocap.io.opencv_calibration.read_opencv_fisheye_calibration reads;
                                   for the studio's default FOV lens it is the Kannala-Brandt fit of that lens
-    intrinsics/<camera>.json      the exact lens: {"model": "FOV" | "OPENCV_FISHEYE" | "PINHOLE", "width", "height",
-                                  "params": [fx, fy, cx, cy, omega | k1..k4]} (OpenCV pixel convention:
-                                  the top-left pixel's centre is (0, 0)), and the studio's fit error in pixels
+    intrinsics/<camera>.json      the exact lens: {"model": "FOV" | "OPENCV_FISHEYE" | "THIN_PRISM_FISHEYE" | "PINHOLE",
+                                  "width", "height", "params": [fx, fy, cx, cy, omega | k1..k4 | k1, k2, p1, p2, k3, k4,
+                                  sx1, sy1]} (COLMAP's order; OpenCV pixel convention: the top-left pixel's centre is
+                                  (0, 0)), and the studio's fit error in pixels
     reference/photo_NNN.jpg       reference photos of the empty room from a hand-held camera walking a
                                   loop around the capture area (JPEG quality 95; ``bcmocap init`` keeps the
                                   user's names)
