@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from conftest import one_line_error
 
-from bcmocap.cameras import ThinPrismFisheyeCamera
+from bcmocap.cameras import TiltedThinPrismFisheyeCamera
 from bcmocap.cli import main
 from bcmocap.geometry import SE3
 from bcmocap.io.opencv_calibration import read_opencv_fisheye_calibration
@@ -213,7 +213,7 @@ def test_calibration_error_within_the_requested_band(preset_capture):
     assert np.all((centre_errors >= lo - 1e-9) & (centre_errors <= hi + 1e-9))
     # The truth keeps the rendered lenses: each camera its own unit of the design.
     units = gt.rig.intrinsics
-    assert isinstance(units, ThinPrismFisheyeCamera) and len(np.unique(np.asarray(units.focal)[:, 0])) == gt.rig.num_cameras
+    assert isinstance(units, TiltedThinPrismFisheyeCamera) and len(np.unique(np.asarray(units.focal)[:, 0])) == gt.rig.num_cameras
     np.testing.assert_allclose(np.asarray(units.focal), np.tile(np.asarray(lens_design(64, 36).focal), (18, 1)), rtol=0.01)
 
 

@@ -122,7 +122,8 @@ def _add_degradation_arguments(deg) -> None:
                      help="the IMU's timestamps are off from the video clock by up to +- this much per trial (ms; default 0)")
     deg.add_argument("--lens-units", action=argparse.BooleanOptionalAction, default=None,
                      help="each camera renders through its own manufactured unit of one lens design (focal length, "
-                          "centre, radial, decentering and thin-prism terms off the design: bcmocap.sim.lens_units), "
+                          "centre, radial, decentering and thin-prism terms off the design, on a tilted sensor: "
+                          "bcmocap.sim.lens_units), "
                           "kept in the ground truth; intrinsics/ holds the design's nominal lens (default: every "
                           "camera the one --lens)")
 
