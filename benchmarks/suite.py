@@ -112,9 +112,9 @@ def _lens_error(calibrated, truth) -> dict:
     image = camera_difference(calibrated, truth, step=4)
     covered = camera_difference(calibrated, truth, step=4, max_angle_deg=COVERED_DEG)
     after, turn_deg = turned_difference(calibrated, truth, step=4, max_angle_deg=COVERED_DEG)
-    return {"covered_rms_px": float(np.sqrt(np.mean(covered.distance**2))), "covered_max_px": float(covered.distance.max()),
-            "image_rms_px": float(np.sqrt(np.mean(image.distance**2))), "image_max_px": image.max_px,
-            "covered_rms_after_rotation_px": float(np.sqrt(np.mean(after.distance**2))),
+    return {"covered_rms_px": covered.rms_px, "covered_max_px": covered.max_px,
+            "image_rms_px": image.rms_px, "image_max_px": image.max_px,
+            "covered_rms_after_rotation_px": after.rms_px,
             "covered_max_after_rotation_px": after.max_px, "rotation_deg": turn_deg}
 
 

@@ -37,6 +37,11 @@ class CameraDifference:
     mean_px: float
     compared: float
 
+    @property
+    def rms_px(self) -> float:
+        """Root mean square distance (px)."""
+        return float(np.sqrt(np.mean(self.distance**2)))
+
 
 def pixel_grid(width: int, height: int, step: int = 8) -> np.ndarray:
     """``(P, 2)`` pixel centres every ``step`` px, the image's last row and column included."""
@@ -44,6 +49,12 @@ def pixel_grid(width: int, height: int, step: int = 8) -> np.ndarray:
     vs = np.unique(np.append(np.arange(0, height, step), height - 1))
     u, v = np.meshgrid(us, vs)
     return np.stack([u.ravel(), v.ravel()], axis=-1).astype(np.float64)
+
+
+def _check_sizes(camera: CameraModel, reference: CameraModel, caller: str) -> None:
+    if (camera.width, camera.height) != (reference.width, reference.height):
+        raise ValueError(f"{caller}: image sizes differ ({camera.width}x{camera.height} vs "
+                         f"{reference.width}x{reference.height})")
 
 
 def _compared_rays(reference: CameraModel, step: int, mask, max_angle_deg: float) -> tuple[np.ndarray, np.ndarray, int]:
@@ -80,9 +91,7 @@ def camera_difference(camera: CameraModel, reference: CameraModel, *, step: int 
             (e.g. where the board was seen).
         max_angle_deg: compare only the pixels whose rays lie within this angle of ``reference``'s axis.
     """
-    if (camera.width, camera.height) != (reference.width, reference.height):
-        raise ValueError(f"camera_difference: image sizes differ ({camera.width}x{camera.height} vs "
-                         f"{reference.width}x{reference.height})")
+    _check_sizes(camera, reference, "camera_difference")
     return _difference(camera, *_compared_rays(reference, step, mask, max_angle_deg), "camera_difference")
 
 
@@ -93,9 +102,7 @@ def turned_difference(camera: CameraModel, reference: CameraModel, *, step: int 
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
-    if (camera.width, camera.height) != (reference.width, reference.height):
-        raise ValueError(f"turned_difference: image sizes differ ({camera.width}x{camera.height} vs "
-                         f"{reference.width}x{reference.height})")
+    _check_sizes(camera, reference, "turned_difference")
     grid, rays, size = _compared_rays(reference, step, None, max_angle_deg)
 
     def turned(rotvec):
