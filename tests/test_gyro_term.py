@@ -147,19 +147,26 @@ def test_the_run_reads_the_gyros_at_the_frontends_shifts(walk, tmp_path):
         read(config)
 
 
+def _leg_trial():
+    """The leg model, its exact range-of-motion trial (30 fps, the rest held for 0.5 s first) and its frame count."""
+    from test_sim_rom import TRIAL, leg_model
+
+    from bcmocap.sim import range_of_motion_trial
+
+    skeleton, rig = leg_model()
+    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0, **TRIAL)
+    return skeleton, rig, trial, trial.registered.shape[0]
+
+
 def test_a_gyro_carries_a_camera_to_the_rest_pose_it_was_not_registered_in():
     # A range-of-motion trial (the leg model, 30 fps, the rest held for 0.5 s first) whose shin camera registers in
     # 12 frames 5 s after the rest frames only, while the hip swings the leg (35-63 deg from its rest orientation):
     # its gyro carries it back to the rest pose, within 0.05 deg with the studio's gyro noise and no bias; with the
     # studio's turn-on bias (up to 0.5 deg/s per axis), which is not taken off, within |bias| times the 5.3 s carried.
-    from test_sim_rom import TRIAL, leg_model
+    from test_sim_rom import TRIAL
 
     from bcmocap.pipeline.gyro_turns import rest_orientations_from_gyros
-    from bcmocap.sim import range_of_motion_trial
-
-    skeleton, rig = leg_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0, **TRIAL)
-    frames = trial.registered.shape[0]
+    skeleton, rig, trial, frames = _leg_trial()
     shin = rig.index("shin")
     registered = trial.registered.copy()
     registered[:, shin] = False
@@ -193,15 +200,11 @@ def test_a_gyro_carries_a_camera_to_the_rest_pose_it_was_not_registered_in():
 def test_the_skeleton_stage_carries_rest_orientations_on_the_gyro_clock_of_the_frontends_timing(tmp_path, monkeypatch):
     # The run's glue: the ROM trial's imu.npz, read at the shifts the frontend's gyro timing found for that trial
     # (here the IMU clock runs 40 ms behind the frames: read on the frames' clock, the shin is carried 10° off), only for cameras no rest frame registered.
-    from test_sim_rom import TRIAL, leg_model
+    from test_sim_rom import TRIAL
 
     import bcmocap.correspondence_store as store_module
     from bcmocap.pipeline import run
-    from bcmocap.sim import range_of_motion_trial
-
-    skeleton, rig = leg_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0, **TRIAL)
-    frames = trial.registered.shape[0]
+    skeleton, rig, trial, frames = _leg_trial()
     imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, frames - 1), seed=3, gyro_bias=0.0)
     capture = tmp_path / "capture"
     (capture / "trials" / "rom").mkdir(parents=True)
@@ -233,3 +236,78 @@ def test_the_skeleton_stage_carries_rest_orientations_on_the_gyro_clock_of_the_f
     (out / "frontend" / "rom" / "registration.json").write_text("{}")  # without the timing: read 40 ms off
     off = run._gyro_rest_orientations(ctx, trial.world_from_camera, registered, rest, logged.append)
     assert np.degrees(2 * np.arccos(min(1.0, abs(off[shin] @ truth / np.linalg.norm(truth))))) > 3.0
+
+
+def test_a_gyro_orients_a_camera_through_the_frames_it_was_not_registered_in():
+    # The leg model's range-of-motion trial (30 fps) with the shin camera unregistered for 1 s while the hip swings
+    # the leg, and before its first registration: its gyro carries it through both, within 0.05 deg with the studio's
+    # gyro noise (its turn-on bias, 0.5 deg/s per axis, blended out between the registrations on either side of the
+    # gap: within 0.3 deg), where interpolating between the registered orientations is degrees off.
+    from test_sim_rom import TRIAL
+
+    from bcmocap.geometry import quat_multiply, quat_conjugate
+    from bcmocap.kinematics.ik import fill_gaps
+    from bcmocap.pipeline.gyro_turns import fill_orientations_from_gyros
+    skeleton, rig, trial, frames = _leg_trial()
+    shin = rig.index("shin")
+    registered = trial.registered.copy()
+    registered[:, shin] = True
+    registered[150:180, shin] = False  # a gap of 1 s
+    registered[:10, shin] = False  # and the start
+    poses = np.where(registered[..., None], trial.world_from_camera, np.nan)
+    truth = trial.world_from_camera[:, shin, :4]
+
+    def error_deg(q, at):
+        d = quat_multiply(quat_conjugate(truth[at]), q[at])
+        return np.degrees(2 * np.arccos(np.clip(np.abs(d[:, 0]), 0, 1)))
+
+    gap = np.r_[0:10, 150:180]
+    slerped = fill_gaps(np.where(registered[:, shin, None], truth, 0.0), registered[:, shin], rotations=True)
+    assert error_deg(slerped, gap).max() > 5.0  # interpolation does not know how the leg swung
+    for bias, within in ((0.0, 0.05), (np.radians(0.5), 0.3)):
+        imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, frames - 1), seed=3, gyro_bias=bias)
+        filled_poses, filled = fill_orientations_from_gyros(poses, registered, TRIAL["fps"], imu, rig.names)
+        assert (filled == ~registered).all()
+        assert error_deg(filled_poses[:, shin, :4], gap).max() < within
+        np.testing.assert_array_equal(filled_poses[registered], poses[registered])  # registered rows as given
+    only = np.zeros(rig.num_cameras, bool)
+    same, none = fill_orientations_from_gyros(poses, registered, TRIAL["fps"], imu, rig.names, cameras=only)
+    assert not none.any() and np.array_equal(same, poses, equal_nan=True)
+    with pytest.raises(ValueError, match=r"3 time shifts for 7 cameras"):
+        fill_orientations_from_gyros(poses, registered, TRIAL["fps"], imu, rig.names, [0.0] * 3)
+
+
+def test_the_initial_stage_orients_unregistered_frames_on_the_gyro_clock_of_the_frontends_timing(tmp_path):
+    # The run's glue: the capture trial's imu.npz, read at the shifts the frontend's gyro timing found (the IMU clock
+    # 40 ms behind the frames); the root's cameras, whose positions the initial motion reads, are never filled; without
+    # the timing nothing is.
+    from test_sim_rom import TRIAL
+
+    from bcmocap.pipeline import run
+    skeleton, rig, trial, frames = _leg_trial()
+    imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, frames - 1), seed=3, gyro_bias=0.0)
+    capture = tmp_path / "capture"
+    (capture / "trials" / "capture").mkdir(parents=True)
+    write_imu(capture / "trials" / "capture" / "imu.npz", dataclasses.replace(imu, time=imu.time + 0.04))
+    out = tmp_path / "run"
+    (out / "frontend" / "capture").mkdir(parents=True)
+    timing = out / "frontend" / "capture" / "registration.json"
+    timing.write_text(json.dumps({"gyro_timing": {"time_shift_ms": [40.0] * rig.num_cameras}}))
+    cameras = [types.SimpleNamespace(name=n, segment=skeleton.names[s]) for n, s in zip(rig.names, rig.segments)]
+    logged = []
+    ctx = run.RunContext(capture=types.SimpleNamespace(path=capture, cameras=cameras), config=RunConfig(), out=out,
+                         log=logged.append)
+    registered = trial.registered.copy()
+    registered[150:180] = False  # every camera, the root's too
+    poses = np.where(registered[..., None], trial.world_from_camera, np.nan)
+    filled_poses, filled = run._gyro_filled_poses(ctx, skeleton, rig, poses, registered, TRIAL["fps"])
+    root = np.asarray(rig.segments) == 0
+    assert not filled[:, root].any() and filled[150:180, ~root].all() and filled.sum() == 30 * (~root).sum()
+    shin = rig.index("shin")
+    d = np.abs(np.sum(filled_poses[150:180, shin, :4] * trial.world_from_camera[150:180, shin, :4], axis=1))
+    assert np.degrees(2 * np.arccos(np.clip(d, 0, 1))).max() < 0.05
+    assert np.isfinite(filled_poses[filled]).all()  # positions interpolated
+    assert len(logged) == 1 and "120 unregistered camera-frames of 4 cameras" in logged[0]
+    timing.write_text("{}")
+    same, none = run._gyro_filled_poses(ctx, skeleton, rig, poses, registered, TRIAL["fps"])
+    assert not none.any() and same is poses

@@ -1,6 +1,7 @@
 """What the cameras' gyros say of their turns: over each pair of a solver window's frames (``[solver] gyro_turn``,
-read at the camera's shift on the gyro's clock, as a :class:`~bcmocap.residuals.gyro.GyroTurn`), and from the frames
-a camera registered in to the rest pose of a range-of-motion trial where it registered in none of the rest frames."""
+read at the camera's shift on the gyro's clock, as a :class:`~bcmocap.residuals.gyro.GyroTurn`), from the frames
+a camera registered in to the rest pose of a range-of-motion trial where it registered in none of the rest frames,
+and through the frames of a trial it did not register in (the initial motion's)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..geometry import quat_conjugate, quat_multiply
+from ..geometry import quat_conjugate, quat_multiply, slerp
 from ..io.sensors import ImuRecording, integrate_gyro, read_imu
 from ..kinematics.virtual import robust_average_poses
 from ..residuals.gyro import GyroTurn
@@ -58,6 +59,17 @@ def _in_camera(imu: ImuRecording, sensor: int, turn: np.ndarray) -> np.ndarray:
     return quat_multiply(quat_multiply(mount, turn), quat_conjugate(mount))
 
 
+def _shifts_and_cameras(what: str, c: int, time_shifts_s, cameras) -> tuple[np.ndarray, np.ndarray]:
+    """``(C,)`` time shifts (None: 0) and ``(C,)`` chosen cameras (None: all), checked (one-line ValueError)."""
+    shifts = np.zeros(c) if time_shifts_s is None else np.asarray(time_shifts_s, np.float64)
+    if shifts.shape != (c,):
+        raise ValueError(f"{what}: {shifts.size} time shifts for {c} cameras")
+    chosen = np.ones(c, bool) if cameras is None else np.asarray(cameras, bool)
+    if chosen.shape != (c,):
+        raise ValueError(f"{what}: cameras has shape {chosen.shape}, expected ({c},)")
+    return shifts, chosen
+
+
 def rest_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.ndarray, rest: np.ndarray, fps: float,
                                  imu: ImuRecording, names: Sequence[str],
                                  time_shifts_s: Sequence[float] | None = None, *,
@@ -93,12 +105,7 @@ def rest_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.n
     if world_from_camera.shape != (len(rest), c, 7) or registered.shape != (len(rest), c):
         raise ValueError(f"rest orientations from gyros: expected poses ({len(rest)}, {c}, 7) and registered "
                          f"({len(rest)}, {c}), got {world_from_camera.shape} and {registered.shape}")
-    shifts = np.zeros(c) if time_shifts_s is None else np.asarray(time_shifts_s, np.float64)
-    if shifts.shape != (c,):
-        raise ValueError(f"rest orientations from gyros: {shifts.size} time shifts for {c} cameras")
-    chosen = np.ones(c, bool) if cameras is None else np.asarray(cameras, bool)
-    if chosen.shape != (c,):
-        raise ValueError(f"rest orientations from gyros: cameras has shape {chosen.shape}, expected ({c},)")
+    shifts, chosen = _shifts_and_cameras("rest orientations from gyros", c, time_shifts_s, cameras)
     out = np.full((c, 4), np.nan)
     report = {}
     if not rest.any():
@@ -121,3 +128,63 @@ def rest_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.n
         report[name] = {"frames": int(frames.size), "nearest_s": float(np.min(np.abs(times[frames] - rest_mid))),
                         "spread_deg": float(np.degrees(np.median(angles)))}
     return out, report
+
+
+def fill_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.ndarray, fps: float,
+                                 imu: ImuRecording, names: Sequence[str],
+                                 time_shifts_s: Sequence[float] | None = None, *,
+                                 cameras: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each camera's orientation in the frames it did not register, carried by its gyro from the registered frames on
+    either side.
+
+    In a gap between registered frames ``a`` and ``b``, the orientation carried forward from ``a`` and the one carried
+    back from ``b`` are blended by slerp at ``(t − a) / (b − a)``, so what the gyro's bias adds over the gap ends where
+    the registrations are; before the first and after the last registered frame, one side carries. A hand that turns
+    180° in a few unregistered frames is then turned the way it turned, where interpolating between the registered
+    orientations takes the shorter way round.
+
+    Args:
+        world_from_camera: ``(T, C, 7)`` registered poses (wxyz_xyz); only registered rows are read.
+        registered: ``(T, C)`` bool. fps: frame rate (frame ``k`` at ``k/fps`` s).
+        imu: the trial's recording. names: ``(C,)`` camera names, matched to ``imu.cameras``.
+        time_shifts_s: ``(C,)`` where each camera's frames lie on the gyro's clock after the frame times (None: 0).
+        cameras: ``(C,)`` bool, the cameras to fill (None: all).
+
+    Returns:
+        ``(T, C, 7)`` poses, their orientations filled where carried (positions as given), and ``(T, C)`` bool, the
+        camera-frames filled (never a registered one; none for a camera without a gyro or registered nowhere the
+        recording covers).
+    """
+    world_from_camera = np.array(world_from_camera, np.float64)
+    registered = np.asarray(registered, bool)
+    num_frames, c = registered.shape
+    if world_from_camera.shape != (num_frames, c, 7) or len(names) != c:
+        raise ValueError(f"orientations from gyros: expected poses ({num_frames}, {c}, 7) and {c} names, got "
+                         f"{world_from_camera.shape} and {len(names)}")
+    shifts, chosen = _shifts_and_cameras("orientations from gyros", c, time_shifts_s, cameras)
+    filled = np.zeros((num_frames, c), bool)
+    times = np.arange(num_frames) / fps
+    for i, name in enumerate(names):
+        if not chosen[i] or name not in imu.cameras:
+            continue
+        s = imu.cameras.index(name)
+        on_clock = times + shifts[i]
+        covered = (on_clock >= imu.time[0]) & (on_clock <= imu.time[-1])
+        known = np.flatnonzero(registered[:, i] & covered)
+        gaps = np.flatnonzero(~registered[:, i] & covered)
+        if not known.size or not gaps.size:
+            continue
+        after = np.searchsorted(known, gaps)
+        before = known[np.maximum(after - 1, 0)]
+        nxt = known[np.minimum(after, known.size - 1)]
+
+        def carried(frm):
+            turn = _in_camera(imu, s, integrate_gyro(imu.time, imu.gyro[:, s : s + 1], on_clock[frm], on_clock[gaps])[:, 0])
+            return quat_multiply(world_from_camera[frm, i, :4], turn)
+
+        forward, backward = carried(before), carried(nxt)
+        frac = np.where(after == 0, 1.0, np.where(after == known.size, 0.0,
+                                                   (gaps - before) / np.maximum(nxt - before, 1)))
+        world_from_camera[gaps, i, :4] = slerp(forward, backward, frac)
+        filled[gaps, i] = True
+    return world_from_camera, filled

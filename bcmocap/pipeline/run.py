@@ -585,9 +585,39 @@ def _stage_initial(ctx: RunContext) -> dict:
     metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses, world_from_camera=poses,
                               registered=registered)
     skeleton, rig = load_model(ctx.out)
-    initial = motion_from_camera_poses(skeleton, rig, metric.world_from_camera, metric.registered, robust=True)
+    poses, oriented = _gyro_filled_poses(ctx, skeleton, rig, metric.world_from_camera, metric.registered, corr.fps)
+    initial = motion_from_camera_poses(skeleton, rig, poses, metric.registered | oriented, robust=True)
     save_motion(ctx.path("solve", "initial.npz"), initial)
-    return {"frames": metric.num_frames, "registered_fraction": float(metric.registered.mean())}
+    return {"frames": metric.num_frames, "registered_fraction": float(metric.registered.mean()),
+            "gyro_filled_fraction": float(oriented.mean())}
+
+
+def _gyro_filled_poses(ctx: RunContext, skeleton, rig, poses, registered, fps) -> tuple[np.ndarray, np.ndarray]:
+    """The capture trial's camera poses for the initial motion, with the orientations of the camera-frames no
+    registration gave carried by the cameras' gyros (:func:`~bcmocap.pipeline.gyro_turns.fill_orientations_from_gyros`,
+    on the gyro's clock as the frontend's gyro timing found it; their positions interpolated, which only the root's
+    cameras' are read for, and those are not filled) where the frontend timed the gyros, and which camera-frames were
+    filled ``(T, C)``. Without the timing or ``imu.npz``, the poses as given and none filled."""
+    from ..io.sensors import read_imu
+    from ..kinematics.ik import fill_gaps
+    from .gyro_turns import fill_orientations_from_gyros
+
+    none = np.zeros_like(registered)
+    path = ctx.capture.path / "trials" / "capture" / "imu.npz"
+    timing = _gyro_shifts(ctx)
+    if timing is None or not path.is_file():
+        return poses, none
+    names = [c.name for c in ctx.capture.cameras]
+    off_root = np.asarray(rig.segments) != 0
+    filled_poses, filled = fill_orientations_from_gyros(poses, registered, fps, read_imu(path), names, timing[0],
+                                                        cameras=off_root)
+    for c in np.flatnonzero(filled.any(axis=0)):
+        filled_poses[:, c, 4:] = fill_gaps(np.where(registered[:, c, None], poses[:, c, 4:], 0.0), registered[:, c],
+                                           rotations=False)
+    if filled.any():
+        ctx.log(f"initial: {int(filled.sum())} unregistered camera-frames of {int(filled.any(axis=0).sum())} cameras "
+                "oriented by their gyros from the registered frames around them")
+    return filled_poses, filled
 
 
 def objective_weights(s):
