@@ -2,7 +2,9 @@
 with only what a user knows, reported with its spread.
 
 Each run is a studio capture (``bcmocap.sim.studio``; ``--seconds`` of the motion, a ``--rom-seconds``
-range-of-motion trial at ``--rom-tempo`` (default 6 s at 0.5: a 3 s one left a foot's centre undetermined), 640×360 at 60 fps, the standard 18-camera rig):
+range-of-motion trial at ``--rom-tempo`` (default 6 s at 0.5: a 3 s one left a foot's centre undetermined) with the
+ankles turned on still legs after the other joints (``--rom-protocol feet_after``: with every joint at once, a foot
+camera registered in none of the frames where its ankle turned), 640×360 at 60 fps, the standard 18-camera rig):
 
 - ``clean``: the default studio in the run's room with the run's motion; the one rendered lens is calibrated
   from its board video;
@@ -97,7 +99,7 @@ def capture_settings(run: Run, args):
     from bcmocap.sim.studio import StudioSettings, preset_settings
 
     fields = dict(motion=run.motion, room=run.room, seed=run.seed, seconds=args.seconds, rom_seconds=args.rom_seconds,
-                  rom_tempo=args.rom_tempo, reference_photos=REFERENCE_PHOTOS.get(run.room, 24))
+                  rom_tempo=args.rom_tempo, rom_protocol=args.rom_protocol, reference_photos=REFERENCE_PHOTOS.get(run.room, 24))
     return preset_settings("realistic", **fields) if run.condition == "realistic" else StudioSettings(**fields)
 
 
@@ -245,6 +247,8 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=2.0, help="capture trial length (s, default 2)")
     ap.add_argument("--rom-seconds", type=float, default=6.0, help="range-of-motion trial length (s, default 6)")
     ap.add_argument("--rom-tempo", type=float, default=0.5, help="range-of-motion sweep speed (default 0.5)")
+    ap.add_argument("--rom-protocol", default="feet_after", choices=["together", "feet_after"], help="what the subject does in the range-of-motion trial "
+                    "(default feet_after: the ankles turned on still legs; bcmocap.sim.studio.ROM_PROTOCOLS)")
     ap.add_argument("--lens-model", choices=["fov", "opencv_fisheye", "thin_prism_fisheye"],
                     help="calibrated lens model of every run (default: LENS_MODELS, per condition)")
     ap.add_argument("--board-views", type=int, default=64, help="board placements per board video (default 64: about "

@@ -161,6 +161,7 @@ def test_refuses_folders_it_must_not_write(capture, tmp_path):
     from bcmocap.sim import studio, studio_command
 
     assert studio_command.ROOMS == studio.ROOMS  # the command line lists them without importing JAX
+    assert studio_command.ROM_PROTOCOLS == studio.ROM_PROTOCOLS
     with pytest.raises(ValueError, match="missing"):
         load_ground_truth(foreign)
 
@@ -178,6 +179,33 @@ def test_rom_tempo_slows_the_same_sweeps():
         speeds.append((step.max(axis=0)[1:], step.sum(axis=0)[1:]))
     assert 0.4 < np.median(speeds[1][0] / speeds[0][0]) < 0.6  # peak speed per joint about halves
     assert 0.8 < np.median(speeds[1][1] / speeds[0][1]) < 1.3  # the path swept stays about the same
+
+
+def test_rom_protocol_feet_after_turns_the_ankles_on_still_legs():
+    """feet_after: the ankles stay at rest while the other joints swing, then turn while every other joint rests;
+    together: the ankles turn while the legs swing. Both start with the rest hold."""
+    from bcmocap.sim.motions import load_body_motion
+    from bcmocap.sim.studio import rom_rest_frames, studio_range_of_motion
+
+    skeleton, walk = load_body_motion("walk", fps=60.0, seconds=0.1)
+    feet = np.array([name.endswith("_foot") for name in skeleton.names])
+    others = ~feet
+    others[0] = False  # the root turns throughout
+    angles = {}
+    for protocol in ("together", "feet_after"):
+        rot = np.asarray(studio_range_of_motion(skeleton, walk, 6.0, 60.0, np.random.default_rng(5), 0.5,
+                                                protocol).rotations)
+        angles[protocol] = np.degrees(2 * np.arccos(np.clip(np.abs(rot[..., 0]), 0, 1)))  # (T, J) from rest
+        assert np.all(angles[protocol][rom_rest_frames(len(rot), 60.0)] < 1e-6)
+    together, after = angles["together"], angles["feet_after"]
+    feet_moving = after[:, feet].max(axis=1) > 1.0
+    others_moving = after[:, others].max(axis=1) > 1.0
+    assert feet_moving.sum() > 100 and others_moving.sum() > 100  # each for more than 1.7 s of the 6
+    assert not np.any(feet_moving & others_moving)
+    assert after[:, feet].max() > 20.0  # the ankles' full range, as when every joint moves at once
+    assert np.sum((together[:, feet].max(axis=1) > 1.0) & (together[:, others].max(axis=1) > 1.0)) > 100
+    with pytest.raises(ValueError, match="StudioSettings.rom_protocol must be one of"):
+        StudioSettings(rom_protocol="ankles")
 
 
 @pytest.mark.parametrize("flag, value", [("--seconds", "inf"), ("--fps", "inf"), ("--seconds", "nan"),

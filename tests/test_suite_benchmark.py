@@ -61,11 +61,12 @@ def test_lens_error_separates_what_a_turn_of_the_camera_undoes():
     assert longer["covered_max_after_rotation_px"] > 0.99 * longer["covered_max_px"]  # a focal error is not a turn
 
 
-def test_the_sparse_room_is_photographed_with_more_overlap():
+def test_the_sparse_room_is_photographed_with_more_overlap_and_every_subject_turns_the_ankles_last():
     import argparse
 
-    args = argparse.Namespace(seconds=2.0, rom_seconds=6.0, rom_tempo=0.5)
+    args = argparse.Namespace(seconds=2.0, rom_seconds=6.0, rom_tempo=0.5, rom_protocol="feet_after")
     sparse = suite.capture_settings(suite.Run("realistic", "run", "sparse", 2), args)
     textured = suite.capture_settings(suite.Run("clean", "run", "textured", 2), args)
     assert sparse.reference_photos == 48 and textured.reference_photos == 24
     assert sparse.room == "sparse" and sparse.clock_ppm > 0 and textured.clock_ppm == 0  # the presets themselves
+    assert sparse.rom_protocol == textured.rom_protocol == "feet_after"  # both conditions, one protocol

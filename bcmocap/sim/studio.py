@@ -168,6 +168,9 @@ class StudioSettings:
         rom_seconds: length of the range-of-motion trial (s, at most ``MAX_SECONDS``).
         rom_tempo: speed of the range-of-motion trial's sweeps (1: each joint at 0.6–1.4 Hz; 0.5: the same
             sweeps at half that speed, as a subject moving deliberately does, in (0, 4]).
+        rom_protocol: what the subject does in the range-of-motion trial (:data:`ROM_PROTOCOLS`): "together",
+            every joint at once; "feet_after", the ankles turned on still legs after the rest has swung
+            (:func:`studio_range_of_motion`).
         seed: random seed (scene, camera offsets, audio, markers, sensor noise).
         fps: frame rate of videos and ground truth (Hz, at most ``MAX_FPS``).
         width, height: body-camera image size (px).
@@ -226,6 +229,7 @@ class StudioSettings:
     seconds: float = 2.0
     rom_seconds: float = 2.0
     rom_tempo: float = 1.0
+    rom_protocol: str = "together"
     seed: int = 0
     fps: float = 60.0
     width: int = 640
@@ -289,6 +293,8 @@ class StudioSettings:
                 raise ValueError(f"StudioSettings.{name} must be at least 8, got {getattr(self, name)}")
         if self.reference_photos < 0 or self.markers_per_segment < 0:
             raise ValueError("StudioSettings.reference_photos and markers_per_segment must be >= 0")
+        if self.rom_protocol not in ROM_PROTOCOLS:
+            raise ValueError(f"StudioSettings.rom_protocol must be one of {ROM_PROTOCOLS}, got {self.rom_protocol!r}")
         if not 0.0 < self.rom_tempo <= 4.0:  # also refuses NaN
             raise ValueError(f"StudioSettings.rom_tempo must be in (0, 4], got {self.rom_tempo}")
         if round(self.seconds * self.fps) < 2 or round(self.rom_seconds * self.fps) < 2:
@@ -555,21 +561,49 @@ def studio_subject(skeleton: Skeleton, rom_frames: int, fps: float) -> dict:
     return subject_record(topology, measurements, rest)
 
 
+#: Range-of-motion protocols of the studio (:func:`studio_range_of_motion`).
+ROM_PROTOCOLS = ("together", "feet_after")
+
+#: Share of the moving stretch of the ``feet_after`` protocol in which the legs, trunk and arms swing; the ankles
+#: turn in the rest of it.
+_FEET_AFTER_SHARE = 0.55
+
+
+def _swell(n: int, start: int, length: int) -> np.ndarray:
+    """``(n,)`` a smooth envelope: sin² over ``[start, start + length)``, zero elsewhere."""
+    envelope = np.zeros(n)
+    length = max(length, 1)
+    envelope[start:start + length] = np.sin(np.pi * (np.arange(length) + 0.5) / length) ** 2
+    return envelope
+
+
 def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float, fps: float,
-                           rng: np.random.Generator, tempo: float = 1.0) -> Motion:
+                           rng: np.random.Generator, tempo: float = 1.0, protocol: str = "together") -> Motion:
     """A generated range-of-motion trial at the first position of ``reference``: the subject holds the
     rest pose (every joint at zero, the convention of :mod:`bcmocap.kinematics.rom`;
-    :func:`rom_rest_frames`), then every joint swings about all its axes at once (incommensurate
-    sinusoids of 0.6–1.4 Hz times ``tempo`` under a smooth envelope) while the body slowly turns, then holds
-    the rest pose again; hinges flex to the side ``reference`` flexes them."""
+    :func:`rom_rest_frames`), then the joints swing about all their axes (incommensurate sinusoids of
+    0.6–1.4 Hz times ``tempo`` under smooth envelopes) while the body slowly turns, then holds the rest
+    pose again; hinges flex to the side ``reference`` flexes them.
+
+    ``protocol`` (:data:`ROM_PROTOCOLS`): ``"together"``, every joint at once; ``"feet_after"``, every joint but
+    the ankles in the first 55 % of the moving stretch, then ankle circles on still legs in the rest. A foot
+    camera sees the floor from 10–50 cm, and while its leg swings it turns at up to 300°/s; on the studio's
+    realistic walk it registered in none of those frames, which left the ankle's centre undetermined
+    (``docs/benchmarks/suite.md``). Turned on its own, the ankle moves the camera at a walking pace.
+    """
     from .rom import DEFAULT_AMPLITUDE_DEG, ROM_AMPLITUDE_DEG
 
+    if protocol not in ROM_PROTOCOLS:
+        raise ValueError(f"range-of-motion protocol must be one of {ROM_PROTOCOLS}, got {protocol!r}")
     n = int(round(seconds * fps))
     hold = _rest_hold(n, fps)
     moving = max(n - 2 * hold, 1)
     t = np.arange(moving) / fps
-    envelope = np.zeros(n)
-    envelope[hold:hold + moving] = np.sin(np.pi * (np.arange(moving) + 0.5) / moving) ** 2
+    envelope = _swell(n, hold, moving)
+    feet_envelope = envelope
+    if protocol == "feet_after":
+        first = int(round(_FEET_AFTER_SHARE * moving))
+        limbs_envelope, feet_envelope = _swell(n, hold, first), _swell(n, hold + first, moving - first)
     tt = np.zeros(n)
     tt[hold:hold + moving] = t
     rot = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (n, skeleton.num_segments, 1))
@@ -581,12 +615,13 @@ def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float
         freq = tempo * rng.uniform(0.6, 1.4, 3)
         phase = rng.uniform(0, 2 * np.pi, 3)
         jt = skeleton.joint_types[j]
+        swell = envelope if protocol == "together" else feet_envelope if kind == "foot" else limbs_envelope
         if jt == JointType.BALL:
-            rotvec = amp * envelope[:, None] * np.sin(2 * np.pi * freq * tt[:, None] + phase)
+            rotvec = amp * swell[:, None] * np.sin(2 * np.pi * freq * tt[:, None] + phase)
         elif jt == JointType.HINGE:
             axis = np.asarray(skeleton.hinge_axes[j])
             side = np.sign(np.mean(_hinge_angle(ref_rot[:, j], axis))) or 1.0
-            angle = side * amp * envelope * 0.5 * (1 - np.cos(2 * np.pi * freq[0] * tt))
+            angle = side * amp * swell * 0.5 * (1 - np.cos(2 * np.pi * freq[0] * tt))
             rotvec = angle[:, None] * axis
         else:
             continue
@@ -796,7 +831,7 @@ def _plan(settings: StudioSettings) -> _Plan:
     nominal = None
     if s.lens_units:
         rig, nominal = _lens_units(s, rig)
-    rom = studio_range_of_motion(skeleton, motion, s.rom_seconds, s.fps, _rng(s.seed, 5), s.rom_tempo)
+    rom = studio_range_of_motion(skeleton, motion, s.rom_seconds, s.fps, _rng(s.seed, 5), s.rom_tempo, s.rom_protocol)
     path_xy = np.asarray(motion.root_position)[:, :2]
     scene = make_room(s.room if s.room in ROOM_STYLES else "textured", path_xy, seed=s.seed)
     trials = {"rom": rom, "capture": motion}

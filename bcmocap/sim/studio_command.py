@@ -11,6 +11,7 @@ from ..compilation_cache import enable_compilation_cache
 
 PRESETS = ("realistic",)  # bcmocap.sim.studio.PRESETS (not imported here: the CLI starts without JAX)
 ROOMS = ("textured", "sparse", "repeated", "passerby")  # bcmocap.sim.studio.ROOMS
+ROM_PROTOCOLS = ("together", "feet_after")  # bcmocap.sim.studio.ROM_PROTOCOLS
 
 
 def add_simulate_command(sub: argparse._SubParsersAction) -> None:
@@ -65,6 +66,10 @@ def _add_capture_arguments(cmd: argparse.ArgumentParser) -> None:
                      help="length of the range-of-motion trial (s, default 2, at most 600)")
     cmd.add_argument("--rom-tempo", type=float, default=1.0,
                      help="speed of the range-of-motion trial's sweeps (default 1: 0.6-1.4 Hz; 0.5: half as fast)")
+    cmd.add_argument("--rom-protocol", default="together", choices=list(ROM_PROTOCOLS),
+                     help="what the subject does in the range-of-motion trial: together (default: every joint at "
+                          "once) or feet_after (the ankles turned on still legs after the rest has swung, so the foot "
+                          "cameras register while the ankles move)")
     cmd.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     cmd.add_argument("--fps", type=float, default=60.0, help="frame rate (default 60, at most 240)")
     cmd.add_argument("--width", type=int, default=640, help="body-camera image width (px, default 640)")
@@ -191,7 +196,7 @@ def _simulate_capture(cmd: argparse.ArgumentParser, args: argparse.Namespace) ->
         return 2
     fields = dict(
         motion=motion, motion_fps=args.motion_fps, motion_unit_m=args.motion_unit_m, seconds=args.seconds,
-        rom_seconds=args.rom_seconds, rom_tempo=args.rom_tempo, seed=args.seed, fps=args.fps, width=args.width, height=args.height,
+        rom_seconds=args.rom_seconds, rom_tempo=args.rom_tempo, rom_protocol=args.rom_protocol, seed=args.seed, fps=args.fps, width=args.width, height=args.height,
         lens=args.lens, room=args.room, reference_photos=args.reference_photos, reference_width=ref_w, reference_height=ref_h,
     )
     fields.update({name: getattr(args, name) for name in DEGRADATIONS if getattr(args, name) is not None})
