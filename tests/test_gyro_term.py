@@ -300,7 +300,7 @@ def test_the_initial_stage_orients_unregistered_frames_on_the_gyro_clock_of_the_
     registered = trial.registered.copy()
     registered[150:180] = False  # every camera, the root's too
     poses = np.where(registered[..., None], trial.world_from_camera, np.nan)
-    filled_poses, filled = run._gyro_filled_poses(ctx, skeleton, rig, poses, registered, TRIAL["fps"])
+    filled_poses, filled = run._gyro_filled_poses(ctx, rig, poses, registered, TRIAL["fps"])
     root = np.asarray(rig.segments) == 0
     assert not filled[:, root].any() and filled[150:180, ~root].all() and filled.sum() == 30 * (~root).sum()
     shin = rig.index("shin")
@@ -309,5 +309,5 @@ def test_the_initial_stage_orients_unregistered_frames_on_the_gyro_clock_of_the_
     assert np.isfinite(filled_poses[filled]).all()  # positions interpolated
     assert len(logged) == 1 and "120 unregistered camera-frames of 4 cameras" in logged[0]
     timing.write_text("{}")
-    same, none = run._gyro_filled_poses(ctx, skeleton, rig, poses, registered, TRIAL["fps"])
+    same, none = run._gyro_filled_poses(ctx, rig, poses, registered, TRIAL["fps"])
     assert not none.any() and same is poses

@@ -134,6 +134,8 @@ def test_run_refuses_a_user_term_it_cannot_import_before_reading_the_capture(tmp
     ("run.json", '{"skeleton": {"root_origin": [1]}}', "skeleton.root_origin must be a list of strings"),
     ("run.toml", '[frontend]\npoints = "some"\n', "frontend.points must be 'all' or 'reference', got 'some'"),
     ("run.toml", '[skeleton]\ndegenerate = "ignore"\n', "skeleton.degenerate must be 'raise' or 'hinge', got 'ignore'"),
+    ("run.toml", '[skeleton]\nunregistered_ends = "drop"\n',
+     "skeleton.unregistered_ends must be 'raise' or 'mirror', got 'drop'"),
     ("run.toml", "[solver]\nregistered_pose = [0.02, 0.0]\n",
      "solver.registered_pose must be [m, deg], both 0 or both > 0 (at most 1 m, 30 deg), got [0.02, 0.0]"),
     ("run.toml", "[solver]\nregistered_pose_below = 0\n", "solver.registered_pose_below must be an integer in [1, 100000]"),
@@ -192,3 +194,31 @@ def test_a_range_of_motion_trial_with_nothing_registered_is_one_line_not_a_divis
     ctx = run.RunContext(capture=None, config=RunConfig(), out=tmp_path, log=print)
     with pytest.raises(ValueError, match=r"registered no camera-frame of the range-of-motion trial \(see .*rom"):
         run._stage_world(ctx)
+
+
+def test_the_skeleton_stage_logs_what_the_estimate_warns(monkeypatch):
+    # A warning of the range-of-motion estimate (an end mirrored from its other side, a ball joint held on an axis)
+    # is what the skeleton stage assumed: it goes to the run's log, with the settings passed through.
+    import types
+    import warnings
+
+    import bcmocap.kinematics.rom as rom
+    from bcmocap.pipeline import run
+
+    seen = {}
+
+    def estimate(*args, options, **kwargs):
+        seen["options"] = options
+        warnings.warn("joint 'left_foot': its centre is 'right_foot''s mirrored", stacklevel=2)
+        return "estimate"
+
+    monkeypatch.setattr(rom, "skeleton_from_range_of_motion", estimate)
+    for name in ("_topology", "_stacked_intrinsics", "_more_trials"):
+        monkeypatch.setattr(run, name, lambda *a, **k: None)
+    monkeypatch.setattr(run, "_gyro_rest_orientations", lambda *a, **k: None)
+    config = RunConfig().with_overrides({"skeleton.unregistered_ends": "raise"})
+    logged = []
+    ctx = types.SimpleNamespace(capture=types.SimpleNamespace(cameras=[]), config=config, log=logged.append)
+    assert run._estimate_skeleton(ctx, lambda poses: poses, None, None, None) == "estimate"
+    assert logged == ["skeleton: joint 'left_foot': its centre is 'right_foot''s mirrored"]
+    assert seen["options"].unregistered_ends == "raise"

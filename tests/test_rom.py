@@ -296,3 +296,86 @@ def test_bad_assignments_and_topologies(model, noiseless):
     assert topo.parents == (-1, 0) and topo.joint_types == (JointType.FREE, JointType.BALL)
     with pytest.raises(ValueError, match="degenerate must be"):
         RomOptions(degenerate="ignore")
+
+
+def _two_legged_model():
+    """The leg model with a left and a right leg, mirror images through the plane x = 0 (the right leg's bone
+    offsets and camera mounts are the left's mirrored, each camera keeping its x axis to its own right)."""
+    from conftest import fov_camera
+    from test_sim_rom import LEG_MOUNTS, LEG_OFFSETS
+
+    from bcmocap.geometry import SE3, quat_from_matrix
+    from bcmocap.kinematics import Rig, Skeleton
+
+    mirror, flip_x = np.diag([-1.0, 1.0, 1.0]), np.diag([-1.0, 1.0, 1.0])
+    names = ("pelvis", "torso", "left_thigh", "left_shin", "left_foot", "right_thigh", "right_shin", "right_foot")
+    left = LEG_OFFSETS[2:]
+    offsets = np.concatenate([LEG_OFFSETS[:2], left, left @ mirror])
+    axes = np.zeros((8, 3))
+    axes[3] = LEG_KNEE_AXIS
+    axes[6] = -mirror @ LEG_KNEE_AXIS
+    skeleton = Skeleton(names, (-1, 0, 0, 2, 3, 0, 5, 6), offsets, ("free", "ball", "ball", "hinge", "ball", "ball",
+                                                                     "hinge", "ball"), axes)
+    mounts = []
+    for name, seg, r, t in LEG_MOUNTS:
+        pose = SE3.from_rotation_and_translation(SO3.exp(np.asarray(r, float)), np.asarray(t, float))
+        if seg in ("pelvis", "torso"):
+            mounts.append((name, seg, pose, fov_camera()))
+            continue
+        mounts.append((f"left_{name}", f"left_{seg}", pose, fov_camera()))
+        rot = mirror @ np.asarray(SO3.exp(np.asarray(r, float)).as_matrix()) @ flip_x
+        mirrored = SE3(np.concatenate([quat_from_matrix(rot), mirror @ np.asarray(t, float)]))
+        mounts.append((f"right_{name}", f"right_{seg}", mirrored, fov_camera()))
+    return skeleton, Rig.from_mounts(skeleton, mounts)
+
+
+def test_an_end_segment_never_registered_mirrors_its_other_side():
+    # The left foot's camera registers in no frame: by default that stops the estimate; with unregistered_ends =
+    # "mirror" the left ankle and the camera's mount are the right's mirrored through the midplane (the plane
+    # between the hips), exactly so on a body that is symmetric, and the rest of the estimate is as before.
+    skeleton, rig = _two_legged_model()
+    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
+                                  **TRIAL)
+    registered = trial.registered.copy()
+    foot = rig.index("left_foot")
+    registered[:, foot] = False
+    args = (skeleton, trial.assignment, trial.world_from_camera, registered)
+    with pytest.raises(ValueError, match=r"camera 'left_foot' is registered in only 0 frames"):
+        skeleton_from_range_of_motion(*args, rest_frames=range(15))
+    with pytest.warns(UserWarning, match=r"segment 'left_foot': none of its cameras \(left_foot\) .* 'right_foot''s mirrored"):
+        est = skeleton_from_range_of_motion(*args, rest_frames=range(15), intrinsics=rig.intrinsics,
+                                            options=RomOptions(unregistered_ends="mirror"))
+    full = skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, trial.registered,
+                                         rest_frames=range(15))
+    np.testing.assert_allclose(est.skeleton.offsets, full.skeleton.offsets, atol=1e-9)
+    np.testing.assert_allclose(est.skeleton.hinge_axes, full.skeleton.hinge_axes, atol=1e-9)
+    assert est.skeleton.names == skeleton.names and est.rig.names == rig.names
+    assert_same_mounts(np.asarray(est.rig.segment_from_camera), full.segment_from_camera, 1e-9)
+    assert "left_foot" not in est.joints and "right_foot" in est.joints  # the summary names what was estimated
+    registered[:, rig.index("right_foot")] = False  # neither side: nothing to mirror
+    with pytest.raises(ValueError, match=r"registered in only 0 frames"):
+        skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, registered,
+                                      rest_frames=range(15), options=RomOptions(unregistered_ends="mirror"))
+    with pytest.raises(ValueError, match="unregistered_ends must be"):
+        RomOptions(unregistered_ends="drop")
+
+
+def test_an_end_joint_the_trial_did_not_move_mirrors_its_other_side():
+    # The left foot's camera is registered everywhere but while its ankle turns: its centre is undetermined, which
+    # stops the estimate by default; with unregistered_ends = "mirror" it is the right ankle's mirrored (exact on a
+    # symmetric body), the camera's mount still found from its own frames.
+    skeleton, rig = _two_legged_model()
+    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
+                                  **TRIAL)
+    ankle = np.degrees(2 * np.arccos(np.clip(np.abs(np.asarray(trial.motion.rotations)[:, skeleton.index("left_foot"), 0]), 0, 1)))
+    registered = trial.registered.copy()
+    registered[ankle > 0.01, rig.index("left_foot")] = False
+    args = (skeleton, trial.assignment, trial.world_from_camera, registered)
+    with pytest.raises(ValueError, match=r"joint 'left_foot' .* does not determine its centre"):
+        skeleton_from_range_of_motion(*args, rest_frames=range(15))
+    with pytest.warns(UserWarning, match=r"joint 'left_foot': the trial does not determine its centre .* 'right_foot''s mirrored"):
+        est = skeleton_from_range_of_motion(*args, rest_frames=range(15), options=RomOptions(unregistered_ends="mirror"))
+    full = skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, trial.registered,
+                                         rest_frames=range(15))
+    np.testing.assert_allclose(est.skeleton.offsets, full.skeleton.offsets, atol=1e-9)
+    assert_same_mounts(est.segment_from_camera, full.segment_from_camera, 1e-9)

@@ -49,13 +49,14 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..cameras import CameraModel
+from ..cameras import CameraModel, camera_at, stack_cameras
 from ..geometry import (
     apply_pose,
     compose_poses,
     invert_pose,
     matrix_from_quat,
     quat_conjugate,
+    quat_from_matrix,
     quat_multiply,
     rotate_by_quat,
 )
@@ -140,6 +141,13 @@ class RomOptions:
         centred_virtual: virtual cameras at the mean of their cameras (True) or at a reference camera.
         pose_radius_deg: frames whose parent→child rotations are closer than this count as one pose
             when weighting frames (a few times the rotation noise).
+        unregistered_ends: what to do with an end segment (a foot, a hand: no children) none of whose cameras
+            is registered in ``min_frames`` frames, or whose joint centre the trials do not determine: "raise"
+            (default), or "mirror" — warn, and give it the joint centre of its other side's segment (``left_``/
+            ``right_`` names) mirrored through the body's midplane (the plane halfway between the root's
+            ``left_`` and ``right_`` children), and a camera that never registered its other side's camera's
+            mount, mirrored; a knee whose foot is left out so is placed on its axis nearest the other knee,
+            mirrored. Both sides undetermined still raise.
     """
 
     min_frames: int = 20
@@ -149,10 +157,13 @@ class RomOptions:
     degenerate: str = "raise"
     centred_virtual: bool = True
     pose_radius_deg: float = 5.0
+    unregistered_ends: str = "raise"
 
     def __post_init__(self):
         if self.degenerate not in ("raise", "hinge"):
             raise ValueError(f"RomOptions: degenerate must be 'raise' or 'hinge', got {self.degenerate!r}")
+        if self.unregistered_ends not in ("raise", "mirror"):
+            raise ValueError(f"RomOptions: unregistered_ends must be 'raise' or 'mirror', got {self.unregistered_ends!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -420,6 +431,11 @@ def skeleton_from_range_of_motion(
     world_from_camera = np.asarray(world_from_camera, dtype=np.float64)
     registered = np.asarray(registered, dtype=bool)
     _check_more_trials(pairs, more_trials)
+    ends = _unregistered_ends(topology, pairs, registered, options, [reg for _, reg in more_trials])
+    if ends:
+        return _with_mirrored_ends(ends, topology, pairs, world_from_camera, registered, rest_frames=rest_frames,
+                                   intrinsics=intrinsics, root_origin=root_origin, world_from_rest=world_from_rest,
+                                   more_trials=more_trials, rest_orientations=rest_orientations, options=options)
     seg_cams = _check_assignment(topology, pairs, world_from_camera, registered, options,
                                  [reg for _, reg in more_trials])
     carried = _check_rest_orientations(rest_orientations, len(pairs))
@@ -432,7 +448,8 @@ def skeleton_from_range_of_motion(
     world_v, known = pooled[0]
     joints, families = _estimate_joint_centres(topology, pooled, more_trials, options)
     world_from_v_rest = _rest_pose(topology, joints, families, world_v, known, rest,
-                                   _carried_segment_rest(topology, seg_cams, vcs, carried))
+                                   _carried_segment_rest(topology, seg_cams, vcs, carried),
+                                   mirror=options.unregistered_ends == "mirror")
     all_v, all_known = (np.concatenate(x) for x in zip(*pooled))
     skeleton, seg_from_v = _segment_frames(topology, joints, world_from_v_rest, world_from_rest, root_origin, all_v, all_known)
     camera_segments = tuple(topology.index(s) for _, s in pairs)
@@ -443,6 +460,96 @@ def skeleton_from_range_of_motion(
     names = tuple(c for c, _ in pairs)
     rig = None if intrinsics is None else Rig(names, camera_segments, mounts, intrinsics)
     return RomEstimate(skeleton, rig, mounts, names, camera_segments, joints, vcs, seg_from_v)
+
+
+def _other_side(name: str) -> str | None:
+    for a, b in (("left_", "right_"), ("right_", "left_")):
+        if name.startswith(a):
+            return b + name[len(a):]
+    return None
+
+
+def _unregistered_ends(topology: Topology, pairs, registered, options: RomOptions, more_registered) -> list[int]:
+    """With ``unregistered_ends = "mirror"``, the end segments (no children) none of whose cameras is registered in
+    ``min_frames`` frames of all trials and whose other side's segment has a camera that is: their indices."""
+    if options.unregistered_ends != "mirror" or np.ndim(registered) != 2 or np.shape(registered)[1] != len(pairs):
+        return []
+    counts = np.asarray(registered, bool).sum(axis=0) + sum((np.asarray(r, bool).sum(axis=0) for r in more_registered),
+                                                           np.zeros(len(pairs), int))
+    placed = {s for (_, s), n in zip(pairs, counts) if n >= options.min_frames}
+    ends = []
+    for j, name in enumerate(topology.names):
+        other = _other_side(name)
+        has_cameras = any(s == name for _, s in pairs)
+        if (has_cameras and name not in placed and not topology.children(j) and topology.parents[j] >= 0
+                and other in topology.names and other in placed):
+            ends.append(j)
+    return ends
+
+
+def _midplane_reflection(skeleton: Skeleton) -> np.ndarray:
+    """``(3, 3)`` the reflection through the body's midplane in the rest frame: the plane halfway between the root's
+    ``left_`` and ``right_`` children's joint centres (ValueError without such a pair)."""
+    kids = {skeleton.names[k]: k for k in range(len(skeleton.names)) if skeleton.parents[k] == 0}
+    for name, k in kids.items():
+        other = _other_side(name)
+        if name.startswith("left_") and other in kids:
+            normal = np.asarray(skeleton.offsets)[k] - np.asarray(skeleton.offsets)[kids[other]]
+            normal /= np.linalg.norm(normal)
+            return np.eye(3) - 2.0 * np.outer(normal, normal)
+    raise ValueError("unregistered_ends = 'mirror': the root has no pair of left_/right_ children to find the body's "
+                     "midplane")
+
+
+def _with_mirrored_ends(ends, topology: Topology, pairs, world_from_camera, registered, *, more_trials,
+                        rest_orientations, options, **kwargs) -> RomEstimate:
+    """The estimate without the unregistered ``ends``, then each end put back as its other side mirrored through
+    the midplane: its joint centre (bone offset) and hinge axis, and its cameras' mounts (each camera of the end
+    takes the mount of its other side's camera in the same place, else the first one's); warns naming each."""
+    keep = [j for j in range(len(topology.names)) if j not in ends]
+    old_to_new = {j: k for k, j in enumerate(keep)}
+    reduced = Topology(tuple(topology.names[j] for j in keep),
+                       tuple(-1 if topology.parents[j] < 0 else old_to_new[topology.parents[j]] for j in keep),
+                       tuple(topology.joint_types[j] for j in keep))
+    dropped = {topology.names[j] for j in ends}
+    cams = [i for i, (_, s) in enumerate(pairs) if s not in dropped]
+    carried = None if rest_orientations is None else np.asarray(rest_orientations, np.float64)[cams]
+    intrinsics = kwargs.pop("intrinsics")
+    part = skeleton_from_range_of_motion(
+        reduced, [pairs[i] for i in cams], np.asarray(world_from_camera)[:, cams], np.asarray(registered)[:, cams],
+        more_trials=[(np.asarray(p)[:, cams], np.asarray(r)[:, cams]) for p, r in more_trials],
+        rest_orientations=carried, options=options,
+        intrinsics=None if intrinsics is None else stack_cameras([camera_at(intrinsics, i) for i in cams]), **kwargs)
+    mirror = _midplane_reflection(part.skeleton)
+    n = len(topology.names)
+    offsets, axes = np.zeros((n, 3)), np.zeros((n, 3))
+    offsets[keep] = np.asarray(part.skeleton.offsets)
+    axes[keep] = np.asarray(part.skeleton.hinge_axes)
+    for j in ends:
+        k = part.skeleton.index(_other_side(topology.names[j]))
+        offsets[j] = mirror @ np.asarray(part.skeleton.offsets)[k]
+        axes[j] = -mirror @ np.asarray(part.skeleton.hinge_axes)[k]  # an axis is a pseudovector
+    skeleton = Skeleton(topology.names, topology.parents, offsets, topology.joint_types, axes)
+    mounts = np.zeros((len(pairs), 7))
+    mounts[cams] = part.segment_from_camera
+    flip_x = np.diag([-1.0, 1.0, 1.0])  # the mirrored camera still has its x axis to its own right
+    for j in ends:
+        name, other = topology.names[j], _other_side(topology.names[j])
+        own = [i for i, (_, s) in enumerate(pairs) if s == name]
+        theirs = [part.camera_names.index(c) for c, s in (pairs[i] for i in cams) if s == other]
+        for rank, i in enumerate(own):
+            source = part.segment_from_camera[theirs[min(rank, len(theirs) - 1)]]
+            rot = mirror @ matrix_from_quat(source[:4]) @ flip_x
+            mounts[i] = np.concatenate([quat_from_matrix(rot), mirror @ source[4:]])
+        warnings.warn(
+            f"segment '{name}': none of its cameras ({', '.join(pairs[i][0] for i in own)}) is registered in "
+            f"{options.min_frames} frames of the trials; its joint centre and camera mounts are '{other}''s mirrored "
+            "through the body's midplane (unregistered_ends = 'mirror')", stacklevel=2)
+    camera_segments = tuple(topology.index(s) for _, s in pairs)
+    names = tuple(c for c, _ in pairs)
+    rig = None if intrinsics is None else Rig(names, camera_segments, mounts, intrinsics)
+    return RomEstimate(skeleton, rig, mounts, names, camera_segments, part.joints, part.virtual_cameras,
+                       part.segment_from_virtual)
 
 
 def _check_more_trials(pairs, more_trials) -> None:
@@ -512,6 +619,7 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
     """
     joints: dict[str, JointEstimate] = {}
     families: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    undetermined: dict[str, tuple[str, str]] = {}  # end segment → (the error, why): mirrored, or raised
     for j in range(1, len(topology.names)):
         name, p = topology.names[j], topology.parents[j]
         pname, jtype = topology.names[p], topology.joint_types[j]
@@ -519,10 +627,14 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
                               for wv, kn in pooled])
         trials = "trial" if not more_trials else f"{1 + len(more_trials)} trials"
         if len(rel) < options.min_frames:
-            raise ValueError(
-                f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {len(rel)} frames "
-                f"(< {options.min_frames}) of the {trials}"
-            )
+            failure = (f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {len(rel)} "
+                       f"frames (< {options.min_frames}) of the {trials}")
+            if options.unregistered_ends != "mirror" or topology.children(j) or _other_side(name) not in topology.names:
+                raise ValueError(failure)
+            undetermined[name] = (failure, f"both segments are known in only {len(rel)} frames")
+            joints[name] = JointEstimate(name, pname, jtype, np.zeros(3), np.zeros(3), None, len(rel), 0.0, np.nan,
+                                         np.zeros(6), np.inf)
+            continue
         hinge = jtype == JointType.HINGE
         est = _joint_estimate(name, pname, jtype, rel, 1 if hinge else 0, options, families)
         weak = int(np.sum(est.spread < options.min_spread))
@@ -554,13 +666,22 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
                        f"centre standard error {100 * est.std_m:.2f} cm" if weak else
                        f"centre standard error {100 * est.std_m:.2f} cm, above the limit of {100 * options.max_centre_std_m:.3g} cm "
                        f"(rotation spreads {spreads})")
-                raise ValueError(f"{what}: the {trials} do{'es' * (not more_trials)} not determine its centre: {why}; exercise the joint about "
-                                 "more axes, or declare it a hinge")
+                failure = (f"{what}: the {trials} do{'es' * (not more_trials)} not determine its centre: {why}; exercise "
+                           "the joint about more axes, or declare it a hinge")
+                if options.unregistered_ends != "mirror" or topology.children(j) or _other_side(name) not in topology.names:
+                    raise ValueError(failure)
+                undetermined[name] = (failure, f"the {trials} do{'es' * (not more_trials)} not determine its centre ({why})")
         joints[name] = est
+    for name, (failure, why) in undetermined.items():  # an end whose other side is determined takes that side mirrored
+        if _other_side(name) in undetermined:
+            raise ValueError(failure)
+        warnings.warn(f"joint '{name}': {why}; its centre is '{_other_side(name)}''s mirrored through the body's "
+                      "midplane (unregistered_ends = 'mirror')", stacklevel=3)
+        families[name] = (None, None)
     return joints, families
 
 
-def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest) -> np.ndarray:
+def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest, mirror: bool = False) -> np.ndarray:
     """Rest pose (Eq. 17): ``(J, 4)`` world_from_virtual orientations of the segments in the ``rest`` frames
     ``(T,)``; places each hinge-like family's centre on its axis, updating ``joints`` in place.
 
@@ -589,10 +710,14 @@ def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest) -
             known[hang, j] = True
     # A family's placement reads its neighbours' centres; where neighbours are families too (an elbow next to a
     # wrist moved about one axis), alternate until the placements settle.
-    _check_neighbouring_axes(topology, families, world_from_v_rest)
+    _check_neighbouring_axes(topology, {k: v for k, v in families.items() if v[1] is not None}, world_from_v_rest)
     for _ in range(1 if len(families) < 2 else 10):
         for name, (y0, null) in families.items():
-            joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None])
+            if null is None:  # a centre the trials did not determine: its other side's, mirrored
+                joints[name] = _resolve_by_mirror(topology, joints, name, np.zeros(6), np.eye(6), world_v,
+                                                  known & rest[:, None])
+            else:
+                joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None], mirror)
     return world_from_v_rest
 
 
@@ -656,13 +781,17 @@ def _check_neighbouring_axes(topology, families, world_from_v_rest, max_angle_de
                 )
 
 
-def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known) -> JointEstimate:
+def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known, mirror: bool = False) -> JointEstimate:
     """Pick the point on a hinge's axis that is collinear with the joints above and below at rest (Eq. 17); for a
     joint at the end of a chain (a wrist, an ankle moved about one axis), collinear with the two joints above it
-    (the straight limb extended). A neighbour that is itself on an axis is taken where it currently is."""
+    (the straight limb extended). A neighbour that is itself on an axis is taken where it currently is. With
+    ``mirror`` (``unregistered_ends = "mirror"``), a joint at the end of a chain whose grandparent is the root (a knee
+    whose foot was left out) takes the point nearest its other side's centre mirrored through the midplane."""
     j = topology.index(name)
     p = topology.parents[j]
     kids = topology.children(j)
+    if mirror and topology.parents[p] == 0 and not kids and _other_side(name) in joints:
+        return _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known)
     if topology.parents[p] < 0 or len(kids) > 1 or (not kids and topology.parents[topology.parents[p]] < 0):
         raise ValueError(
             f"joint '{name}': a centre on an axis is fixed by the straight limb of the rest pose — collinear with the "
@@ -694,6 +823,36 @@ def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known) -> J
         raise ValueError(f"joint '{name}': its axis is parallel to the limb at rest, the straight pose cannot place it")
     s = float(rows @ rhs / (rows @ rows))
     y = y0 + s * null
+    return dataclasses.replace(joints[name], centre_in_child=y[:3], centre_in_parent=y[3:])
+
+
+def _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known) -> JointEstimate:
+    """The centre ``y0 + null · a`` (``null`` ``(6,)`` a hinge's axis, or ``(6, 6)``: any centre) nearest, over the rest
+    frames, its other side's centre mirrored through the midplane (halfway between the root's ``left_``/``right_``
+    children's centres, normal to the line between them)."""
+    j = topology.index(name)
+    p = topology.parents[j]
+    other = topology.index(_other_side(name))
+    hips = [k for k in topology.children(0) if topology.names[k].startswith("left_")
+            and _other_side(topology.names[k]) in topology.names]
+    if not hips:
+        raise ValueError(f"joint '{name}': no pair of left_/right_ children of the root to find the body's midplane")
+    left, right = hips[0], topology.index(_other_side(topology.names[hips[0]]))
+    ok = rest_known[:, j] & rest_known[:, p] & rest_known[:, other] & rest_known[:, 0]
+    if not ok.any():
+        raise ValueError(f"joint '{name}': it, its other side and the root are never all known in the rest frames")
+    wv = world_v[ok]
+    a, b = (apply_pose(wv[:, 0], joints[topology.names[k]].centre_in_parent) for k in (left, right))
+    normal = (a - b) / np.linalg.norm(a - b, axis=1, keepdims=True)
+    target = apply_pose(wv[:, other], joints[topology.names[other]].centre_in_child)
+    target = target - 2.0 * np.sum((target - 0.5 * (a + b)) * normal, axis=1, keepdims=True) * normal
+    null = np.asarray(null, np.float64).reshape(6, -1)  # (6, k) free directions of y = (c_child, c_parent)
+    rows, rhs = [], []
+    for pose, base, step in ((wv[:, j], y0[:3], null[:3]), (wv[:, p], y0[3:], null[3:])):
+        rot = matrix_from_quat(pose[:, :4])  # (N, 3, 3)
+        rows.append((rot @ step).reshape(-1, null.shape[1]))
+        rhs.append((target - apply_pose(pose, base)).ravel())
+    y = y0 + null @ np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
     return dataclasses.replace(joints[name], centre_in_child=y[:3], centre_in_parent=y[3:])
 
 

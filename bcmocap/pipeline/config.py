@@ -40,6 +40,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     centre_trials = ["rom", "capture"]   # trials whose motion fits the joint centres: ["rom"] (the paper) |
                               # ["rom", "capture"] (all the motion there is; rest pose and virtual cameras stay
                               # the ROM trial's)
+    unregistered_ends = "mirror"   # an end segment (a foot, a hand) whose cameras register in neither trial:
+                              # mirror (warn, and give it its other side's joint centre and camera mounts mirrored
+                              # through the body's midplane) | raise
 
     [solver]
     window = 60               # frames per window, 2 to 100000
@@ -124,6 +127,7 @@ class SkeletonConfig:
     max_centre_std_cm: float = 5.0
     degenerate: str = "raise"
     centre_trials: tuple[str, ...] = ("rom", "capture")
+    unregistered_ends: str = "mirror"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,6 +216,8 @@ class RunConfig:
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)
         _check(k.degenerate in ("raise", "hinge"), "skeleton.degenerate", "must be 'raise' or 'hinge'", k.degenerate)
+        _check(k.unregistered_ends in ("raise", "mirror"), "skeleton.unregistered_ends", "must be 'raise' or 'mirror'",
+               k.unregistered_ends)
         _check(tuple(k.centre_trials) in (("rom",), ("rom", "capture")), "skeleton.centre_trials",
                "must be [\"rom\"] or [\"rom\", \"capture\"]", list(k.centre_trials))
         _check(2 <= s.window <= MAX_WINDOW, "solver.window", f"must be in [2, {MAX_WINDOW}]", s.window)

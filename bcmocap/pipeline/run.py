@@ -35,6 +35,7 @@ import json
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -78,7 +79,7 @@ class RunContext:
 #: runs stay reusable.
 _LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 0.0], "registered_pose_below": 20,
                               "gyro_turn": 0.0},
-                   "skeleton": {"centre_trials": ["rom"]},
+                   "skeleton": {"centre_trials": ["rom"], "unregistered_ends": "mirror"},
                    "frontend": {"rolling_shutter_readout": 0.0, "self_calibration": False, "gyro_timing": "clock",
                                 "estimate_readout": False}}
 
@@ -456,18 +457,26 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest, log=N
 
     cams = [(c.name, c.segment) for c in ctx.capture.cameras]
     settings = ctx.config.skeleton
-    options = RomOptions(max_centre_std_m=settings.max_centre_std_cm / 100, degenerate=settings.degenerate)
-    carried = _gyro_rest_orientations(ctx, poses, registered, rest, ctx.log if log is None else log)
+    options = RomOptions(max_centre_std_m=settings.max_centre_std_cm / 100, degenerate=settings.degenerate,
+                         unregistered_ends=settings.unregistered_ends)
+    log = ctx.log if log is None else log
+    carried = _gyro_rest_orientations(ctx, poses, registered, rest, log)
     if carried is not None:  # the similarity turns orientations as it turns poses
         carried = to_world(np.concatenate([carried, np.zeros((len(carried), 3))], axis=1)[None])[0, :, :4]
     try:
-        return skeleton_from_range_of_motion(
-            _topology(ctx), cams, to_world(poses), registered, rest_frames=rest, options=options,
-            intrinsics=_stacked_intrinsics(ctx), root_origin=list(settings.root_origin),
-            more_trials=_more_trials(ctx, to_world), rest_orientations=carried)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            estimate = skeleton_from_range_of_motion(
+                _topology(ctx), cams, to_world(poses), registered, rest_frames=rest, options=options,
+                intrinsics=_stacked_intrinsics(ctx), root_origin=list(settings.root_origin),
+                more_trials=_more_trials(ctx, to_world), rest_orientations=carried)
     except ValueError as exc:
         raise ValueError(f"{exc} (run settings: [skeleton] max_centre_std_cm = {settings.max_centre_std_cm:g}, "
-                         f"degenerate = {settings.degenerate!r}, centre_trials = {list(settings.centre_trials)})") from None
+                         f"degenerate = {settings.degenerate!r}, centre_trials = {list(settings.centre_trials)}, "
+                         f"unregistered_ends = {settings.unregistered_ends!r})") from None
+    for warning in caught:  # in the run's log, where a user reads what the skeleton stage assumed
+        log(f"skeleton: {warning.message}")
+    return estimate
 
 
 def _gyro_rest_orientations(ctx: RunContext, poses, registered, rest, log) -> np.ndarray | None:
@@ -585,14 +594,14 @@ def _stage_initial(ctx: RunContext) -> dict:
     metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses, world_from_camera=poses,
                               registered=registered)
     skeleton, rig = load_model(ctx.out)
-    poses, oriented = _gyro_filled_poses(ctx, skeleton, rig, metric.world_from_camera, metric.registered, corr.fps)
+    poses, oriented = _gyro_filled_poses(ctx, rig, metric.world_from_camera, metric.registered, corr.fps)
     initial = motion_from_camera_poses(skeleton, rig, poses, metric.registered | oriented, robust=True)
     save_motion(ctx.path("solve", "initial.npz"), initial)
     return {"frames": metric.num_frames, "registered_fraction": float(metric.registered.mean()),
             "gyro_filled_fraction": float(oriented.mean())}
 
 
-def _gyro_filled_poses(ctx: RunContext, skeleton, rig, poses, registered, fps) -> tuple[np.ndarray, np.ndarray]:
+def _gyro_filled_poses(ctx: RunContext, rig, poses, registered, fps) -> tuple[np.ndarray, np.ndarray]:
     """The capture trial's camera poses for the initial motion, with the orientations of the camera-frames no
     registration gave carried by the cameras' gyros (:func:`~bcmocap.pipeline.gyro_turns.fill_orientations_from_gyros`,
     on the gyro's clock as the frontend's gyro timing found it; their positions interpolated, which only the root's

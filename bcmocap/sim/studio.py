@@ -599,8 +599,7 @@ def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float
     hold = _rest_hold(n, fps)
     moving = max(n - 2 * hold, 1)
     t = np.arange(moving) / fps
-    envelope = _swell(n, hold, moving)
-    feet_envelope = envelope
+    envelope = limbs_envelope = feet_envelope = _swell(n, hold, moving)
     if protocol == "feet_after":
         first = int(round(_FEET_AFTER_SHARE * moving))
         limbs_envelope, feet_envelope = _swell(n, hold, first), _swell(n, hold + first, moving - first)
@@ -615,7 +614,7 @@ def studio_range_of_motion(skeleton: Skeleton, reference: Motion, seconds: float
         freq = tempo * rng.uniform(0.6, 1.4, 3)
         phase = rng.uniform(0, 2 * np.pi, 3)
         jt = skeleton.joint_types[j]
-        swell = envelope if protocol == "together" else feet_envelope if kind == "foot" else limbs_envelope
+        swell = feet_envelope if kind == "foot" else limbs_envelope
         if jt == JointType.BALL:
             rotvec = amp * swell[:, None] * np.sin(2 * np.pi * freq * tt[:, None] + phase)
         elif jt == JointType.HINGE:
