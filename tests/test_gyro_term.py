@@ -158,6 +158,28 @@ def _leg_trial():
     return skeleton, rig, trial, trial.registered.shape[0]
 
 
+def _gyro_timed_run(tmp_path, trial_name, skeleton, rig, trial):
+    """A run context over a capture whose ``trial_name`` holds the trial's gyros (studio noise, no bias) on an IMU clock
+    40 ms behind the frames, and the frontend's gyro timing that found it: ``(ctx, logged lines, registration.json)``."""
+    from test_sim_rom import TRIAL
+
+    from bcmocap.pipeline import run
+
+    imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, trial.registered.shape[0] - 1), seed=3,
+                       gyro_bias=0.0)
+    capture = tmp_path / "capture"
+    (capture / "trials" / trial_name).mkdir(parents=True)
+    write_imu(capture / "trials" / trial_name / "imu.npz", dataclasses.replace(imu, time=imu.time + 0.04))
+    timing = tmp_path / "run" / "frontend" / trial_name / "registration.json"
+    timing.parent.mkdir(parents=True)
+    timing.write_text(json.dumps({"gyro_timing": {"time_shift_ms": [40.0] * rig.num_cameras}}))
+    cameras = [types.SimpleNamespace(name=n, segment=skeleton.names[s]) for n, s in zip(rig.names, rig.segments)]
+    logged = []
+    ctx = run.RunContext(capture=types.SimpleNamespace(path=capture, cameras=cameras), config=RunConfig(),
+                         out=tmp_path / "run", log=logged.append)
+    return ctx, logged, timing
+
+
 def test_a_gyro_carries_a_camera_to_the_rest_pose_it_was_not_registered_in():
     # A range-of-motion trial (the leg model, 30 fps, the rest held for 0.5 s first) whose shin camera registers in
     # 12 frames 5 s after the rest frames only, while the hip swings the leg (35-63 deg from its rest orientation):
@@ -204,20 +226,10 @@ def test_the_skeleton_stage_carries_rest_orientations_on_the_gyro_clock_of_the_f
 
     import bcmocap.correspondence_store as store_module
     from bcmocap.pipeline import run
+
     skeleton, rig, trial, frames = _leg_trial()
-    imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, frames - 1), seed=3, gyro_bias=0.0)
-    capture = tmp_path / "capture"
-    (capture / "trials" / "rom").mkdir(parents=True)
-    write_imu(capture / "trials" / "rom" / "imu.npz", dataclasses.replace(imu, time=imu.time + 0.04))
-    out = tmp_path / "run"
-    (out / "frontend" / "rom").mkdir(parents=True)
-    shifts = [40.0] * rig.num_cameras
-    (out / "frontend" / "rom" / "registration.json").write_text(json.dumps({"gyro_timing": {"time_shift_ms": shifts}}))
+    ctx, logged, timing = _gyro_timed_run(tmp_path, "rom", skeleton, rig, trial)
     monkeypatch.setattr(store_module.CorrespondenceStore, "open", staticmethod(lambda path: types.SimpleNamespace(fps=TRIAL["fps"])))
-    cameras = [types.SimpleNamespace(name=n, segment=skeleton.names[s]) for n, s in zip(rig.names, rig.segments)]
-    logged = []
-    ctx = run.RunContext(capture=types.SimpleNamespace(path=capture, cameras=cameras), config=RunConfig(), out=out,
-                         log=logged.append)
     rest = np.zeros(frames, bool)
     rest[trial.rest_frames] = True
     assert run._gyro_rest_orientations(ctx, trial.world_from_camera, trial.registered, rest, logged.append) is None
@@ -233,7 +245,7 @@ def test_the_skeleton_stage_carries_rest_orientations_on_the_gyro_clock_of_the_f
     assert np.degrees(2 * np.arccos(min(1.0, abs(carried[shin] @ truth / np.linalg.norm(truth))))) < 0.05
     assert np.isnan(np.delete(carried, shin, axis=0)).all()
     assert len(logged) == 1 and "camera 'shin' is registered in no rest frame" in logged[0] and "12 registered frames" in logged[0]
-    (out / "frontend" / "rom" / "registration.json").write_text("{}")  # without the timing: read 40 ms off
+    timing.write_text("{}")  # without the timing: read 40 ms off
     off = run._gyro_rest_orientations(ctx, trial.world_from_camera, registered, rest, logged.append)
     assert np.degrees(2 * np.arccos(min(1.0, abs(off[shin] @ truth / np.linalg.norm(truth))))) > 3.0
 
@@ -284,19 +296,9 @@ def test_the_initial_stage_orients_unregistered_frames_on_the_gyro_clock_of_the_
     from test_sim_rom import TRIAL
 
     from bcmocap.pipeline import run
+
     skeleton, rig, trial, frames = _leg_trial()
-    imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, frames - 1), seed=3, gyro_bias=0.0)
-    capture = tmp_path / "capture"
-    (capture / "trials" / "capture").mkdir(parents=True)
-    write_imu(capture / "trials" / "capture" / "imu.npz", dataclasses.replace(imu, time=imu.time + 0.04))
-    out = tmp_path / "run"
-    (out / "frontend" / "capture").mkdir(parents=True)
-    timing = out / "frontend" / "capture" / "registration.json"
-    timing.write_text(json.dumps({"gyro_timing": {"time_shift_ms": [40.0] * rig.num_cameras}}))
-    cameras = [types.SimpleNamespace(name=n, segment=skeleton.names[s]) for n, s in zip(rig.names, rig.segments)]
-    logged = []
-    ctx = run.RunContext(capture=types.SimpleNamespace(path=capture, cameras=cameras), config=RunConfig(), out=out,
-                         log=logged.append)
+    ctx, logged, timing = _gyro_timed_run(tmp_path, "capture", skeleton, rig, trial)
     registered = trial.registered.copy()
     registered[150:180] = False  # every camera, the root's too
     poses = np.where(registered[..., None], trial.world_from_camera, np.nan)

@@ -487,18 +487,23 @@ def _unregistered_ends(topology: Topology, pairs, registered, options: RomOption
     return ends
 
 
-def _midplane_reflection(skeleton: Skeleton) -> np.ndarray:
-    """``(3, 3)`` the reflection through the body's midplane in the rest frame: the plane halfway between the root's
-    ``left_`` and ``right_`` children's joint centres (ValueError without such a pair)."""
-    kids = {skeleton.names[k]: k for k in range(len(skeleton.names)) if skeleton.parents[k] == 0}
+def _hip_pair(names, parents) -> tuple[int, int]:
+    """The root's first ``left_`` child and its ``right_`` twin, whose centres' midplane is the body's (ValueError
+    without such a pair)."""
+    kids = {names[k]: k for k in range(len(names)) if parents[k] == 0}
     for name, k in kids.items():
-        other = _other_side(name)
-        if name.startswith("left_") and other in kids:
-            normal = np.asarray(skeleton.offsets)[k] - np.asarray(skeleton.offsets)[kids[other]]
-            normal /= np.linalg.norm(normal)
-            return np.eye(3) - 2.0 * np.outer(normal, normal)
+        if name.startswith("left_") and _other_side(name) in kids:
+            return k, kids[_other_side(name)]
     raise ValueError("unregistered_ends = 'mirror': the root has no pair of left_/right_ children to find the body's "
                      "midplane")
+
+
+def _midplane_reflection(skeleton: Skeleton) -> np.ndarray:
+    """``(3, 3)`` the reflection through the body's midplane in the rest frame (:func:`_hip_pair`)."""
+    left, right = _hip_pair(skeleton.names, skeleton.parents)
+    normal = np.asarray(skeleton.offsets)[left] - np.asarray(skeleton.offsets)[right]
+    normal /= np.linalg.norm(normal)
+    return np.eye(3) - 2.0 * np.outer(normal, normal)
 
 
 def _with_mirrored_ends(ends, topology: Topology, pairs, world_from_camera, registered, *, more_trials,
@@ -626,10 +631,12 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
         rel = np.concatenate([compose_poses(invert_pose(wv[kn[:, j] & kn[:, p], p]), wv[kn[:, j] & kn[:, p], j])
                               for wv, kn in pooled])
         trials = "trial" if not more_trials else f"{1 + len(more_trials)} trials"
+        mirrorable = (options.unregistered_ends == "mirror" and not topology.children(j)
+                      and _other_side(name) in topology.names)
         if len(rel) < options.min_frames:
             failure = (f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {len(rel)} "
                        f"frames (< {options.min_frames}) of the {trials}")
-            if options.unregistered_ends != "mirror" or topology.children(j) or _other_side(name) not in topology.names:
+            if not mirrorable:
                 raise ValueError(failure)
             undetermined[name] = (failure, f"both segments are known in only {len(rel)} frames")
             joints[name] = JointEstimate(name, pname, jtype, np.zeros(3), np.zeros(3), None, len(rel), 0.0, np.nan,
@@ -668,7 +675,7 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
                        f"(rotation spreads {spreads})")
                 failure = (f"{what}: the {trials} do{'es' * (not more_trials)} not determine its centre: {why}; exercise "
                            "the joint about more axes, or declare it a hinge")
-                if options.unregistered_ends != "mirror" or topology.children(j) or _other_side(name) not in topology.names:
+                if not mirrorable:
                     raise ValueError(failure)
                 undetermined[name] = (failure, f"the {trials} do{'es' * (not more_trials)} not determine its centre ({why})")
         joints[name] = est
@@ -833,11 +840,7 @@ def _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known) ->
     j = topology.index(name)
     p = topology.parents[j]
     other = topology.index(_other_side(name))
-    hips = [k for k in topology.children(0) if topology.names[k].startswith("left_")
-            and _other_side(topology.names[k]) in topology.names]
-    if not hips:
-        raise ValueError(f"joint '{name}': no pair of left_/right_ children of the root to find the body's midplane")
-    left, right = hips[0], topology.index(_other_side(topology.names[hips[0]]))
+    left, right = _hip_pair(topology.names, topology.parents)
     ok = rest_known[:, j] & rest_known[:, p] & rest_known[:, other] & rest_known[:, 0]
     if not ok.any():
         raise ValueError(f"joint '{name}': it, its other side and the root are never all known in the rest frames")
