@@ -7,13 +7,15 @@ pinhole camera and the rotation check). Against the truth it reports:
 
 - **pairs**: every verified pair (SIFT, Lowe's ratio, F-RANSAC at 1.5 px), called *right* when at least half of
   its inliers lie within 3 px (Sampson distance) of the true epipolar geometry, else an *alias*; with their inliers;
-- **rotation check**: the pairs the check keeps (consistent with one set of absolute rotations) and how many of
-  those are aliases, and the photos they connect;
+- **distinctive pairs**: those verified on their coarse features' geometry
+  (:func:`~bcmocap.frontend.reference.verify_distinctive`), labelled the same way;
+- **rotation check**: the distinctive pairs the check keeps (consistent with one set of absolute rotations) and
+  how many of those are aliases, and the photos they connect;
 - **model**: the photos the reference registers, the check's verdict, and the camera centres' distance from the
   truth after the best similarity (median, max, how many photos more than 10 cm off).
 
     python benchmarks/reference_aliases.py --out /tmp/aliases --json benchmarks/results/reference_aliases.json \
-        [--rooms repeated textured] [--seeds 0 1 2] [--photos 24]
+        [--rooms repeated textured] [--motions walk run] [--seeds 0 1 2] [--photos 24]
 """
 
 from __future__ import annotations
@@ -90,7 +92,7 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
 
     from bcmocap.frontend import reference
 
-    folder = out / f"{room}-s{seed}"
+    folder = out / f"{motion}-{room}-s{seed}"
     if folder.exists():
         shutil.rmtree(folder)
     clock = time.perf_counter()
@@ -98,12 +100,17 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
     # The pairs as build_reference verifies them (same SIFT, ratio, threshold, minimum inliers), labelled by the truth.
     features = {n: reference.extract_sift(cv2.imread(str(folder / "reference" / n), cv2.IMREAD_GRAYSCALE))
                 for n in names}
-    verified = reference._match_pairs(names, features, ratio=0.8, threshold_px=1.5, min_inliers=15)
+    size = {n: reference.DISTINCTIVE_SIZE * max(camera.width, camera.height) for n in names}
+    verified, distinctive = reference._match_pairs(names, features, ratio=0.8, threshold_px=1.5, min_inliers=15,
+                                                   distinctive_px=size)
     index = {n: i for i, n in enumerate(names)}
-    right = {pair: true_match_fraction(features[pair[0]][0], features[pair[1]][0], m, truth[index[pair[0]]],
-                                       truth[index[pair[1]]], camera) >= RIGHT_FRACTION
-             for pair, m in verified.items()}
-    _, kept = reference._rotation_consistent(names, features, verified, camera, 1.5, 1.5)  # as build_reference
+
+    def labels(pairs):
+        return {pair: true_match_fraction(features[pair[0]][0], features[pair[1]][0], m, truth[index[pair[0]]],
+                                          truth[index[pair[1]]], camera) >= RIGHT_FRACTION for pair, m in pairs.items()}
+
+    right, right_distinctive = labels(verified), labels(distinctive)
+    _, kept = reference._rotation_consistent(names, features, distinctive, camera, 1.5, 1.5)  # as build_reference
     model = reference.build_reference(folder / "reference", names, camera=camera, workdir=folder / "work")
     errors = centre_errors(model, names, truth)
     row = {
@@ -111,8 +118,9 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
         "pairs_verified": len(verified), "pairs_right": int(sum(right.values())),
         "inliers_right": int(sum(len(m) for p, m in verified.items() if right[p])),
         "inliers_alias": int(sum(len(m) for p, m in verified.items() if not right[p])),
-        "rotation_kept": len(kept), "rotation_kept_aliases": int(sum(not right[p] for p in kept)),
-        "rotation_kept_right_of_right": int(sum(right[p] for p in kept)),
+        "pairs_distinctive": len(distinctive), "distinctive_right": int(sum(right_distinctive.values())),
+        "rotation_kept": len(kept), "rotation_kept_aliases": int(sum(not right_distinctive[p] for p in kept)),
+        "rotation_kept_right_of_right": int(sum(right_distinctive[p] for p in kept)),
         "rotation_kept_photos": len({n for p in kept for n in p}),
         "model_registered": model.num_registered, "model_check": model.rotation_check,
         "model_inconsistent_pairs": model.inconsistent_pairs,
@@ -121,7 +129,8 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
         "photos_off": int((errors > OFF_M).sum()), "seconds": round(time.perf_counter() - clock, 1),
     }
     log(f"{room} s{seed}: {row['pairs_right']} of {row['pairs_verified']} verified pairs right "
-        f"({row['inliers_alias']} alias inliers against {row['inliers_right']}); the rotation check keeps "
+        f"({row['inliers_alias']} alias inliers against {row['inliers_right']}), {row['distinctive_right']} of "
+        f"{row['pairs_distinctive']} distinctive ones; the rotation check keeps "
         f"{row['rotation_kept']} ({row['rotation_kept_aliases']} aliases) over {row['rotation_kept_photos']} photos; "
         f"model: {row['model_registered']} photos, check {row['model_check']}, centres {row['centre_error_m_median']:.3f} m "
         f"median, {row['centre_error_m_max']:.2f} m max, {row['photos_off']} off by more than {OFF_M:g} m")
@@ -135,15 +144,16 @@ def main() -> int:
     ap.add_argument("--rooms", nargs="+", default=["repeated", "textured"], choices=["textured", "sparse", "repeated"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--photos", type=int, default=24, help="reference photos per room (the studio's default 24)")
-    ap.add_argument("--motion", default="walk", help="the capture's motion (the room is built around its path)")
+    ap.add_argument("--motions", nargs="+", default=["walk"],
+                    help="the captures' motions (each room is built around its motion's path)")
     args = ap.parse_args()
 
     from bcmocap.precision import enable_float64
 
     enable_float64()
     clock = time.perf_counter()
-    rows = [one_room(Path(args.out), room, seed, args.photos, args.motion, lambda text: print(text, flush=True))
-            for room in args.rooms for seed in args.seeds]
+    rows = [one_room(Path(args.out), room, seed, args.photos, motion, lambda text: print(text, flush=True))
+            for room in args.rooms for motion in args.motions for seed in args.seeds]
     if args.json:
         write_json(args.json, {"rows": rows, "settings": {k: v for k, v in vars(args).items() if k not in ("out", "json")},
                                "seconds": round(time.perf_counter() - clock, 1), "machine": machine()})

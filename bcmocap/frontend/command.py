@@ -140,7 +140,7 @@ def prepare_reference(capture, ref_dir, log=print):
     log(f"reference: {model.num_registered}/{len(model.image_names)} photos registered, "
         f"{model.num_points3D} points, mean reprojection error {model.mean_reprojection_error_px:.3f} px; "
         f"{len(model.pair_inliers)} photo pairs used; rotation check: {model.rotation_check} "
-        f"({model.inconsistent_pairs} pairs inconsistent in rotation)")
+        f"({model.inconsistent_pairs} of {model.distinctive_pairs} distinctive pairs inconsistent in rotation)")
     return model
 
 

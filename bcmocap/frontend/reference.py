@@ -15,9 +15,11 @@ test, fundamental-matrix RANSAC, then pycolmap's incremental mapper.
    its mean reprojection error is poor (``attempts``, ``good_error_px``); the best model is kept. Steps 2–3
    are deterministic (FLANN's trees from :data:`FLANN_SEED`; OpenCV's RANSAC seeds itself), so they run once.
 
-6. with the photos' camera known, the model is checked against one built from only the pairs whose relative
-   rotations agree with one set of absolute rotations (:mod:`~bcmocap.frontend.pair_rotations`: pairs verified
-   on a repeated pattern's aliases make a model metres wrong); if the two disagree, the second is kept.
+6. with the photos' camera known, the model is checked against one built from only the *distinctive* pairs (the
+   geometry of their coarse features' matches, :func:`verify_distinctive`) whose relative rotations agree with
+   one set of absolute rotations (:mod:`~bcmocap.frontend.pair_rotations`): pairs verified on a repeated
+   pattern's aliases make a model metres wrong; if the two disagree, the second is kept, with its points
+   triangulated again from every verified pair's matches (its photos held where they are).
 
 The result, :class:`ReferenceModel`, holds the largest ``pycolmap.Reconstruction`` and reports how many
 photos were registered and the mean reprojection error.
@@ -185,6 +187,52 @@ def verify_matches(xy_a: np.ndarray, xy_b: np.ndarray, matches: np.ndarray, *, t
     return inliers if len(inliers) >= min_inliers else np.zeros((0, 2), np.uint32)
 
 
+DISTINCTIVE_SIZE = 0.008
+"""The smallest keypoint of a distinctive match (:func:`verify_distinctive`), as a fraction of the photo's larger side
+(8 px across on the studio's 1024-pixel reference photos). On four of the studio's repeated rooms (development
+measurement), the pairs verified this way were 189 right and 51 aliases (every match: 190 and 904); at 0.010, 135 and
+11, but with the rotation check after them the models kept fewer photos (docs/benchmarks/suite.md)."""
+
+
+def verify_distinctive(keypoints_a: np.ndarray, keypoints_b: np.ndarray, matches: np.ndarray, *,
+                       min_size_px: float, threshold_px: float = 1.5, min_distinctive: int = 8,
+                       min_inliers: int = 15) -> np.ndarray:
+    """Matches consistent with the epipolar geometry of the pair's *distinctive* matches: those whose keypoints
+    are both at least ``min_size_px`` across (SIFT's size), so that their descriptors span more than one tile,
+    brick or panel of a repeated pattern.
+
+    On a floor of tiles printed with a few faces, a fine feature's nearest descriptor in another photo is often the
+    same face on another tile seen at the same distance, and the fundamental matrix with most inliers is then an
+    alias (the studio's repeated room: 225 of 275 verified pairs). The coarse features' fundamental matrix
+    (RANSAC, at least ``min_distinctive`` inliers) picks the right geometry, or none where the photos share only the
+    pattern; every match within twice ``threshold_px`` of its epipolar lines is then verified again
+    (:func:`verify_matches`, ``min_inliers``).
+
+    Returns:
+        The rows of ``matches`` kept (empty when the distinctive matches do not agree on a geometry).
+    """
+    import cv2
+
+    empty = np.zeros((0, 2), np.uint32)
+    if len(matches) < max(min_inliers, 8):
+        return empty
+    xy_a = np.asarray(keypoints_a, np.float64)[matches[:, 0]]
+    xy_b = np.asarray(keypoints_b, np.float64)[matches[:, 1]]
+    coarse = (xy_a[:, 2] >= min_size_px) & (xy_b[:, 2] >= min_size_px)
+    seed = verify_matches(keypoints_a, keypoints_b, matches[coarse], threshold_px=threshold_px,
+                          min_inliers=min_distinctive)
+    if not len(seed):
+        return empty
+    fundamental, _ = cv2.findFundamentalMat(np.asarray(keypoints_a, np.float64)[seed[:, 0], :2],
+                                            np.asarray(keypoints_b, np.float64)[seed[:, 1], :2], cv2.FM_8POINT)
+    if fundamental is None or fundamental.shape != (3, 3):
+        return empty
+    lines = np.column_stack([xy_a[:, :2], np.ones(len(xy_a))]) @ fundamental.T  # epipolar lines in b
+    distance = np.abs(np.sum(lines[:, :2] * xy_b[:, :2], 1) + lines[:, 2]) / np.hypot(lines[:, 0], lines[:, 1])
+    return verify_matches(keypoints_a, keypoints_b, matches[distance < 2 * threshold_px], threshold_px=threshold_px,
+                          min_inliers=min_inliers)
+
+
 @dataclasses.dataclass
 class ReferenceModel:
     """The reference reconstruction.
@@ -200,13 +248,16 @@ class ReferenceModel:
             ``rotations`` where the pairs' rotations were checked).
         mapping_attempts: how many times the mapper ran (see ``attempts`` of :func:`build_reference`; the check's
             second model included).
-        inconsistent_pairs: verified pairs whose rotations disagreed with the consistent set's
+        distinctive_pairs: pairs verified on their distinctive matches (:func:`verify_distinctive`), the pairs the
+            rotation check weighs (0 where nothing was checked).
+        inconsistent_pairs: distinctive pairs whose rotations disagreed with the consistent set's
             (``consistent_rotations`` of :func:`build_reference`; 0 where nothing was checked).
         rotation_check: "agreed" (the model from every verified pair was checked against the one from the
-            rotation-consistent pairs, or every pair was consistent), "replaced" (it disagreed, and the model is
-            the one from the consistent pairs) or "not checked" (no camera, or one bcmocap does not read; no
-            three photos whose rotations close a loop; the consistent pairs' model registered fewer than three
-            photos; or turned off).
+            rotation-consistent distinctive pairs, or every distinctive pair was consistent), "replaced" (it
+            disagreed, and the model is the one from the consistent distinctive pairs, its points triangulated
+            from every verified pair) or "not checked" (no camera, or one bcmocap does not read; no three photos
+            whose rotations close a loop; the consistent pairs' model registered fewer than three photos; or
+            turned off).
     """
 
     reconstruction: object
@@ -220,6 +271,7 @@ class ReferenceModel:
     mapping_attempts: int = 1
     inconsistent_pairs: int = 0
     rotation_check: str = "not checked"
+    distinctive_pairs: int = 0
 
     @property
     def num_registered(self) -> int:
@@ -239,9 +291,12 @@ def _reader_options(camera):
     return options
 
 
-def _match_pairs(names, features, *, ratio, threshold_px, min_inliers, workers: int | None = None) -> dict:
-    """``{(name_a, name_b): (M, 2) verified matches}`` over all pairs of photos with enough inliers (pairs in
-    threads, since FLANN and OpenCV's RANSAC release the GIL; kept in pair order)."""
+def _match_pairs(names, features, *, ratio, threshold_px, min_inliers, distinctive_px: dict | None = None,
+                 min_distinctive: int = 8, workers: int | None = None) -> tuple[dict, dict]:
+    """``({(name_a, name_b): (M, 2) verified matches}, {pair: distinctive matches})`` over all pairs of photos with
+    enough inliers (:func:`verify_matches`; :func:`verify_distinctive` with the smaller of the two photos'
+    ``distinctive_px`` where given, else no distinctive pairs). Pairs run in threads, since FLANN and OpenCV's
+    RANSAC release the GIL; both are kept in pair order."""
     from concurrent.futures import ThreadPoolExecutor
 
     indices = {name: DescriptorIndex(features[name][1]) for name in names}  # trees built once per photo and thread
@@ -250,10 +305,17 @@ def _match_pairs(names, features, *, ratio, threshold_px, min_inliers, workers: 
     def pair(ab):
         (ka, da), (kb, db) = features[ab[0]], features[ab[1]]
         matches = match_descriptors(da, db, ratio=ratio, index_a=indices[ab[0]], index_b=indices[ab[1]])
-        return verify_matches(ka, kb, matches, threshold_px=threshold_px, min_inliers=min_inliers)
+        verified = verify_matches(ka, kb, matches, threshold_px=threshold_px, min_inliers=min_inliers)
+        if distinctive_px is None:
+            return verified, np.zeros((0, 2), np.uint32)
+        smallest = min(distinctive_px[ab[0]], distinctive_px[ab[1]])
+        return verified, verify_distinctive(ka, kb, matches, min_size_px=smallest, threshold_px=threshold_px,
+                                            min_distinctive=min_distinctive, min_inliers=min_inliers)
 
     with ThreadPoolExecutor(max_workers=max(1, workers or default_threads())) as pool:
-        return {ab: m for ab, m in zip(pairs, pool.map(pair, pairs)) if len(m)}
+        found = list(pool.map(pair, pairs))
+    return ({ab: m for ab, (m, _) in zip(pairs, found) if len(m)},
+            {ab: m for ab, (_, m) in zip(pairs, found) if len(m)})
 
 
 def _write_database(db_path: Path, image_dir: Path, names, camera, features, verified) -> Path:
@@ -283,7 +345,8 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
                     max_features: int = 8000, ratio: float = 0.8, threshold_px: float = 1.5,
                     min_inliers: int = 15, refine_intrinsics: bool = True, random_seed: int = 0,
                     attempts: int = 3, good_error_px: float = 0.5, consistent_rotations: bool = True,
-                    rotation_tolerance_deg: float = 1.5, centre_tolerance: float = 0.05) -> ReferenceModel:
+                    rotation_tolerance_deg: float = 1.5, centre_tolerance: float = 0.05,
+                    distinctive_size: float = DISTINCTIVE_SIZE, min_distinctive: int = 8) -> ReferenceModel:
     """Build the reference model of a set of photos (the module docstring lists the steps).
 
     Args:
@@ -302,12 +365,16 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
             registers every photo with mean reprojection error <= ``good_error_px``, at most ``attempts``
             times; the model with most photos, then least error, is kept.
         consistent_rotations: with a ``camera``, check the model against a second one built from only the
-            verified pairs whose relative rotations agree with one set of absolute rotations within
-            ``rotation_tolerance_deg`` (:mod:`~bcmocap.frontend.pair_rotations`): pairs verified on the aliases
-            of a repeated pattern lead the mapper to a model metres wrong with a small reprojection error. When
-            the second registers at least three photos and the two place their common photos differently (RMS of
-            the camera centres, after a similarity, over ``centre_tolerance`` of their spread, or fewer than three
-            in common), the second replaces the first; when they agree the first, with more photos, is kept.
+            distinctive pairs (:func:`verify_distinctive`) whose relative rotations agree with one set of absolute
+            rotations within ``rotation_tolerance_deg`` (:mod:`~bcmocap.frontend.pair_rotations`): pairs verified
+            on the aliases of a repeated pattern lead the mapper to a model metres wrong with a small reprojection
+            error. When the second registers at least three photos and the two place their common photos
+            differently (RMS of the camera centres, after a similarity, over ``centre_tolerance`` of their spread,
+            or fewer than three in common), the second replaces the first; when they agree the first, with more
+            photos, is kept.
+        distinctive_size: the smallest keypoint of a distinctive match, as a fraction of the photo's larger side
+            (0.008: 8 px across on a 1024-pixel photo); min_distinctive: fewest distinctive inliers for a pair
+            to be checked.
 
     Raises:
         ValueError: if the folder or a photo is missing or unreadable, or nothing could be reconstructed.
@@ -330,16 +397,20 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
     seconds = {}
 
     clock = time.perf_counter()
-    features = {}
+    features, distinctive_px = {}, {}
     for name in names:
         image = cv2.imread(str(image_dir / name), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise ValueError(f"{image_dir / name}: missing or not a readable image")
         features[name] = extract_sift(image, max_features=max_features)
+        distinctive_px[name] = distinctive_size * max(image.shape)
     seconds["features"] = time.perf_counter() - clock
 
+    checked = camera is not None and consistent_rotations
     clock = time.perf_counter()  # matching is deterministic (seeded trees, OpenCV's own RANSAC seed): once
-    verified = _match_pairs(names, features, ratio=ratio, threshold_px=threshold_px, min_inliers=min_inliers)
+    verified, distinctive = _match_pairs(names, features, ratio=ratio, threshold_px=threshold_px,
+                                         min_inliers=min_inliers, distinctive_px=distinctive_px if checked else None,
+                                         min_distinctive=min_distinctive)
     seconds["matching"] = time.perf_counter() - clock
     seconds["mapping"] = 0.0
     mapping = dict(image_dir=image_dir, names=names, camera=camera, features=features, threshold_px=threshold_px,
@@ -347,29 +418,33 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
                    good_error_px=good_error_px, seconds=seconds)
     best, runs = _map(work, verified, **mapping)
     check, inconsistent = "not checked", 0
-    if camera is not None and consistent_rotations and best is not None:
+    if checked and best is not None:
         clock = time.perf_counter()
-        estimated, kept = _rotation_consistent(names, features, verified, camera, threshold_px,
+        estimated, kept = _rotation_consistent(names, features, distinctive, camera, threshold_px,
                                                rotation_tolerance_deg)
         seconds["rotations"] = time.perf_counter() - clock
         inconsistent = len(estimated - kept) if kept else 0
         if kept and not inconsistent:
             check = "agreed"
         elif kept:
-            consistent, more = _map(work / "consistent", {p: m for p, m in verified.items() if p in kept}, **mapping)
+            consistent, more = _map(work / "consistent", {p: m for p, m in distinctive.items() if p in kept}, **mapping)
             runs += more
             if consistent is not None and consistent[1].num_reg_images() >= 3:
                 if models_agree(_camera_centres(consistent[1]), _camera_centres(best[1]), centre_tolerance):
                     check = "agreed"
                 else:
-                    check, best = "replaced", consistent
+                    clock = time.perf_counter()
+                    check, best = "replaced", _triangulated_from_every_pair(consistent, best[3], image_dir,
+                                                                             work / "consistent" / "triangulated")
+                    seconds["mapping"] += time.perf_counter() - clock
     if best is None:
         raise ValueError(f"{image_dir}: pycolmap could not reconstruct the photos "
                          f"({len(verified)} of {len(names) * (len(names) - 1) // 2} pairs verified)")
     _, rec, used, db_path = best
     registered = tuple(sorted(rec.image(i).name for i in rec.reg_image_ids()))
     return ReferenceModel(rec, names, registered, float(rec.compute_mean_reprojection_error()), int(rec.num_points3D()),
-                          db_path, {k: len(v) for k, v in used.items()}, seconds, runs, inconsistent, check)
+                          db_path, {k: len(v) for k, v in used.items()}, seconds, runs, inconsistent, check,
+                          len(distinctive) if checked else 0)
 
 
 def _map(work: Path, verified: dict, *, image_dir, names, camera, features, threshold_px, refine_intrinsics,
@@ -416,6 +491,29 @@ def _map(work: Path, verified: dict, *, image_dir, names, camera, features, thre
         if score[0] == len(names) and -score[1] <= good_error_px:
             break
     return best, attempt + 1
+
+
+def _triangulated_from_every_pair(consistent: tuple, database: Path, image_dir: Path, out: Path) -> tuple:
+    """The consistent model (``(score, reconstruction, pairs, database)`` of :func:`_map`) with its points
+    triangulated again, its photos' poses held, from the matches of every verified pair in ``database``
+    (``pycolmap.triangulate_points``: tracks of three photos or more whose rays meet; an alias's matches do not
+    meet under the right poses). The consistent pairs alone leave the model sparse: on the repeated room's walk
+    (seed 1) 2507 points, and 6550 this way, the photos where they were; the run from the sparse one tracked its
+    map from too few points and came out at 18.0 cm. Returns the same kind of tuple, with ``database``; the model as
+    it was where the two databases number the photos differently."""
+    pycolmap = load_pycolmap()
+
+    score, reconstruction, pairs, _ = consistent
+    with pycolmap.Database.open(str(database)) as db:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+    if any(ids.get(reconstruction.image(i).name) != i for i in reconstruction.reg_image_ids()):
+        return consistent
+    out.mkdir(parents=True, exist_ok=True)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = 1  # bitwise reproducible, as the mapping (see _map)
+    triangulated = pycolmap.triangulate_points(reconstruction, str(database), str(image_dir), str(out),
+                                               clear_points=False, options=options)
+    return score, triangulated, pairs, database
 
 
 def _camera_centres(reconstruction) -> dict:
@@ -477,7 +575,8 @@ def save_reference(model: ReferenceModel, folder: str | os.PathLike) -> Path:
               "database": os.path.relpath(model.database_path, folder),
               "pair_inliers": [[a, b, n] for (a, b), n in model.pair_inliers.items()],
               "seconds": model.seconds, "mapping_attempts": model.mapping_attempts,
-              "inconsistent_pairs": model.inconsistent_pairs, "rotation_check": model.rotation_check}
+              "inconsistent_pairs": model.inconsistent_pairs, "rotation_check": model.rotation_check,
+              "distinctive_pairs": model.distinctive_pairs}
     from ..atomic import atomic_path
 
     path = folder / "reference.json"
@@ -513,4 +612,4 @@ def load_reference(folder: str | os.PathLike) -> ReferenceModel:
                           float(report["mean_reprojection_error_px"]), int(report["num_points3D"]), database,
                           {(a, b): n for a, b, n in report["pair_inliers"]}, dict(report["seconds"]),
                           int(report["mapping_attempts"]), int(report.get("inconsistent_pairs", 0)),
-                          str(report.get("rotation_check", "not checked")))
+                          str(report.get("rotation_check", "not checked")), int(report.get("distinctive_pairs", 0)))
