@@ -128,7 +128,7 @@ def one_room(out: Path, room: str, seed: int, photos: int, motion: str, log) -> 
         "centre_error_m_median": float(np.median(errors)), "centre_error_m_max": float(errors.max()),
         "photos_off": int((errors > OFF_M).sum()), "seconds": round(time.perf_counter() - clock, 1),
     }
-    log(f"{room} s{seed}: {row['pairs_right']} of {row['pairs_verified']} verified pairs right "
+    log(f"{motion} {room} s{seed}: {row['pairs_right']} of {row['pairs_verified']} verified pairs right "
         f"({row['inliers_alias']} alias inliers against {row['inliers_right']}), {row['distinctive_right']} of "
         f"{row['pairs_distinctive']} distinctive ones; the rotation check keeps "
         f"{row['rotation_kept']} ({row['rotation_kept_aliases']} aliases) over {row['rotation_kept_photos']} photos; "

@@ -243,17 +243,20 @@ class ReferenceModel:
         mean_reprojection_error_px: over all observations of the model's 3D points.
         num_points3D: 3D points in the model.
         database_path: the pycolmap database (keypoints, descriptors, matches, two-view geometries).
-        pair_inliers: ``{(name_a, name_b): number of F-RANSAC inliers}`` of the pairs written.
-        seconds: wall time per stage (``features``, ``matching``, ``mapping`` — every run of the mapper —, and
+        pair_inliers: ``{(name_a, name_b): number of F-RANSAC inliers}`` of the pairs the model's poses come from
+            (every verified pair, or the consistent distinctive ones of a replacing model, whose points come from
+            every verified pair in ``database_path``).
+        seconds: wall time per stage (``features``, ``matching``, ``mapping`` — every run of the mapper and the
+            triangulation of a replacing model —, and
             ``rotations`` where the pairs' rotations were checked).
         mapping_attempts: how many times the mapper ran (see ``attempts`` of :func:`build_reference`; the check's
             second model included).
         distinctive_pairs: pairs verified on their distinctive matches (:func:`verify_distinctive`), the pairs the
-            rotation check weighs (0 where nothing was checked).
+            rotation check weighs (0 where no check was asked for: no camera, or ``consistent_rotations`` off).
         inconsistent_pairs: distinctive pairs whose rotations disagreed with the consistent set's
             (``consistent_rotations`` of :func:`build_reference`; 0 where nothing was checked).
         rotation_check: "agreed" (the model from every verified pair was checked against the one from the
-            rotation-consistent distinctive pairs, or every distinctive pair was consistent), "replaced" (it
+            rotation-consistent distinctive pairs, or those include every verified pair), "replaced" (it
             disagreed, and the model is the one from the consistent distinctive pairs, its points triangulated
             from every verified pair) or "not checked" (no camera, or one bcmocap does not read; no three photos
             whose rotations close a loop; the consistent pairs' model registered fewer than three photos; or
@@ -424,7 +427,7 @@ def build_reference(image_dir: str | os.PathLike, image_names: Sequence[str] | N
                                                rotation_tolerance_deg)
         seconds["rotations"] = time.perf_counter() - clock
         inconsistent = len(estimated - kept) if kept else 0
-        if kept and not inconsistent:
+        if kept and kept >= set(verified):  # every verified pair distinctive and consistent: nothing to compare
             check = "agreed"
         elif kept:
             consistent, more = _map(work / "consistent", {p: m for p, m in distinctive.items() if p in kept}, **mapping)
@@ -499,8 +502,9 @@ def _triangulated_from_every_pair(consistent: tuple, database: Path, image_dir: 
     (``pycolmap.triangulate_points``: tracks of three photos or more whose rays meet; an alias's matches do not
     meet under the right poses). The consistent pairs alone leave the model sparse: on the repeated room's walk
     (seed 1) 2507 points, and 6550 this way, the photos where they were; the run from the sparse one tracked its
-    map from too few points and came out at 18.0 cm. Returns the same kind of tuple, with ``database``; the model as
-    it was where the two databases number the photos differently."""
+    map from too few points and came out at 18.0 cm. Returns the same kind of tuple, with ``database`` (pycolmap
+    changes the given reconstruction in place and returns it); the model as it was where the two databases number
+    the photos differently."""
     pycolmap = load_pycolmap()
 
     score, reconstruction, pairs, _ = consistent
