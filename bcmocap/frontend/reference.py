@@ -503,15 +503,11 @@ def _triangulated_from_every_pair(consistent: tuple, database: Path, image_dir: 
     meet under the right poses). The consistent pairs alone leave the model sparse: on the repeated room's walk
     (seed 1) 2507 points, and 6550 this way, the photos where they were; the run from the sparse one tracked its
     map from too few points and came out at 18.0 cm. Returns the same kind of tuple, with ``database`` (pycolmap
-    changes the given reconstruction in place and returns it); the model as it was where the two databases number
-    the photos differently."""
+    changes the given reconstruction in place and returns it). Both databases are :func:`_write_database`'s of the
+    same photos in the same order, so they number the photos alike."""
     pycolmap = load_pycolmap()
 
     score, reconstruction, pairs, _ = consistent
-    with pycolmap.Database.open(str(database)) as db:
-        ids = {image.name: image.image_id for image in db.read_all_images()}
-    if any(ids.get(reconstruction.image(i).name) != i for i in reconstruction.reg_image_ids()):
-        return consistent
     out.mkdir(parents=True, exist_ok=True)
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = 1  # bitwise reproducible, as the mapping (see _map)
