@@ -16,7 +16,8 @@ camera registered in none of the frames where its ankle turned), 640×360 at 60 
 As a user would, each capture's lenses are what ``bcmocap calibrate`` (the model of ``LENS_MODELS``, or
 ``--lens-model``) makes of its board videos
 (``bcmocap simulate --board-videos``), written into the capture's ``intrinsics/`` (the rendered units stay in
-``ground_truth/``). Then every capture of a condition goes through one ``bcmocap batch`` (``--cluster`` spreads it
+``ground_truth/``); captures with the same lens units (one condition and seed) share one calibration, as a user
+calibrates a box of cameras once (:func:`calibrate_capture`). Then every capture of a condition goes through one ``bcmocap batch`` (``--cluster`` spreads it
 over a Dask cluster) with that condition's config: the clean rows ``benchmarks/configs/tracking.toml``, the
 realistic rows ``benchmarks/configs/realistic_shoot.toml`` (a data-sheet readout, the documented wobble default,
 the solver estimating readout, time offsets and lens corrections).
@@ -120,16 +121,70 @@ def _lens_error(calibrated, truth) -> dict:
             "covered_max_after_rotation_px": after.max_px, "rotation_deg": turn_deg}
 
 
-def calibrate_capture(folder: Path, model: str, views: int, log) -> dict:
-    """Calibrate each lens of the capture's board videos and write it into ``intrinsics/`` for its cameras (as a user
-    would with ``bcmocap calibrate … --out intrinsics/CAMERA.yml``); per lens its error against the truth."""
+def lens_key(settings, rig, model: str, views: int) -> tuple[str, dict[str, list[str]]]:
+    """What a capture's calibration depends on, hashed: its rendered lenses (``rig``: ``ground_truth/rig.json``), its
+    seed (which places the board in the board videos), the board, the views and the fit; and ``{lens as JSON text:
+    camera names}``. Captures of one condition and seed share their lens units (the studio draws them from the seed
+    and the image size alone), so they share this key and calibrate alike."""
+    import hashlib
+
+    from bcmocap.cameras import camera_at
+    from bcmocap.io.model_json import camera_to_dict
+    from bcmocap.sim.board_video import STUDIO_BOARD
+
+    lenses: dict[str, list[str]] = {}
+    for index, name in enumerate(rig.names):
+        lenses.setdefault(json.dumps(camera_to_dict(camera_at(rig.intrinsics, index)), sort_keys=True), []).append(name)
+    what = {"lenses": sorted(lenses), "seed": settings.seed, "board": STUDIO_BOARD, "views": views,
+            "frames_per_view": 2, "model": model, "fit_views": FIT_VIEWS, "max_frames": 300}
+    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16], lenses
+
+
+def _capture_lens_key(folder: Path, model: str, views: int) -> tuple[str, dict[str, list[str]]]:
+    from bcmocap.sim.studio import read_studio_model
+
+    _, settings, _, rig = read_studio_model(folder)
+    return lens_key(settings, rig, model, views)
+
+
+def _calibrate_lenses(folder: Path, model: str, views: int, shared: Path, log) -> None:
+    """``shared/lenses.json`` ``{lens as JSON text: {"file": "lens_K", "rms_px", "board_video"}}`` and each lens's
+    calibration files ``shared/lens_K.yml|.json|.coverage.png``: ``bcmocap calibrate``'s fit of the board video
+    that the studio renders into ``folder/calibration/`` for each distinct lens."""
     from bcmocap.calibrate.fit import calibrate
     from bcmocap.calibrate.report import write_calibration
     from bcmocap.calibrate.views import detect_views, select_views
-    from bcmocap.cameras import camera_at
-    from bcmocap.frontend import read_capture
     from bcmocap.io.board import parse_board
     from bcmocap.sim.board_video import write_board_videos
+
+    if not (folder / "calibration" / "lenses.json").exists():
+        write_board_videos(folder, views=views, frames_per_view=2, progress=lambda name: log(f"  board video {name}"))
+    table = json.loads((folder / "calibration" / "lenses.json").read_text())
+    board = parse_board(table["board"])
+    _, by_text = _capture_lens_key(folder, model, views)
+    text_of = {cameras[0]: text for text, cameras in by_text.items()}
+    shared.mkdir(parents=True, exist_ok=True)
+    fits = {}
+    for lens, cameras in table["lenses"].items():
+        video = folder / "calibration" / f"{lens}.mp4"
+        found = detect_views(video, board, max_frames=300)
+        result = calibrate(found.subset(select_views(found, FIT_VIEWS)), model)
+        write_calibration(shared / f"{lens}.yml", result)
+        fits[text_of[cameras[0]]] = {"file": lens, "rms_px": float(result.rms_px), "board_video": str(video)}
+    (shared / "lenses.json").write_text(json.dumps(fits, indent=1))
+
+
+def calibrate_capture(folder: Path, model: str, views: int, log, shared_root: Path) -> dict:
+    """Calibrate each lens of the capture's board videos and write it into ``intrinsics/`` for its cameras (as a user
+    would with ``bcmocap calibrate … --out intrinsics/CAMERA.yml``); per lens its error against the truth.
+
+    A calibration is done once per :func:`lens_key` and kept in ``shared_root/KEY/``: the captures of one condition
+    and seed have the same lens units, board videos and fits (as a user calibrates their cameras once, not per
+    take), and copy them from there; ``"calibrated_in"`` names the capture whose board videos were fitted."""
+    import shutil
+
+    from bcmocap.cameras import camera_at
+    from bcmocap.frontend import read_capture
     from bcmocap.sim.studio import read_studio_model
 
     done = folder / "calibration" / "suite_lenses.json"
@@ -137,18 +192,22 @@ def calibrate_capture(folder: Path, model: str, views: int, log) -> dict:
     if report is not None and any(row.get("model", "fov") != model for row in report.values()):
         report = None  # calibrated with another model before: again with this one
     if report is None:
-        if not (folder / "calibration" / "lenses.json").exists():
-            write_board_videos(folder, views=views, frames_per_view=2,
-                               progress=lambda name: log(f"  board video {name}"))
-        table = json.loads((folder / "calibration" / "lenses.json").read_text())
-        board = parse_board(table["board"])
+        key, by_text = _capture_lens_key(folder, model, views)
+        shared = shared_root / key
+        if not (shared / "lenses.json").exists():
+            _calibrate_lenses(folder, model, views, shared, log)
+        fits = json.loads((shared / "lenses.json").read_text())
         report = {}
-        for lens, cameras in table["lenses"].items():
-            found = detect_views(folder / "calibration" / f"{lens}.mp4", board, max_frames=300)
-            result = calibrate(found.subset(select_views(found, FIT_VIEWS)), model)
+        for text, cameras in by_text.items():
+            fit = fits[text]
             for camera in cameras:
-                write_calibration(folder / "intrinsics" / f"{camera}.yml", result)
-            report[lens] = {"cameras": cameras, "model": model, "rms_px": float(result.rms_px)}
+                for suffix in (".yml", ".json", ".coverage.png"):
+                    source = shared / f"{fit['file']}{suffix}"
+                    if source.exists():
+                        shutil.copyfile(source, folder / "intrinsics" / f"{camera}{suffix}")
+            report[fit["file"]] = {"cameras": cameras, "model": model, "rms_px": fit["rms_px"],
+                                   "calibrated_in": str(Path(fit["board_video"]).parent.parent.name)}
+        done.parent.mkdir(exist_ok=True)
         done.write_text(json.dumps(report, indent=1))
     # Against the truth with this code, from the lenses the run reads (the capture's intrinsics/).
     _, _, _, rig = read_studio_model(folder)
@@ -288,7 +347,7 @@ def main() -> int:
             write_capture(folder, settings, progress=False)
         log(f"{run.name}: calibrating")
         model = args.lens_model or LENS_MODELS[run.condition]
-        prepared[run] = {"lenses": calibrate_capture(folder, model, args.board_views, log),
+        prepared[run] = {"lenses": calibrate_capture(folder, model, args.board_views, log, out / "calibrations"),
                          "clocks": clock_errors(folder)}
     setup_seconds = time.perf_counter() - clock
     for condition in ("clean", "realistic"):

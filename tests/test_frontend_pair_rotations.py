@@ -49,6 +49,21 @@ def test_pair_rotation_of_a_scene_mostly_on_one_plane():
         assert _angle_deg(found[("a", "b")] @ rotation.T) < 0.3
 
 
+def test_pair_rotation_of_a_sideways_step_before_a_far_wall():
+    # A photo taken one step to the side of the other, before a distant wall: every match moves alike in the image.
+    # pycolmap's watermark check (on by default) reads such a pair as a watermark when the points lie outside the
+    # image it is told of, and gives no pose; pair_rotations turns it off.
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-3, 3, (150, 2))
+    points = np.column_stack([xy, 20.0 + rng.uniform(0, 0.5, 150)])
+    rotation = Rotation.from_euler("xyz", [0.5, -2.0, 0.3], degrees=True).as_matrix()
+    seen_b = points @ rotation.T + [0.5, 0.0, 0.0]
+    bearings = {name: rays / np.linalg.norm(rays, axis=1, keepdims=True) for name, rays in (("a", points), ("b", seen_b))}
+    matches = np.stack([np.arange(150), np.arange(150)], axis=1)
+    found = pair_rotations({("a", "b"): matches}, bearings, threshold_rad=1e-3)
+    assert _angle_deg(found[("a", "b")] @ rotation.T) < 0.1  # a far, nearly flat scene: 0.055 deg here
+
+
 def test_pairs_that_contradict_the_loops_are_left_out():
     rng = np.random.default_rng(1)
     names = [f"p{i}" for i in range(8)]

@@ -70,3 +70,29 @@ def test_the_sparse_room_is_photographed_with_more_overlap_and_every_subject_tur
     assert sparse.reference_photos == 48 and textured.reference_photos == 24
     assert sparse.room == "sparse" and sparse.clock_ppm > 0 and textured.clock_ppm == 0  # the presets themselves
     assert sparse.rom_protocol == textured.rom_protocol == "feet_after"  # both conditions, one protocol
+
+
+
+def test_captures_of_one_condition_and_seed_share_one_calibration_and_other_seeds_do_not():
+    # The suite calibrates each lens set once (benchmarks/suite.py, lens_key): that is exact only because the studio
+    # draws a capture's lens units from its seed and image size, whatever its room and motion.
+    import argparse
+
+    from bcmocap.cameras import FOVCamera, stack_cameras
+    from bcmocap.kinematics.rig import Rig
+    from bcmocap.sim.studio import _lens_units
+
+    args = argparse.Namespace(seconds=2.0, rom_seconds=6.0, rom_tempo=0.5, rom_protocol="feet_after")
+    lens = FOVCamera(width=640, height=360, focal=[250.0, 250.0], principal_point=[319.5, 179.5], omega=0.9)
+    base = Rig(["a", "b", "c"], [0, 1, 2], np.tile([1.0, 0, 0, 0, 0, 0, 0], (3, 1)), stack_cameras([lens] * 3))
+
+    def key(run, model=None):
+        settings = suite.capture_settings(run, args)
+        units, _ = _lens_units(settings, base)
+        return suite.lens_key(settings, units, model or suite.LENS_MODELS[run.condition], 64)
+
+    walk, lenses = key(suite.Run("realistic", "walk", "textured", 1))
+    assert len(lenses) == 3 and sorted(sum(lenses.values(), [])) == ["a", "b", "c"]  # a unit per camera
+    assert key(suite.Run("realistic", "hop", "sparse", 1))[0] == walk
+    assert key(suite.Run("realistic", "walk", "textured", 2))[0] != walk
+    assert key(suite.Run("realistic", "walk", "textured", 1), model="fov")[0] != walk

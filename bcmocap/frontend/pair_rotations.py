@@ -62,6 +62,10 @@ def pair_rotations(verified: dict, bearings: dict, *, threshold_rad: float, seed
     options = pycolmap.TwoViewGeometryOptions()
     options.ransac.max_error = threshold_rad * _VIRTUAL_FOCAL
     options.ransac.random_seed = seed
+    # pycolmap's watermark check looks for pairs whose matches near the image border all move alike; every point
+    # lies outside the 2×2 virtual image, so it would call any pair that mostly translates a watermark and give it
+    # no pose
+    options.detect_watermark = False
     rotations = {}
     for (a, b), matches in verified.items():
         ra, rb = bearings[a][matches[:, 0]], bearings[b][matches[:, 1]]
