@@ -613,6 +613,23 @@ def test_a_markers_folder_shows_markers_by_segment_joints_and_skeleton(markers_f
     assert scene.get_handle_by_name("/markers").visible
 
 
+def test_a_markers_folder_shows_each_segments_label_and_the_verdict(markers_folder, tmp_path):
+    import shutil
+
+    from bcmocap.pipeline.view_tracks import load_track_folder
+
+    folder = tmp_path / "labelled"
+    shutil.copytree(markers_folder[0], folder)
+    desc = json.loads((folder / "skeleton.json").read_text())
+    for k, segment in enumerate(desc["segments"]):
+        segment["label"] = "pelvis" if k == 0 else "extra"
+    desc["verdict"] = {"human": False, "wrong_limbs": ["left_leg", "right_arm"]}
+    (folder / "skeleton.json").write_text(json.dumps(desc))
+    data = load_track_folder(folder)
+    assert data.legend[0][0].startswith(f"{desc['segments'][0]['name']} (pelvis): ")
+    assert "NOT a human body (left_leg, right_arm wrong" in data.notes[-1]
+
+
 def test_a_marker_not_seen_in_a_frame_is_left_out_of_it(markers_folder, tmp_path, track_viewer):
     import shutil
 

@@ -3,7 +3,8 @@
 From marker trajectories alone (a C3D file or a ``(frames, markers, 3)`` array with NaN gaps): which
 markers belong to which segment (§3.1), how the segments connect and where the joints are (§3.2), a rigid
 skeleton with marker offsets and per-frame poses by inverse kinematics (§3.3), and — for passive systems —
-which labels are the same physical marker (§4). :func:`fit_marker_skeleton` runs it all; the command line
+which labels are the same physical marker (§4); then which part of a human body each segment is
+(:mod:`~bcmocap.markers.anatomy`). :func:`fit_marker_skeleton` runs it all; the command line
 is ``bcmocap markers FILE.c3d --out DIR``.
 """
 
@@ -13,6 +14,8 @@ from .preprocess import preprocess  # noqa: F401  (now: the function shares its 
 
 # Imported on first use (PEP 562), so that the command line does not pay for JAX where it is not used.
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "Anatomy": "anatomy",
+    "label_anatomy": "anatomy",
     "IdentityMerge": "identities",
     "concurrent_labels": "identities",
     "label_distances": "identities",

@@ -2,6 +2,7 @@
 
     trajectories ──preprocess──▶ (merge identities) ──segment──▶ groups ──joint costs, MST──▶ topology
         ──re-solve joints on all frames──▶ joints ──rigid fit──▶ Skeleton + marker offsets ──IK──▶ Motion
+        ──human template──▶ each segment's label and the verdict (human, or which limbs are wrong)
 
 :func:`fit_marker_skeleton` runs it on a :class:`~bcmocap.markers.MarkerTrajectories` (from a C3D file via
 :func:`bcmocap.io.read_c3d`, or from a ``(frames, markers, 3)`` array) and returns a
@@ -23,6 +24,7 @@ from ..kinematics.fk import joint_positions
 from ..kinematics.skeleton import Motion, Skeleton
 from ..precision import require_float64
 from . import files
+from .anatomy import Anatomy, label_anatomy
 from .identities import IdentityMerge, concurrent_labels, merge_identities
 from .ik import IkResult, initial_motion, solve_ik
 from .joints import MIN_COVERAGE, MIN_FRAMES, JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
@@ -112,6 +114,8 @@ class MarkerSkeleton:
         input_labels: the labels given to the pipeline.
         notes: warnings raised along the way (also emitted as :class:`UserWarning`).
         seconds: time per stage.
+        anatomy: the tree labelled against a human template (:mod:`bcmocap.markers.anatomy`): each segment's label
+            and confidence, and the verdict.
     """
 
     skeleton: Skeleton
@@ -130,6 +134,7 @@ class MarkerSkeleton:
     input_labels: tuple[str, ...]
     notes: tuple[str, ...]
     seconds: dict
+    anatomy: Anatomy
 
     @property
     def edges(self) -> list[tuple[str, str]]:
@@ -159,12 +164,31 @@ class MarkerSkeleton:
 
         def walk(j, depth):
             marks = ", ".join(self.segment_markers(j))
-            lines.append(f"{'  ' * depth}{s.names[j]}  [{marks}]")
+            label = f"{self.anatomy.labels[j]} ({self.anatomy.confidence[j]:.2f})"
+            lines.append(f"{'  ' * depth}{s.names[j]}  {label}  [{marks}]")
             for c in s.children(j):
                 walk(c, depth + 1)
 
         walk(0, 0)
         return lines
+
+    def verdict_lines(self) -> list[str]:
+        """Whether the tree is a human body, and what is wrong with it where it is not."""
+        a = self.anatomy
+        lines = ["verdict: a human body" if a.human else
+                 f"verdict: NOT a human body: {', '.join(l.replace('_', ' ') for l in a.wrong_limbs)} wrong"]
+        lines += [f"  {limb.replace('_', ' ')}: {reason}" for limb, reason in a.wrong_limbs.items()]
+        lines += [f"  note: {note}" for note in a.notes]
+        return lines
+
+    def labelled_skeleton(self) -> Skeleton:
+        """The skeleton with its segments named by their labels (a repeated label numbered: spine, spine_2)."""
+        s = self.skeleton
+        names, seen = [], {}
+        for label in self.anatomy.labels:
+            seen[label] = seen.get(label, 0) + 1
+            names.append(label if seen[label] == 1 else f"{label}_{seen[label]}")
+        return Skeleton(names, s.parents, s.offsets, s.joint_types, s.hinge_axes)
 
     def report(self) -> str:
         """A short human-readable report."""
@@ -189,7 +213,8 @@ class MarkerSkeleton:
             unknown = int((~seg.known[np.triu_indices(m, 1)]).sum())
             lines.append(f"{unknown} of {m * (m - 1) // 2} marker pairs unknown (seen together too little, or only while "
                          "the body around them was still): left out of the segmentation")
-        lines.append("topology (root first):")
+        lines += self.verdict_lines()
+        lines.append("topology (root first; each segment's label against the human template, with its confidence):")
         lines += ["  " + x for x in self.tree_lines()]
         lines.append("joints (segment ← parent): cost Q, distance residual RMS, free directions")
         for j in range(1, s.num_segments):
@@ -214,9 +239,12 @@ class MarkerSkeleton:
         return {
             "frames": int(self.motion.num_frames),
             "fps": self.fps,
+            "verdict": self.anatomy.to_dict(s.names),
             "segments": [
                 {
                     "name": s.names[j],
+                    "label": self.anatomy.labels[j],
+                    "label_confidence": float(self.anatomy.confidence[j]),
                     "parent": None if j == 0 else s.names[s.parents[j]],
                     "offset_m": np.asarray(s.offsets[j]).tolist(),
                     "markers": self.segment_markers(j),
@@ -256,7 +284,9 @@ class MarkerSkeleton:
         folder.mkdir(parents=True, exist_ok=True)
         paths = {"bvh": folder / files.SKELETON_BVH, "json": folder / files.SKELETON_JSON,
                  "poses": folder / files.POSES, "report": folder / files.REPORT}
-        write_bvh(paths["bvh"], self.skeleton, self.motion, 1.0 / self.fps)
+        # A human body's joints are named by their labels; any other tree keeps the segments' own names.
+        write_bvh(paths["bvh"], self.labelled_skeleton() if self.anatomy.human else self.skeleton, self.motion,
+                  1.0 / self.fps)
         paths["json"].write_text(json.dumps(self.to_dict(), indent=2) + "\n")
         np.savez_compressed(
             paths["poses"],
@@ -407,6 +437,11 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
     start = initial_motion(rigid, clean.positions, joint_positions_by_edge)
     ik = solve_ik(rigid, clean.positions, start, chunk=options.ik_chunk)
     seconds["ik"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    anatomy = label_anatomy(rigid.skeleton.parents, np.asarray(joint_positions(rigid.skeleton, ik.motion)),
+                            ik.marker_positions, rigid.marker_segment, names=rigid.skeleton.names)
+    seconds["anatomy"] = time.perf_counter() - t0
     return MarkerSkeleton(
         skeleton=rigid.skeleton,
         motion=ik.motion,
@@ -424,4 +459,5 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
         input_labels=trajectories.labels,
         notes=tuple(notes),
         seconds=seconds,
+        anatomy=anatomy,
     )

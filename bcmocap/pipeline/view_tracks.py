@@ -114,11 +114,17 @@ def load_markers_folder(folder: str | Path):
         "segments": LineTracks("segments (marker to its segment)", np.stack(
             [joints[:, marker_segment], markers], axis=2), colour[marker_segment], thickness_m=0.004),
     }
-    legend = [(f"{n}: {', '.join(map(str, s['markers'])) or 'no markers'}", tuple(int(c) for c in colour[k]))
+    legend = [(f"{n}{' (' + str(s['label']) + ')' if s.get('label') else ''}: "
+               f"{', '.join(map(str, s['markers'])) or 'no markers'}", tuple(int(c) for c in colour[k]))
               for k, (n, s) in enumerate(zip(names, segments))]
     notes = [f"`bcmocap markers` output: {frames} frames at {fps:g} Hz, {len(labels)} markers on {len(names)} "
              f"segments, {len(children)} joints. Markers are coloured by segment; black: joints; blue: the "
              "skeleton."]
+    verdict = desc.get("verdict")
+    if isinstance(verdict, dict) and isinstance(verdict.get("human"), bool):
+        notes.append("Against the human template: a human body." if verdict["human"] else
+                     f"Against the human template: NOT a human body ({', '.join(map(str, verdict.get('wrong_limbs', [])))} "
+                     "wrong; the report says why).")
     report = ""
     if (folder / markers_files.REPORT).is_file():
         report = "```\n" + _text(folder / markers_files.REPORT) + "\n```"

@@ -1,0 +1,111 @@
+"""The human template of recovered marker trees (bcmocap.markers.anatomy): labels, sides and the verdict."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bcmocap.kinematics.fk import joint_positions
+from bcmocap.markers.anatomy import label_anatomy
+from bcmocap.sim.markers import full_body_markers, marker_positions
+from bcmocap.sim.motions import load_body_motion
+
+
+@pytest.fixture(scope="module")
+def walk():
+    """The CMU walk's skeleton (pelvis, torso, head and the limbs' three segments each), its joints and a 45-marker
+    set, 4 s at 30 fps."""
+    skeleton, motion = load_body_motion("walk", fps=30, seconds=4.0)
+    specs = full_body_markers(skeleton, jitter_m=0.01, seed=0)
+    joints = np.asarray(joint_positions(skeleton, motion))
+    markers = marker_positions(skeleton, motion, specs)
+    segment = np.array([skeleton.index(s.segment) for s in specs])
+    return skeleton, joints, markers, segment
+
+
+def _expected(name: str) -> str:
+    return {"torso": "thorax"}.get(name, name)
+
+
+def _rerooted(parents, root):
+    """The same tree hung from ``root``: each segment's new parent and the segment whose origin is its new joint."""
+    neighbours = {j: set() for j in range(len(parents))}
+    for j, p in enumerate(parents):
+        if p >= 0:
+            neighbours[j].add(p)
+            neighbours[p].add(j)
+    new, origin, frontier = {root: -1}, {root: root}, [root]
+    while frontier:
+        j = frontier.pop()
+        for k in neighbours[j] - set(new):
+            new[k], origin[k] = j, (k if parents[k] == j else j)
+            frontier.append(k)
+    return [new[j] for j in range(len(parents))], [origin[j] for j in range(len(parents))]
+
+
+@pytest.mark.parametrize("turn", ["upright", "lying", "any", "rerooted"])
+def test_the_true_tree_of_a_walk_is_a_human_in_any_orientation_and_from_any_root(walk, turn):
+    skeleton, joints, markers, segment = walk
+    parents = list(skeleton.parents)
+    if turn == "rerooted":  # the tree as the pipeline might hang it: from the head
+        parents, origin = _rerooted(parents, skeleton.index("head"))
+        joints = joints[:, origin]
+    elif turn != "upright":
+        r = (Rotation.from_euler("x", 90, degrees=True) if turn == "lying" else Rotation.random(random_state=3)).as_matrix()
+        joints, markers = joints @ r.T, markers @ r.T
+    anatomy = label_anatomy(parents, joints, markers, segment, names=skeleton.names)
+    assert anatomy.human and anatomy.wrong_limbs == {}
+    assert list(anatomy.labels) == [_expected(n) for n in skeleton.names]
+    assert (anatomy.confidence > 0.5).all()
+    assert anatomy.limbs["left_leg"] == tuple(skeleton.index(f"left_{s}") for s in ("thigh", "shin", "foot"))
+
+
+def test_a_leg_hung_on_an_arm_is_named(walk):
+    skeleton, joints, markers, segment = walk
+    parents = list(skeleton.parents)
+    parents[skeleton.index("left_thigh")] = skeleton.index("right_hand")  # the hip placed where it is, the parent wrong
+    anatomy = label_anatomy(parents, joints, markers, segment, names=skeleton.names)
+    assert not anatomy.human
+    assert set(anatomy.wrong_limbs) & {"left_leg", "right_arm"}
+    assert "right_hand" in " ".join(anatomy.wrong_limbs.values()) or "left_leg" in anatomy.wrong_limbs
+
+
+def test_arms_hung_on_the_pelvis_are_wrong_unless_one_segment_holds_the_whole_trunk(walk):
+    skeleton, joints, markers, segment = walk
+    parents = list(skeleton.parents)
+    pelvis, torso = skeleton.index("pelvis"), skeleton.index("torso")
+    for side in ("left", "right"):  # the arms' joints where they are, on the pelvis (the trunk did not move on it)
+        parents[skeleton.index(f"{side}_upper_arm")] = pelvis
+    parents[skeleton.index("head")] = pelvis
+    anatomy = label_anatomy(parents, joints, markers, segment, names=skeleton.names)
+    assert not anatomy.human and {"left_arm", "right_arm"} <= set(anatomy.wrong_limbs)
+    assert "hangs from the pelvis (pelvis)" in anatomy.wrong_limbs["left_arm"]
+    # The torso's markers given to the pelvis: one segment holds the whole trunk, and it is a body.
+    merged = np.where(segment == torso, pelvis, segment)
+    keep = [j for j in range(skeleton.num_segments) if j != torso]
+    index = {j: k for k, j in enumerate(keep)}
+    parents2 = [index[parents[j]] if parents[j] >= 0 else -1 for j in keep]
+    anatomy = label_anatomy(parents2, joints[:, keep], markers, np.array([index[j] for j in merged]),
+                            names=[skeleton.names[j] for j in keep])
+    assert anatomy.human and anatomy.labels[index[pelvis]] == "trunk"
+    assert any("one segment" in note for note in anatomy.notes)
+
+
+def test_a_leg_grouped_across_the_knee_is_wrong(walk):
+    skeleton, joints, markers, segment = walk
+    thigh, shin, foot = (skeleton.index(f"left_{s}") for s in ("thigh", "shin", "foot"))
+    merged = np.where(np.isin(segment, [shin, foot]), thigh, segment)
+    keep = [j for j in range(skeleton.num_segments) if j not in (shin, foot)]
+    index = {j: k for k, j in enumerate(keep)}
+    parents = [index[skeleton.parents[j]] if skeleton.parents[j] >= 0 else -1 for j in keep]
+    anatomy = label_anatomy(parents, joints[:, keep], markers, np.array([index[j] for j in merged]),
+                            names=[skeleton.names[j] for j in keep])
+    assert not anatomy.human and list(anatomy.wrong_limbs) == ["left_leg"]
+    assert "across the knee" in anatomy.wrong_limbs["left_leg"]
+
+
+def test_shapes_that_do_not_match_are_named(walk):
+    skeleton, joints, markers, segment = walk
+    with pytest.raises(ValueError, match=r"joints must have shape \(frames, 15, 3\)"):
+        label_anatomy(skeleton.parents, joints[:, :3], markers, segment)
+    with pytest.raises(ValueError, match="marker_segment"):
+        label_anatomy(skeleton.parents, joints, markers, segment[:-1])
