@@ -109,3 +109,33 @@ def test_shapes_that_do_not_match_are_named(walk):
         label_anatomy(skeleton.parents, joints[:, :3], markers, segment)
     with pytest.raises(ValueError, match="marker_segment"):
         label_anatomy(skeleton.parents, joints, markers, segment[:-1])
+
+
+def test_the_template_prior_moves_arms_from_the_pelvis_to_the_thorax_where_the_data_barely_prefer_the_pelvis(walk):
+    from bcmocap.markers.anatomy import template_penalties
+    from bcmocap.markers.joints import minimum_spanning_tree
+
+    skeleton, joints, markers, segment = walk
+    parents = list(skeleton.parents)
+    pelvis, torso = skeleton.index("pelvis"), skeleton.index("torso")
+    arms = [skeleton.index(f"{side}_upper_arm") for side in ("left", "right")]
+    for arm in arms:
+        parents[arm] = pelvis
+    anatomy = label_anatomy(parents, joints, markers, segment, names=skeleton.names)
+    assert not anatomy.human
+    # Joint costs that fit that tree (the trunk barely moved on the pelvis: an arm's joint with either is as good).
+    q = np.full((15, 15), 1e-3)
+    for j, p in enumerate(parents):
+        if p >= 0:
+            q[j, p] = q[p, j] = 1e-5
+    for arm in arms:
+        q[arm, torso] = q[torso, arm] = 2e-5
+    groups = np.arange(15)  # segment k is group k
+    penalty = template_penalties(groups, anatomy, 15, 10.0)
+    assert penalty[arms[0], pelvis] == 10.0 and penalty[arms[0], torso] == 1.0
+    assert penalty[skeleton.index("left_thigh"), pelvis] == 1.0  # what the template joins is left alone
+    assert penalty[skeleton.index("left_shin"), skeleton.index("right_thigh")] == 10.0  # sides do not mix
+    edges = {frozenset(e) for e in minimum_spanning_tree(q * penalty)}
+    assert {frozenset((arm, torso)) for arm in arms} <= edges
+    assert not any(frozenset((arm, pelvis)) in edges for arm in arms)
+    assert (template_penalties(groups, anatomy, 15, 0.0) == 1.0).all()

@@ -38,7 +38,7 @@ import itertools
 
 import numpy as np
 
-__all__ = ["Anatomy", "LIMBS", "TWIG_M", "label_anatomy"]
+__all__ = ["Anatomy", "LIMBS", "TWIG_M", "label_anatomy", "template_penalties"]
 
 LIMBS = ("left_leg", "right_leg", "left_arm", "right_arm", "head")
 #: Segment names along each limb, proximal first, by the limb's number of segments.
@@ -61,7 +61,10 @@ _LENGTHS = {"leg+": 0.55, "thigh": 0.245, "shin": 0.246, "shin+": 0.27, "foot": 
 #: A segment that holds both the legs and the arms is the whole trunk only if its markers spread this far along the
 #: body (over its size): the pelvis's alone span about 0.1, the trunk's 0.3 and more.
 _TRUNK_EXTENT = 0.2
-_LENGTH_SIGMA = 0.35  # log-normal spread of a segment's length against _LENGTHS (bodies, markers, joint placement)
+_LENGTH_SIGMA = 0.35
+#: A core segment whose markers lie this far along the body (hips 0, shoulders 1) is a head, not a spine; a head
+#: chain's markers lie at least _HEAD_LEVEL (1.15 on the studio's body, 1.4 on HDM05's; a shoulder marker 1.08).
+_ABOVE_SHOULDERS, _HEAD_LEVEL = 1.25, 1.1  # log-normal spread of a segment's length against _LENGTHS (bodies, markers, joint placement)
 #: A leaf segment reaching less than this (m) from its joint that hangs from a branching segment is set aside.
 TWIG_M = 0.10
 #: A limb's reach over the body's size (:func:`_body_size`, about its height): hip to toe (thigh 0.245, shank 0.246,
@@ -87,6 +90,7 @@ class Anatomy:
         human: every arm and leg found, of at least two segments, where a body has it.
         wrong_limbs: ``{limb: reason}`` for each arm or leg that is missing or implausible; empty when human.
         notes: what the verdict does not hinge on (the pelvis and thorax in one segment, no head, extra segments).
+        cost: the best assignment's cost (negative log-plausibility; lower is more of a body).
     """
 
     labels: tuple[str, ...]
@@ -95,6 +99,7 @@ class Anatomy:
     human: bool
     wrong_limbs: dict
     notes: tuple[str, ...]
+    cost: float = 0.0
 
     def to_dict(self, names) -> dict:
         """``{"human", "wrong_limbs": [...], "reasons": {...}, "notes"}``, the ``"verdict"`` of ``skeleton.json``."""
@@ -255,6 +260,9 @@ class _Tree:
         if axis is not None:
             cost += sum(6.0 * max(0.0, self.hanging(i, axis) + 0.3) for i in legs)  # legs hang away from the thorax
             cost += sum(4.0 * max(0.0, -self.hanging(i, axis)) for i in head)  # the head points away from the legs
+            cost += sum(20.0 * max(0.0, _HEAD_LEVEL - self.level(chains[i].segments[-1], legs, arms))
+                        + 10.0 * max(0.0, self.off_midline(chains[i].segments[-1], legs, arms) - 0.5)
+                        for i in head)  # above the shoulders, between them
         if legs:
             pelvis = chains[legs[0]].attachment
             for i in (*arms, *head):  # arms and head attach no nearer the pelvis than the legs do
@@ -366,7 +374,37 @@ class _Tree:
                 for i in arms[1:]:  # an arm on a segment next to the thorax (the shoulders split from it)
                     if labels[self.chains[i].attachment] == "extra":
                         labels[self.chains[i].attachment] = "thorax"
+        if not head and legs and arms:  # a head the tree put among the core's segments: above the shoulders
+            for j in self.core:
+                if labels[j] in ("spine", "extra") and self.level(j, legs, arms) > _ABOVE_SHOULDERS:
+                    labels[j] = "head"
+                    break
         return labels, limbs, shares
+
+    def off_midline(self, j: int, legs, arms) -> float:
+        """How far segment ``j``'s markers are from the body's midline (the line from the hips' midpoint to the
+        shoulders'), over half the shoulders' width (median over frames): 0 on the midline, 1 at a shoulder."""
+        if len(arms) < 2:
+            return 0.0
+        hips = np.mean([self.chains[i].start for i in legs], axis=0)
+        shoulders = [self.chains[i].start for i in arms]
+        mid = 0.5 * (shoulders[0] + shoulders[1])
+        axis = mid - hips
+        axis = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-12)
+        offset = self.centroid(j) - mid
+        offset = offset - np.einsum("fi,fi->f", offset, axis)[:, None] * axis
+        ratio = np.linalg.norm(offset, axis=-1) / np.maximum(0.5 * np.linalg.norm(shoulders[0] - shoulders[1], axis=-1), 1e-6)
+        ratio = ratio[np.isfinite(ratio)]
+        return float(np.median(ratio)) if len(ratio) else 0.0
+
+    def level(self, j: int, legs, arms) -> float:
+        """Where segment ``j``'s markers are along the body (median over frames): 0 at the hips, 1 at the
+        shoulders (the legs' and arms' attachment joints)."""
+        hips = np.mean([self.chains[i].start for i in legs], axis=0)
+        span = np.mean([self.chains[i].start for i in arms], axis=0) - hips
+        along = np.einsum("fi,fi->f", self.centroid(j) - hips, span) / np.maximum(np.einsum("fi,fi->f", span, span), 1e-12)
+        along = along[np.isfinite(along)]
+        return float(np.median(along)) if len(along) else 0.0
 
 
 #: Assignments whose labels are compared with the best's for the confidences.
@@ -417,7 +455,7 @@ def label_anatomy(parents, joints: np.ndarray, markers: np.ndarray, marker_segme
             confidence[list(segments)] = np.minimum(confidence[list(segments)], 2.0 * shares[limb.split("_")[1]] - 1.0)
     wrong, notes = _verdict(tree, legs, arms, head, limbs, labels, names)
     return Anatomy(labels=tuple(labels), confidence=confidence, limbs=limbs, human=not wrong, wrong_limbs=wrong,
-                   notes=tuple(notes))
+                   notes=tuple(notes), cost=best_cost)
 
 
 def _verdict(tree: _Tree, legs, arms, head, limbs, labels, names) -> tuple[dict, list[str]]:
@@ -467,6 +505,10 @@ def _verdict(tree: _Tree, legs, arms, head, limbs, labels, names) -> tuple[dict,
                     wrong[limb] = (f"hangs from the pelvis ({names[pelvis]}), not from the thorax: the trunk barely "
                                    "moved relative to the pelvis")
                     labels[pelvis] = "pelvis"
+    for j in tree.core:
+        if labels[j] == "head" and len(tree.nbrs[j]) >= 2:
+            wrong["head"] = (f"{names[j]} is among the trunk's segments, joined to "
+                             f"{' and '.join(names[k] for k in sorted(tree.nbrs[j]))}; a head hangs from the thorax only")
     if "trunk" in labels:
         notes.append("the pelvis and the thorax are one segment (they did not move relative to each other)")
     if not head:
@@ -475,3 +517,36 @@ def _verdict(tree: _Tree, legs, arms, head, limbs, labels, names) -> tuple[dict,
     if extra:
         notes.append(f"segments with no place in the template: {', '.join(extra)}")
     return wrong, notes
+
+
+#: Which labels the human template joins (either side of a limb; a limb's segments only on its own side).
+_JOINED = {frozenset(pair) for pair in (
+    ("pelvis", "spine"), ("pelvis", "thorax"), ("spine", "spine"), ("spine", "thorax"), ("pelvis", "thigh"),
+    ("trunk", "thigh"), ("thigh", "shin"), ("shin", "foot"), ("foot", "toes"),
+    ("thorax", "shoulder"), ("thorax", "upper_arm"), ("trunk", "shoulder"), ("trunk", "upper_arm"),
+    ("shoulder", "upper_arm"), ("upper_arm", "forearm"), ("forearm", "hand"),
+    ("thorax", "neck"), ("thorax", "head"), ("trunk", "neck"), ("trunk", "head"), ("neck", "head"),
+    ("spine", "shoulder"), ("spine", "upper_arm"))}
+
+
+def template_penalties(segment_groups, anatomy: Anatomy, num_groups: int, factor: float,
+                       min_confidence: float = 0.5) -> np.ndarray:
+    """``(G, G)`` multipliers of the groups' joint costs: ``factor`` where the two groups' labels (segment ``k`` is
+    group ``segment_groups[k]``), each at least ``min_confidence`` sure, are not joined in the human template (or
+    are a limb's segments on different sides), 1 elsewhere and wherever a label is ``"extra"``."""
+    label = {int(g): (anatomy.labels[k], float(anatomy.confidence[k])) for k, g in enumerate(segment_groups)}
+    out = np.ones((num_groups, num_groups))
+    if factor <= 0:
+        return out
+    for a in range(num_groups):
+        for b in range(a + 1, num_groups):
+            (la, ca), (lb, cb) = label.get(a, ("extra", 0.0)), label.get(b, ("extra", 0.0))
+            if "extra" in (la, lb) or min(ca, cb) < min_confidence:
+                continue
+            side_a, side_b = (la.split("_")[0] if la.startswith(("left_", "right_")) else None,
+                              lb.split("_")[0] if lb.startswith(("left_", "right_")) else None)
+            base_a, base_b = (la.split("_", 1)[1] if side_a else la), (lb.split("_", 1)[1] if side_b else lb)
+            joined = frozenset((base_a, base_b)) in _JOINED and not (side_a and side_b and side_a != side_b)
+            if not joined:
+                out[a, b] = out[b, a] = factor
+    return out

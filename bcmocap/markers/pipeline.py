@@ -24,7 +24,7 @@ from ..kinematics.fk import joint_positions
 from ..kinematics.skeleton import Motion, Skeleton
 from ..precision import require_float64
 from . import files
-from .anatomy import Anatomy, label_anatomy
+from .anatomy import Anatomy, label_anatomy, template_penalties
 from .identities import IdentityMerge, concurrent_labels, merge_identities
 from .ik import IkResult, initial_motion, solve_ik
 from .joints import MIN_COVERAGE, MIN_FRAMES, JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
@@ -66,6 +66,12 @@ class MarkerOptions:
             deviation) spans a joint: the eigengap's count is raised until none does, and a given count
             that leaves one is reported (skin markers on one bone vary by 5–13 mm in the real CMU and
             Plug-in Gait files; across a joint by 1–11 cm).
+        template_prior: where the tree is not a human body (:mod:`~bcmocap.markers.anatomy`), the joint cost of
+            two segments whose labels the human template does not join (an arm on the pelvis, a right shin on
+            the left thigh; labels of confidence 0.5 or more) is multiplied by this, the spanning tree built
+            again and kept if it is more of a body (0: off). A soft cost: a joint the data support well still
+            wins.
+        template_rounds: how many times the tree may be rebuilt that way.
         ik_chunk: frames solved together in inverse kinematics.
         seed: random seed (samplings, k-means).
     """
@@ -88,6 +94,8 @@ class MarkerOptions:
     joint_frames: int = 400
     root: int | None = None
     rigid_tolerance_m: float = 0.015
+    template_prior: float = 10.0
+    template_rounds: int = 2
     ik_chunk: int = 256
     seed: int = 0
 
@@ -331,6 +339,58 @@ def _without(trajectories: MarkerTrajectories, seg: Segmentation, keep: np.ndarr
         coverage=None if seg.coverage is None else seg.coverage[sub], known=None if seg.known is None else seg.known[sub])
 
 
+@dataclasses.dataclass(frozen=True)
+class _TreeFit:
+    joints: tuple
+    rigid: RigidSkeleton
+    by_child: dict
+    ik: IkResult
+    anatomy: Anatomy
+
+
+def _fit_tree(clean: MarkerTrajectories, groups: np.ndarray, edges, names, options: MarkerOptions, seconds: dict,
+              known: tuple[JointSolution, ...] = ()) -> _TreeFit:
+    """The stages after the topology for the tree ``edges``: its joints on all frames (those in ``known`` reused),
+    the rigid skeleton, inverse kinematics and the labels against the human template (each stage's time added to
+    ``seconds``)."""
+    t0 = time.perf_counter()
+    reuse = {frozenset(sol.groups): sol for sol in known}
+    todo = [e for e in edges if frozenset(e) not in reuse]
+    solved = solve_joints(clean, groups, todo, alpha=options.alpha_final, max_iterations=400,
+                          max_solve_frames=options.joint_frames) if todo else []
+    reuse.update({frozenset(sol.groups): sol for sol in solved})
+    joints = [reuse[frozenset(e)] for e in edges]
+    seconds["joints"] = seconds.get("joints", 0.0) + time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    rigid = build_skeleton(clean.positions, groups, joints, root=options.root, names=names)
+    seg_of_group = {int(g): k for k, g in enumerate(rigid.segment_groups)}
+    by_child: dict[int, JointSolution] = {}
+    joint_positions_by_edge = {}
+    for sol in joints:
+        a, b = seg_of_group[sol.groups[0]], seg_of_group[sol.groups[1]]
+        parent, child = (a, b) if rigid.skeleton.parents[b] == a else (b, a)
+        by_child[child] = sol
+        joint_positions_by_edge[(parent, child)] = sol.positions
+    seconds["rigid"] = seconds.get("rigid", 0.0) + time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    start = initial_motion(rigid, clean.positions, joint_positions_by_edge)
+    ik = solve_ik(rigid, clean.positions, start, chunk=options.ik_chunk)
+    seconds["ik"] = seconds.get("ik", 0.0) + time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    anatomy = label_anatomy(rigid.skeleton.parents, np.asarray(joint_positions(rigid.skeleton, ik.motion)),
+                            ik.marker_positions, rigid.marker_segment, names=rigid.skeleton.names)
+    seconds["anatomy"] = seconds.get("anatomy", 0.0) + time.perf_counter() - t0
+    return _TreeFit(tuple(joints), rigid, by_child, ik, anatomy)
+
+
+def _better(new: Anatomy, old: Anatomy) -> bool:
+    """A body where there was none, or fewer wrong limbs, or as many at a lower template cost."""
+    return (new.human, -len(new.wrong_limbs), -new.cost) > (old.human, -len(old.wrong_limbs), -old.cost)
+
+
 def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions = MarkerOptions()) -> MarkerSkeleton:
     """Estimate a skeleton and its motion from marker trajectories (Kirk, O'Brien & Forsyth 2005).
 
@@ -409,9 +469,27 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
                  "connects them")
     seconds["topology"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    joints = solve_joints(clean, seg.groups, edges, alpha=options.alpha_final, max_iterations=400,
-                          max_solve_frames=options.joint_frames)
+    fit = _fit_tree(clean, seg.groups, edges, names, options, seconds)
+    if options.template_prior and not fit.anatomy.human:
+        t0 = time.perf_counter()
+        tried = {frozenset(map(frozenset, edges))}
+        template_seconds: dict = {}
+        for _ in range(options.template_rounds):
+            if fit.anatomy.human:
+                break
+            penalty = template_penalties(fit.rigid.segment_groups, fit.anatomy, len(names), options.template_prior)
+            new_edges = minimum_spanning_tree(q * penalty, names)
+            if frozenset(map(frozenset, new_edges)) in tried:
+                break
+            tried.add(frozenset(map(frozenset, new_edges)))
+            candidate = _fit_tree(clean, seg.groups, new_edges, names, options, template_seconds, known=fit.joints)
+            if _better(candidate.anatomy, fit.anatomy):
+                moved = sorted(set(map(frozenset, new_edges)) - set(map(frozenset, edges)), key=sorted)
+                note("the tree was rebuilt with the human template's prior on its joints (it was not a body): "
+                     + ", ".join(" - ".join(names[g] for g in sorted(pair)) for pair in moved) + " joined instead")
+                fit, edges = candidate, new_edges
+        seconds["template"] = time.perf_counter() - t0
+    joints, rigid, by_child, ik, anatomy = fit.joints, fit.rigid, fit.by_child, fit.ik, fit.anatomy
     for sol in joints:
         a, b = sol.groups
         if sol.null_dims >= 2:
@@ -419,29 +497,6 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
                  "relative to each other): its position is set by the distance prior only")
         if not sol.converged:
             note(f"the joint between segments '{names[a]}' and '{names[b]}' did not converge")
-    seconds["joints"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    rigid = build_skeleton(clean.positions, seg.groups, joints, root=options.root, names=names)
-    seg_of_group = {int(g): k for k, g in enumerate(rigid.segment_groups)}
-    by_child: dict[int, JointSolution] = {}
-    joint_positions_by_edge = {}
-    for sol in joints:
-        a, b = seg_of_group[sol.groups[0]], seg_of_group[sol.groups[1]]
-        parent, child = (a, b) if rigid.skeleton.parents[b] == a else (b, a)
-        by_child[child] = sol
-        joint_positions_by_edge[(parent, child)] = sol.positions
-    seconds["rigid"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    start = initial_motion(rigid, clean.positions, joint_positions_by_edge)
-    ik = solve_ik(rigid, clean.positions, start, chunk=options.ik_chunk)
-    seconds["ik"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    anatomy = label_anatomy(rigid.skeleton.parents, np.asarray(joint_positions(rigid.skeleton, ik.motion)),
-                            ik.marker_positions, rigid.marker_segment, names=rigid.skeleton.names)
-    seconds["anatomy"] = time.perf_counter() - t0
     return MarkerSkeleton(
         skeleton=rigid.skeleton,
         motion=ik.motion,
