@@ -42,8 +42,12 @@ def test_cli_on_a_c3d_file_with_broken_labels(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["markers", str(path), "--out", str(out), "--groups", "3"]) == 0
     text = capsys.readouterr().out
-    assert "merged" in text and "topology (root first)" in text
+    assert "merged" in text and "topology (root first" in text
+    assert "verdict: NOT a human body" in text and "try: --groups 4" in text  # three rods are no body
     desc = json.loads((out / "skeleton.json").read_text())
+    assert desc["verdict"]["human"] is False and "left_leg" in desc["verdict"]["wrong_limbs"]
+    assert desc["verdict"]["fixes"]["left_leg"].startswith("--groups 4")
+    assert all(segment["label"] == "extra" for segment in desc["segments"])
     assert len(desc["segments"]) == 3 and desc["fps"] == 60.0 and len(desc["markers"]) == 9
     lengths = [v for k, v in desc["segment_lengths_m"].items() if k.startswith(desc["segments"][0]["name"])]
     assert lengths == pytest.approx([LENGTHS[1]], abs=0.005)  # the middle rod is the root, two joints
@@ -116,3 +120,18 @@ def test_a_bad_frame_range_is_named(tmp_path, capsys, frames, culprit):
     assert main(["markers", str(tmp_path / "a.npy"), "--fps", "60", "--frames", frames, "--out", str(out)]) == 2
     one_line_error(capsys, "markers", culprit)
     assert not out.exists()
+
+
+def test_markers_left_out_with_drop_and_an_unknown_one_named(tmp_path, capsys):
+    np.save(tmp_path / "a.npy", np.random.default_rng(0).normal(size=(30, 4, 3)))
+    out = tmp_path / "out"
+    assert main(["markers", str(tmp_path / "a.npy"), "--fps", "60", "--drop", "m9", "--out", str(out)]) == 2
+    one_line_error(capsys, "markers", "--drop m9: no such marker in")
+    assert not out.exists()
+    from argparse import Namespace
+
+    from bcmocap.markers.command import _load
+
+    trajectories, note = _load(Namespace(file=str(tmp_path / "a.npy"), fps=60.0, frames=None, drop=["m1", "m3"],
+                                         markers=None, keep_modelled=False))
+    assert trajectories.labels == ("m0", "m2") and "dropped 2 markers" in note

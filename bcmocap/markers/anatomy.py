@@ -38,10 +38,13 @@ import itertools
 
 import numpy as np
 
-__all__ = ["Anatomy", "LIMBS", "TWIG_M", "label_anatomy", "template_penalties"]
+__all__ = ["Anatomy", "CAUSES", "LIMBS", "TWIG_M", "label_anatomy", "template_penalties"]
 
 LIMBS = ("left_leg", "right_leg", "left_arm", "right_arm", "head")
-#: Segment names along each limb, proximal first, by the limb's number of segments.
+#: What can be wrong with a limb: not found; a leg in one rigid segment; more segments than the limb has; a segment
+#: of implausible length; the legs apart in the tree; a "leg" that does not hang down; an arm or head on a pelvis
+#: alone; a head among the trunk's segments.
+CAUSES = ("missing", "rigid_leg", "too_many", "length", "legs_apart", "not_hanging", "on_pelvis", "head_in_trunk")
 #: How a limb of N segments may be named, proximal first; a name ending in "+" holds the parts after it too.
 _NAMINGS = {
     "leg": {1: [("leg+",), ("shin+",)], 2: [("thigh", "shin+")], 3: [("thigh", "shin", "foot")],
@@ -91,6 +94,8 @@ class Anatomy:
         wrong_limbs: ``{limb: reason}`` for each arm or leg that is missing or implausible; empty when human.
         notes: what the verdict does not hinge on (the pelvis and thorax in one segment, no head, extra segments).
         cost: the best assignment's cost (negative log-plausibility; lower is more of a body).
+        causes: ``{limb: (kind, segments)}`` for each wrong limb: what is wrong (:data:`CAUSES`) and the segments
+            it involves.
     """
 
     labels: tuple[str, ...]
@@ -100,6 +105,7 @@ class Anatomy:
     wrong_limbs: dict
     notes: tuple[str, ...]
     cost: float = 0.0
+    causes: dict = dataclasses.field(default_factory=dict)
 
     def to_dict(self, names) -> dict:
         """``{"human", "wrong_limbs": [...], "reasons": {...}, "notes"}``, the ``"verdict"`` of ``skeleton.json``."""
@@ -453,62 +459,71 @@ def label_anatomy(parents, joints: np.ndarray, markers: np.ndarray, marker_segme
     for limb, segments in limbs.items():  # a side decided by few frames is not sure either
         if limb != "head":
             confidence[list(segments)] = np.minimum(confidence[list(segments)], 2.0 * shares[limb.split("_")[1]] - 1.0)
-    wrong, notes = _verdict(tree, legs, arms, head, limbs, labels, names)
+    wrong, causes, notes = _verdict(tree, legs, arms, head, limbs, labels, names)
     return Anatomy(labels=tuple(labels), confidence=confidence, limbs=limbs, human=not wrong, wrong_limbs=wrong,
-                   notes=tuple(notes), cost=best_cost)
+                   notes=tuple(notes), cost=best_cost, causes=causes)
 
 
-def _verdict(tree: _Tree, legs, arms, head, limbs, labels, names) -> tuple[dict, list[str]]:
-    """``{limb: reason}`` for the arms and legs that are missing or implausible, and the notes."""
+def _verdict(tree: _Tree, legs, arms, head, limbs, labels, names) -> tuple[dict, dict, list[str]]:
+    """``{limb: reason}`` for the arms, legs and head that are missing or implausible, ``{limb: (kind, segments)}``
+    (:data:`CAUSES`) and the notes."""
     chains = tree.chains
-    wrong, notes = {}, []
+    wrong, causes, notes = {}, {}, []
+
+    def flag(limb: str, kind: str, segments, reason: str, replace: bool = True) -> None:
+        if replace or limb not in wrong:
+            wrong[limb], causes[limb] = reason, (kind, tuple(int(j) for j in segments))
     chain_of = {tree.chains[i].segments: i for i in (*legs, *arms, *head)}
     for limb in ("left_leg", "right_leg", "left_arm", "right_arm"):
         if limb not in limbs:
             left = [c for k, c in enumerate(chains) if k not in (*legs, *arms, *head)]
-            wrong[limb] = "not found" + (": no chain of segments fits it; " + "; ".join(
-                f"{' > '.join(names[j] for j in c.segments)} ({100 * c.reach:.0f} cm, from {names[c.attachment]})"
-                for c in left) + " hang(s) unplaced" if left else ": no chain of segments is left for it")
+            flag(limb, "missing", [j for c in left for j in c.segments], "not found" + (
+                ": no chain of segments fits it; " + "; ".join(
+                    f"{' > '.join(names[j] for j in c.segments)} ({100 * c.reach:.0f} cm, from {names[c.attachment]})"
+                    for c in left) + " hang(s) unplaced" if left else ": no chain of segments is left for it"))
             continue
         i = chain_of[limbs[limb]]
         _, naming = tree.naming(limb.split("_")[1], i)
         if naming == ("leg+",):
-            wrong[limb] = (f"one rigid segment ({names[limbs[limb][0]]}) from hip to foot: its markers were grouped "
-                           "across the knee")
+            flag(limb, "rigid_leg", limbs[limb], f"one rigid segment ({names[limbs[limb][0]]}) from hip to foot: its "
+                 "markers were grouped across the knee")
             continue
         if naming == ("arm+",):
             notes.append(f"the {limb.replace('_', ' ')} is one rigid segment ({names[limbs[limb][0]]}): its elbow did "
                          "not move")
         for j, name, length in zip(limbs[limb], naming, chains[i].lengths):
             if name == "extra":
-                wrong[limb] = f"{len(naming)} segments, more than a {limb.split('_')[1]} has ({names[j]} and after)"
+                flag(limb, "too_many", limbs[limb],
+                     f"{len(naming)} segments, more than a {limb.split('_')[1]} has ({names[j]} and after)")
                 break
             ratio = length / tree.height / _LENGTHS[name]
             if not 0.5 <= ratio <= 2.0:
-                wrong[limb] = (f"{names[j]}, its {name.rstrip('+').replace('_', ' ')}, is {100 * length:.0f} cm long "
-                               f"where one is about {100 * _LENGTHS[name] * tree.height:.0f} cm: it holds another "
-                               "limb's markers, or a segment hangs from the wrong one")
+                flag(limb, "length", [j], f"{names[j]}, its {name.rstrip('+').replace('_', ' ')}, is "
+                     f"{100 * length:.0f} cm long where one is about {100 * _LENGTHS[name] * tree.height:.0f} cm: it "
+                     "holds another limb's markers, or a segment hangs from the wrong one")
                 break
     if len(legs) == 2 and tree.hop(chains[legs[0]].attachment, chains[legs[1]].attachment) > 1:
         for limb in ("left_leg", "right_leg"):
-            wrong.setdefault(limb, "the legs hang from segments apart in the tree, not from one pelvis")
+            flag(limb, "legs_apart", limbs[limb], "the legs hang from segments apart in the tree, not from one pelvis",
+                 replace=False)
     axis = tree.body_axis(legs, arms)
     if axis is not None:
         for limb in ("left_leg", "right_leg"):
             if limb in limbs and tree.hanging(chain_of[limbs[limb]], axis) > 0.0:
-                wrong.setdefault(limb, "its end does not hang away from the thorax: the chain is probably not a leg")
+                flag(limb, "not_hanging", limbs[limb], "its end does not hang away from the thorax: the chain is "
+                     "probably not a leg", replace=False)
     if legs and axis is not None:
         pelvis = chains[legs[0]].attachment
         if tree.extent(pelvis, axis) < _TRUNK_EXTENT:  # a pelvis alone: nothing above the legs hangs from it
             for limb in ("left_arm", "right_arm", "head"):
                 if limb in limbs and chains[chain_of[limbs[limb]]].attachment == pelvis:
-                    wrong[limb] = (f"hangs from the pelvis ({names[pelvis]}), not from the thorax: the trunk barely "
-                                   "moved relative to the pelvis")
+                    flag(limb, "on_pelvis", [pelvis], f"hangs from the pelvis ({names[pelvis]}), not from the "
+                         "thorax: the trunk barely moved relative to the pelvis")
                     labels[pelvis] = "pelvis"
     for j in tree.core:
         if labels[j] == "head" and len(tree.nbrs[j]) >= 2:
-            wrong["head"] = (f"{names[j]} is among the trunk's segments, joined to "
-                             f"{' and '.join(names[k] for k in sorted(tree.nbrs[j]))}; a head hangs from the thorax only")
+            flag("head", "head_in_trunk", [j, *sorted(tree.nbrs[j])], f"{names[j]} is among the trunk's segments, "
+                 f"joined to {' and '.join(names[k] for k in sorted(tree.nbrs[j]))}; a head hangs from the thorax only")
     if "trunk" in labels:
         notes.append("the pelvis and the thorax are one segment (they did not move relative to each other)")
     if not head:
@@ -516,7 +531,7 @@ def _verdict(tree: _Tree, legs, arms, head, limbs, labels, names) -> tuple[dict,
     extra = [names[j] for j, label in enumerate(labels) if label == "extra"]
     if extra:
         notes.append(f"segments with no place in the template: {', '.join(extra)}")
-    return wrong, notes
+    return wrong, causes, notes
 
 
 #: Which labels the human template joins (either side of a limb; a limb's segments only on its own side).

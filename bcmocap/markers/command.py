@@ -36,6 +36,16 @@ def _load(args: argparse.Namespace):
         raise ValueError(f"--frames {args.frames} leaves {kept} of the {total} frames of {args.file}; at least 2 are needed")
     if kept < total:
         trajectories = MarkerTrajectories(trajectories.positions[frames], trajectories.labels, trajectories.fps)
+    if args.drop:
+        unknown = [label for label in args.drop if label not in trajectories.labels]
+        if unknown:
+            raise ValueError(f"--drop {' '.join(unknown)}: no such marker in {args.file} (its markers: "
+                             f"{', '.join(trajectories.labels[:12])}{' …' if len(trajectories.labels) > 12 else ''})")
+        keep = [k for k, label in enumerate(trajectories.labels) if label not in set(args.drop)]
+        if len(keep) < 2:
+            raise ValueError(f"--drop leaves {len(keep)} markers of {args.file}")
+        trajectories = trajectories.select(keep)
+        note += f"; dropped {len(args.drop)} markers (--drop)"
     return trajectories, note
 
 
@@ -97,6 +107,8 @@ def add_markers_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="bcmocap-markers", help="output folder (default: ./bcmocap-markers)")
     p.add_argument("--groups", type=int, default=None, help="number of segments (default: chosen by the eigengap)")
     p.add_argument("--markers", nargs="+", default=None, help="use only these marker labels")
+    p.add_argument("--drop", nargs="+", default=None, help="leave these marker labels out (the report suggests some "
+                   "where the tree is not a body)")
     p.add_argument("--keep-modelled", action="store_true", help="keep points that look modelled (Plug-in Gait bone axes, centres of mass)")
     p.add_argument("--merge", choices=["auto", "yes", "no"], default="auto", help="merge broken marker labels (default: auto)")
     p.add_argument("--num-markers", type=int, default=None, help="physical markers when merging labels")

@@ -185,9 +185,33 @@ class MarkerSkeleton:
         a = self.anatomy
         lines = ["verdict: a human body" if a.human else
                  f"verdict: NOT a human body: {', '.join(l.replace('_', ' ') for l in a.wrong_limbs)} wrong"]
-        lines += [f"  {limb.replace('_', ' ')}: {reason}" for limb, reason in a.wrong_limbs.items()]
+        fixes = self.fixes()
+        for limb, reason in a.wrong_limbs.items():
+            lines.append(f"  {limb.replace('_', ' ')}: {reason}")
+            lines.append(f"    try: {fixes[limb]}")
         lines += [f"  note: {note}" for note in a.notes]
         return lines
+
+    def fixes(self) -> dict[str, str]:
+        """``{limb: what to try}`` for each wrong limb: the option of ``bcmocap markers`` most likely to fix it."""
+        a, seg = self.anatomy, self.segmentation
+        more = f"--groups {seg.num_groups + 1} (one segment more than the {seg.num_groups} found)"
+        out = {}
+        for limb, (kind, segments) in a.causes.items():
+            lone = [m for j in segments for m in self.segment_markers(j) if len(self.segment_markers(j)) == 1]
+            drop = f"--drop {' '.join(lone)} (a marker alone on its segment, placed by little)" if lone else None
+            if kind == "on_pelvis":
+                out[limb] = ("a trial, or --frames FIRST:LAST of one, in which the trunk bends and twists on the pelvis "
+                             "(a range-of-motion trial): here nothing tells the thorax's joints from the pelvis's")
+            elif kind == "head_in_trunk":
+                out[limb] = drop or more
+            elif kind == "rigid_leg":
+                out[limb] = more + ": the knee's markers went with the thigh's or the foot's"
+            elif kind in ("missing", "length", "too_many"):
+                out[limb] = " or ".join(x for x in (drop, more) if x)
+            else:
+                out[limb] = drop or f"{more}, or --frames of a stretch where every joint moves"
+        return out
 
     def labelled_skeleton(self) -> Skeleton:
         """The skeleton with its segments named by their labels (a repeated label numbered: spine, spine_2)."""
@@ -247,7 +271,7 @@ class MarkerSkeleton:
         return {
             "frames": int(self.motion.num_frames),
             "fps": self.fps,
-            "verdict": self.anatomy.to_dict(s.names),
+            "verdict": {**self.anatomy.to_dict(s.names), "fixes": self.fixes()},
             "segments": [
                 {
                     "name": s.names[j],
