@@ -25,7 +25,8 @@ cameras, Algorithm 1).
 INPUT is a .npz file (joints_2d (F,J,2) px with NaN for missing joints, names (J,), parents (J,),
 rest (J,3) m; optional mask, links, fps) or a folder with topology.csv (joint,parent,x,y,z) and
 joints_2d.csv (frame,joint,x,y; absent rows = missing joints) and optionally links.csv (joint_a,joint_b).
-See bcmocap/kcs/inputs.py. Writes DIR/joints_3d.csv, DIR/result.npz, DIR/motion.bvh, DIR/report.json.
+See bcmocap/kcs/inputs.py. With --keypoints, INPUT is a detector's 2-D keypoints (COCO-17, OpenPose BODY-25,
+MediaPipe Pose 33) mapped onto the CMU chain with its mean walking pose (bcmocap/kcs/keypoints.py). Writes DIR/joints_3d.csv, DIR/result.npz, DIR/motion.bvh, DIR/report.json.
 """
 
 
@@ -39,6 +40,11 @@ def add_kcs_command(sub: argparse._SubParsersAction) -> None:
     )
     kcs.add_argument("input", help=".npz file or folder with topology.csv and joints_2d.csv")
     kcs.add_argument("--out", required=True, help="output folder (created if needed)")
+    kcs.add_argument("--keypoints", choices=["coco17", "body25", "mediapipe33"], default=None,
+                     help="INPUT is a detector's keypoints (COCO JSON, OpenPose's JSON folder, MediaPipe landmarks "
+                     "JSON), mapped onto the CMU chain (bcmocap/kcs/keypoints.py)")
+    kcs.add_argument("--min-confidence", type=float, default=0.3,
+                     help="with --keypoints: a keypoint below this confidence is missing (default 0.3)")
     kcs.add_argument("--fps", type=float, default=None, help="frame rate for the BVH (default: the input's, else 30)")
     kcs.add_argument("--max-iterations", type=int, default=None, help="outer iterations of Algorithm 1 (default 30)")
     kcs.add_argument("--nuclear-weight", type=float, default=None, help="nuclear-norm weight τ in metres (default 0.03)")
@@ -70,6 +76,8 @@ def _flag_problem(args: argparse.Namespace) -> str | None:
         return f"--fps must be a positive finite frame rate, got {args.fps}"
     if args.max_iterations is not None and args.max_iterations < 1:
         return f"--max-iterations must be at least 1, got {args.max_iterations}"
+    if not (math.isfinite(args.min_confidence) and 0 <= args.min_confidence <= 1):
+        return f"--min-confidence must be between 0 and 1, got {args.min_confidence}"
     for flag, value in (("--nuclear-weight", args.nuclear_weight), ("--hinge-weight", args.hinge_weight)):
         if value is not None and not (math.isfinite(value) and value >= 0):
             return f"{flag} must be a finite number ≥ 0, got {value}"
@@ -90,7 +98,12 @@ def run_kcs(args: argparse.Namespace) -> int:
     if out is None:
         return 2
     try:
-        data = read_input(args.input)
+        if args.keypoints:
+            from .keypoints import keypoint_input
+
+            data = keypoint_input(args.input, args.keypoints, min_confidence=args.min_confidence)
+        else:
+            data = read_input(args.input)
     except ValueError as exc:
         print(f"bcmocap kcs: {exc}", file=sys.stderr)
         return 2
