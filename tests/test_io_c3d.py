@@ -66,6 +66,21 @@ def test_marker_selection_and_subject_prefix(tmp_path):
         read_c3d(path, markers=["Z"])
 
 
+def test_computed_points_of_other_systems_are_left_out(tmp_path):
+    from bcmocap.io.c3d import MODELLED_POINT_PATTERN
+
+    p = np.random.default_rng(2).uniform(size=(10, 4, 3))
+    d = read_c3d(write_c3d(tmp_path / "t.c3d", p, ["RKNE", "VMID", "VMID", "RKNE"]))  # labels repeated, as MAC's
+    assert d.labels == ("RKNE", "RKNE#2") and d.excluded == ("VMID", "VMID#2")
+
+    # Motion Analysis's Helen Hayes virtual points and OpenSim's joint centres are computed, not seen
+    for label in ("VSAC", "VMID", "VPEL", "VRHI", "VLKN", "VRAN", "VLHA", "VRTO", "VRHE", "LHJC", "RKJC", "RAJC"):
+        assert MODELLED_POINT_PATTERN.match(label), label
+    # markers with similar names are kept
+    for label in ("V1", "VRBAC", "RHEE", "LKNE", "RASI", "LFHD", "VCLAV", "RHJ", "L_HJC2"):
+        assert not MODELLED_POINT_PATTERN.match(label), label
+
+
 def test_bad_files(tmp_path):
     with pytest.raises(FileNotFoundError, match="no such file"):
         read_c3d(tmp_path / "missing.c3d")

@@ -40,10 +40,12 @@ _UNITS_M = {"mm": 1e-3, "millimeters": 1e-3, "millimetres": 1e-3, "cm": 1e-2, "m
 _NON_POSITION_GROUPS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS")
 
 #: Labels (after any ``Subject:`` prefix) of points a model computes rather than a camera sees:
-#: Plug-in Gait bone axes (segment code + O/A/L/P), centres of mass, hip-centre estimates, "#".
+#: Plug-in Gait bone axes (segment code + O/A/L/P), centres of mass, hip-centre estimates, "#", Motion Analysis's
+#: virtual points of the Helen Hayes set (V + SAC, MID, PEL or a side and HI, KN, AN, HA, TO, HE, SH, EL, WR: hip,
+#: knee and ankle centres, mid-pelvis, virtual hand and toe) and OpenSim's joint centres ([LR][HKA]JC).
 MODELLED_POINT_PATTERN = re.compile(
     r"^(?:(?:PEL|HED|TRX|[LR](?:FE|TI|FO|TO|CL|HU|RA|HN))[OALP]|CentreOfMass\w*|CenterOfMass\w*|\w*Hip_?Cent(?:er|re)\w*"
-    r"|#)$",
+    r"|#|V(?:SAC|MID|PEL|[LR](?:HI|KN|AN|HA|TO|HE|SH|EL|WR))|[LR][HKA]JC)$",
     re.IGNORECASE,
 )
 
@@ -279,7 +281,7 @@ def read_c3d(
     for k, label in enumerate(labels):
         if label in non_position or _strip_subject(label) in non_position:
             excluded.append(label)
-        elif not keep_modelled and MODELLED_POINT_PATTERN.match(_strip_subject(label)):
+        elif not keep_modelled and MODELLED_POINT_PATTERN.match(re.sub(r"#\d+$", "", _strip_subject(label))):  # VMID#2: a second VMID
             excluded.append(label)
         else:
             keep.append(k)
