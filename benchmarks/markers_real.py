@@ -156,7 +156,12 @@ def main(argv=None) -> int:
     rows, folders = {}, {}
     for name in names:
         out = args.out / Path(name).stem if args.out else None
-        row = rows[name] = {"source": source[name], **fit_file(paths[name], out)}
+        try:
+            row = rows[name] = {"source": source[name], **fit_file(paths[name], out)}
+        except ValueError as exc:  # the file or the pipeline refused it: a failed file, never a dropped one
+            rows[name] = {"source": source[name], "human": False, "error": str(exc), "confirmed_by_eye": None}
+            print(f"\n{name}: FAILED {exc}", flush=True)
+            continue
         if out is not None:
             folders[name] = out
         look = eye.get(name)
