@@ -57,23 +57,23 @@ _NAMINGS = {
 #: Each segment's length over the body's size (:func:`_body_size`, about its height): joint to joint, or for the
 #: last segment of a limb joint to its farthest marker. From de Leva (1996, J Biomech 29:1223): thigh 0.245,
 #: shank 0.246, upper arm 0.186, forearm 0.146; the foot, hand and head from the ankle, wrist and neck to the
-#: markers that end them (toe, knuckles, top of the head); "+" with the parts below.
+#: markers that end them (toe, knuckles, a headband's markers at the forehead); "+" with the parts below.
 _LENGTHS = {"leg+": 0.55, "thigh": 0.245, "shin": 0.246, "shin+": 0.27, "foot": 0.11, "toes": 0.04,
             "arm+": 0.38, "shoulder": 0.09, "upper_arm": 0.186, "forearm": 0.146, "forearm+": 0.2, "hand": 0.06,
-            "neck": 0.06, "head": 0.14}
+            "neck": 0.06, "head": 0.09}
 #: A segment that holds both the legs and the arms is the whole trunk only if its markers spread this far along the
 #: body (over its size): the pelvis's alone span about 0.1, the trunk's 0.3 and more.
 _TRUNK_EXTENT = 0.2
-_LENGTH_SIGMA = 0.35
+_LENGTH_SIGMA = 0.35  # log-normal spread of a segment's length against _LENGTHS (bodies, markers, joint placement)
 #: A core segment whose markers lie this far along the body (hips 0, shoulders 1) is a head, not a spine; a head
 #: chain's markers lie at least _HEAD_LEVEL (1.15 on the studio's body, 1.4 on HDM05's; a shoulder marker 1.08).
-_ABOVE_SHOULDERS, _HEAD_LEVEL = 1.25, 1.1  # log-normal spread of a segment's length against _LENGTHS (bodies, markers, joint placement)
+_ABOVE_SHOULDERS, _HEAD_LEVEL = 1.25, 1.1
 #: A leaf segment reaching less than this (m) from its joint that hangs from a branching segment is set aside.
 TWIG_M = 0.10
 #: A limb's reach over the body's size (:func:`_body_size`, about its height): hip to toe (thigh 0.245, shank 0.246,
 #: foot), shoulder to fingertips (upper arm 0.186, forearm 0.146, hand 0.108; de Leva 1996, J Biomech 29:1223),
-#: neck to the top of the head.
-_LEG_REACH, _ARM_REACH, _HEAD_REACH = 0.58, 0.42, 0.15
+#: neck to the head's markers (a headband's, at the forehead: about 0.09 of the body; CMU 135_02's 8 %).
+_LEG_REACH, _ARM_REACH, _HEAD_REACH = 0.58, 0.42, 0.1
 _MISSING_LIMB = 12.0  # cost of leaving an arm or a leg without a chain
 _MISSING_HEAD = 2.0  # a head may be part of the core (it moved with the thorax) or carry no markers
 _EXTRA_CHAIN = 1.0  # a chain left over (a wand, a marker cluster of something held)
@@ -399,7 +399,10 @@ class _Tree:
         axis = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-12)
         offset = self.centroid(j) - mid
         offset = offset - np.einsum("fi,fi->f", offset, axis)[:, None] * axis
-        ratio = np.linalg.norm(offset, axis=-1) / np.maximum(0.5 * np.linalg.norm(shoulders[0] - shoulders[1], axis=-1), 1e-6)
+        # over half the shoulders' width, at least 0.12 of the body's size (an arm may start at a shoulder segment
+        # near the spine, which would put the two "shoulders" close together)
+        half = np.maximum(0.5 * np.linalg.norm(shoulders[0] - shoulders[1], axis=-1), 0.12 * self.height)
+        ratio = np.linalg.norm(offset, axis=-1) / half
         ratio = ratio[np.isfinite(ratio)]
         return float(np.median(ratio)) if len(ratio) else 0.0
 
@@ -492,6 +495,8 @@ def _verdict(tree: _Tree, legs, arms, head, limbs, labels, names) -> tuple[dict,
             notes.append(f"the {limb.replace('_', ' ')} is one rigid segment ({names[limbs[limb][0]]}): its elbow did "
                          "not move")
         for j, name, length in zip(limbs[limb], naming, chains[i].lengths):
+            if (tree.marker_segment == j).sum() < 2:
+                continue  # one marker has no rigid frame: its segment's joint, and length, are not determined
             if name == "extra":
                 flag(limb, "too_many", limbs[limb],
                      f"{len(naming)} segments, more than a {limb.split('_')[1]} has ({names[j]} and after)")
