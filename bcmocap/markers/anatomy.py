@@ -64,6 +64,8 @@ _LENGTHS = {"leg+": 0.55, "thigh": 0.245, "shin": 0.246, "shin+": 0.27, "foot": 
 #: A segment that holds both the legs and the arms is the whole trunk only if its markers spread this far along the
 #: body (over its size): the pelvis's alone span about 0.1, the trunk's 0.3 and more.
 _TRUNK_EXTENT = 0.2
+#: Hips to shoulders (the joints) over the body's size: de Leva's trunk, hip to shoulder joint centres, about 0.3.
+_TRUNK = 0.3
 _LENGTH_SIGMA = 0.35  # log-normal spread of a segment's length against _LENGTHS (bodies, markers, joint placement)
 #: A core segment whose markers lie this far along the body (hips 0, shoulders 1) is a head, not a spine; a head
 #: chain's markers lie at least _HEAD_LEVEL (1.15 on the studio's body, 1.4 on HDM05's; a shoulder marker 1.08).
@@ -239,6 +241,13 @@ class _Tree:
         norm = np.linalg.norm(axis, axis=-1, keepdims=True)
         return np.where(norm > 1e-6, axis / np.maximum(norm, 1e-12), np.nan)
 
+    def trunk(self, legs, arms) -> float:
+        """The trunk's length over the body's size: from the hips' midpoint to the shoulders' (the legs' and arms'
+        attachment joints), median over frames."""
+        hips = np.mean([self.chains[i].start for i in legs], axis=0)
+        shoulders = np.mean([self.chains[i].start for i in arms], axis=0)
+        return _median_distance(hips, shoulders) / self.height
+
     def hanging(self, chain: int, axis: np.ndarray) -> float:
         """Median over frames of the chain's far end's displacement from its attachment joint along ``axis``,
         over its reach (-1: straight down the body axis, +1: up it)."""
@@ -264,6 +273,7 @@ class _Tree:
             cost += sum(self.naming(kind, i)[0] for i in group)
         axis = self.body_axis(legs, arms)
         if axis is not None:
+            cost += (np.log(max(self.trunk(legs, arms), 1e-3) / _TRUNK) / 0.3) ** 2  # hips to shoulders
             cost += sum(6.0 * max(0.0, self.hanging(i, axis) + 0.3) for i in legs)  # legs hang away from the thorax
             cost += sum(4.0 * max(0.0, -self.hanging(i, axis)) for i in head)  # the head points away from the legs
             cost += sum(20.0 * max(0.0, _HEAD_LEVEL - self.level(chains[i].segments[-1], legs, arms))
