@@ -8,14 +8,15 @@ SHA-256, or copied from a folder that already holds them (``--from``). Their ter
     python benchmarks/c3d_files.py --out ~/.cache/bcmocap/c3d [--from DIR]
 
 The set: the full-body trials of a person moving that these sources offer and ``bcmocap.io.read_c3d`` reads
-(c3d.org's Motion Analysis Cortex and EVaRT and Vicon samples; numediart's Qualisys rolling and its copies of CMU and
+(c3d.org's Motion Analysis Cortex and Vicon samples; numediart's Qualisys rolling and its copies of CMU and
 HDM05 trials; kineticstoolkit's tennis serve; pyCGM's and gaitalytics' Plug-in Gait walks). Left out, and why:
 static or near-static trials (a calibration pose, NexGen's test1: no joint moves, which Kirk's method needs);
 lower-body and trunk-only sets (c3d.org's gait-raw, BTS, OpenSim's walks, the treadmill set); two-person files (ART,
 kineticstoolkit's copied second player); a golf swing whose club carries markers; a file derived from another by
-deleting samples; and three files the reader refuses, c3d.org's Phoenix dance and BTK's OptiTrack mocap36 (their
-parameter sections are damaged, which can hang or crash ezc3d; c3d.org says so of the former) and c3d.org's
-PhaseSpace sample (no POINT parameters at all).
+deleting samples; and four files the reader refuses: c3d.org's Phoenix dance and BTK's OptiTrack mocap36 (their
+parameter sections are damaged, which can hang or crash ezc3d; c3d.org says so of the former), c3d.org's
+PhaseSpace sample (no POINT parameters at all) and its EVaRT walk (its header's analog frame size, 28 × 17, is not
+its parameters' 28 × 16, and read by the parameters every frame after the first is garbled).
 """
 
 from __future__ import annotations
@@ -60,10 +61,6 @@ FILES = (
             "tests/c3d_org_samples/sample_32/vicon_zerowire.c3d",
             "d1eb8b4e7ae0a123058c936c7da06663c44c7c25b16052c8e82dcca3f4fe1011", "c3dorg.txt",
             "Vicon, walk, Plug-in Gait + 16 unlabelled, 100 Hz; a 34-frame gap"),
-    C3DFile("c3dorg_sample11_evart.c3d", "biomechanics-foundation/c3dio", "7950807d12f78a63837d84cc316ccbcf64b48d30",
-            "tests/c3d_org_samples/sample_11/evart.c3d",
-            "15f094ae3cfde9fedf1429e0e0140ec05e3541c8a8fa3fc2ecd5ec4f563d04de", "c3dorg.txt",
-            "Motion Analysis (EVaRT), walk, 22 markers (no head), 60 Hz, DEC integers; tail lost"),
     C3DFile("MocapRecovery_03_rolling.c3d", "numediart/MocapRecovery", "8b185712b1015cd8bf871ee1fd3051fac2503bfc",
             "data/03_rolling.c3d",
             "9b34554acbacde7afbc6346f36ca83df3a4a523483d582ae2c037e1554277437", "MocapRecovery.txt",

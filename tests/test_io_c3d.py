@@ -113,3 +113,21 @@ def test_a_truncated_file_is_refused_not_read_short(tmp_path, fraction):
     cut.write_bytes(data[: int(len(data) * fraction)])
     with pytest.raises(ValueError, match=r"cut\.c3d: truncated: the header announces 450 frames, the file holds"):
         read_c3d(cut)
+
+
+def test_a_header_whose_analog_frame_size_differs_from_the_parameters_is_refused(tmp_path):
+    # c3d.org's EVaRT sample says 476 analog values a frame (28 channels x 17) where ANALOG:RATE / POINT:RATE gives
+    # 16 samples: read by the parameters, every frame after the first came from the wrong bytes (garbled points).
+    import shutil
+    import struct
+
+    source = Path(__file__).parent / "data" / "c3d" / "BTKData_c3d.org_sample01_Eb015pr.c3d"  # 16 channels x 4
+    assert read_c3d(source).positions.shape == (450, 26, 3)
+    bad = tmp_path / "bad.c3d"
+    shutil.copyfile(source, bad)
+    with open(bad, "r+b") as f:
+        f.seek(4)
+        f.write(struct.pack("<H", 16 * 5))
+    with pytest.raises(ValueError, match=r"bad\.c3d: the header puts 80 analog values in each frame, the ANALOG "
+                                         r"parameters 16 channels × 4 samples"):
+        read_c3d(bad)

@@ -126,6 +126,20 @@ def _announced_frames(path: Path) -> int | None:
     return last - first + 1
 
 
+def _header_analog_words(path: Path) -> int | None:
+    """Analog words in each 3-D frame by the raw header (word 3: channels × samples per frame), or None where the
+    header is not C3D's."""
+    import struct
+
+    with open(path, "rb") as f:
+        head = f.read(6)
+        if len(head) < 6 or head[1] != 0x50:
+            return None
+        f.seek(512 * (head[0] - 1) + 3)
+        processor = f.read(1)
+    return struct.unpack((">" if processor == bytes([86]) else "<") + "H", head[4:6])[0]
+
+
 def _check_sections(path: Path) -> None:
     """Refuse a file shorter than the sections its header announces, or whose parameter section does not
     hold together: ezc3d loops forever on some (a C3D cut inside its parameter section) and crashes the
@@ -248,6 +262,14 @@ def read_c3d(
     if announced is not None and data.shape[2] < announced:
         raise ValueError(f"{path}: truncated: the header announces {announced} frames, the file holds "
                          f"{data.shape[2]}")
+    analogs = np.shape(c3d["data"].get("analogs", np.zeros((1, 0, 0))))
+    words = _header_analog_words(path)
+    if words and len(analogs) == 3 and analogs[1] and analogs[2] % data.shape[2] == 0 \
+            and analogs[1] * (analogs[2] // data.shape[2]) != words:
+        per_frame = analogs[2] // data.shape[2]
+        raise ValueError(f"{path}: the header puts {words} analog values in each frame, the ANALOG parameters "
+                         f"{analogs[1]} channels × {per_frame} samples (ANALOG:RATE / POINT:RATE): read that way, "
+                         "every frame after the first would be taken from the wrong place in the file")
     count = data.shape[1]
     labels = _labels(point, count)
 
