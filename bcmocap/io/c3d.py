@@ -107,10 +107,9 @@ def _strip_subject(label: str) -> str:
     return label.split(":", 1)[1] if ":" in label else label
 
 
-def _announced_frames(path: Path) -> int | None:
-    """Frames the raw C3D header announces (words 4–5: first and last frame), or None where it cannot
-    say: a header that is not C3D's, or a trial longer than its 16-bit fields (ezc3d adjusts the header it
-    returns to the frames it could read, so truncation is only visible in the bytes)."""
+def _header_words(path: Path) -> tuple[int, ...] | None:
+    """The raw C3D header's first five 16-bit words after byte 1 (words 2–6: points, analog values a frame, first
+    and last frame, largest gap), in the file's byte order; None where the header is not C3D's."""
     import struct
 
     with open(path, "rb") as f:
@@ -120,24 +119,27 @@ def _announced_frames(path: Path) -> int | None:
         f.seek(512 * (head[0] - 1) + 3)
         processor = f.read(1)
     order = ">" if processor == bytes([86]) else "<"  # 84 Intel, 85 DEC: little-endian words; 86 MIPS: big
-    first, last = struct.unpack(order + "HH", head[6:10])
+    return struct.unpack(order + "5H", head[2:12])
+
+
+def _announced_frames(path: Path) -> int | None:
+    """Frames the raw C3D header announces (words 4–5: first and last frame), or None where it cannot
+    say: a header that is not C3D's, or a trial longer than its 16-bit fields (ezc3d adjusts the header it
+    returns to the frames it could read, so truncation is only visible in the bytes)."""
+    words = _header_words(path)
+    if words is None:
+        return None
+    first, last = words[2:4]
     if last == 0xFFFF or last < first:
         return None
     return last - first + 1
 
 
 def _header_analog_words(path: Path) -> int | None:
-    """Analog words in each 3-D frame by the raw header (word 3: channels × samples per frame), or None where the
+    """Analog values in each 3-D frame by the raw header (word 3: channels × samples a frame), or None where the
     header is not C3D's."""
-    import struct
-
-    with open(path, "rb") as f:
-        head = f.read(6)
-        if len(head) < 6 or head[1] != 0x50:
-            return None
-        f.seek(512 * (head[0] - 1) + 3)
-        processor = f.read(1)
-    return struct.unpack((">" if processor == bytes([86]) else "<") + "H", head[4:6])[0]
+    words = _header_words(path)
+    return None if words is None else words[1]
 
 
 def _check_sections(path: Path) -> None:
