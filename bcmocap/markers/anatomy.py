@@ -8,18 +8,21 @@ unlabelled files):
 - **Template.** A core (pelvis, spine, thorax; one rigid segment where they did not move relative to each other)
   with five limbs hanging from it: two legs from the pelvis (thigh, shin, foot, toes), two arms from the thorax
   (shoulder, upper arm, forearm, hand) and the head (neck, head). A limb may have fewer segments than that (a
-  foot that moved with its shin is one segment with it), never one alone for a whole arm or leg.
+  foot that moved with its shin is one segment with it; an arm whose elbow never bent is one rigid segment), but
+  a leg is never one segment from hip to foot.
 - **Limbs.** The tree's *leaf chains*: from each leaf inward, up to the first segment with three or more
   neighbours (its attachment). Leaves of less than :data:`TWIG_M` reach that hang from such a segment (a single
   marker given its own segment) are set aside first, as *extra*. The segments no chain holds are the core.
-- **Reach.** A chain's length in metres: its segments' joint-to-joint lengths from the attachment joint, plus the
-  leaf's farthest marker from its joint (medians over the frames of rigid distances, so any posture gives them).
-- **Assignment.** Every assignment of chains to the five limbs (a limb may stay empty) is scored
-  (:func:`_assignment_cost`, negative log-plausibilities): legs of one reach, arms 0.45–0.95 of it and the head
-  0.1–0.45, each pair of one reach; legs attached to one core segment, arms and head further from it along the
-  core; legs hanging away from the thorax (along the body's own axis, hips to shoulders, so a subject lying or
-  rolling on the floor is no different); and limbs of plausible segment counts. The best assignment is kept,
-  and each segment's confidence is how much better it is than the best one that labels that segment otherwise
+- **Lengths.** Each segment's length (joint to joint, the last joint to its farthest marker) and a chain's reach
+  (their sum), medians over the frames of rigid distances, so any posture gives them; all over the body's size
+  (:func:`_body_size`).
+- **Assignment.** Every assignment of chains to two legs, two arms and a head (a limb may stay empty) is scored
+  (``_Tree.cost``, negative log-plausibilities): each limb's reach and each segment's length against de Leva's
+  proportions (:data:`_LENGTHS`), the limbs of a pair alike and attached to one core segment, the trunk (hips to
+  shoulders) about 0.3 of the body, legs hanging away from the thorax (along the body's own axis, hips to
+  shoulders, so a subject lying or rolling on the floor is no different), the head above the shoulders and near
+  the midline, and arms and head no nearer the pelvis than the legs. The best assignment is kept, and each
+  segment's confidence is how much better it is than the best one that labels that segment otherwise
   (``1 - exp(-Δcost)``).
 - **Left and right.** The body's left from its knees, which flex backward (the thigh's direction crossed with
   the shin's points to the body's left, on either leg), and from its feet, which point forward (the shin's
@@ -28,7 +31,9 @@ unlabelled files):
   of that direction its joints are on in most frames.
 
 :func:`label_anatomy` returns an :class:`Anatomy`: a label and a confidence per segment, and the verdict
-(``human``, and which limbs are wrong, each with a one-line reason).
+(``human``, and which limbs are wrong, each with a one-line reason and its cause), and
+:func:`template_penalties` turns the labels into a prior on the tree's joints (used by
+:func:`~bcmocap.markers.fit_marker_skeleton` where a tree is not a body).
 """
 
 from __future__ import annotations
@@ -114,7 +119,6 @@ class Anatomy:
         return {"human": self.human, "wrong_limbs": list(self.wrong_limbs), "reasons": dict(self.wrong_limbs),
                 "limbs": {limb: [names[j] for j in chain] for limb, chain in self.limbs.items()},
                 "notes": list(self.notes)}
-
 
 
 def _body_size(markers: np.ndarray) -> float:
