@@ -41,6 +41,10 @@ def test_coco_results_map_onto_the_cmu_joints_with_midpoints_and_missing_joints(
     path = _coco_results(scene, tmp_path / "coco.json", extra_person=True, low=("left_knee",))
     joints = read_keypoints(path, "coco17", CMU_JOINTS)
     assert joints.shape == (FRAMES, len(CMU_JOINTS), 2)
+    rows = json.loads(path.read_text())
+    path.with_name("gap.json").write_text(json.dumps([r for r in rows if r["image_id"] != 12]))  # nobody in frame 2
+    gap = read_keypoints(path.with_name("gap.json"), "coco17", CMU_JOINTS)
+    assert gap.shape == joints.shape and np.isnan(gap[2]).all() and np.array_equal(gap[3], joints[3], equal_nan=True)
     at = {n: joints[:, k] for k, n in enumerate(CMU_JOINTS)}
     np.testing.assert_allclose(at["rfemur"], scene["right_hip"])  # the surer person of each frame
     np.testing.assert_allclose(at["root"], 0.5 * (scene["left_hip"] + scene["right_hip"]))
@@ -55,11 +59,13 @@ def test_a_coco_dataset_file_orders_frames_by_file_name(scene, tmp_path):
     names = KEYPOINT_NAMES["coco17"]
     images = [{"id": 100 - f, "file_name": f"frame_{f:04d}.png"} for f in range(FRAMES)]
     annotations = [{"image_id": 100 - f, "keypoints": [v for n in names for v in (*scene[n][f], 2)]}
-                   for f in reversed(range(FRAMES))]
+                   for f in reversed(range(FRAMES)) if f != 1]  # nobody annotated in frame 1
     path = tmp_path / "dataset.json"
     path.write_text(json.dumps({"images": images, "annotations": annotations, "categories": [{"id": 1}]}))
     joints = read_keypoints(path, "coco17", CMU_JOINTS)
-    np.testing.assert_allclose(joints[:, CMU_JOINTS.index("lwrist")], scene["left_wrist"])
+    keep = [0, 2, 3, 4, 5]
+    assert len(joints) == FRAMES and np.isnan(joints[1]).all()
+    np.testing.assert_allclose(joints[keep, CMU_JOINTS.index("lwrist")], scene["left_wrist"][keep])
 
 
 def test_an_openpose_folder_maps_neck_midhip_and_big_toes(scene, tmp_path):
@@ -105,6 +111,7 @@ def test_mediapipe_landmarks_are_scaled_to_pixels(scene, tmp_path):
 @pytest.mark.parametrize("content, fmt, culprit", [
     ("not json", "coco17", "cannot read as JSON"),
     ('[{"image_id": 1, "keypoints": [1, 2, 3]}]', "coco17", "entry 0: expected 51 numbers"),
+    ('[{"image_id": [1], "keypoints": []}]', "coco17", "entry 0: needs an 'image_id'"),
     ('{"frames": []}', "mediapipe33", "'image_width' must be a positive number"),
     ('{"image_width": 640, "image_height": 480, "frames": [{"landmark": []}]}', "mediapipe33", "frames[0] must be null"),
 ])

@@ -7,9 +7,10 @@ detector does not give, or gives below ``min_confidence``, is a missing measurem
 **Files.**
 
 - ``coco17``: a COCO keypoint JSON file, either detection results (a list of ``{"image_id", "category_id",
-  "keypoints": [x, y, score] × 17, "score"}``, frames ordered by ``image_id``) or a dataset file (``{"images":
-  [{"id", "file_name"}], "annotations": [{"image_id", "keypoints": [x, y, v] × 17}]}``, frames ordered by
-  ``file_name``; a visibility ``v`` of 0 is missing, 1 (labelled, occluded) and 2 count as confidence 1).
+  "keypoints": [x, y, score] × 17, "score"}``; the integer ``image_id`` is the frame number, and every number from
+  the smallest to the largest is a frame, with or without a detection) or a dataset file (``{"images": [{"id",
+  "file_name"}], "annotations": [{"image_id", "keypoints": [x, y, v] × 17}]}``: one frame per image, in the order of
+  the file names; a visibility ``v`` of 0 is missing, 1 (labelled, occluded) and 2 count as confidence 1).
 - ``body25``: OpenPose's ``--write_json`` folder: one ``*_keypoints.json`` per frame, ``{"people": [{
   "pose_keypoints_2d": [x, y, c] × 25}]}``, frames in the order of the file names; a person not found in a frame
   (no ``people``) leaves every joint of that frame missing.
@@ -106,36 +107,47 @@ def _triplets(values, count: int, where: str) -> np.ndarray:
 
 
 def _read_coco(path: Path) -> np.ndarray:
+    """``(F, 17, 3)``: one frame per image (a dataset file's images in the order of their file names; a results
+    list's integer ``image_id`` from the smallest to the largest, so a frame with no detection stays a frame), the
+    surest person of each, NaN where an image has none."""
     data = _load_json(path)
-    if isinstance(data, dict) and "annotations" in data:
-        images = data.get("images") or []
-        order = {img.get("id"): img.get("file_name", "") for img in images if isinstance(img, dict)}
-        rows, key, visibility = data["annotations"], (lambda a: (order.get(a.get("image_id"), ""), a.get("image_id"))), True
+    if isinstance(data, dict) and isinstance(data.get("annotations"), list):
+        images = [img for img in data.get("images") or [] if isinstance(img, dict) and "id" in img]
+        ids = [img["id"] for img in sorted(images, key=lambda img: str(img.get("file_name", "")))]
+        rows, visibility = data["annotations"], True
     elif isinstance(data, list):
-        rows, key, visibility = data, (lambda a: a.get("image_id")), False
+        rows, visibility, ids = data, False, None
     else:
-        raise ValueError(f"{path}: expected COCO keypoint results (a list) or a COCO file with 'annotations'")
-    frames: dict = {}
+        raise ValueError(f"{path}: expected COCO keypoint results (a list) or a COCO file with a list of 'annotations'")
+    best: dict = {}
     for k, row in enumerate(rows):
         where = f"{path}: entry {k}"
-        if not isinstance(row, dict) or "keypoints" not in row or "image_id" not in row:
-            raise ValueError(f"{where}: needs 'image_id' and 'keypoints'")
+        if not isinstance(row, dict) or "keypoints" not in row or not isinstance(row.get("image_id"), (int, str)) \
+                or isinstance(row.get("image_id"), bool):
+            raise ValueError(f"{where}: needs an 'image_id' (a number or a name) and 'keypoints'")
         if row.get("category_id", 1) != 1:
             continue
         points = _triplets(row["keypoints"], 17, where)
         if visibility:
             points[:, 2] = (points[:, 2] > 0).astype(np.float64)
-        score = float(row.get("score", points[:, 2].mean()))
-        frame = key(row)
-        if frame not in frames or score > frames[frame][0]:
-            frames[frame] = (score, points)
-    if not frames:
+        try:
+            score = float(row.get("score", np.nanmean(points[:, 2])))
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: 'score' must be a number") from None
+        if row["image_id"] not in best or score > best[row["image_id"]][0]:
+            best[row["image_id"]] = (score, points)
+    if not best:
         raise ValueError(f"{path}: no person keypoints (category 1) in it")
-    try:
-        order = sorted(frames)
-    except TypeError:
-        raise ValueError(f"{path}: image_id values of different kinds (numbers and text) cannot be put in order") from None
-    return np.stack([frames[f][1] for f in order])
+    if ids is None:
+        if not all(isinstance(i, int) for i in best):
+            raise ValueError(f"{path}: detection results need integer image_id values (the frame numbers)")
+        ids = list(range(min(best), max(best) + 1))
+    else:
+        unknown = sorted(map(str, set(best) - set(ids)))
+        if unknown:
+            raise ValueError(f"{path}: annotations of images not in 'images': {', '.join(unknown[:5])}")
+    empty = np.full((17, 3), np.nan)
+    return np.stack([best[i][1] if i in best else empty for i in ids])
 
 
 def _read_openpose(path: Path) -> np.ndarray:
