@@ -139,3 +139,28 @@ def test_the_template_prior_moves_arms_from_the_pelvis_to_the_thorax_where_the_d
     assert {frozenset((arm, torso)) for arm in arms} <= edges
     assert not any(frozenset((arm, pelvis)) in edges for arm in arms)
     assert (template_penalties(groups, anatomy, 15, 0.0) == 1.0).all()
+
+
+def test_body_regions_come_from_where_the_markers_are_without_the_tree(walk):
+    from bcmocap.markers.anatomy import body_regions, region_penalties
+
+    skeleton, joints, markers, segment = walk
+    regions = dict(zip(skeleton.names, body_regions(markers, segment, skeleton.num_segments)))
+    assert regions["pelvis"] == "pelvis" and regions["torso"] == "trunk" and regions["head"] == "head"
+    assert all(regions[f"{side}_{part}"] == "leg" for side in ("left", "right") for part in ("thigh", "shin", "foot"))
+    # The studio's arms hang close to its narrow body: only the hands are far enough aside to be called arms
+    # (real walks: 0.17-0.23 of the height aside); no part of an arm is taken for a leg.
+    assert all(regions[f"{side}_hand"] == "arm" for side in ("left", "right"))
+    assert not any(regions[f"{side}_{part}"] == "leg" for side in ("left", "right") for part in ("upper_arm", "forearm", "hand"))
+    penalty = region_penalties(list(regions.values()), 10.0)
+    index = skeleton.index
+    assert penalty[index("left_thigh"), index("left_hand")] == 10.0  # a leg on an arm: no joint joins them
+    assert penalty[index("left_thigh"), index("left_upper_arm")] == 10.0  # nor a leg on the trunk's region
+    assert penalty[index("left_thigh"), index("pelvis")] == 1.0 and penalty[index("left_thigh"), index("left_shin")] == 1.0
+    assert penalty[index("left_hand"), index("pelvis")] == 10.0  # an arm on the pelvis, where a trunk is found
+    # A lab whose vertical is another axis (Y up, as some systems write): the same regions.
+    y_up = markers @ np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]).T
+    assert body_regions(y_up, segment, skeleton.num_segments) == list(regions.values())
+    # A body as wide as it is tall in most frames (no axis stands out): no region, no penalty.
+    blob = np.random.default_rng(0).normal(size=markers.shape)
+    assert set(body_regions(blob, segment, skeleton.num_segments)) == {"?"}

@@ -32,7 +32,8 @@ unlabelled files):
 
 :func:`label_anatomy` returns an :class:`Anatomy`: a label and a confidence per segment, and the verdict
 (``human``, and which limbs are wrong, each with a one-line reason and its cause), and
-:func:`template_penalties` turns the labels into a prior on the tree's joints (used by
+:func:`template_penalties` turns the labels, and :func:`region_penalties` the body regions that
+:func:`body_regions` reads from where the markers are, into a prior on the tree's joints (used by
 :func:`~bcmocap.markers.fit_marker_skeleton` where a tree is not a body).
 """
 
@@ -43,7 +44,8 @@ import itertools
 
 import numpy as np
 
-__all__ = ["Anatomy", "CAUSES", "LIMBS", "TWIG_M", "label_anatomy", "template_penalties"]
+__all__ = ["Anatomy", "CAUSES", "LIMBS", "TWIG_M", "body_regions", "label_anatomy", "region_penalties",
+           "template_penalties"]
 
 LIMBS = ("left_leg", "right_leg", "left_arm", "right_arm", "head")
 #: What can be wrong with a limb: not found; a leg in one rigid segment; more segments than the limb has; a segment
@@ -53,7 +55,7 @@ CAUSES = ("missing", "rigid_leg", "too_many", "length", "legs_apart", "not_hangi
 #: How a limb of N segments may be named, proximal first; a name ending in "+" holds the parts after it too.
 _NAMINGS = {
     "leg": {1: [("leg+",), ("shin+",)], 2: [("thigh", "shin+")], 3: [("thigh", "shin", "foot")],
-            4: [("thigh", "shin", "foot", "toes")]},
+            4: [("thigh", "shin", "foot", "toes"), ("thigh", "shin", "ankle", "foot")]},
     "arm": {1: [("arm+",), ("forearm+",)], 2: [("upper_arm", "forearm+")],
             3: [("upper_arm", "forearm", "hand"), ("shoulder", "upper_arm", "forearm+")],
             4: [("shoulder", "upper_arm", "forearm", "hand")]},
@@ -62,8 +64,9 @@ _NAMINGS = {
 #: Each segment's length over the body's size (:func:`_body_size`, about its height): joint to joint, or for the
 #: last segment of a limb joint to its farthest marker. From de Leva (1996, J Biomech 29:1223): thigh 0.245,
 #: shank 0.246, upper arm 0.186, forearm 0.146; the foot, hand and head from the ankle, wrist and neck to the
-#: markers that end them (toe, knuckles, a headband's markers at the forehead); "+" with the parts below.
-_LENGTHS = {"leg+": 0.55, "thigh": 0.245, "shin": 0.246, "shin+": 0.27, "foot": 0.11, "toes": 0.04,
+#: markers that end them (toe, knuckles, a headband's markers at the forehead); "+" with the parts below; an
+#: "ankle" is the shank's lower part where its markers there (malleoli, a cluster) moved apart from the upper ones.
+_LENGTHS = {"leg+": 0.55, "thigh": 0.245, "shin": 0.246, "shin+": 0.27, "foot": 0.11, "toes": 0.04, "ankle": 0.08,
             "arm+": 0.38, "shoulder": 0.09, "upper_arm": 0.186, "forearm": 0.146, "forearm+": 0.2, "hand": 0.06,
             "neck": 0.06, "head": 0.09}
 #: A segment that holds both the legs and the arms is the whole trunk only if its markers spread this far along the
@@ -556,7 +559,7 @@ def _verdict(tree: _Tree, legs, arms, head, limbs, labels, names) -> tuple[dict,
 #: Which labels the human template joins (either side of a limb; a limb's segments only on its own side).
 _JOINED = {frozenset(pair) for pair in (
     ("pelvis", "spine"), ("pelvis", "thorax"), ("spine", "spine"), ("spine", "thorax"), ("pelvis", "thigh"),
-    ("trunk", "thigh"), ("thigh", "shin"), ("shin", "foot"), ("foot", "toes"),
+    ("trunk", "thigh"), ("thigh", "shin"), ("shin", "foot"), ("foot", "toes"), ("shin", "ankle"), ("ankle", "foot"),
     ("thorax", "shoulder"), ("thorax", "upper_arm"), ("trunk", "shoulder"), ("trunk", "upper_arm"),
     ("shoulder", "upper_arm"), ("upper_arm", "forearm"), ("forearm", "hand"),
     ("thorax", "neck"), ("thorax", "head"), ("trunk", "neck"), ("trunk", "head"), ("neck", "head"),
@@ -582,5 +585,67 @@ def template_penalties(segment_groups, anatomy: Anatomy, num_groups: int, factor
             base_a, base_b = (la.split("_", 1)[1] if side_a else la), (lb.split("_", 1)[1] if side_b else lb)
             joined = frozenset((base_a, base_b)) in _JOINED and not (side_a and side_b and side_a != side_b)
             if not joined:
+                out[a, b] = out[b, a] = factor
+    return out
+
+
+#: Pairs of body regions no joint joins (:func:`region_penalties`).
+_APART = {frozenset(pair) for pair in (("leg", "arm"), ("leg", "head"), ("leg", "trunk"), ("head", "pelvis"))}
+
+
+def body_regions(markers: np.ndarray, marker_group: np.ndarray, num_groups: int) -> list[str]:
+    """Each group's body region from where its markers are, without the tree: ``"leg"``, ``"pelvis"``,
+    ``"trunk"``, ``"arm"``, ``"head"`` or ``"?"``; all ``"?"`` when no axis stands out (a body as wide as it is
+    tall in most frames: rolling, crouching). Used where the labels of a wrong tree cannot be trusted.
+
+    Up is the lab axis along which the markers spread farthest (5th to 95th percentile, median over frames), its
+    sign the side where the markers move slowest (feet in stance); a group's height is its markers' median
+    height between the frame's 5th and 95th percentiles (0 the floor, 1 the head), its lateral offset their
+    median horizontal distance from the frame's median marker over the body's height. Below 0.47 is a leg; above
+    0.92 near the midline a head; beside the body (offset 0.17 or more) an arm; near the midline a pelvis below
+    0.72 and a trunk above. On real walks: thighs 0.32-0.43, arms 0.51-0.85 and 0.17-0.23 aside, pelvis 0.56-0.65.
+    """
+    regions = ["?"] * num_groups
+    m = np.asarray(markers, np.float64)
+    lo, hi = np.nanpercentile(m, 5, axis=1), np.nanpercentile(m, 95, axis=1)  # (F, 3)
+    extent = np.nanmedian(hi - lo, axis=0)
+    up = int(np.argmax(extent))
+    horizontal = [a for a in range(3) if a != up]
+    if extent[up] < 1.4 * max(extent[a] for a in horizontal):
+        return regions  # lying, rolling, crouching: heights say nothing
+    h = m[..., up]
+    speed = np.linalg.norm(np.diff(m, axis=0), axis=-1)
+    frac = (h - lo[:, up, None]) / np.maximum(hi[:, up, None] - lo[:, up, None], 1e-9)
+    low, high = frac[:-1] < 0.1, frac[:-1] > 0.9
+    if low.any() and high.any() and np.nanmedian(speed[low]) > np.nanmedian(speed[high]):
+        frac = 1.0 - frac  # the slow end is the floor
+    size = float(np.nanmedian(hi[:, up] - lo[:, up]))
+    centre = np.nanmedian(m[..., horizontal], axis=1, keepdims=True)
+    lateral = np.linalg.norm(m[..., horizontal] - centre, axis=-1) / max(size, 1e-9)
+    for g in range(num_groups):
+        own = marker_group == g
+        if not own.any():
+            continue
+        height, aside = float(np.nanmedian(frac[:, own])), float(np.nanmedian(lateral[:, own]))
+        if height < 0.47:
+            regions[g] = "leg"
+        elif height > 0.92 and aside < 0.12:
+            regions[g] = "head"
+        elif aside >= 0.17 and height < 0.92:
+            regions[g] = "arm"
+        elif aside < 0.17:
+            regions[g] = "pelvis" if height < 0.72 else "trunk"
+    return regions
+
+
+def region_penalties(regions, factor: float) -> np.ndarray:
+    """``(G, G)`` multipliers of the joint costs: ``factor`` between regions no joint joins (a leg and an arm, the
+    trunk or the head; the head and the pelvis; an arm and the pelvis where a trunk is found), 1 elsewhere."""
+    num = len(regions)
+    apart = _APART | ({frozenset(("arm", "pelvis"))} if "trunk" in regions else set())
+    out = np.ones((num, num))
+    for a in range(num):
+        for b in range(a + 1, num):
+            if frozenset((regions[a], regions[b])) in apart:
                 out[a, b] = out[b, a] = factor
     return out

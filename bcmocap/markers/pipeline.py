@@ -24,7 +24,7 @@ from ..kinematics.fk import joint_positions
 from ..kinematics.skeleton import Motion, Skeleton
 from ..precision import require_float64
 from . import files
-from .anatomy import Anatomy, label_anatomy, template_penalties
+from .anatomy import Anatomy, body_regions, label_anatomy, region_penalties, template_penalties
 from .identities import IdentityMerge, concurrent_labels, merge_identities
 from .ik import IkResult, initial_motion, solve_ik
 from .joints import MIN_COVERAGE, MIN_FRAMES, JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
@@ -498,10 +498,13 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
         t0 = time.perf_counter()
         tried = {frozenset(map(frozenset, edges))}
         template_seconds: dict = {}
+        regions = body_regions(fit.ik.marker_positions, seg.groups, len(names))  # from where the markers are
         for _ in range(options.template_rounds):
             if fit.anatomy.human:
                 break
-            penalty = template_penalties(fit.rigid.segment_groups, fit.anatomy, len(names), options.template_prior)
+            penalty = np.maximum(template_penalties(fit.rigid.segment_groups, fit.anatomy, len(names),
+                                                    options.template_prior),
+                                 region_penalties(regions, options.template_prior))
             new_edges = minimum_spanning_tree(q * penalty, names)
             if frozenset(map(frozenset, new_edges)) in tried:
                 break
