@@ -158,6 +158,8 @@ class _Tree:
         self.parents, self.joints, self.markers, self.marker_segment = parents, joints, markers, marker_segment
         self.size = len(parents)
         self.height = _body_size(markers)
+        self._midpoints: dict = {}  # sorted chain indices → (F, 3) (midpoint)
+        self._namings: dict = {}  # (kind, chain) → naming
         self.nbrs = [set() for _ in parents]
         for j, p in enumerate(parents):
             if p >= 0:
@@ -240,20 +242,26 @@ class _Tree:
         """Joints between two core segments (4 where either is not in the core)."""
         return self.hops.get((a, b), 4)
 
+    def midpoint(self, chains) -> np.ndarray:
+        """``(F, 3)`` the mean of the chains' attachment joints (the hips of the legs, the shoulders of the arms),
+        computed once per set of chains (the assignments ask for the same sets again and again)."""
+        key = tuple(sorted(chains))
+        if key not in self._midpoints:
+            self._midpoints[key] = np.mean([self.chains[i].start for i in key], axis=0)
+        return self._midpoints[key]
+
     def body_axis(self, legs, arms) -> np.ndarray | None:
         """``(F, 3)`` unit vectors from the hips' midpoint to the shoulders' (None without legs or arms)."""
         if not legs or not arms:
             return None
-        axis = np.mean([self.chains[i].start for i in arms], axis=0) - np.mean([self.chains[i].start for i in legs], axis=0)
+        axis = self.midpoint(arms) - self.midpoint(legs)
         norm = np.linalg.norm(axis, axis=-1, keepdims=True)
         return np.where(norm > 1e-6, axis / np.maximum(norm, 1e-12), np.nan)
 
     def trunk(self, legs, arms) -> float:
         """The trunk's length over the body's size: from the hips' midpoint to the shoulders' (the legs' and arms'
         attachment joints), median over frames."""
-        hips = np.mean([self.chains[i].start for i in legs], axis=0)
-        shoulders = np.mean([self.chains[i].start for i in arms], axis=0)
-        return _median_distance(hips, shoulders) / self.height
+        return _median_distance(self.midpoint(legs), self.midpoint(arms)) / self.height
 
     def hanging(self, chain: int, axis: np.ndarray) -> float:
         """Median over frames of the chain's far end's displacement from its attachment joint along ``axis``,
@@ -306,6 +314,12 @@ class _Tree:
     def naming(self, kind: str, chain: int) -> tuple[float, tuple]:
         """The cheapest naming of a chain as a ``kind`` limb (:data:`_NAMINGS`) and its cost: the segments' lengths
         against :data:`_LENGTHS`, or 3 per segment past the template's."""
+        if (kind, chain) in self._namings:
+            return self._namings[kind, chain]
+        self._namings[kind, chain] = self._naming(kind, chain)
+        return self._namings[kind, chain]
+
+    def _naming(self, kind: str, chain: int) -> tuple[float, tuple]:
         lengths = self.chains[chain].lengths
         n = len(lengths)
         options = _NAMINGS[kind]
@@ -409,10 +423,9 @@ class _Tree:
         shoulders'), over half the shoulders' width (median over frames): 0 on the midline, 1 at a shoulder."""
         if len(arms) < 2:
             return 0.0
-        hips = np.mean([self.chains[i].start for i in legs], axis=0)
         shoulders = [self.chains[i].start for i in arms]
-        mid = 0.5 * (shoulders[0] + shoulders[1])
-        axis = mid - hips
+        mid = self.midpoint(arms)
+        axis = mid - self.midpoint(legs)
         axis = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-12)
         offset = self.centroid(j) - mid
         offset = offset - np.einsum("fi,fi->f", offset, axis)[:, None] * axis
@@ -426,8 +439,8 @@ class _Tree:
     def level(self, j: int, legs, arms) -> float:
         """Where segment ``j``'s markers are along the body (median over frames): 0 at the hips, 1 at the
         shoulders (the legs' and arms' attachment joints)."""
-        hips = np.mean([self.chains[i].start for i in legs], axis=0)
-        span = np.mean([self.chains[i].start for i in arms], axis=0) - hips
+        hips = self.midpoint(legs)
+        span = self.midpoint(arms) - hips
         along = np.einsum("fi,fi->f", self.centroid(j) - hips, span) / np.maximum(np.einsum("fi,fi->f", span, span), 1e-12)
         along = along[np.isfinite(along)]
         return float(np.median(along)) if len(along) else 0.0
