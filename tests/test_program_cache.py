@@ -73,15 +73,27 @@ def test_a_program_with_a_researchers_own_term_is_traced_not_stored(setup, folde
         assert np.array_equal(a, b)
 
 
-def test_an_unreadable_program_is_traced_again_and_replaced(setup, folder, monkeypatch):
+DAMAGE = {
+    "garbage": lambda b: b"not a program",
+    "empty": lambda b: b"",
+    "truncated": lambda b: b[: len(b) // 2],
+    "one byte flipped in the program": lambda b: b[:-100] + bytes([b[-100] ^ 0x01]) + b[-99:],
+    "no checksum line (an older writer)": lambda b: b[b.index(b"\n") + 1:],
+}
+
+
+@pytest.mark.parametrize("damage", DAMAGE)
+def test_a_damaged_program_is_dropped_with_a_note_traced_again_and_replaced(setup, folder, monkeypatch, capsys, damage):
     skeleton, rig, *_, init = setup
     problem = Problem(skeleton, rig, paper_terms(setup))
     first = solved(problem, init)
     (path,) = folder.glob("*.bin")
-    path.write_bytes(b"not a program")
+    path.write_bytes(DAMAGE[damage](path.read_bytes()))
     monkeypatch.setattr(program_cache, "_loaded", {})
+    capsys.readouterr()
     again = solved(problem, init)
-    assert path.read_bytes() != b"not a program"
+    assert "note: dropped the damaged stored program" in capsys.readouterr().err
+    assert program_cache._load(path) not in (None, program_cache._DAMAGED)  # stored anew, whole
     for a, b in zip(first, again):
         assert np.array_equal(a, b)
 

@@ -16,8 +16,11 @@ What decides the program, and so the file name (a SHA-256 of all of it):
 
 A program that refers to code outside these packages (a researcher's own residual term, a lambda) is
 never stored: its code could change under the same key. Nor is one that cannot be exported (e.g. it holds
-a host callback). Either way the function is simply traced, as without the cache. A file that cannot be
-read is traced again and replaced.
+a host callback). Either way the function is simply traced, as without the cache.
+
+A file starts with a line holding the SHA-256 of the rest. A file that is missing it, does not match it or
+cannot be deserialised (truncated, overwritten, written by an older version) is dropped with a note on stderr,
+and the program is traced again and stored anew.
 
 The exported program computes exactly what the traced one does (the same StableHLO; a test compares the
 results bit for bit).
@@ -45,6 +48,7 @@ _KNOWN_PACKAGES = ("bcmocap", "jax", "jaxlib", "equinox", "optimistix", "lineax"
                    "jaxtyping", "builtins", "collections", "functools", "operator", "enum", "typing", "math")
 _VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy", "jaxlie")
 _FOLDER = "bcmocap_programs"
+_MAGIC = b"bcmocap-program-1 "  # then the SHA-256 (hex) of everything after the first line
 
 _loaded: dict[str, tuple] = {}  # key → (callable on the flat array arguments, output treedef), this process
 _not_storable: set[str] = set()  # keys whose programs cannot be exported or run
@@ -139,6 +143,10 @@ def cached_call(fn: Callable, *args):
     program = _loaded.get(key)
     if program is None:
         program = _load(folder / f"{key}.bin")
+        if program is _DAMAGED:
+            print(f"note: dropped the damaged stored program {folder / key}.bin; it is traced again", file=sys.stderr)
+            (folder / f"{key}.bin").unlink(missing_ok=True)
+            program = None
     if program is None:
         program = _export(fn, static, treedef, leaves, folder / f"{key}.bin")
         if program is None:
@@ -161,17 +169,28 @@ def _jitted(fn: Callable) -> Callable:
     return eqx.filter_jit(fn)
 
 
+_DAMAGED = object()  # what _load returns for a file that exists but cannot be used
+
+
 def _load(path: Path):
-    """The stored program at ``path`` as (callable on flat arrays, output treedef), or None."""
+    """The stored program at ``path`` as (callable on flat arrays, output treedef); None when there is no file,
+    ``_DAMAGED`` when it does not check against its SHA-256 or cannot be deserialised."""
     from jax import export
 
     try:
-        blob = path.read_bytes()
-        split = blob.index(b"\n")
-        out_treedef = jax.tree.structure(pickle.loads(bytes.fromhex(blob[:split].decode())))
-        exported = export.deserialize(bytearray(blob[split + 1:]))
-    except Exception:  # missing, truncated or from an incompatible writer: trace again
+        stored = path.read_bytes()
+    except OSError:
         return None
+    try:
+        first = stored.index(b"\n")
+        body = stored[first + 1:]
+        if stored[:len(_MAGIC)] != _MAGIC or stored[len(_MAGIC):first].decode() != hashlib.sha256(body).hexdigest():
+            return _DAMAGED
+        split = body.index(b"\n")
+        out_treedef = jax.tree.structure(pickle.loads(bytes.fromhex(body[:split].decode())))
+        exported = export.deserialize(bytearray(body[split + 1:]))
+    except Exception:  # truncated, overwritten, or from an incompatible writer: trace again
+        return _DAMAGED
     return jax.jit(exported.call), out_treedef
 
 
@@ -195,8 +214,9 @@ def _export(fn: Callable, static, treedef, leaves, path: Path):
     except Exception:  # a host callback, an effect or an output that cannot be pickled
         return None
     try:
+        body = header + b"\n" + bytes(blob)
         with atomic_path(path) as tmp:
-            tmp.write_bytes(header + b"\n" + bytes(blob))
+            tmp.write_bytes(_MAGIC + hashlib.sha256(body).hexdigest().encode() + b"\n" + body)
     except OSError:
         pass  # a read-only cache still gives this process the program
     return jax.jit(exported.call), out_treedef
