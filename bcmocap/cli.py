@@ -187,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         # gone non-finite) end in one line naming what failed; BCMOCAP_TRACEBACK=1 shows where.
         if os.environ.get("BCMOCAP_TRACEBACK"):
             raise
-        print(f"bcmocap {args.command}: {one_line_error(exc)}", file=sys.stderr)
+        print(f"bcmocap {args.command}: {one_line_error(exc, getattr(args, 'out', None))}", file=sys.stderr)
         return 2
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import DiskFull, tree_size, disk_full, is_disk_full
 from .correspondences import Correspondences, pad_slots
 
 FORMAT = "bcmocap.correspondence_store/1"
@@ -333,7 +334,10 @@ class _Folder:
 
     def __exit__(self, kind, value, traceback):
         if kind is not None:
+            written = tree_size(self.tmp)
             shutil.rmtree(self.tmp, ignore_errors=True)
+            if is_disk_full(value) and not isinstance(value, DiskFull):
+                raise disk_full(self.path.parent, f"{self.path.name}/", written=written) from None
             return False
         old = self.path.with_name(self.path.name + ".old")
         shutil.rmtree(old, ignore_errors=True)

@@ -55,7 +55,7 @@ def test_expected_failures_of_any_stage_end_in_one_line(tmp_path, monkeypatch, c
     capture = tmp_path / "capture"
     capture.mkdir()
     for raised, code, line in [
-        (OSError(28, "No space left on device", str(tmp_path / "out" / "x.npz")), 2, "x.npz: No space left on device"),
+        (OSError(28, "No space left on device", str(tmp_path / "out" / "x.npz")), 2, "out: writing x.npz needed more space"),
         (MemoryError(), 2, "out of memory"),
         (FloatingPointError("solve: window of frames [0, 60) has a non-finite cost"), 2, "window of frames [0, 60)"),
         (KeyboardInterrupt(), 130, "interrupted (rerun the same command to resume)"),

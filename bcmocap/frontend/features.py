@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import full_disk_named
 from .reference import uint8_descriptors
 
 FORMAT = 1
@@ -43,21 +44,22 @@ def write_camera_features(folder: str | os.PathLike, settings: dict,
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}."))
     try:
-        counts = []
-        with open(tmp / "keypoints.f64", "wb") as kp_file, open(tmp / "descriptors.u8", "wb") as desc_file:
-            for kp, desc in frames:
-                kp = np.ascontiguousarray(kp, "<f8").reshape(-1, 2)
-                desc = np.ascontiguousarray(uint8_descriptors(desc))
-                if len(kp) != len(desc):
-                    raise ValueError(f"{folder}: frame {len(counts)} has {len(kp)} keypoints and "
-                                     f"{len(desc)} descriptors")
-                kp_file.write(kp.tobytes())
-                desc_file.write(desc.tobytes())
-                counts.append(len(kp))
-        (tmp / "features.json").write_text(json.dumps({"format": FORMAT, "settings": settings, "counts": counts}))
-        if folder.is_symlink() or folder.exists():
-            _remove_features_folder(folder)
-        os.replace(tmp, folder)
+        with full_disk_named(folder.parent, f"{folder.name}/", tmp):
+            counts = []
+            with open(tmp / "keypoints.f64", "wb") as kp_file, open(tmp / "descriptors.u8", "wb") as desc_file:
+                for kp, desc in frames:
+                    kp = np.ascontiguousarray(kp, "<f8").reshape(-1, 2)
+                    desc = np.ascontiguousarray(uint8_descriptors(desc))
+                    if len(kp) != len(desc):
+                        raise ValueError(f"{folder}: frame {len(counts)} has {len(kp)} keypoints and "
+                                         f"{len(desc)} descriptors")
+                    kp_file.write(kp.tobytes())
+                    desc_file.write(desc.tobytes())
+                    counts.append(len(kp))
+            (tmp / "features.json").write_text(json.dumps({"format": FORMAT, "settings": settings, "counts": counts}))
+            if folder.is_symlink() or folder.exists():
+                _remove_features_folder(folder)
+            os.replace(tmp, folder)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)

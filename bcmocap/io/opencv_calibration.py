@@ -12,7 +12,8 @@ import numpy as np
 
 from ..cameras import CameraModel, OpenCVFisheyeCamera, single_camera_intrinsics
 
-__all__ = ["fit_opencv_fisheye", "read_opencv_fisheye_calibration", "write_opencv_fisheye_calibration"]
+__all__ = ["fit_opencv_fisheye", "read_opencv_fisheye_calibration", "write_opencv_fisheye_calibration",
+           "write_opencv_storage"]
 
 _K_NAMES = ("camera_matrix", "K")
 _D_NAMES = ("dist_coeff", "distortion_coefficients", "D")
@@ -121,17 +122,26 @@ def write_opencv_fisheye_calibration(path: str | os.PathLike, camera: OpenCVFish
     (fx, fy), (cx, cy) = single_camera_intrinsics(camera, "write_opencv_fisheye_calibration")
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     D = np.asarray(camera.distortion, dtype=np.float64).reshape(4, 1)
+    write_opencv_storage(path, {"image_width": int(camera.width), "image_height": int(camera.height),
+                                "camera_matrix": K, "dist_coeff": D})
+
+
+def write_opencv_storage(path: str | os.PathLike, fields: dict) -> None:
+    """``fields`` (name → int, float or array) as a ``cv2.FileStorage`` file whose format its suffix picks
+    (.yml/.yaml/.xml/.json). Composed in memory and written by Python: OpenCV's own file writer ignores write
+    errors (on a full disk it leaves an empty file and reports nothing)."""
+    import cv2
+
     path = os.fspath(path)
-    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_WRITE)
+    suffix = os.path.splitext(path)[1] or ".yml"
+    fs = cv2.FileStorage(f"storage{suffix}", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     if not fs.isOpened():
-        raise ValueError(f"{path}: cannot open for writing")
-    try:
-        fs.write("image_width", int(camera.width))
-        fs.write("image_height", int(camera.height))
-        fs.write("camera_matrix", K)
-        fs.write("dist_coeff", D)
-    finally:
-        fs.release()
+        raise ValueError(f"{path}: OpenCV cannot write a FileStorage file with the suffix {suffix!r}")
+    for name, value in fields.items():
+        fs.write(name, value)
+    text = fs.releaseAndGetString()
+    with open(path, "w", encoding="utf-8") as out:
+        out.write(text)
 
 
 def fit_opencv_fisheye(camera: CameraModel) -> tuple[OpenCVFisheyeCamera, float]:

@@ -59,6 +59,7 @@ import hashlib
 import json
 import math
 import os
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 
@@ -66,7 +67,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ..atomic import atomic_path, write_npz_atomic
+from ..atomic import atomic_path, disk_full, full_disk_named, write_npz_atomic
 from ..cameras import CameraModel, OpenCVFisheyeCamera, PinholeCamera, camera_at, stack_cameras
 from ..geometry import SE3, SO3, matrix_from_quat, quat_from_matrix
 from ..io import capture_folder
@@ -497,23 +498,16 @@ def _sha256(path: Path) -> str:
 
 def _write_opencv_yaml(path: Path, camera: CameraModel) -> None:
     """cv2.FileStorage calibration: fisheye via bcmocap.cameras' writer, pinhole with 5 zero coefficients."""
-    import cv2
-
-    from ..io.opencv_calibration import write_opencv_fisheye_calibration
+    from ..io.opencv_calibration import write_opencv_fisheye_calibration, write_opencv_storage
 
     with atomic_path(path, suffix=path.suffix) as tmp:  # OpenCV picks the format from the suffix
         if isinstance(camera, OpenCVFisheyeCamera):
             write_opencv_fisheye_calibration(tmp, camera)
         else:
             (fx, fy), (cx, cy) = np.asarray(camera.focal), np.asarray(camera.principal_point)
-            fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-            try:
-                fs.write("image_width", int(camera.width))
-                fs.write("image_height", int(camera.height))
-                fs.write("camera_matrix", np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
-                fs.write("distortion_coefficients", np.zeros((5, 1)))
-            finally:
-                fs.release()
+            write_opencv_storage(tmp, {"image_width": int(camera.width), "image_height": int(camera.height),
+                                       "camera_matrix": np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]),
+                                       "distortion_coefficients": np.zeros((5, 1))})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -953,23 +947,42 @@ class _VideoSink:
         import cv2
 
         self.media = None
+        self.frames = 0
         self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), size)
         if not self.writer.isOpened():
             raise RuntimeError(f"{self.tmp}: OpenCV cannot open an mp4v video writer")
 
     def write(self, frames_rgb: list[np.ndarray]) -> None:
-        if self.media is not None:
-            self.media.write(frames_rgb)
-            return
-        for frame in frames_rgb:
-            self.writer.write(np.ascontiguousarray(frame[..., ::-1]))
+        with full_disk_named(self.path.parent, self.path.name, self.tmp):
+            if self.media is not None:
+                self.media.write(frames_rgb)
+                return
+            for frame in frames_rgb:
+                self.writer.write(np.ascontiguousarray(frame[..., ::-1]))
+                self.frames += 1
 
     def close(self) -> None:
-        if self.media is not None:
-            self.media.close()
-        else:
-            self.writer.release()
-        os.replace(self.tmp, self.path)
+        with full_disk_named(self.path.parent, self.path.name, self.tmp):
+            if self.media is not None:
+                self.media.close()
+            else:
+                self.writer.release()
+                self._check_opencv_video()
+            os.replace(self.tmp, self.path)
+
+    def _check_opencv_video(self) -> None:
+        """OpenCV's writer only logs a failed write (a full disk): read the frame count back before the rename."""
+        import cv2
+
+        video = cv2.VideoCapture(str(self.tmp))
+        count = int(video.get(cv2.CAP_PROP_FRAME_COUNT)) if video.isOpened() else -1
+        video.release()
+        if count == self.frames:
+            return
+        free = shutil.disk_usage(self.tmp.parent).free
+        if free < max(1 << 20, self.tmp.stat().st_size // 10):  # the disk is (nearly) full: say so
+            raise disk_full(self.path.parent, self.path.name, written=self.tmp.stat().st_size)
+        raise OSError(f"{self.tmp}: OpenCV wrote {count} of {self.frames} frames")
 
 
 def _render_camera_trial(plan: _Plan, renderer: Renderer, trial_index: int, trial: str, camera: int,
