@@ -184,9 +184,12 @@ def test_missing_subject_is_a_clear_error(simulated_run, tmp_path):
     assert lines == []
 
 
-def test_a_second_run_on_the_same_output_is_refused(simulated_run, tmp_path):
+def test_a_second_run_on_the_same_output_is_refused(simulated_run, tmp_path, monkeypatch):
+    import sys
+
     from bcmocap.io.output_folder import locked_output
 
+    monkeypatch.setattr(sys.modules["bcmocap.pipeline.run"], "LOCK_WAIT_S", 0.2)
     _, _, _, _, _, fake, config = simulated_run
     out = tmp_path / "out"
     out.mkdir()
@@ -194,6 +197,83 @@ def test_a_second_run_on_the_same_output_is_refused(simulated_run, tmp_path):
         with pytest.raises(ValueError, match=rf"another bcmocap command \(pid {os.getpid()}\) is writing"):
             run_pipeline(fake, out, config, log=lambda line: None)
     assert sorted(p.name for p in out.iterdir()) == ["run.lock"]
+
+
+def _resumable_copy(simulated_run, tmp_path, forget_from: str):
+    """A copy of the finished run whose stages from ``forget_from`` on are to be done again."""
+    import shutil
+
+    out, _, _, _, _, fake, config = simulated_run
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    from bcmocap.io.run_folder import RunLog
+
+    log = RunLog(copy, fake.path)
+    log.forget_from(forget_from)
+    return copy, fake, config
+
+
+def _during_stage(monkeypatch, stage: str, action):
+    """Run ``action()`` at the start of ``stage`` (before its own work)."""
+    import sys
+
+    run_module = sys.modules["bcmocap.pipeline.run"]
+    original = run_module._STAGE_FUNCTIONS[stage]
+
+    def wrapped(ctx):
+        action()
+        return original(ctx)
+
+    monkeypatch.setitem(run_module._STAGE_FUNCTIONS, stage, wrapped)
+
+
+def test_each_stage_records_its_peak_memory(simulated_run):
+    _, run_log, *_ = simulated_run
+    peaks = {stage: rec.get("peak_mb") for stage, rec in run_log["stages"].items()}
+    assert all(isinstance(p, float) and 50.0 < p < 24_000.0 for p in peaks.values()), peaks
+
+
+def test_an_output_folder_deleted_mid_run_stops_it_with_one_line(simulated_run, tmp_path, monkeypatch):
+    import shutil
+
+    copy, fake, config = _resumable_copy(simulated_run, tmp_path, "skeleton")
+    _during_stage(monkeypatch, "skeleton", lambda: shutil.rmtree(copy))
+    with pytest.raises(ValueError, match=rf"{copy} was deleted or replaced while the run was going; nothing more"):
+        run_pipeline(fake, copy, config, log=lambda line: None)
+    assert not (copy / "run.json").exists()  # no new run log claims stages whose files are gone
+
+
+def test_a_capture_file_changed_mid_run_stops_it_and_a_rerun_finishes(simulated_run, tmp_path, monkeypatch):
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    (capture / "rig.json").write_text("{}")
+    copy, fake, config = _resumable_copy(simulated_run, tmp_path, "initial")
+    fake = dataclasses.replace(fake, path=capture)
+    log = json.loads((copy / "run.json").read_text())
+    (copy / "run.json").write_text(json.dumps({**log, "capture": str(capture.resolve())}))
+    with monkeypatch.context() as m:
+        _during_stage(m, "initial", lambda: (capture / "rig.json").write_text('{"edited": true}'))
+        with pytest.raises(ValueError, match=r"rig\.json \(modified, 2 → 16 bytes\) changed while the run was reading"):
+            run_pipeline(fake, copy, config, log=lambda line: None)
+    stages = json.loads((copy / "run.json").read_text())["stages"]
+    assert list(stages) == ["frontend", "world", "skeleton"]  # what was finished before is kept
+    lines = []
+    run_pipeline(fake, copy, config, log=lines.append)
+    assert "[1/6] frontend: done before, reused" in lines  # a description file: the frontend's work stays
+    assert list(json.loads((copy / "run.json").read_text())["stages"]) == list(
+        __import__("bcmocap.io.run_folder", fromlist=["STAGES"]).STAGES)
+
+
+@pytest.mark.parametrize("error", [MemoryError(), RuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 8 GB")])
+def test_a_stage_out_of_memory_says_which_setting_lowers_it(simulated_run, tmp_path, monkeypatch, error):
+    copy, fake, config = _resumable_copy(simulated_run, tmp_path, "solve")
+
+    def fail():
+        raise error
+
+    _during_stage(monkeypatch, "solve", fail)
+    with pytest.raises(MemoryError, match=r"the solve stage ran out of memory at a peak of [\d,]+ MB.*lower \[solver\] window"):
+        run_pipeline(fake, copy, config, log=lambda line: None)
 
 
 def test_the_run_log_never_follows_a_symlink(tmp_path):

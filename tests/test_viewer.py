@@ -273,10 +273,83 @@ def test_the_pipeline_resumes_from_initial_after_a_save(run, tmp_path):
     assert done == ["frontend", "world", "skeleton"]
 
 
-def test_save_refuses_while_another_command_writes_and_outside_paths(run, tmp_path):
+def test_saves_from_many_clients_at_once_each_give_a_whole_version(run, tmp_path):
+    """Viewer clients saving at the same moment take turns on the run folder's lock: every save is a version of
+    its own, every version's files are one edit whole (never a mix), and the current model is the last version."""
+    import threading
+
+    from bcmocap.pipeline.model_edit import model_versions, save_model_version
+    from bcmocap.pipeline.run import load_model
+
+    folder = _fresh_run(run, tmp_path)
+    skeleton, rig = load_model(folder)
+    model = EditableModel.of(skeleton, rig)
+    edits = []
+    for k in range(6):
+        offsets = model.offsets.copy()
+        offsets[3, 0] += 0.01 * (k + 1)
+        edits.append(EditableModel(model.names, model.parents, offsets, model.camera_names, model.camera_segments,
+                                   model.mounts).applied_to(skeleton, rig)[0])
+    start, errors = threading.Barrier(len(edits)), []
+
+    def client(edit):
+        start.wait()
+        try:
+            save_model_version(folder, edit, rig)
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=client, args=(e,)) for e in edits]
+    [t.start() for t in threads]
+    [t.join() for t in threads]
+    assert errors == []
+    versions = model_versions(folder)
+    assert [v["version"] for v in versions] == list(range(1, len(edits) + 2))
+    saved = sorted(json.loads((folder / "model" / "versions" / v["folder"] / "skeleton.json").read_text())
+                   ["offsets_m"][3][0] for v in versions[1:])
+    np.testing.assert_allclose(saved, sorted(model.offsets[3, 0] + 0.01 * (k + 1) for k in range(len(edits))))
+    current = json.loads((folder / "model" / "skeleton.json").read_text())
+    assert current == json.loads((folder / "model" / "versions" / versions[-1]["folder"] / "skeleton.json").read_text())
+
+
+def test_a_run_waits_for_a_save_and_a_save_is_refused_during_a_run(run, tmp_path, monkeypatch):
+    import threading
+    import time
+
     from bcmocap.io.output_folder import locked_output
+    from bcmocap.pipeline import model_edit
+    from bcmocap.pipeline.run import load_model
+
+    folder = _fresh_run(run, tmp_path)
+    held = threading.Event()
+
+    def short_save():  # as long as a save holds the lock
+        with locked_output(folder):
+            held.set()
+            time.sleep(0.5)
+
+    saver = threading.Thread(target=short_save)
+    saver.start()
+    held.wait()
+    clock = time.monotonic()
+    with locked_output(folder, wait_s=10.0):  # what bcmocap run does: waits, then goes on
+        waited = time.monotonic() - clock
+    saver.join()
+    assert 0.2 < waited < 5.0
+    monkeypatch.setattr(model_edit, "SAVE_WAIT_S", 0.3)
+    with locked_output(folder):  # a run holding the folder: the save waits 0.3 s, then one line
+        with pytest.raises(ValueError, match=r"another bcmocap command \(pid \d+\) is writing to this folder "
+                                             r"\(waited 0.3 s\)"):
+            model_edit.save_model_version(folder, *load_model(folder))
+
+
+def test_save_refuses_while_another_command_writes_and_outside_paths(run, tmp_path, monkeypatch):
+    from bcmocap.io.output_folder import locked_output
+    from bcmocap.pipeline import model_edit
     from bcmocap.pipeline.model_edit import save_model_version
     from bcmocap.pipeline.run import load_model
+
+    monkeypatch.setattr(model_edit, "SAVE_WAIT_S", 0.0)
 
     folder = _fresh_run(run, tmp_path / "a")
     model = load_model(folder)

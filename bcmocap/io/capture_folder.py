@@ -122,7 +122,9 @@ __all__ = [
     "TrialTruth",
     "TruthMarkers",
     "TruthPasserby",
+    "changed_files",
     "contacts_path",
+    "file_stamps",
     "ground_truth_dir",
     "imu_path",
     "intrinsics_dir",
@@ -184,6 +186,40 @@ def _file_name(folder, stem: object, suffix: str, what: str) -> str:
     if not isinstance(suffix, str) or not _SUFFIX.fullmatch(suffix):
         raise ValueError(f"{folder}: {what} {stem!r}: file extension {suffix!r} is not a plain one (e.g. '.mp4')")
     return stem + suffix
+
+
+def file_stamps(folder: str | os.PathLike) -> dict[str, list[int]]:
+    """Every file of the capture folder (hidden ones and symlinked folders left out) as relative path →
+    ``[size bytes, mtime ns]``: what a run compares to tell that the capture changed under it. Empty when the
+    folder does not exist."""
+    folder = Path(folder)
+    stamps = {}
+    for root, dirs, files in os.walk(folder, followlinks=False):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        for name in sorted(files):
+            if name.startswith("."):
+                continue
+            path = Path(root) / name
+            try:
+                stat = path.stat()
+            except OSError:  # a dangling symlink, or removed meanwhile: counts as missing
+                continue
+            stamps[path.relative_to(folder).as_posix()] = [stat.st_size, stat.st_mtime_ns]
+    return stamps
+
+
+def changed_files(before: dict, after: dict) -> list[str]:
+    """The files of two :func:`file_stamps` that were added, removed or changed, each as a short phrase."""
+    out = []
+    for name in sorted(set(before) | set(after)):
+        if name not in after:
+            out.append(f"{name} (removed)")
+        elif name not in before:
+            out.append(f"{name} (added)")
+        elif list(before[name]) != list(after[name]):
+            size = "" if before[name][0] == after[name][0] else f", {before[name][0]:,} → {after[name][0]:,} bytes"
+            out.append(f"{name} (modified{size})")
+    return out
 
 
 def manifest_path(folder: str | os.PathLike) -> Path:

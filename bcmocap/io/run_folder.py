@@ -82,9 +82,15 @@ def read_run_log(run_dir: str | Path) -> dict:
 
 
 class RunLog:
-    """``DIR/run.json``: the capture, and per finished stage its settings fingerprint, time and seconds."""
+    """``DIR/run.json``: the capture, and per finished stage its settings fingerprint, time and seconds.
+
+    It is written only into the folder it was opened in: when ``DIR`` is deleted or replaced while a run goes on
+    (another inode at that path), the next write raises ``ValueError`` instead of starting a new run log there.
+    """
 
     def __init__(self, out: Path, capture_path: Path):
+        self.out = Path(out)
+        self.identity = _identity(self.out)
         self.path = out / RUN_LOG
         self.data = {"format": RUN_FORMAT, "capture": str(capture_path.resolve()), "stages": {}}
         if self.path.exists():
@@ -100,15 +106,34 @@ class RunLog:
         rec = self.data["stages"].get(stage)
         return bool(rec) and rec.get("fingerprint") == fingerprint
 
+    def check_folder(self) -> None:
+        """``ValueError`` (one line) when ``DIR`` is gone or is another folder than the one the run opened."""
+        if self.identity is not None and _identity(self.out) != self.identity:
+            raise ValueError(f"{self.out} was deleted or replaced while the run was going; nothing more is written "
+                             "there (rerun the same command to start again)")
+
+    def save(self) -> None:
+        self.check_folder()
+        write_json_atomic(self.path, self.data)
+
     def record(self, stage: str, fingerprint: str, seconds: float, **extra) -> None:
         self.data["stages"][stage] = {"fingerprint": fingerprint, "seconds": round(seconds, 3),
                                       "finished": datetime.datetime.now().isoformat(timespec="seconds"), **extra}
-        write_json_atomic(self.path, self.data)
+        self.save()
 
     def forget_from(self, stage: str) -> None:
         for s in STAGES[STAGES.index(stage):]:
             self.data["stages"].pop(s, None)
-        write_json_atomic(self.path, self.data)
+        self.save()
+
+
+def _identity(folder: Path) -> tuple[int, int] | None:
+    """``(device, inode)`` of a folder, or None when there is none at that path."""
+    try:
+        stat = folder.stat()
+    except OSError:
+        return None
+    return stat.st_dev, stat.st_ino
 
 
 def load_model(out: Path | str, stage: str = "model"):

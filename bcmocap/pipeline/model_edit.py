@@ -4,8 +4,8 @@
 version is kept under ``DIR/model/versions/NNN/`` with a line in ``DIR/model/versions.json``: version 1
 is the model the ``skeleton`` stage estimated (snapshotted on the first save, or whenever the current
 files differ from the last version, e.g. after the stage was redone), then one version per save. Saving
-holds the run folder's lock (:func:`~bcmocap.io.output_folder.locked_output`), so it never races a
-``bcmocap run`` writing there, and forgets the ``initial`` stage and those after it in ``DIR/run.json``
+holds the run folder's lock (:func:`~bcmocap.io.output_folder.locked_output`; two saves at once take turns), so
+it never races a ``bcmocap run`` writing there, and forgets the ``initial`` stage and those after it in ``DIR/run.json``
 (:meth:`~bcmocap.io.run_folder.RunLog.forget_from`) and the solver's checkpoint, so the next
 ``bcmocap run`` reuses frontend, world and skeleton and redoes ``initial``, ``solve`` and ``outputs``
 with the edit. A changed ``skeleton`` setting re-estimates the model and so replaces the edit (the
@@ -24,6 +24,9 @@ from ..io.model_json import rig_to_dict, skeleton_to_dict
 from ..io.output_folder import locked_output
 from ..io.run_folder import MODEL_FILES, STAGES, RunLog, read_json, read_run_log
 
+#: Seconds a save waits for the run folder's lock: another save holds it for milliseconds (two viewer clients
+#: saving at once both get their version); a ``bcmocap run`` holds it for the whole run (the save is refused).
+SAVE_WAIT_S = 10.0
 #: The stage an edited model makes stale, with every stage after it.
 STALE_FROM = "initial"
 
@@ -61,7 +64,7 @@ def save_model_version(run_dir: str | Path, skeleton, rig, note: str = "edited i
     """
     run_dir = Path(run_dir)
     data = read_run_log(run_dir)
-    with locked_output(run_dir):
+    with locked_output(run_dir, wait_s=SAVE_WAIT_S):
         model = _inside(run_dir, run_dir / "model")
         versions_dir = _inside(run_dir, model / "versions")
         entries = model_versions(run_dir)

@@ -34,6 +34,7 @@ import hashlib
 import json
 import math
 import os
+import shutil
 import time
 import warnings
 from collections.abc import Callable
@@ -45,9 +46,14 @@ from ..atomic import atomic_path, write_json_atomic
 from ..io.output_folder import check_outside, locked_output
 from ..io.run_folder import (SIMILARITY, STAGE_OUTPUTS, STAGES, RunLog, load_model, load_motion, load_solved_variables,
                              read_json, save_motion, solved_variables, write_npz)
+from ..io.capture_folder import changed_files, file_stamps
 from .cluster import Executor, open_executor
 from .config import RunConfig
+from .peak_memory import out_of_memory, peak_mb, reset_peak, stage_out_of_memory
 
+#: Seconds a run waits for the output folder's lock (a model saved in ``bcmocap view`` holds it for milliseconds)
+#: before refusing to start beside another command.
+LOCK_WAIT_S = 10.0
 #: Config sections each stage depends on (a change redoes the stage and every later one).
 _STAGE_SECTIONS = {"frontend": ("frontend",), "world": ("skeleton",), "skeleton": ("skeleton",),
                    "initial": (), "solve": ("solver",), "outputs": ("outputs",)}
@@ -140,7 +146,7 @@ def run_pipeline(capture_dir: str | Path, out: str | Path, config: RunConfig = R
     out = Path(out)
     check_outside(out, capture.path)
     out.mkdir(parents=True, exist_ok=True)
-    with locked_output(out), contextlib.ExitStack() as stack:
+    with locked_output(out, wait_s=LOCK_WAIT_S), contextlib.ExitStack() as stack:
         if executor is None:
             executor = stack.enter_context(open_executor(config.cluster.address, log=log))
         return _run_stages(capture, out, config, log, stop_after, executor)
@@ -175,6 +181,16 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
     write_json_atomic(out / "config.json", config.to_dict())
     prints = fingerprints(config)
     redo = False
+    stamps = file_stamps(capture.path)
+    media = [c for c in changed_files(run_log.data.get("capture_files", stamps), stamps)
+             if not c.split(" (")[0].endswith(_DESCRIPTION_SUFFIXES)]
+    if media:  # the frontend's caches were computed from other pictures: dropped, and every stage redone
+        say(f"the capture's recordings changed since the last run ({', '.join(media[:3])}"
+            f"{', ...' if len(media) > 3 else ''}): redoing every stage, the frontend's caches included")
+        for cache in _MEDIA_CACHES:
+            shutil.rmtree(out / cache, ignore_errors=True)
+        redo = True
+    run_log.data["capture_files"] = stamps
     for i, stage in enumerate(STAGES, start=1):
         missing = [name for name in _expected_outputs(stage, config) if not (out / name).exists()]
         if not redo and run_log.finished(stage, prints[stage]) and not missing:
@@ -188,13 +204,39 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
             run_log.forget_from(stage)
             say(f"[{i}/{len(STAGES)}] {stage} ...")
             clock = time.perf_counter()
-            extra = _STAGE_FUNCTIONS[stage](ctx) or {}
+            measured = reset_peak()
+            try:
+                extra = _STAGE_FUNCTIONS[stage](ctx) or {}
+            except Exception as exc:
+                run_log.check_folder()  # an output folder deleted under the run explains whatever failed after
+                if out_of_memory(exc):  # an allocation that failed: say which setting lowers this stage's memory
+                    raise stage_out_of_memory(stage, exc) from None
+                raise
             seconds = time.perf_counter() - clock
-            run_log.record(stage, prints[stage], seconds, **extra)
+            _check_capture(ctx, stamps)
+            memory = {"peak_mb": peak_mb()} if measured else {"peak_mb_since_start": peak_mb()}
+            run_log.record(stage, prints[stage], seconds, **extra, **memory)
             say(f"[{i}/{len(STAGES)}] {stage}: {seconds:.1f} s")
         if stage == stop_after:
             break
     return run_log.data
+
+
+#: Capture files that describe rather than record (lens files, rig, manifest): their changes are handled by the
+#: stages' own fingerprints, where a changed recording (video, audio, photo, IMU) drops the frontend's caches.
+_DESCRIPTION_SUFFIXES = (".json", ".yml", ".yaml", ".xml", ".toml", ".txt", ".md")
+#: What the frontend computed from the recordings (its features and tracks too), under ``DIR``.
+_MEDIA_CACHES = ("frontend",)
+
+
+def _check_capture(ctx: RunContext, stamps: dict) -> None:
+    """``ValueError`` (one line) when a file of the capture changed since the run began."""
+    changed = changed_files(stamps, file_stamps(ctx.capture.path))
+    if changed:
+        raise ValueError(f"{ctx.capture.path}: {changed[0]}{f' and {len(changed) - 1} more' if len(changed) > 1 else ''}"
+                         " changed while the run was reading the capture; the stages finished before are kept: rerun "
+                         "the same command once the capture is complete (what was computed from changed recordings "
+                         "is redone)")
 
 
 # ---- stages -------------------------------------------------------------------------------------
