@@ -52,6 +52,19 @@ def test_passerby_crosses_ahead_of_the_subject_and_keeps_clear(walk):
     assert heading.min() > 0.9
 
 
+def test_where_clutter_blocks_every_usual_line_a_wider_search_finds_one(walk):
+    """Crossings 30 m ahead are outside the room, as blocked as the usual lines were behind a crowded corner in the
+    realistic room of the scoop (seed 0) and of the run (seed 1): the wider search still finds a clear line."""
+    skeleton, subject, scene, _ = walk
+    _, motion, present, path = passerby_motion(scene, skeleton, subject, FPS, motion="run", lead_m=(30.0,))
+    body = np.asarray(forward_kinematics(skeleton, subject).translation())
+    middle = subject.num_frames // 2
+    facing = subject_facing(skeleton, body[middle: middle + 1])[0]
+    assert 1.0 <= (path.crossing - body[middle, 0, :2]) @ facing <= 4.0 and present.any()
+    root = np.asarray(motion.root_position)
+    assert not scene.inside_clutter(np.column_stack([root[present, :2], np.full(present.sum(), 0.5)]), -0.3).any()
+
+
 def test_looped_gait_is_seamless():
     _, run = _recorded("run", FPS)
     gait = looped_gait(run, FPS, 200)

@@ -33,6 +33,9 @@ _WALL_MARGIN_M = 0.6  # a pass ends this far from a wall
 _CLUTTER_MARGIN_M = 0.5  # the line keeps this far from boxes and pillars
 _ANGLES_DEG = (90.0, -90.0, 75.0, -75.0, 105.0, -105.0, 60.0, -60.0, 120.0, -120.0)
 _LEADS_M = (2.5, 3.0, 2.0, 3.5)
+# Tried only where every line above is blocked by clutter.
+_MORE_ANGLES_DEG = (45.0, -45.0, 135.0, -135.0, 30.0, -30.0, 150.0, -150.0)
+_MORE_LEADS_M = (1.5, 4.0, 2.5, 3.0, 2.0, 3.5, 1.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,32 +181,37 @@ def passerby_motion(scene: TexturedScene, skeleton: Skeleton, subject: Motion, f
     room = np.asarray(scene.upper[:2], float) - np.asarray(scene.lower[:2], float)
     gait = looped_gait(recorded, fps, 1 + int(np.ceil(2.0 * np.linalg.norm(room) / _speed(recorded))))
     best, best_score = None, None
-    for lead in lead_m:
-        crossing = subject_xy[middle] + lead * facing
-        for angle in np.radians(_ANGLES_DEG):
-            c, s = np.cos(angle), np.sin(angle)
-            direction = np.array([c * facing[0] - s * facing[1], s * facing[0] + c * facing[1]])
-            ahead_wall, ahead = _reach(scene, crossing, direction)
-            behind_wall, behind = _reach(scene, crossing, -direction)
-            if min(ahead, behind) < 1.5:
-                continue
-            start, end = crossing - behind * direction, crossing + ahead * direction
-            root, rot, present = _paced(gait, start, end, crossing, middle, num_frames, int(round(pause_s * fps)))
-            gap = np.linalg.norm(root[:, :2] - subject_xy, axis=1)
-            clearance = float(gap[present].min()) if present.any() else np.inf
-            wall_to_wall = ahead == ahead_wall and behind == behind_wall
-            score = (clearance >= subject_clearance_m, wall_to_wall, min(clearance, subject_clearance_m),
-                     min(ahead, behind))
-            if best_score is None or score > best_score:
-                best_score = score
-                best = (Motion(root, rot), present, PasserbyPath(start, end, crossing, wall_to_wall, clearance))
-            if score[:2] == (True, True):
+    # the lines of the module docstring first; where clutter blocks them all (a subject that stays in one place
+    # before a crowded corner), wider angles, nearer and farther crossings and 1 m of clear way on each side
+    for leads, angles, reach_m in ((lead_m, _ANGLES_DEG, 1.5), (_MORE_LEADS_M, _ANGLES_DEG + _MORE_ANGLES_DEG, 1.0)):
+        for lead in leads:
+            crossing = subject_xy[middle] + lead * facing
+            for angle in np.radians(angles):
+                c, s = np.cos(angle), np.sin(angle)
+                direction = np.array([c * facing[0] - s * facing[1], s * facing[0] + c * facing[1]])
+                ahead_wall, ahead = _reach(scene, crossing, direction)
+                behind_wall, behind = _reach(scene, crossing, -direction)
+                if min(ahead, behind) < reach_m:
+                    continue
+                start, end = crossing - behind * direction, crossing + ahead * direction
+                root, rot, present = _paced(gait, start, end, crossing, middle, num_frames, int(round(pause_s * fps)))
+                gap = np.linalg.norm(root[:, :2] - subject_xy, axis=1)
+                clearance = float(gap[present].min()) if present.any() else np.inf
+                wall_to_wall = ahead == ahead_wall and behind == behind_wall
+                score = (clearance >= subject_clearance_m, wall_to_wall, min(clearance, subject_clearance_m),
+                         min(ahead, behind))
+                if best_score is None or score > best_score:
+                    best_score = score
+                    best = (Motion(root, rot), present, PasserbyPath(start, end, crossing, wall_to_wall, clearance))
+                if score[:2] == (True, True):
+                    break
+            if best_score is not None and best_score[:2] == (True, True):
                 break
-        if best_score is not None and best_score[:2] == (True, True):
+        if best is not None:
             break
     if best is None:
-        raise ValueError("passerby_motion: no line across the room clear of the clutter for 1.5 m on each side of the "
-                         "crossing point")
+        raise ValueError("passerby_motion: no line across the room clear of the clutter for 1 m on each side of a "
+                         "crossing point 1 to 4 m ahead of the subject")
     return (walker_skeleton, *best)
 
 
