@@ -281,8 +281,8 @@ def solve(
             done = stop
     finally:
         reader.shutdown(cancel_futures=True)
-    if bar is not None:
-        bar.close()
+        if bar is not None:  # also when a window fails: the error's line then starts on a line of its own
+            bar.close()
     return Solution(Motion(root, rotations), reports, statics, frame_values)
 
 
