@@ -59,7 +59,7 @@ class CacheCheck:
                 f"{', ...' if len(self.dropped) > 3 else ''}); they are compiled again when needed")
 
 
-def _decodes(blob: bytes) -> bool:
+def entry_decodes(blob: bytes) -> bool:
     """Whether a JAX cache entry decompresses whole to at least its compilation-time header."""
     try:
         if blob[:4] == _ZSTD_MAGIC:
@@ -113,7 +113,7 @@ def check_compilation_cache(folder: str | os.PathLike, now: float | None = None)
         result.checked += 1
         digest = hashlib.sha256(blob).hexdigest()
         recorded = known[2] if isinstance(known, list) and len(known) == 3 else None
-        if (recorded is not None and recorded != digest) or not _decodes(blob):
+        if (recorded is not None and recorded != digest) or not entry_decodes(blob):
             try:
                 path.unlink()
                 result.dropped.append(path.name)

@@ -28,6 +28,19 @@
    those that are not.
 4. **concurrent runs** — ``bcmocap run`` on an ``--out`` a running pipeline holds must be refused.
 5. **path escapes** — tests/test_path_safety.py's hostile captures (failures counted).
+6. **faults of a shared machine** (issue 48, :mod:`_faults`; needs root, for tmpfs mounts and a memory cgroup):
+   ``disk_full`` (``--disk-points`` sizes of a full disk for ``bcmocap simulate`` and for the stages after the
+   frontend, each resumed after space is freed), ``changing_folders`` (a read-only ``--out``, one deleted and
+   a capture file rewritten mid-run), ``corrupt_cache`` (ten damaged entries of the two caches) and
+   ``concurrent_edits`` (``--edit-clients`` viewer saves at once, ``--edit-rounds`` times, and a save during a
+   run).
+
+7. **a memory cap** — ``bcmocap run`` with its default settings on a ``--memory-seconds`` capture (rendered at
+   ``--memory-fps``, or the capture given by ``--memory-capture``) inside a memory cgroup of ``--memory-cap-gb``:
+   whether it finishes, the cgroup's peak and each stage's peak from ``run.json`` (``memory_cap``).
+
+``--only-faults --update`` runs sections 6 and 7 alone and replaces its rows in an existing results file, whose other
+sections keep the commit and date they were measured at (``sections``).
 """
 
 from __future__ import annotations
@@ -156,11 +169,13 @@ def _drive(out: Path) -> int:
 
     enable_float64()
     enable_compilation_cache()
+    from bcmocap.io.messages import one_line_error
+
     fake, config, _, _ = _fake_capture(out.parent)
     try:
         run_pipeline(fake, out, config, log=lambda line: print(line, flush=True))
-    except ValueError as exc:
-        print(f"refused: {exc}", file=sys.stderr)
+    except (ValueError, OSError, MemoryError) as exc:  # as bcmocap's command line reports them
+        print(f"bcmocap run: {one_line_error(exc, out)}", file=sys.stderr)
         return 2
     return 0
 
@@ -559,11 +574,24 @@ def main() -> None:
                         help="kills inside an atomic write, per staged command")
     parser.add_argument("--tolerance", type=float, default=1e-6, help="largest array difference after resume")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "kill", "paths", "simulate", "pixels"])
+    parser.add_argument("--skip", nargs="*", default=[],
+                        choices=["fuzz", "kill", "paths", "simulate", "pixels", "faults", "memory"])
     parser.add_argument("--keep", help="keep the runs in this folder (and reuse its rendered capture)")
     parser.add_argument("--save-escapes", metavar="DIR",
                         help="write each escaping fuzz case's file here (READER-N-NAME), to reproduce it")
+    parser.add_argument("--disk-points", type=int, default=10, help="full-disk attempts per command")
+    parser.add_argument("--edit-clients", type=int, default=4, help="viewer saves at the same instant")
+    parser.add_argument("--edit-rounds", type=int, default=4, help="rounds of simultaneous saves")
+    parser.add_argument("--memory-cap-gb", type=float, default=4.0, help="the memory cgroup's limit")
+    parser.add_argument("--memory-seconds", type=float, default=60.0, help="length of the capture run under the cap")
+    parser.add_argument("--memory-fps", type=float, default=30.0, help="its frame rate")
+    parser.add_argument("--memory-capture", help="run under the cap on this capture instead of rendering one")
+    parser.add_argument("--only-faults", action="store_true", help="run sections 6 and 7 (faults, memory) alone")
+    parser.add_argument("--update", action="store_true",
+                        help="replace only the sections run in the existing --json file")
     args = parser.parse_args()
+    if args.only_faults:
+        args.skip = sorted(set(args.skip) | {"fuzz", "kill", "paths"})
 
     import numpy as np
 
@@ -672,7 +700,20 @@ def main() -> None:
         if not args.keep:
             shutil.rmtree(folder, ignore_errors=True)
 
+    if "faults" not in args.skip:
+        faults_start = time.perf_counter()
+        payload.update(faults(args, rng))
+        print(f"faults: {time.perf_counter() - faults_start:.0f} s", flush=True)
+
+    if "memory" not in args.skip:
+        payload["memory_cap"] = memory(args)
+        m = payload["memory_cap"]
+        print(f"memory cap {m['limit_gb']:g} GB: finished {m['finished']} (peak {m['peak_mb_cgroup']:,.0f} MB in the "
+              f"cgroup; per stage {m['peak_mb_per_stage']}; {m['message']})", flush=True)
+
     payload["seconds"] = round(time.perf_counter() - start, 1)
+    if args.update and args.json and Path(args.json).is_file():
+        payload = _updated(json.loads(Path(args.json).read_text()), payload)
     if "fuzz" in payload:
         total = sum(v["cases"] for v in payload["fuzz"].values())
         print(f"fuzz: {total} cases, {sum(v['escapes'] for v in payload['fuzz'].values())} escapes")
@@ -681,6 +722,101 @@ def main() -> None:
               f"determinism: {len(payload['determinism']['differing_outputs'])} outputs differ")
     print(f"{payload['seconds']:.0f} s")
     write_json(args.json, payload)
+
+
+FAULT_SECTIONS = ("disk_full", "changing_folders", "corrupt_cache", "concurrent_edits")
+
+
+def faults(args, rng) -> dict:
+    """Section 6: the rows of :mod:`_faults`, each with its own reference runs."""
+    import _faults
+
+    folder = Path(args.keep or tempfile.mkdtemp(prefix="bcmocap-faults-")) / "faults"
+    folder.mkdir(parents=True, exist_ok=True)
+    log = folder / "commands.log"
+    drive = [PYTHON, str(Path(__file__).resolve()), "--drive"]
+    shutil.rmtree(folder / "reference", ignore_errors=True)
+    simulate = lambda out: BCMOCAP + ["simulate", str(out), *SIMULATE, "--seed", "1"]  # noqa: E731
+    _timed(simulate(folder / "reference" / "sim"), log)
+    _write_frontend(folder / "reference" / "run" / "out")
+    _timed(drive + [str(folder / "reference" / "run" / "out")], log)
+    out = {}
+    rows = {}
+    run_reference = folder / "reference" / "run" / "out"
+    for name, command, prepare, reference, stage_of, stage_bytes in (
+            ("simulate", simulate, lambda out: None, folder / "reference" / "sim", _simulate_stage, None),
+            ("run", lambda out: drive + [str(out)], _write_frontend, run_reference, _stage_of,
+             _faults.run_stage_bytes(run_reference))):
+        rows[name] = _faults.disk_full(name, command, prepare, reference, args.disk_points, folder, rng, stage_of,
+                                       compare, partial_files, args.tolerance, log, stage_bytes)
+        r = rows[name]
+        print(f"disk full {name:8s} {r['points']} points (stages: {r['stages']}), {r['corrupted']} corrupted, "
+              f"{r['tracebacks']} tracebacks, {r['messages_naming_the_folder']} messages naming the folder, "
+              f"{r['resume_mismatches']} resume mismatches", flush=True)
+    out["disk_full"] = {key: sum(r[key] for r in rows.values()) for key in
+                        ("points", "corrupted", "tracebacks", "resume_mismatches", "messages_naming_the_folder")}
+    out["disk_full"]["how"] = "a tmpfs of fixed size mounted as the output folder (the kernel's ENOSPC)"
+    out["disk_full"]["commands"] = rows
+    out["changing_folders"] = _faults.changing_folders(drive, _write_frontend, folder, log)
+    for case, r in out["changing_folders"].items():
+        print(f"{case}: one line {r['one_line']}, traceback {r['traceback']}, nothing else lost "
+              f"{r['nothing_else_lost']} ({r['message'][:120]})", flush=True)
+    out["corrupt_cache"] = _faults.corrupt_caches(drive, _write_frontend, folder, compare, log)
+    print(f"corrupt cache: {out['corrupt_cache']['cases']} cases, {out['corrupt_cache']['recovered']} recovered",
+          flush=True)
+    out["concurrent_edits"] = _faults.concurrent_edits(folder / "reference" / "run" / "out", drive, _write_frontend,
+                                                       folder, args.edit_clients, args.edit_rounds)
+    print(f"concurrent edits: {out['concurrent_edits']['cases']} cases, "
+          f"{out['concurrent_edits']['lost_or_mixed']} lost or mixed", flush=True)
+    if not args.keep:
+        shutil.rmtree(folder.parent, ignore_errors=True)
+    return out
+
+
+def memory(args) -> dict:
+    """Section 7: ``bcmocap run`` (default settings) under a memory cap."""
+    import _faults
+
+    folder = Path(args.keep or tempfile.mkdtemp(prefix="bcmocap-memory-")) / "memory"
+    folder.mkdir(parents=True, exist_ok=True)
+    log = folder / "commands.log"
+    capture = Path(args.memory_capture) if args.memory_capture else folder / "capture"
+    if not args.memory_capture:
+        _timed(BCMOCAP + ["simulate", str(capture), "--seconds", f"{args.memory_seconds:g}", "--rom-seconds", "2.5",
+                          "--fps", f"{args.memory_fps:g}", "--reference-photos", "24", "--reference-size", "640x480",
+                          "--seed", "0", "--no-progress"], log)
+    manifest = json.loads((capture / "capture.json").read_text())
+    shutil.rmtree(folder / "out", ignore_errors=True)
+    result = _faults.memory_cap(capture, folder / "out", None, args.memory_cap_gb, log)
+    settings = manifest.get("settings", {})
+    result["capture"] = {key: settings.get(key) for key in ("motion", "seconds", "rom_seconds", "fps", "width", "height",
+                                                            "seed")}
+    result["settings"] = "bcmocap run's defaults (no --config)"
+    if not args.keep:
+        shutil.rmtree(folder.parent, ignore_errors=True)
+    return result
+
+
+def _updated(previous: dict, payload: dict) -> dict:
+    """``previous`` with the sections of ``payload`` replaced; ``sections`` says at which commit and on which
+    machine each section was measured (the earlier ones keep the file's earlier machine)."""
+    import datetime
+
+    from _common import machine
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO).stdout
+    now = {"commit": commit.strip(), "date": datetime.date.today().isoformat(), "machine": machine(),
+           "settings": payload["settings"], "seconds": payload["seconds"]}
+    merged = {k: v for k, v in previous.items() if k not in ("sections", "machine")}
+    sections = previous.get("sections") or {
+        k: {"commit": "the run that wrote the file", "machine": previous.get("machine")}
+        for k in previous if k not in ("settings", "seconds", "machine")}
+    for key, value in payload.items():
+        if key not in ("settings", "seconds"):
+            merged[key] = value
+            sections[key] = now
+    merged["sections"] = sections
+    return merged
 
 
 def _report_kills(name: str, kills: dict, determinism: dict) -> None:

@@ -172,6 +172,11 @@ def _jitted(fn: Callable) -> Callable:
 _DAMAGED = object()  # what _load returns for a file that exists but cannot be used
 
 
+def is_whole(path: str | os.PathLike) -> bool:
+    """Whether the stored program at ``path`` checks against its SHA-256 and deserialises."""
+    return _load(Path(path)) not in (None, _DAMAGED)
+
+
 def _load(path: Path):
     """The stored program at ``path`` as (callable on flat arrays, output treedef); None when there is no file,
     ``_DAMAGED`` when it does not check against its SHA-256 or cannot be deserialised."""
