@@ -276,9 +276,9 @@ from bcmocap.pipeline import model_edit
 from bcmocap.pipeline.run import load_model
 from bcmocap.precision import enable_float64
 enable_float64()
-folder, k, start, wait = Path(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
+folder, k, start, wait, base = Path(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4]), sys.argv[5]
 model_edit.SAVE_WAIT_S = wait
-skeleton, rig = load_model(folder)
+skeleton, rig = load_model(base)  # the model as the run estimated it: each client's edit is its own, whatever was saved
 offsets = np.asarray(skeleton.offsets).copy()
 offsets[3, 0] += 0.001 * (k + 1)
 edited = eqx.tree_at(lambda s: s.offsets, skeleton, offsets)
@@ -309,8 +309,9 @@ def concurrent_edits(run_folder: Path, drive: list[str], write_frontend, work: P
         folder = work / "edits" / f"round{r}"
         shutil.rmtree(folder, ignore_errors=True)
         shutil.copytree(run_folder, folder)
-        start = time.time() + 3.0
-        procs = [subprocess.Popen([sys.executable, "-c", _SAVE, str(folder), str(k), str(start), "10"], cwd=REPO, env=ENV,
+        start = time.time() + 8.0  # every client has started and loaded the model by then
+        procs = [subprocess.Popen([sys.executable, "-c", _SAVE, str(folder), str(k), str(start), "10", str(run_folder)],
+                                  cwd=REPO, env=ENV,
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for k in range(clients)]
         outs = [p.communicate() for p in procs]
         failed = [e.strip().splitlines()[-1] for p, (_, e) in zip(procs, outs) if p.returncode]
@@ -337,8 +338,8 @@ def concurrent_edits(run_folder: Path, drive: list[str], write_frontend, work: P
                                env=ENV)
     wait_for_stage(out, "solve")  # the model exists; the run holds the folder through the solve
     before = (out / "model" / "skeleton.json").read_text()
-    save = subprocess.run([sys.executable, "-c", _SAVE, str(out), "0", "0", "1"], capture_output=True, text=True,
-                          cwd=REPO, env=ENV)
+    save = subprocess.run([sys.executable, "-c", _SAVE, str(out), "0", "0", "1", str(out)], capture_output=True,
+                          text=True, cwd=REPO, env=ENV)
     during = running.poll() is None
     running.kill()
     running.wait()
