@@ -214,52 +214,49 @@ def _age(path: Path, seconds: float = 3600.0) -> None:
 
 
 def corrupt_caches(drive: list[str], write_frontend, work: Path, compare, log: Path) -> dict:
-    """Warm a fresh cache with one run of ``drive``, then per case damage one entry of a copy and run again."""
+    """Warm a fresh cache with one run of ``drive``, then per case restore it, damage one entry and run again. The
+    cache stays at one path, as a user's does (JAX's settings, the cache's own path included, are part of a stored
+    program's key)."""
     from bcmocap.compilation_cache import VERIFIED, check_compilation_cache, entry_decodes
+    from bcmocap.solver.program_cache import is_whole
 
-    warm = work / "cache_warm"
+    cache, pristine = work / "caches" / "cache", work / "caches" / "pristine"
     shutil.rmtree(work / "caches", ignore_errors=True)
-    shutil.rmtree(warm, ignore_errors=True)
     reference = work / "caches" / "reference" / "out"
     write_frontend(reference)
-    done = _run(drive + [str(reference)], env={"BCMOCAP_CACHE_DIR": str(warm)})
+    done = _run(drive + [str(reference)], env={"BCMOCAP_CACHE_DIR": str(cache)})
     if done.returncode:
         raise RuntimeError(f"the warming run failed: {_error_line(done)}")
-    for entry in warm.rglob("*"):  # written by a run that ended long ago, and recorded by a later check
+    for entry in cache.rglob("*"):  # written by a run that ended long ago, and recorded by a later check
         if entry.is_file():
             _age(entry)
-    check_compilation_cache(warm)
-    jax_entries = sorted(warm.glob("*-cache"), key=lambda p: -p.stat().st_size)
-    programs = sorted((warm / "bcmocap_programs").glob("*.bin"))
+    check_compilation_cache(cache)
+    shutil.copytree(cache, pristine)
+    jax_entries = sorted(cache.glob("*-cache"), key=lambda p: -p.stat().st_size)
+    programs = sorted((cache / "bcmocap_programs").glob("*.bin"))
     cases = [("jax", kind, damage, jax_entries[k % len(jax_entries)].name) for k, (kind, damage) in
              enumerate(JAX_DAMAGE.items())]
     cases += [("program", kind, damage, programs[k % len(programs)].name) for k, (kind, damage) in
               enumerate(PROGRAM_DAMAGE.items())]
     rows = []
-    for k, (cache, kind, damage, name) in enumerate(cases):
-        folder = work / "caches" / f"case{k}"
-        shutil.rmtree(folder, ignore_errors=True)
-        shutil.copytree(warm, folder / "cache")
-        entry = folder / "cache" / name if cache == "jax" else folder / "cache" / "bcmocap_programs" / name
+    for k, (kind_of_cache, kind, damage, name) in enumerate(cases):
+        shutil.rmtree(cache)
+        shutil.copytree(pristine, cache)
+        entry = cache / name if kind_of_cache == "jax" else cache / "bcmocap_programs" / name
         entry.write_bytes(damage(entry.read_bytes()))
         _age(entry, 1800.0)
-        if cache == "jax" and kind.startswith("truncated"):  # a crash while writing: no check had recorded it yet
-            record = folder / "cache" / VERIFIED
+        if kind_of_cache == "jax" and kind.startswith("truncated"):  # a crash while writing: not recorded yet
+            record = cache / VERIFIED
             record.write_text(json.dumps({k: v for k, v in json.loads(record.read_text()).items() if k != name}))
-        out = folder / "out"
+        out = work / "caches" / f"case{k}" / "out"
         write_frontend(out)
-        done = _run(drive + [str(out)], env={"BCMOCAP_CACHE_DIR": str(folder / "cache")})
+        done = _run(drive + [str(out)], env={"BCMOCAP_CACHE_DIR": str(cache)})
         with open(log, "a") as fh:
             fh.write(done.stdout + done.stderr)
         result = compare(reference, out, 0.0) if done.returncode == 0 else {"mismatches": ["the run failed"]}
-        if cache == "jax":
-            rebuilt = entry.is_file() and entry_decodes(entry.read_bytes())
-        else:
-            from bcmocap.solver.program_cache import is_whole
-
-            rebuilt = is_whole(entry)
-        noted = "note: dropped" in done.stderr and (name in done.stderr or name.removesuffix(".bin") in done.stderr)
-        rows.append({"cache": cache, "damage": kind, "entry": name, "exit": done.returncode, "noted": noted,
+        rebuilt = entry.is_file() and (entry_decodes(entry.read_bytes()) if kind_of_cache == "jax" else is_whole(entry))
+        noted = "note: dropped" in done.stderr and name.removesuffix(".bin") in done.stderr
+        rows.append({"cache": kind_of_cache, "damage": kind, "entry": name, "exit": done.returncode, "noted": noted,
                      "same_outputs": not result["mismatches"], "rebuilt": rebuilt,
                      "jax_warned": "Error reading persistent compilation cache" in done.stderr,
                      "recovered": done.returncode == 0 and noted and not result["mismatches"] and rebuilt})

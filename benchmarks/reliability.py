@@ -587,6 +587,8 @@ def main() -> None:
     parser.add_argument("--memory-fps", type=float, default=30.0, help="its frame rate")
     parser.add_argument("--memory-capture", help="run under the cap on this capture instead of rendering one")
     parser.add_argument("--only-faults", action="store_true", help="run sections 6 and 7 (faults, memory) alone")
+    parser.add_argument("--fault-rows", nargs="*", default=list(FAULT_SECTIONS), choices=FAULT_SECTIONS,
+                        help="the rows of section 6 to run")
     parser.add_argument("--update", action="store_true",
                         help="replace only the sections run in the existing --json file")
     args = parser.parse_args()
@@ -737,12 +739,38 @@ def faults(args, rng) -> dict:
     drive = [PYTHON, str(Path(__file__).resolve()), "--drive"]
     shutil.rmtree(folder / "reference", ignore_errors=True)
     simulate = lambda out: BCMOCAP + ["simulate", str(out), *SIMULATE, "--seed", "1"]  # noqa: E731
-    _timed(simulate(folder / "reference" / "sim"), log)
-    _write_frontend(folder / "reference" / "run" / "out")
-    _timed(drive + [str(folder / "reference" / "run" / "out")], log)
-    out = {}
-    rows = {}
     run_reference = folder / "reference" / "run" / "out"
+    if {"disk_full", "concurrent_edits"} & set(args.fault_rows):
+        _timed(simulate(folder / "reference" / "sim"), log)
+        _write_frontend(run_reference)
+        _timed(drive + [str(run_reference)], log)
+    out = {}
+    if "disk_full" in args.fault_rows:
+        out.update(_disk_full(args, rng, folder, log, drive, simulate, run_reference))
+    if "changing_folders" in args.fault_rows:
+        out["changing_folders"] = _faults.changing_folders(drive, _write_frontend, folder, log)
+        for case, r in out["changing_folders"].items():
+            print(f"{case}: one line {r['one_line']}, traceback {r['traceback']}, nothing else lost "
+                  f"{r['nothing_else_lost']} ({r['message'][:120]})", flush=True)
+    if "corrupt_cache" in args.fault_rows:
+        out["corrupt_cache"] = _faults.corrupt_caches(drive, _write_frontend, folder, compare, log)
+        print(f"corrupt cache: {out['corrupt_cache']['cases']} cases, {out['corrupt_cache']['recovered']} recovered",
+              flush=True)
+    if "concurrent_edits" in args.fault_rows:
+        out["concurrent_edits"] = _faults.concurrent_edits(run_reference, drive, _write_frontend, folder,
+                                                           args.edit_clients, args.edit_rounds)
+        print(f"concurrent edits: {out['concurrent_edits']['cases']} cases, "
+              f"{out['concurrent_edits']['lost_or_mixed']} lost or mixed", flush=True)
+    if not args.keep:
+        shutil.rmtree(folder.parent, ignore_errors=True)
+    return out
+
+
+def _disk_full(args, rng, folder: Path, log: Path, drive: list[str], simulate, run_reference: Path) -> dict:
+    """The rows of ``disk_full``: ``bcmocap simulate`` and the stages after the frontend."""
+    import _faults
+
+    out, rows = {}, {}
     for name, command, prepare, reference, stage_of, stage_bytes in (
             ("simulate", simulate, lambda out: None, folder / "reference" / "sim", _simulate_stage, None),
             ("run", lambda out: drive + [str(out)], _write_frontend, run_reference, _stage_of,
@@ -757,19 +785,6 @@ def faults(args, rng) -> dict:
                         ("points", "corrupted", "tracebacks", "resume_mismatches", "messages_naming_the_folder")}
     out["disk_full"]["how"] = "a tmpfs of fixed size mounted as the output folder (the kernel's ENOSPC)"
     out["disk_full"]["commands"] = rows
-    out["changing_folders"] = _faults.changing_folders(drive, _write_frontend, folder, log)
-    for case, r in out["changing_folders"].items():
-        print(f"{case}: one line {r['one_line']}, traceback {r['traceback']}, nothing else lost "
-              f"{r['nothing_else_lost']} ({r['message'][:120]})", flush=True)
-    out["corrupt_cache"] = _faults.corrupt_caches(drive, _write_frontend, folder, compare, log)
-    print(f"corrupt cache: {out['corrupt_cache']['cases']} cases, {out['corrupt_cache']['recovered']} recovered",
-          flush=True)
-    out["concurrent_edits"] = _faults.concurrent_edits(folder / "reference" / "run" / "out", drive, _write_frontend,
-                                                       folder, args.edit_clients, args.edit_rounds)
-    print(f"concurrent edits: {out['concurrent_edits']['cases']} cases, "
-          f"{out['concurrent_edits']['lost_or_mixed']} lost or mixed", flush=True)
-    if not args.keep:
-        shutil.rmtree(folder.parent, ignore_errors=True)
     return out
 
 
