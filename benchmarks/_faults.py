@@ -426,7 +426,9 @@ def memory_cap(capture: Path, out: Path, config: Path | None, limit_gb: float, l
             fh.write(done.stderr)
         seconds = time.perf_counter() - start
         stages = json.loads((out / "run.json").read_text())["stages"] if (out / "run.json").is_file() else {}
+        lines = (out / "log.txt").read_text(errors="replace").splitlines() if (out / "log.txt").is_file() else []
         return {"limit_gb": limit_gb, "cgroup": cap.version, "finished": done.returncode == 0 and len(stages) == 6,
+                "last_log_line": lines[-1][20:220] if lines else "",
                 "exit": done.returncode, "message": (done.stderr.strip().splitlines() or [""])[-1][:300],
                 "oom_kills": cap.oom_kills, "peak_mb_cgroup": round(cap.peak_bytes / 1024 ** 2, 1),
                 "peak_mb_per_stage": {s: r.get("peak_mb", r.get("peak_mb_since_start")) for s, r in stages.items()},

@@ -586,6 +586,8 @@ def main() -> None:
     parser.add_argument("--memory-seconds", type=float, default=60.0, help="length of the capture run under the cap")
     parser.add_argument("--memory-fps", type=float, default=30.0, help="its frame rate")
     parser.add_argument("--memory-capture", help="run under the cap on this capture instead of rendering one")
+    parser.add_argument("--memory-config", help="bcmocap run's --config under the cap (default: its defaults)")
+    parser.add_argument("--memory-row", default="memory_cap", help="the results' key for this memory row")
     parser.add_argument("--only-faults", action="store_true", help="run sections 6 and 7 (faults, memory) alone")
     parser.add_argument("--fault-rows", nargs="*", default=list(FAULT_SECTIONS), choices=FAULT_SECTIONS,
                         help="the rows of section 6 to run")
@@ -708,8 +710,8 @@ def main() -> None:
         print(f"faults: {time.perf_counter() - faults_start:.0f} s", flush=True)
 
     if "memory" not in args.skip:
-        payload["memory_cap"] = memory(args)
-        m = payload["memory_cap"]
+        payload[args.memory_row] = memory(args)
+        m = payload[args.memory_row]
         print(f"memory cap {m['limit_gb']:g} GB: finished {m['finished']} (peak {m['peak_mb_cgroup']:,.0f} MB in the "
               f"cgroup; per stage {m['peak_mb_per_stage']}; {m['message']})", flush=True)
 
@@ -802,11 +804,12 @@ def memory(args) -> dict:
                           "--seed", "0", "--no-progress"], log)
     manifest = json.loads((capture / "capture.json").read_text())
     shutil.rmtree(folder / "out", ignore_errors=True)
-    result = _faults.memory_cap(capture, folder / "out", None, args.memory_cap_gb, log)
+    config = Path(args.memory_config) if args.memory_config else None
+    result = _faults.memory_cap(capture, folder / "out", config, args.memory_cap_gb, log)
     settings = manifest.get("settings", {})
     result["capture"] = {key: settings.get(key) for key in ("motion", "seconds", "rom_seconds", "fps", "width", "height",
                                                             "seed")}
-    result["settings"] = "bcmocap run's defaults (no --config)"
+    result["settings"] = config.read_text() if config else "bcmocap run's defaults (no --config)"
     if not args.keep:
         shutil.rmtree(folder.parent, ignore_errors=True)
     return result
