@@ -201,3 +201,24 @@ def test_a_broken_ground_truth_names_the_file(tmp_path, skeleton, rig, rng):
     cf.truth_rig_path(folder).unlink()
     with pytest.raises(ValueError, match=r"ground_truth/rig\.json: missing"):
         cf.load_ground_truth(folder)
+
+
+def test_file_stamps_see_a_file_added_removed_or_rewritten_and_skip_hidden_ones(tmp_path):
+    import os
+
+    from bcmocap.io.capture_folder import changed_files, file_stamps
+
+    (tmp_path / "trials" / "capture").mkdir(parents=True)
+    (tmp_path / "trials" / "capture" / "cam.mp4").write_bytes(b"x" * 10)
+    (tmp_path / "rig.json").write_text("{}")
+    (tmp_path / ".partial.mp4").write_bytes(b"being written")
+    os.symlink(tmp_path / "trials", tmp_path / "linked")  # a symlinked folder is not walked into
+    before = file_stamps(tmp_path)
+    assert sorted(before) == ["rig.json", "trials/capture/cam.mp4"]
+    assert changed_files(before, file_stamps(tmp_path)) == []
+    (tmp_path / "trials" / "capture" / "cam.mp4").write_bytes(b"x" * 12)
+    (tmp_path / "rig.json").unlink()
+    (tmp_path / "imu.npz").write_bytes(b"")
+    assert changed_files(before, file_stamps(tmp_path)) == [
+        "imu.npz (added)", "rig.json (removed)", "trials/capture/cam.mp4 (modified, 10 → 12 bytes)"]
+    assert file_stamps(tmp_path / "missing") == {}
