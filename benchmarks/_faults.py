@@ -301,6 +301,7 @@ def concurrent_edits(run_folder: Path, drive: list[str], write_frontend, work: P
     that are not one client's edit whole."""
     from bcmocap.pipeline.model_edit import model_versions
 
+    base_offset = json.loads((run_folder / "model" / "skeleton.json").read_text())["offsets_m"][3][0]
     rows = []
     for r in range(rounds):
         folder = work / "edits" / f"round{r}"
@@ -319,8 +320,7 @@ def concurrent_edits(run_folder: Path, drive: list[str], write_frontend, work: P
             k = int(v["source"].split()[1])
             data = json.loads((folder / "model" / "versions" / v["folder"] / "skeleton.json").read_text())
             rig_ok = json.loads((folder / "model" / "versions" / v["folder"] / "rig.json").read_text()) is not None
-            base = json.loads((run_folder / "model" / "skeleton.json").read_text())
-            expected = base["offsets_m"][3][0] + 0.001 * (k + 1)
+            expected = base_offset + 0.001 * (k + 1)
             whole += int(abs(data["offsets_m"][3][0] - expected) < 1e-12 and rig_ok)
         current = json.loads((folder / "model" / "skeleton.json").read_text())
         last = json.loads((folder / "model" / "versions" / versions[-1]["folder"] / "skeleton.json").read_text())
