@@ -222,3 +222,18 @@ def test_file_stamps_see_a_file_added_removed_or_rewritten_and_skip_hidden_ones(
     assert changed_files(before, file_stamps(tmp_path)) == [
         "imu.npz (added)", "rig.json (removed)", "trials/capture/cam.mp4 (modified, 10 → 12 bytes)"]
     assert file_stamps(tmp_path / "missing") == {}
+
+
+def test_a_rerun_redoes_from_the_stage_that_reads_what_changed():
+    """bcmocap run after a capture changed between runs: recordings redo every stage (the frontend's caches go),
+    other data files the stages after the frontend, description files nothing by themselves."""
+    from bcmocap.pipeline.run import stage_to_redo
+
+    assert stage_to_redo([]) == (None, "")
+    assert stage_to_redo(["rig.json (modified)", "notes.TXT (added)"]) == (None, "")
+    stage, why = stage_to_redo(["trials/capture/imu.npz (added)", "rig.json (modified)"])
+    assert stage == "world" and "trials/capture/imu.npz (added)" in why and "rig.json" not in why
+    stage, why = stage_to_redo(["reference/a.jpg (removed)", "trials/capture/cam.MP4 (modified, 1 → 2 bytes)",
+                                "trials/capture/imu.npz (added)"])
+    assert stage == "frontend" and why.startswith("the capture's recordings changed since the last run "
+                                                  "(reference/a.jpg (removed), trials/capture/cam.MP4 (modified, 1 → 2 bytes)): ")

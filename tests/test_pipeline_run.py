@@ -213,6 +213,16 @@ def _resumable_copy(simulated_run, tmp_path, forget_from: str):
     return copy, fake, config
 
 
+def _own_capture(fake, copy, tmp_path):
+    """``fake`` moved to a capture folder of this test's own (the run copy ``copy`` pointed at it), so that files the
+    test adds there leave the other tests' capture alone."""
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    log = json.loads((copy / "run.json").read_text())
+    (copy / "run.json").write_text(json.dumps({**log, "capture": str(capture.resolve())}))
+    return dataclasses.replace(fake, path=capture)
+
+
 def _during_stage(monkeypatch, stage: str, action):
     """Run ``action()`` at the start of ``stage`` (before its own work)."""
     import sys
@@ -405,6 +415,7 @@ def test_a_user_term_named_in_the_config_reaches_the_solve(simulated_run, tmp_pa
     (tmp_path / "user_terms_for_run.py").write_text(USER_TERM_MODULE)
     monkeypatch.syspath_prepend(str(tmp_path))
     module = importlib.import_module("user_terms_for_run")
+    fake = _own_capture(fake, copy, tmp_path)
     trial = fake.path / "trials" / "capture"
     trial.mkdir(parents=True, exist_ok=True)
     frames = load_motion(out / "solve" / "motion.npz").num_frames
@@ -442,6 +453,7 @@ def test_the_tutorial_gyroscope_term_runs_from_its_config_entry(simulated_run, t
     out, _, _, capture, _, fake, config = simulated_run
     copy = tmp_path / "out"
     shutil.copytree(out, copy)
+    fake = _own_capture(fake, copy, tmp_path)
     examples = Path(__file__).resolve().parents[1] / "examples" / "gyro_term"
     monkeypatch.syspath_prepend(str(examples))
     trial = fake.path / "trials" / "capture"
@@ -456,7 +468,9 @@ def test_the_tutorial_gyroscope_term_runs_from_its_config_entry(simulated_run, t
                                                                                      for u in entry]}})
     lines = []
     run_pipeline(fake, copy, with_gyro, log=lines.append)
-    assert any("solve: settings changed" in line for line in lines)
+    # the new IMU file redoes the stages after the frontend, the frontend's work kept
+    assert "the capture's data files changed since the last run (trials/capture/imu.npz (added)): redoing the " \
+           "stages after the frontend" in lines and "[1/6] frontend: done before, reused" in lines
     reports = json.loads((copy / "solve" / "reports.json").read_text())["windows"]
     assert reports and all(r["converged"] for r in reports)
     plain, gyro = load_motion(out / "solve" / "motion.npz"), load_motion(copy / "solve" / "motion.npz")

@@ -46,6 +46,8 @@ from ..atomic import atomic_path, write_json_atomic
 from ..io.output_folder import check_outside, locked_output
 from ..io.run_folder import (SIMILARITY, STAGE_OUTPUTS, STAGES, RunLog, load_model, load_motion, load_solved_variables,
                              read_json, save_motion, solved_variables, write_npz)
+from ..calibrate.views import IMAGE_SUFFIXES
+from ..frontend.assemble import PHOTO_SUFFIXES, VIDEO_SUFFIXES
 from ..io.capture_folder import changed_files, file_stamps
 from .cluster import Executor, open_executor
 from .config import RunConfig
@@ -180,18 +182,17 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
         _rest_seconds(ctx)
     write_json_atomic(out / "config.json", config.to_dict())
     prints = fingerprints(config)
-    redo = False
     stamps = file_stamps(capture.path)
-    media = [c for c in changed_files(run_log.data.get("capture_files", stamps), stamps)
-             if not c.split(" (")[0].endswith(_DESCRIPTION_SUFFIXES)]
-    if media:  # the frontend's caches were computed from other pictures: dropped, and every stage redone
-        say(f"the capture's recordings changed since the last run ({', '.join(media[:3])}"
-            f"{', ...' if len(media) > 3 else ''}): redoing every stage, the frontend's caches included")
+    redo_from, why = stage_to_redo(changed_files(run_log.data.get("capture_files", stamps), stamps))
+    if why:
+        say(why)
+    if redo_from == STAGES[0]:  # the frontend's caches were computed from other pictures
         for cache in _MEDIA_CACHES:
             shutil.rmtree(out / cache, ignore_errors=True)
-        redo = True
     run_log.data["capture_files"] = stamps
+    redo = False
     for i, stage in enumerate(STAGES, start=1):
+        redo = redo or stage == redo_from
         missing = [name for name in _expected_outputs(stage, config) if not (out / name).exists()]
         if not redo and run_log.finished(stage, prints[stage]) and not missing:
             say(f"[{i}/{len(STAGES)}] {stage}: done before, reused")
@@ -223,10 +224,39 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
 
 
 #: Capture files that describe rather than record (lens files, rig, manifest): their changes are handled by the
-#: stages' own fingerprints, where a changed recording (video, audio, photo, IMU) drops the frontend's caches.
+#: stages' own fingerprints.
 _DESCRIPTION_SUFFIXES = (".json", ".yml", ".yaml", ".xml", ".toml", ".txt", ".md")
+#: Recordings the frontend reads (videos, photos, sound): a change drops its caches. Any other changed file (an IMU
+#: recording, say) redoes the stages after the frontend.
+_RECORDING_SUFFIXES = (*VIDEO_SUFFIXES, *PHOTO_SUFFIXES, *IMAGE_SUFFIXES, ".wav", ".flac", ".mp3", ".m4a", ".aac")
 #: What the frontend computed from the recordings (its features and tracks too), under ``DIR``.
 _MEDIA_CACHES = ("frontend",)
+
+
+def stage_to_redo(changes: list[str]) -> tuple[str | None, str]:
+    """The first stage a rerun redoes after these :func:`changed_files` of its capture, and the line that says why.
+
+    A changed recording (video, photo, sound) redoes every stage, the frontend's caches dropped; any other data
+    file (an IMU recording) the stages after the frontend; description files (lens, rig, manifest) nothing here,
+    their changes being in the stages' fingerprints. ``(None, "")`` when nothing redoes."""
+    changed = [c for c in changes if _suffix(c) not in _DESCRIPTION_SUFFIXES]
+    recordings = [c for c in changed if _suffix(c) in _RECORDING_SUFFIXES]
+    if recordings:
+        return STAGES[0], (f"the capture's recordings changed since the last run ({_some(recordings)}): redoing every "
+                           "stage, the frontend's caches included")
+    if changed:
+        return STAGES[1], (f"the capture's data files changed since the last run ({_some(changed)}): redoing the "
+                           "stages after the frontend")
+    return None, ""
+
+
+def _suffix(change: str) -> str:
+    """The lower-case file suffix of one :func:`changed_files` phrase."""
+    return Path(change.split(" (")[0]).suffix.lower()
+
+
+def _some(changes: list[str]) -> str:
+    return f"{', '.join(changes[:3])}{', ...' if len(changes) > 3 else ''}"
 
 
 def _check_capture(ctx: RunContext, stamps: dict) -> None:
