@@ -75,6 +75,7 @@ def test_a_full_disk_fails_a_write_with_one_line_naming_the_folder_and_the_bytes
     assert sorted(p.name for p in full_disk.iterdir()) == ["filler", "kept.json"]  # no temporary left
 
 
+@pytest.mark.slow  # ~10 s: the heavy tier
 def test_writers_outside_atomic_path_name_the_full_disk_too(full_disk):
     """A correspondence store (a folder written whole), the OpenCV calibration files (OpenCV's own writer would
     leave an empty file) and a raw OSError met by the command line."""

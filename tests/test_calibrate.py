@@ -141,6 +141,7 @@ def test_too_few_and_degenerate_views():
         calibrate(same, "fov")
 
 
+@pytest.mark.slow  # ~10 s: the heavy tier
 def test_cli_writes_files_the_project_reads(real_folder, tmp_path, capsys):
     out = tmp_path / "cam" / "jevois.yml"
     assert main(["calibrate", str(real_folder), "--board", CIRCLES, "--out", str(out)]) == 0

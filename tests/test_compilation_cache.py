@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from bcmocap.compilation_cache import memory_mappings, release_compiled_programs
 
 
+@pytest.mark.slow  # ~10 s: the heavy tier
 def test_compiled_programs_are_freed_past_the_share_of_the_mapping_limit():
     kept = [jax.jit(lambda x, k=k: jnp.cumsum(x) * k) for k in range(40)]
     for k, f in enumerate(kept):

@@ -125,6 +125,7 @@ def test_bad_keypoint_files_are_named(tmp_path, content, fmt, culprit):
         read_keypoints(tmp_path, "body25", CMU_JOINTS)
 
 
+@pytest.mark.slow  # ~10 s: the heavy tier
 def test_kcs_reconstructs_a_walk_from_coco_keypoints(tmp_path, capsys):
     """The bundled CMU walk seen by a static camera, given as COCO-17 detections (so no thorax, top of the head
     or toes): ``bcmocap kcs --keypoints coco17`` reconstructs the joints COCO gives."""

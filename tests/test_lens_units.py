@@ -94,6 +94,7 @@ def best_difference(unit, family: str) -> np.ndarray:
     return np.linalg.norm(np.asarray(project(fit.x)) - grid, axis=1)
 
 
+@pytest.mark.slow  # ~7 s: the heavy tier
 def test_a_thin_prism_lens_fits_each_unit_to_a_few_hundredths_of_a_pixel(design):
     # What a calibration can reach at best: a thin-prism fisheye takes up all of a unit but the part of its
     # sensor's tilt that acts on the distorted image; a Kannala-Brandt lens leaves decentering, prism and tilt;

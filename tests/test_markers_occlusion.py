@@ -65,6 +65,7 @@ def gap_lengths(hidden: np.ndarray) -> np.ndarray:
 # ---- the occlusion model ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # ~7 s: the heavy tier
 def test_occlusion_hits_its_target_with_long_gaps_that_follow_the_motion():
     fps = 20.0
     skeleton, motion = floor_motion(fps)

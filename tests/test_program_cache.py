@@ -82,7 +82,8 @@ DAMAGE = {
 }
 
 
-@pytest.mark.parametrize("damage", DAMAGE)
+@pytest.mark.parametrize("damage", [pytest.param(d, marks=[] if d == "one byte flipped in the program" else
+                                                  pytest.mark.slow) for d in DAMAGE])  # one in the fast tier
 def test_a_damaged_program_is_dropped_with_a_note_traced_again_and_replaced(setup, folder, monkeypatch, capsys, damage):
     skeleton, rig, *_, init = setup
     problem = Problem(skeleton, rig, paper_terms(setup))

@@ -70,6 +70,7 @@ def _pose_errors(a, b):
     return centre.max(), angle.max()
 
 
+@pytest.mark.slow  # ~10 s: the heavy tier
 def test_the_rolling_shutter_poses_are_found_from_perturbed_ones():
     """Noise-free rolling-shutter measurements on a constant-velocity motion: from poses 1 cm / 0.6° off, the
     refinement finds the true poses; without the readout it cannot explain the images."""
@@ -108,6 +109,7 @@ def test_the_intrinsics_correction_is_estimated_with_the_poses():
     assert np.all(fixed_lens.rms_px[:, 1] > 5 * found.rms_px[:, 1])
 
 
+@pytest.mark.slow  # ~10 s: the heavy tier
 def test_trials_share_the_intrinsics_correction():
     """Two trials of one rig: camera 1 measures nothing in the first, so its correction comes from the second,
     and both trials' poses are re-fitted through the one correction."""

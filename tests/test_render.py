@@ -320,6 +320,7 @@ def test_rooms_are_deterministic_per_seed_and_round_trip():
         make_room("cave", PATH)
 
 
+@pytest.mark.slow  # ~10 s: the heavy tier
 def test_repeated_room_repeats_its_tiles():
     scene = make_room("repeated", PATH, seed=2)
     tiled = np.flatnonzero(scene.finish_kinds == TILED)

@@ -100,6 +100,7 @@ def test_bad_clock_settings_are_refused_naming_the_field(field, value):
         StudioSettings(**{field: value})
 
 
+@pytest.mark.slow  # ~7 s: the heavy tier
 def test_claps_give_sub_frame_offsets_and_clock_rates_to_the_audio_latency():
     """synchronize_tracks on the studio's soundtracks: the first clap's video time to a fraction of a frame (its
     error is the camera's audio latency, which audio cannot tell) and each clock's rate against the median."""
