@@ -99,6 +99,29 @@ def test_index_cache_shares_each_frames_trees_and_stays_bounded():
                           match_descriptors(da, db, checks=16))
 
 
+def test_index_cache_keeps_its_memory_estimate_under_the_budget():
+    """Each index counts (1 + 1.6 · threads) × its float32 descriptors (300 × 128 × 4 B here): with 2 threads
+    (≈ 645 kB each) a 1.5 MB budget holds two; the size limit still applies."""
+    rng = np.random.default_rng(4)
+    states = [[relative.CameraFrameRegistration(np.zeros((300, 2)), rng.integers(0, 256, (300, 128)).astype(np.uint8),
+                                                np.full(300, -1), np.full(7, np.nan)) for _ in range(2)] for _ in range(3)]
+    cache = relative._IndexCache(states, 16, 100, memory_bytes=1.5e6, threads=2)
+    for tc in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        cache(tc)
+        assert len(cache.cache) <= 2 and cache.held <= 1.5e6
+    assert list(cache.cache) == [(1, 0), (1, 1)] and cache.held == pytest.approx(2 * 4.2 * 300 * 128 * 4)
+    cache((1, 0))  # used again: the last to go
+    cache((2, 0))
+    assert list(cache.cache) == [(1, 0), (2, 0)]
+
+
+def test_a_registration_with_room_for_two_indexes_gives_the_same_result(trial, whole):
+    """A memory budget too small for the frames in use: indexes are dropped and built again, the result is the
+    same (their trees are seeded)."""
+    features, index = trial
+    _same(register_capture(features, [CAMERA] * 4, index, RelativeOptions(workers=2, index_memory_mb=1e-6)), whole)
+
+
 def test_f_ransac_does_not_draw_on_the_rng_flann_reseeds():
     """OpenCV's F-RANSAC seeds a generator of its own, so FLANN reseeding the thread's RNG (and whatever ran
     before in a pool thread) leaves the reference's verified matches as they are. A guard on that assumption:

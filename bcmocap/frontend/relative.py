@@ -53,7 +53,7 @@ from .reference import (
     uint8_descriptors,
 )
 from .register import ReferenceIndex, RegistrationOptions, match_to_reference
-from .threads import default_threads
+from .threads import default_threads, give_back_freed_memory
 
 __all__ = ["CameraFrameRegistration", "RelativeOptions", "CaptureRegistration", "CaptureRegistrar",
            "RegistrationCheckpoint", "extract_trial_features", "register_features", "register_capture", "triangulate_rays"]
@@ -85,6 +85,9 @@ class RelativeOptions:
         enough_correspondences: relative registration stops matching a frame to more registered frames
             (most similar views first) once it has this many 2D–3D correspondences.
         workers: threads matching pairs of frames for new points (default: the CPU count).
+        index_memory_mb: the FLANN indexes of frames kept for reuse (:class:`_IndexCache`) take at most about
+            this much memory; past it the least recently used go and are built again when needed (the matches
+            are the same). At 640×360 a trial's working set fits; at 1080p with 8000 features it would not.
     """
 
     registration: RegistrationOptions = RegistrationOptions()
@@ -99,6 +102,7 @@ class RelativeOptions:
     second_order_pairs: bool = True
     enough_correspondences: int = 400
     workers: int | None = None
+    index_memory_mb: float = 1536.0
 
 
 @dataclasses.dataclass
@@ -569,9 +573,11 @@ def register_capture(features: list, cameras, index: ReferenceIndex, options: Re
             the same inputs continues from it (the result is the same as without it).
         progress: called as ``progress(stage, done, total)``.
     """
-    return CaptureRegistrar(features, cameras, index, options, frames=frames, initial=initial,
-                            initial_points=initial_points, leave=leave, checkpoint=checkpoint,
-                            progress=progress).run()
+    result = CaptureRegistrar(features, cameras, index, options, frames=frames, initial=initial,
+                              initial_points=initial_points, leave=leave, checkpoint=checkpoint,
+                              progress=progress).run()
+    give_back_freed_memory()  # its indexes and matches, so that the next chunk starts from what is live
+    return result
 
 
 class CaptureRegistrar:
@@ -638,7 +644,8 @@ class CaptureRegistrar:
         self.matched: set = set()
         self.pair_matches: dict = {}  # (a, b) with a < b -> (K, 2) int32; mutual matching is symmetric, rounds reuse it
         self.point_matches: dict = {}  # (a, b) -> (rows of b searched (M_b,) bool, their matches (K, 2) int64)
-        self.indexes = _IndexCache(self.states, self.reg.checks, (2 * options.max_time_gap + 2) * num_c)
+        self.indexes = _IndexCache(self.states, self.reg.checks, (2 * options.max_time_gap + 2) * num_c,
+                                   memory_bytes=options.index_memory_mb * 1e6, threads=_workers(options.workers))
         self.rounds: list = []
 
     @staticmethod
@@ -1038,16 +1045,23 @@ class CaptureRegistrar:
 
 class _IndexCache:
     """The FLANN index (:class:`~.reference.DescriptorIndex`) of each frame's descriptors, built once and shared
-    by every pair the frame is matched in (a frame is in about ten pairs per round), for the ``size`` frames
-    used last (pairs are matched in time order, so a few times' frames are in use at once; each index holds
-    its descriptors as float32, 0.5 kB per feature, and k-d trees per thread). Thread-safe. The trees are
-    seeded (:data:`~.reference.FLANN_SEED`), so the matches are those of indexes built per pair."""
+    by every pair the frame is matched in (a frame is in about ten pairs per round), for the frames used last:
+    at most ``size`` of them and about ``memory_bytes`` (pairs are matched in time order, so a few times' frames
+    are in use at once). Each index holds its descriptors as float32 (0.5 kB per feature) and, per thread that
+    searched it, OpenCV's copy of them with its k-d trees (about 1.6 times as much, measured): an index is counted
+    at ``(1 + 1.6 · threads)`` × its float32 size. Thread-safe. The trees are seeded
+    (:data:`~.reference.FLANN_SEED`), so the matches are those of indexes built per pair, whatever was dropped."""
 
-    def __init__(self, states: list, checks: int, size: int):
+    #: OpenCV's copy of the descriptors and 4 k-d trees per thread, as a multiple of the float32 descriptors.
+    TREES_PER_THREAD = 1.6
+
+    def __init__(self, states: list, checks: int, size: int, *, memory_bytes: float = float("inf"), threads: int = 1):
         from collections import OrderedDict
 
         self.states, self.checks, self.size = states, int(checks), max(2, int(size))
+        self.memory_bytes, self.per_byte = float(memory_bytes), 1.0 + self.TREES_PER_THREAD * max(1, int(threads))
         self.cache: OrderedDict = OrderedDict()
+        self.held = 0.0  # the estimated bytes of the indexes in the cache
         self.lock = threading.Lock()
 
     def __call__(self, tc: tuple) -> DescriptorIndex:
@@ -1055,8 +1069,10 @@ class _IndexCache:
             found = self.cache.get(tc)
             if found is None:
                 found = self.cache[tc] = DescriptorIndex(self.states[tc[0]][tc[1]].descriptors, checks=self.checks)
-                if len(self.cache) > self.size:
-                    self.cache.popitem(last=False)
+                self.held += self.per_byte * found.descriptors.nbytes
+                while len(self.cache) > 2 and (len(self.cache) > self.size or self.held > self.memory_bytes):
+                    _, dropped = self.cache.popitem(last=False)
+                    self.held -= self.per_byte * dropped.descriptors.nbytes
             else:
                 self.cache.move_to_end(tc)
             return found

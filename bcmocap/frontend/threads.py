@@ -1,4 +1,4 @@
-"""How many threads the frontend's pools use."""
+"""How many threads the frontend's pools use, and handing the memory their work freed back to the system."""
 
 from __future__ import annotations
 
@@ -14,3 +14,21 @@ def default_threads() -> int:
     except ValueError:
         given = 0
     return given if given > 0 else (os.cpu_count() or 1)
+
+
+def give_back_freed_memory() -> None:
+    """Return the memory freed so far to the operating system (glibc's ``malloc_trim``; nothing elsewhere).
+
+    glibc keeps what threads free in its arenas: after a registration has dropped its FLANN indexes (gigabytes on a
+    long trial) the process would still hold them, and the next chunk's indexes come on top under a memory limit.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return
+    trim.argtypes = [ctypes.c_size_t]
+    trim(0)
