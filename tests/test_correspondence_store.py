@@ -92,6 +92,31 @@ def test_stored_problem_solves_as_the_problem_in_memory(tmp_path, capture, corr)
     np.testing.assert_allclose(from_disk.motion.root_position, in_memory.motion.root_position, atol=1e-9)
 
 
+def test_a_homography_filter_replaces_each_windows_homography_weights(tmp_path, capture, corr):
+    """StoredProblem's homography_filter gets each window (its frames and measurements) and its weights are the
+    homography term's; weights of another shape are one line."""
+    store = write_store(tmp_path / "store", [corr], block_frames=7)
+    seen = []
+
+    def halve_odd_frames(window):
+        seen.append((window.start, window.stop))
+        w = np.array(window.correspondences.homography_weights)
+        w[(window.start + np.arange(window.num_frames)) % 2 == 1] = 0.0
+        return w
+
+    problem = StoredProblem(store, capture.skeleton, capture.rig, ObjectiveWeights(), homography_filter=halve_odd_frames)
+    (term,) = [t for t in problem.window(4, 10) if t.name == "homography"]
+    plain = [t for t in StoredProblem(store, capture.skeleton, capture.rig, ObjectiveWeights()).window(4, 10)
+             if t.name == "homography"][0]
+    assert seen == [(4, 10)]
+    weights, before = np.asarray(term.data["weights"]), np.asarray(plain.data["weights"])
+    assert (weights[1::2] == 0).all() and np.array_equal(weights[::2], before[::2]) and (before[1::2] > 0).any()
+    broken = StoredProblem(store, capture.skeleton, capture.rig, ObjectiveWeights(),
+                           homography_filter=lambda window: np.zeros(3))
+    with pytest.raises(ValueError, match=r"homography_filter: weights of shape \(3,\) for a window's \(6, "):
+        broken.window(4, 10)
+
+
 def test_transformed_copy_maps_points_and_poses(tmp_path, corr):
     store = write_store(tmp_path / "a", [corr], block_frames=6)
     moved = store.transformed(tmp_path / "b", lambda p: 2.0 * p + 1.0,

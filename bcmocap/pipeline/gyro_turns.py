@@ -9,7 +9,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..geometry import quat_conjugate, quat_multiply, slerp
+from ..cameras import camera_at
+from ..geometry import matrix_from_quat, quat_conjugate, quat_multiply, slerp
 from ..io.sensors import ImuRecording, integrate_gyro, read_imu
 from ..kinematics.virtual import robust_average_poses
 from ..residuals.gyro import GyroTurn
@@ -51,6 +52,43 @@ def gyro_turns(window: TermWindow, sigma_deg: float, time_shifts_s: Sequence[flo
         turn[:, c, 0] = _in_camera(imu, s, q[:, 0])
         weights[:, c, 0] = np.where(ok, 1.0 / np.radians(sigma_deg) ** 2, 0.0)
     return GyroTurn({"turn": turn, "weights": weights}, name="gyro turns")
+
+
+def homography_weights_gyros_agree_with(window: TermWindow, tolerance_deg: float,
+                                        time_shifts_s: Sequence[float] | None = None, *, min_matches: int = 30,
+                                        file: str = "imu.npz") -> np.ndarray:
+    """``(W, C, M)`` the window's homography weights with the matches its cameras' gyros contradict set to 0.
+
+    A homography match pairs a pixel of frame ``t`` with one of frame ``t−1``; the camera's gyro turn over that
+    interval (read at the camera's shift on the gyro's clock, :func:`gyro_turns`) carries the ray of the first onto
+    where the second should lie. A match further than ``tolerance_deg`` from it is on something that moved: most
+    often the wearer's own body, which fills a limb camera's view where the room has little texture, and whose
+    matches then pull the camera's turn towards the body's. A frame pair left with fewer than ``min_matches`` loses
+    its matches altogether. Cameras and frames without a gyro reading keep theirs.
+    """
+    corr = window.correspondences
+    weights = np.array(corr.homography_weights, np.float64)
+    if not weights.size or not (weights > 0).any():
+        return weights
+    turns = gyro_turns(window, 1.0, time_shifts_s, file)
+    read = turns.data["weights"][:, :, 0] > 0  # (W, C)
+    cos_tolerance = np.cos(np.radians(tolerance_deg))
+    for c in range(weights.shape[1]):
+        rows = read[:, c] & (weights[:, c] > 0).any(axis=1)
+        if not rows.any():
+            continue
+        camera = camera_at(window.rig.intrinsics, c)
+        rays = np.asarray(camera.unproject(corr.homography_pixels[rows, c]))  # (K, M, 3) frame t
+        rays_prev = np.asarray(camera.unproject(corr.homography_pixels_prev[rows, c]))  # frame t - 1
+        prev_from_curr = matrix_from_quat(turns.data["turn"][rows, c, 0])  # (K, 3, 3)
+        carried = np.einsum("kab,kmb->kma", prev_from_curr, rays)
+        agree = np.sum(carried * rays_prev, axis=-1) >= cos_tolerance * np.linalg.norm(carried, axis=-1) * \
+            np.linalg.norm(rays_prev, axis=-1)
+        kept = np.where(agree, weights[rows, c], 0.0)
+        had, agreed = (weights[rows, c] > 0).sum(axis=1), (kept > 0).sum(axis=1)
+        kept[(agreed < min_matches) | (2 * agreed < had)] = 0.0
+        weights[rows, c] = kept
+    return weights
 
 
 def _in_camera(imu: ImuRecording, sensor: int, turn: np.ndarray) -> np.ndarray:

@@ -753,6 +753,28 @@ def _gyro_terms(ctx: RunContext, trial_folder: Path) -> list:
     return [UserTerms(gyro_turns, {"sigma_deg": sigma, "time_shifts_s": shifts}, "gyro turns")]
 
 
+#: A homography match further than this many times ``[solver] gyro_turn`` (the gyro's σ) from where the camera's gyro
+#: turn carries it is dropped (:func:`~bcmocap.pipeline.gyro_turns.homography_weights_gyros_agree_with`).
+HOMOGRAPHY_GYRO_GATE = 2.0
+
+
+def _gyro_homography_check(ctx: RunContext):
+    """With ``[solver] gyro_turn`` and the homography term, the solve's homography filter: the matches a camera's
+    gyro contradicts by more than :data:`HOMOGRAPHY_GYRO_GATE` σ dropped, each camera read at its own shift on the
+    gyro's clock as the frontend timed it; else None."""
+    import functools
+
+    from .gyro_turns import homography_weights_gyros_agree_with
+
+    s = ctx.config.solver
+    if not s.gyro_turn or "homography" not in s.terms:
+        return None
+    timing = _gyro_shifts(ctx)
+    shifts = None if timing is None else timing[0].tolist()
+    return functools.partial(homography_weights_gyros_agree_with, tolerance_deg=HOMOGRAPHY_GYRO_GATE * s.gyro_turn,
+                             time_shifts_s=shifts)
+
+
 def _gyro_shifts(ctx: RunContext, trial: str = "capture") -> tuple[np.ndarray, np.ndarray] | None:
     """``(shifts (C,) s, determined (C,) bool)``: where the frontend's gyro timing put each camera's frames of
     ``trial`` on the gyro's clock after the trial's times, and which it determined; None when it did not time the
@@ -805,7 +827,7 @@ def solve_problem(ctx: RunContext):
     trial_folder = ctx.capture.path / "trials" / "capture"
     problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None,
                             extra_terms=[*_gyro_terms(ctx, trial_folder), *_user_terms(ctx)], trial_folder=trial_folder,
-                            effects=effects)
+                            effects=effects, homography_filter=_gyro_homography_check(ctx))
     return problem, SolverOptions(window=s.window, overlap=s.overlap)
 
 

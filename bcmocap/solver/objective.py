@@ -282,6 +282,8 @@ class StoredProblem:
             :class:`UserTerms`.
         trial_folder: the capture's trial folder handed to the factories.
         effects: rolling shutter, self-calibration and mount compliance (:class:`CameraEffects`).
+        homography_filter: given a window (:class:`TermWindow`), the ``(W, C, M)`` homography weights to use instead
+            of the store's (e.g. with the matches a camera's gyro contradicts set to 0), or None.
     """
 
     store: CorrespondenceStore
@@ -292,6 +294,7 @@ class StoredProblem:
     extra_terms: Sequence[TermFactory] = ()
     trial_folder: Path | None = None
     effects: CameraEffects = CameraEffects()
+    homography_filter: Callable[[TermWindow], np.ndarray] | None = None
 
     def __post_init__(self):
         if self.store.num_cameras != self.rig.num_cameras:
@@ -307,9 +310,16 @@ class StoredProblem:
 
     def window(self, start: int, stop: int) -> tuple[Term, ...]:
         corr = self.store.frames(start, stop)
+        window = TermWindow(start, stop, self.store.fps, self.skeleton, self.rig, corr, self.trial_folder)
+        if self.homography_filter is not None and self.include_homography:
+            weights = np.asarray(self.homography_filter(window), np.float64)
+            if weights.shape != corr.homography_weights.shape:
+                raise ValueError(f"homography_filter: weights of shape {weights.shape} for a window's "
+                                 f"{corr.homography_weights.shape}")
+            corr = dataclasses.replace(corr, homography_weights=weights)
+            window = dataclasses.replace(window, correspondences=corr)
         terms = paper_terms(corr, self.skeleton, self.weights, first_frame_has_previous=start > 0,
                             include_homography=self.include_homography, homography_cameras=self._homography_cameras,
                             effects=self.effects)
-        window = TermWindow(start, stop, self.store.fps, self.skeleton, self.rig, corr, self.trial_folder)
         terms += [term for factory in self.extra_terms for term in factory(window)]
         return tuple(t.window(0, stop - start) for t in terms)
