@@ -225,15 +225,21 @@ def test_file_stamps_see_a_file_added_removed_or_rewritten_and_skip_hidden_ones(
 
 
 def test_a_rerun_redoes_from_the_stage_that_reads_what_changed():
-    """bcmocap run after a capture changed between runs: recordings redo every stage (the frontend's caches go),
-    other data files the stages after the frontend, description files nothing by themselves."""
+    """bcmocap run after a capture changed between runs: recordings, lens files and files of unknown kinds redo every
+    stage without the frontend's caches; the rig or manifest every stage with them; data files under trials/ the
+    stages after the frontend, or every stage (caches kept) where the frontend reads the gyros; notes nothing."""
     from bcmocap.pipeline.run import stage_to_redo
 
-    assert stage_to_redo([]) == (None, "")
-    assert stage_to_redo(["rig.json (modified)", "notes.TXT (added)"]) == (None, "")
-    stage, why = stage_to_redo(["trials/capture/imu.npz (added)", "rig.json (modified)"])
-    assert stage == "world" and "trials/capture/imu.npz (added)" in why and "rig.json" not in why
-    stage, why = stage_to_redo(["reference/a.jpg (removed)", "trials/capture/cam.MP4 (modified, 1 → 2 bytes)",
-                                "trials/capture/imu.npz (added)"])
-    assert stage == "frontend" and why.startswith("the capture's recordings changed since the last run "
-                                                  "(reference/a.jpg (removed), trials/capture/cam.MP4 (modified, 1 → 2 bytes)): ")
+    assert stage_to_redo([]) == (None, False, "")
+    assert stage_to_redo(["notes.MD (added)"]) == (None, False, "")
+    stage, drop, why = stage_to_redo(["trials/capture/imu.npz (added)", "trials/capture/root_height.txt (modified)"])
+    assert (stage, drop) == ("world", False) and "trials/capture/imu.npz (added)" in why
+    assert stage_to_redo(["trials/capture/imu.npz (added)"], frontend_reads_gyros=True)[:2] == ("frontend", False)
+    stage, drop, why = stage_to_redo(["rig.json (modified, 10 → 12 bytes)", "trials/capture/imu.npz (added)"])
+    assert (stage, drop) == ("frontend", False) and why.startswith("the capture's rig or manifest changed")
+    for change in ("trials/capture/cam (1).MP4 (modified, 1 → 2 bytes)", "reference/a.jpg (removed)",
+                   "intrinsics/cam.yml (modified)", "trials/capture/cam.insv (added)", "imu.npz (added)"):
+        stage, drop, why = stage_to_redo([change, "rig.json (modified)"])
+        assert (stage, drop) == ("frontend", True), change
+        assert why == f"the capture's recordings or lens files changed since the last run ({change}): redoing every " \
+                      "stage, the frontend's caches included"

@@ -100,19 +100,30 @@ def test_index_cache_shares_each_frames_trees_and_stays_bounded():
 
 
 def test_index_cache_keeps_its_memory_estimate_under_the_budget():
-    """Each index counts (1 + 1.6 · threads) × its float32 descriptors (300 × 128 × 4 B here): with 2 threads
-    (≈ 645 kB each) a 1.5 MB budget holds two; the size limit still applies."""
+    """Each index counts (1 + 1.6 · its tree copies) × its float32 descriptors (300 × 128 × 4 B here): searched by
+    two threads, one holds 4.2 × 153.6 kB; a 1.5 MB budget keeps two such, where unsearched ones (1 ×) fit more."""
     rng = np.random.default_rng(4)
     states = [[relative.CameraFrameRegistration(np.zeros((300, 2)), rng.integers(0, 256, (300, 128)).astype(np.uint8),
                                                 np.full(300, -1), np.full(7, np.nan)) for _ in range(2)] for _ in range(3)]
-    cache = relative._IndexCache(states, 16, 100, memory_bytes=1.5e6, threads=2)
+    cache = relative._IndexCache(states, 16, 100, memory_bytes=1.5e6)
+    query = states[2][1].descriptors[:5]
+
+    def search_from_two_threads(index):
+        index.nearest(query, 0.8)
+        worker = threading.Thread(target=index.nearest, args=(query, 0.8))
+        worker.start()
+        worker.join()
+
     for tc in ((0, 0), (0, 1), (1, 0), (1, 1)):
-        cache(tc)
-        assert len(cache.cache) <= 2 and cache.held <= 1.5e6
-    assert list(cache.cache) == [(1, 0), (1, 1)] and cache.held == pytest.approx(2 * 4.2 * 300 * 128 * 4)
-    cache((1, 0))  # used again: the last to go
-    cache((2, 0))
-    assert list(cache.cache) == [(1, 0), (2, 0)]
+        search_from_two_threads(cache(tc))
+        assert len(cache.cache) <= 3 and cache.held <= 1.5e6 + 2 * 4.2 * 300 * 128 * 4
+    assert [i.copies for i in cache.cache.values()] == [2] * len(cache.cache)
+    cache((2, 0))  # a new index: the least recently used go until the estimate is under the budget again
+    assert list(cache.cache)[-1] == (2, 0) and cache.held <= 1.5e6
+    fresh = relative._IndexCache(states, 16, 100, memory_bytes=1.5e6)
+    for tc in ((0, 0), (0, 1), (1, 0), (1, 1), (2, 0), (2, 1)):
+        fresh(tc)  # never searched: 153.6 kB each, all six fit
+    assert len(fresh.cache) == 6
 
 
 def test_a_registration_with_room_for_two_indexes_gives_the_same_result(trial, whole):

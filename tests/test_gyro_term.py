@@ -317,8 +317,9 @@ def test_the_initial_stage_orients_unregistered_frames_on_the_gyro_clock_of_the_
 
 def test_homography_matches_a_gyro_contradicts_are_dropped(walk):
     """A homography match on the static scene agrees with the camera's gyro turn; one on something that moved with
-    the camera (the wearer's body) does not and is dropped. A frame pair left with fewer than 30 matches, or where
-    most disagreed, loses them all; a frame without a gyro reading (the first) keeps its own."""
+    the camera (the wearer's body) does not and is dropped. A frame pair where fewer than half agree, or fewer than
+    30, loses them all; a pair of fewer matches all agreeing keeps them; a frame without a gyro reading (the first)
+    keeps its own."""
     from bcmocap.cameras import camera_at
     from bcmocap.geometry import matrix_from_quat
     from bcmocap.kinematics.rig import camera_poses
@@ -328,27 +329,50 @@ def test_homography_matches_a_gyro_contradicts_are_dropped(walk):
     angle = np.radians(4.0)  # the body's matches: 4° off the camera's turn, past the 1.5° tolerance
     body_turn = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
     poses = np.asarray(camera_poses(capture.skeleton, capture.rig, capture.motion).wxyz_xyz)  # (T, C, 7) world_from_camera
-    c = 11  # the left foot's camera: it turns several degrees per frame
-    camera = camera_at(capture.rig.intrinsics, c)
     rng = np.random.default_rng(0)
-    t_count, m = capture.num_frames, 60
+    t_count, m = capture.num_frames, 80
+    on_body = {0: 20, 1: 48, 2: 56}  # by t % 3 — 60 agree: the 20 go; 32 of 80: fewer than half; 24: fewer than 30
     pixels, prev, weights = np.zeros((t_count, 18, m, 2)), np.zeros((t_count, 18, m, 2)), np.zeros((t_count, 18, m))
     moved = np.zeros((t_count, m), bool)
-    for t in range(1, t_count):
-        prev_from_curr = matrix_from_quat(poses[t - 1, c, :4]).T @ matrix_from_quat(poses[t, c, :4])
-        rays = rng.normal(size=(m, 3)) * [0.3, 0.3, 0.0] + [0.0, 0.0, 1.0]
-        moved[t] = np.arange(m) < (20 if t % 2 else 40)  # odd frames: a third on the body; even: two thirds
-        carried = np.where(moved[t][:, None], rays @ (prev_from_curr @ body_turn).T, rays @ prev_from_curr.T)
-        pixels[t, c] = np.asarray(camera.project(rays)[0])
-        prev[t, c] = np.asarray(camera.project(carried)[0])
-        weights[t, c] = 1.0
-    weights[0, c] = 1.0  # frame 0: no gyro reading (its interval starts before the recording)
+    for c, count in ((11, m), (3, 10)):  # the left foot's camera (turning several degrees a frame); the chest's: 10
+        camera = camera_at(capture.rig.intrinsics, c)
+        for t in range(1, t_count):
+            prev_from_curr = matrix_from_quat(poses[t - 1, c, :4]).T @ matrix_from_quat(poses[t, c, :4])
+            rays = rng.normal(size=(m, 3)) * [0.3, 0.3, 0.0] + [0.0, 0.0, 1.0]
+            if c == 11:
+                moved[t] = np.arange(m) < on_body[t % 3]
+            carried = np.where(moved[t][:, None] & (c == 11), rays @ (prev_from_curr @ body_turn).T,
+                               rays @ prev_from_curr.T)
+            pixels[t, c] = np.asarray(camera.project(rays)[0])
+            prev[t, c] = np.asarray(camera.project(carried)[0])
+            weights[t, c, :count] = 1.0
+    weights[0, 11] = 1.0  # frame 0: no gyro reading (its interval starts before the recording)
     corr = dataclasses.replace(capture.correspondences(), homography_pixels=pixels, homography_pixels_prev=prev,
                                homography_weights=weights)
     window = TermWindow(0, t_count, capture.fps, capture.skeleton, capture.rig, corr, folder)
     kept = homography_weights_gyros_agree_with(window, 1.5, [CLOCK_OFFSET_S] * 18)
-    assert kept.shape == weights.shape and (kept[:, :c] == 0).all() and (kept[:, c + 1:] == 0).all()
-    assert (kept[0, c] == 1).all()
-    odd, even = np.arange(1, t_count, 2), np.arange(2, t_count, 2)
-    np.testing.assert_array_equal(kept[odd, c], np.where(moved[odd], 0.0, 1.0))  # 40 of 60 agree: the body's go
-    assert (kept[even, c] == 0).all()  # 20 of 60 agree: the pair goes
+    assert kept.shape == weights.shape and (kept[0, 11] == 1).all()
+    np.testing.assert_array_equal(kept[:, 3], weights[:, 3])  # 10 of 10 agree: kept
+    frames = np.arange(1, t_count)
+    for rest, what in ((0, "the body's go"), (1, "fewer than half agree"), (2, "fewer than 30 agree")):
+        chosen = frames[frames % 3 == rest]
+        expected = np.where(moved[chosen], 0.0, 1.0) if rest == 0 else np.zeros((len(chosen), m))
+        np.testing.assert_array_equal(kept[chosen, 11], expected, err_msg=what)
+    assert (np.delete(kept, [3, 11], axis=1) == 0).all()
+
+
+def test_the_run_checks_homographies_by_the_gyros_only_with_gyro_turns(tmp_path):
+    """``[solver] gyro_turn`` with the homography term: the solve's homography filter gates at 2 σ of the gyro, each
+    camera at the frontend's gyro shift (none found here: the trial's times); without either, no filter."""
+    from bcmocap.pipeline import run
+
+    def context(overrides):
+        return types.SimpleNamespace(config=RunConfig().with_overrides(overrides), capture=None,
+                                     path=lambda *parts: tmp_path.joinpath(*parts))
+
+    assert run._gyro_homography_check(context({})) is None
+    check = run._gyro_homography_check(context({"solver.gyro_turn": 0.5}))
+    assert check.func.__name__ == "homography_weights_gyros_agree_with"
+    assert check.keywords == {"tolerance_deg": 1.0, "time_shifts_s": None}
+    assert run._gyro_homography_check(context({"solver.gyro_turn": 0.5,
+                                               "solver.terms": ["reprojection", "smoothness"]})) is None

@@ -255,21 +255,22 @@ def test_an_output_folder_deleted_mid_run_stops_it_with_one_line(simulated_run, 
 
 def test_a_capture_file_changed_mid_run_stops_it_and_a_rerun_finishes(simulated_run, tmp_path, monkeypatch):
     capture = tmp_path / "capture"
-    capture.mkdir()
-    (capture / "rig.json").write_text("{}")
+    (capture / "trials" / "capture").mkdir(parents=True)
+    measured = capture / "trials" / "capture" / "contacts.txt"  # a data file read after the frontend
+    measured.write_text("0\n")
     copy, fake, config = _resumable_copy(simulated_run, tmp_path, "initial")
     fake = dataclasses.replace(fake, path=capture)
     log = json.loads((copy / "run.json").read_text())
     (copy / "run.json").write_text(json.dumps({**log, "capture": str(capture.resolve())}))
     with monkeypatch.context() as m:
-        _during_stage(m, "initial", lambda: (capture / "rig.json").write_text('{"edited": true}'))
-        with pytest.raises(ValueError, match=r"rig\.json \(modified, 2 → 16 bytes\) changed while the run was reading"):
+        _during_stage(m, "initial", lambda: measured.write_text("0\n1\n1\n0\n"))
+        with pytest.raises(ValueError, match=r"contacts\.txt \(modified, 2 → 8 bytes\) changed while the run was reading"):
             run_pipeline(fake, copy, config, log=lambda line: None)
     stages = json.loads((copy / "run.json").read_text())["stages"]
     assert list(stages) == ["frontend", "world", "skeleton"]  # what was finished before is kept
     lines = []
     run_pipeline(fake, copy, config, log=lines.append)
-    assert "[1/6] frontend: done before, reused" in lines  # a description file: the frontend's work stays
+    assert "[1/6] frontend: done before, reused" in lines  # a data file: the frontend's work stays
     assert list(json.loads((copy / "run.json").read_text())["stages"]) == list(
         __import__("bcmocap.io.run_folder", fromlist=["STAGES"]).STAGES)
 
@@ -424,7 +425,8 @@ def test_a_user_term_named_in_the_config_reaches_the_solve(simulated_run, tmp_pa
         {"factory": "user_terms_for_run:root_height", "weight": 1e8}]}})
     lines = []
     run_pipeline(fake, copy, user, log=lines.append)
-    assert sum("reused" in line for line in lines) == 4 and any("solve: settings changed" in line for line in lines)
+    # the new measurement file redoes the stages after the frontend
+    assert sum("reused" in line for line in lines) == 1 and any("data files changed" in line for line in lines)
     starts = [r["start"] for r in json.loads((copy / "solve" / "reports.json").read_text())["windows"]]
     assert [c[0] for c in module.CALLS] == starts
     for start, stop, times in module.CALLS:

@@ -97,6 +97,7 @@ class DescriptorIndex:
         self.descriptors = np.ascontiguousarray(descriptors, np.float32).reshape(-1, 128)
         self.trees, self.checks = int(trees), int(checks)
         self._local = threading.local()
+        self.copies = 0  # threads that built their copy of the trees
 
     def __getstate__(self) -> dict:
         """Pickled without the trees (a cluster task gets the descriptors and builds the same trees)."""
@@ -107,6 +108,7 @@ class DescriptorIndex:
 
         self.descriptors, self.trees, self.checks = state["descriptors"], state["trees"], state["checks"]
         self._local = threading.local()
+        self.copies = 0
 
     def nearest(self, query: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
         """``(nearest (N,), good (N,))``: index of each query row's nearest neighbour (−1 when the index holds
@@ -120,6 +122,7 @@ class DescriptorIndex:
         if flann is None:
             cv2.setRNGSeed(FLANN_SEED)  # this thread's RNG: the trees do not depend on timing or history
             flann = self._local.flann = cv2.flann_Index(self.descriptors, {"algorithm": 1, "trees": self.trees})
+            self.copies += 1
         idx, dist2 = flann.knnSearch(query, 2, params={"checks": self.checks})
         return idx[:, 0].astype(np.int64), dist2[:, 0] < ratio**2 * dist2[:, 1]  # squared L2 distances
 

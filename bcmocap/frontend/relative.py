@@ -87,7 +87,7 @@ class RelativeOptions:
         workers: threads matching pairs of frames for new points (default: the CPU count).
         index_memory_mb: the FLANN indexes of frames kept for reuse (:class:`_IndexCache`) take at most about
             this much memory; past it the least recently used go and are built again when needed (the matches
-            are the same). At 640×360 a trial's working set fits; at 1080p with 8000 features it would not.
+            are the same). At 640×360 most of a trial's working set fits; at 1080p with 8000 features little would.
     """
 
     registration: RegistrationOptions = RegistrationOptions()
@@ -645,7 +645,7 @@ class CaptureRegistrar:
         self.pair_matches: dict = {}  # (a, b) with a < b -> (K, 2) int32; mutual matching is symmetric, rounds reuse it
         self.point_matches: dict = {}  # (a, b) -> (rows of b searched (M_b,) bool, their matches (K, 2) int64)
         self.indexes = _IndexCache(self.states, self.reg.checks, (2 * options.max_time_gap + 2) * num_c,
-                                   memory_bytes=options.index_memory_mb * 1e6, threads=_workers(options.workers))
+                                   memory_bytes=options.index_memory_mb * 1e6)
         self.rounds: list = []
 
     @staticmethod
@@ -1048,31 +1048,33 @@ class _IndexCache:
     by every pair the frame is matched in (a frame is in about ten pairs per round), for the frames used last:
     at most ``size`` of them and about ``memory_bytes`` (pairs are matched in time order, so a few times' frames
     are in use at once). Each index holds its descriptors as float32 (0.5 kB per feature) and, per thread that
-    searched it, OpenCV's copy of them with its k-d trees (about 1.6 times as much, measured): an index is counted
-    at ``(1 + 1.6 · threads)`` × its float32 size. Thread-safe. The trees are seeded
-    (:data:`~.reference.FLANN_SEED`), so the matches are those of indexes built per pair, whatever was dropped."""
+    searched it, OpenCV's copy of them with its k-d trees (about 1.6 times as much, measured): an index counts
+    ``(1 + 1.6 · copies)`` × its float32 size. Thread-safe. The trees are seeded (:data:`~.reference.FLANN_SEED`),
+    so the matches are those of indexes built per pair, whatever was dropped."""
 
     #: OpenCV's copy of the descriptors and 4 k-d trees per thread, as a multiple of the float32 descriptors.
     TREES_PER_THREAD = 1.6
 
-    def __init__(self, states: list, checks: int, size: int, *, memory_bytes: float = float("inf"), threads: int = 1):
+    def __init__(self, states: list, checks: int, size: int, *, memory_bytes: float = float("inf")):
         from collections import OrderedDict
 
         self.states, self.checks, self.size = states, int(checks), max(2, int(size))
-        self.memory_bytes, self.per_byte = float(memory_bytes), 1.0 + self.TREES_PER_THREAD * max(1, int(threads))
+        self.memory_bytes = float(memory_bytes)
         self.cache: OrderedDict = OrderedDict()
-        self.held = 0.0  # the estimated bytes of the indexes in the cache
         self.lock = threading.Lock()
+
+    @property
+    def held(self) -> float:
+        """The estimated bytes of the indexes in the cache."""
+        return sum(i.descriptors.nbytes * (1.0 + self.TREES_PER_THREAD * i.copies) for i in list(self.cache.values()))
 
     def __call__(self, tc: tuple) -> DescriptorIndex:
         with self.lock:
             found = self.cache.get(tc)
             if found is None:
                 found = self.cache[tc] = DescriptorIndex(self.states[tc[0]][tc[1]].descriptors, checks=self.checks)
-                self.held += self.per_byte * found.descriptors.nbytes
                 while len(self.cache) > 2 and (len(self.cache) > self.size or self.held > self.memory_bytes):
-                    _, dropped = self.cache.popitem(last=False)
-                    self.held -= self.per_byte * dropped.descriptors.nbytes
+                    self.cache.popitem(last=False)
             else:
                 self.cache.move_to_end(tc)
             return found

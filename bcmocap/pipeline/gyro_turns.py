@@ -63,8 +63,9 @@ def homography_weights_gyros_agree_with(window: TermWindow, tolerance_deg: float
     interval (read at the camera's shift on the gyro's clock, :func:`gyro_turns`) carries the ray of the first onto
     where the second should lie. A match further than ``tolerance_deg`` from it is on something that moved: most
     often the wearer's own body, which fills a limb camera's view where the room has little texture, and whose
-    matches then pull the camera's turn towards the body's. A frame pair left with fewer than ``min_matches`` loses
-    its matches altogether. Cameras and frames without a gyro reading keep theirs.
+    matches then pull the camera's turn towards the body's. A frame pair where fewer than half of the matches agree,
+    or fewer than ``min_matches`` (or all of them, when it had fewer), loses them all: its agreeing few are as likely
+    on the moving thing. Cameras and frames without a gyro reading keep theirs.
     """
     corr = window.correspondences
     weights = np.array(corr.homography_weights, np.float64)
@@ -78,15 +79,16 @@ def homography_weights_gyros_agree_with(window: TermWindow, tolerance_deg: float
         if not rows.any():
             continue
         camera = camera_at(window.rig.intrinsics, c)
-        rays = np.asarray(camera.unproject(corr.homography_pixels[rows, c]))  # (K, M, 3) frame t
-        rays_prev = np.asarray(camera.unproject(corr.homography_pixels_prev[rows, c]))  # frame t - 1
+        # the whole window's (W, M) pixels at once: the same shapes in every window, so JAX compiles them once
+        rays = np.asarray(camera.unproject(corr.homography_pixels[:, c]))[rows]  # (K, M, 3) frame t
+        rays_prev = np.asarray(camera.unproject(corr.homography_pixels_prev[:, c]))[rows]  # frame t - 1
         prev_from_curr = matrix_from_quat(turns.data["turn"][rows, c, 0])  # (K, 3, 3)
         carried = np.einsum("kab,kmb->kma", prev_from_curr, rays)
         agree = np.sum(carried * rays_prev, axis=-1) >= cos_tolerance * np.linalg.norm(carried, axis=-1) * \
             np.linalg.norm(rays_prev, axis=-1)
         kept = np.where(agree, weights[rows, c], 0.0)
         had, agreed = (weights[rows, c] > 0).sum(axis=1), (kept > 0).sum(axis=1)
-        kept[(agreed < min_matches) | (2 * agreed < had)] = 0.0
+        kept[(agreed < np.minimum(min_matches, had)) | (2 * agreed < had)] = 0.0
         weights[rows, c] = kept
     return weights
 

@@ -46,9 +46,7 @@ from ..atomic import atomic_path, write_json_atomic
 from ..io.output_folder import check_outside, locked_output
 from ..io.run_folder import (SIMILARITY, STAGE_OUTPUTS, STAGES, RunLog, load_model, load_motion, load_solved_variables,
                              read_json, save_motion, solved_variables, write_npz)
-from ..calibrate.views import IMAGE_SUFFIXES
-from ..frontend.assemble import PHOTO_SUFFIXES, VIDEO_SUFFIXES
-from ..io.capture_folder import changed_files, file_stamps
+from ..io.capture_folder import MANIFEST_FILE, RIG_FILE, changed_files, file_stamps
 from .cluster import Executor, open_executor
 from .config import RunConfig
 from .peak_memory import out_of_memory, peak_mb, reset_peak, stage_out_of_memory
@@ -183,10 +181,11 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
     write_json_atomic(out / "config.json", config.to_dict())
     prints = fingerprints(config)
     stamps = file_stamps(capture.path)
-    redo_from, why = stage_to_redo(changed_files(run_log.data.get("capture_files", stamps), stamps))
+    redo_from, drop_caches, why = stage_to_redo(changed_files(run_log.data.get("capture_files", stamps), stamps),
+                                                frontend_reads_gyros=config.frontend.rolling_shutter_readout > 0)
     if why:
         say(why)
-    if redo_from == STAGES[0]:  # the frontend's caches were computed from other pictures
+    if drop_caches:  # the frontend's caches were computed from other pictures or lenses
         for cache in _MEDIA_CACHES:
             shutil.rmtree(out / cache, ignore_errors=True)
     run_log.data["capture_files"] = stamps
@@ -223,36 +222,52 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
     return run_log.data
 
 
-#: Capture files that describe rather than record (lens files, rig, manifest): their changes are handled by the
-#: stages' own fingerprints.
-_DESCRIPTION_SUFFIXES = (".json", ".yml", ".yaml", ".xml", ".toml", ".txt", ".md")
-#: Recordings the frontend reads (videos, photos, sound): a change drops its caches. Any other changed file (an IMU
-#: recording, say) redoes the stages after the frontend.
-_RECORDING_SUFFIXES = (*VIDEO_SUFFIXES, *PHOTO_SUFFIXES, *IMAGE_SUFFIXES, ".wav", ".flac", ".mp3", ".m4a", ".aac")
+#: Notes kept beside a capture: their changes redo nothing.
+_NOTE_SUFFIXES = (".md",)
+#: Data files under ``trials/`` or ``ground_truth/`` (an IMU recording, a user term's measurements, the truth), read
+#: after the frontend: a change redoes the stages after it (or, where the frontend reads the gyros, every stage with
+#: its caches kept).
+_DATA_SUFFIXES = (".npz", ".csv", ".txt")
+_DATA_FOLDERS = ("trials/", "ground_truth/")
+#: The capture's descriptions (rig, manifest): a change redoes every stage, the frontend reusing what it computed
+#: from the recordings where its settings are the same. Any other file (videos, photos, sound, lens files, a file of
+#: an unknown kind) drops the frontend's caches.
+_DESCRIPTION_FILES = (RIG_FILE, MANIFEST_FILE)
 #: What the frontend computed from the recordings (its features and tracks too), under ``DIR``.
 _MEDIA_CACHES = ("frontend",)
 
 
-def stage_to_redo(changes: list[str]) -> tuple[str | None, str]:
-    """The first stage a rerun redoes after these :func:`changed_files` of its capture, and the line that says why.
+def stage_to_redo(changes: list[str], frontend_reads_gyros: bool = False) -> tuple[str | None, bool, str]:
+    """After these :func:`changed_files` of its capture, the first stage a rerun redoes, whether the frontend's caches
+    go, and the line that says why; ``(None, False, "")`` when nothing is redone.
 
-    A changed recording (video, photo, sound) redoes every stage, the frontend's caches dropped; any other data
-    file (an IMU recording) the stages after the frontend; description files (lens, rig, manifest) nothing here,
-    their changes being in the stages' fingerprints. ``(None, "")`` when nothing redoes."""
-    changed = [c for c in changes if _suffix(c) not in _DESCRIPTION_SUFFIXES]
-    recordings = [c for c in changed if _suffix(c) in _RECORDING_SUFFIXES]
-    if recordings:
-        return STAGES[0], (f"the capture's recordings changed since the last run ({_some(recordings)}): redoing every "
-                           "stage, the frontend's caches included")
-    if changed:
-        return STAGES[1], (f"the capture's data files changed since the last run ({_some(changed)}): redoing the "
-                           "stages after the frontend")
-    return None, ""
+    A recording (video, photo, sound), a lens file or a file of an unknown kind: every stage, the caches dropped. The
+    rig or the manifest: every stage, the caches kept (the frontend reuses a trial registered with the same
+    settings). A data file under ``trials/`` or ``ground_truth/`` (``.npz``, ``.csv``, ``.txt``): the stages after the
+    frontend, or every stage with the caches kept where the frontend reads the gyros (``frontend_reads_gyros``: a
+    rolling-shutter readout; a trial whose gyros changed is registered again). Notes (``.md``): nothing."""
+    changed = [c for c in changes if Path(_name(c)).suffix.lower() not in _NOTE_SUFFIXES]
+    data = [c for c in changed if _name(c).startswith(_DATA_FOLDERS) and Path(_name(c)).suffix.lower() in _DATA_SUFFIXES]
+    described = [c for c in changed if _name(c) in _DESCRIPTION_FILES]
+    others = [c for c in changed if c not in data and c not in described]
+    if others:
+        return STAGES[0], True, (f"the capture's recordings or lens files changed since the last run ({_some(others)}): "
+                                 "redoing every stage, the frontend's caches included")
+    if described:
+        return STAGES[0], False, (f"the capture's rig or manifest changed since the last run ({_some(described)}): "
+                                  "redoing every stage (the frontend reuses what it registered with the same settings)")
+    if data and frontend_reads_gyros:
+        return STAGES[0], False, (f"the capture's data files changed since the last run ({_some(data)}): redoing every "
+                                  "stage (the frontend registers again a trial whose gyros changed)")
+    if data:
+        return STAGES[1], False, (f"the capture's data files changed since the last run ({_some(data)}): redoing the "
+                                  "stages after the frontend")
+    return None, False, ""
 
 
-def _suffix(change: str) -> str:
-    """The lower-case file suffix of one :func:`changed_files` phrase."""
-    return Path(change.split(" (")[0]).suffix.lower()
+def _name(change: str) -> str:
+    """The file of one :func:`changed_files` phrase (``"NAME (modified, …)"``), relative to the capture."""
+    return change.rsplit(" (", 1)[0]
 
 
 def _some(changes: list[str]) -> str:

@@ -283,7 +283,8 @@ class StoredProblem:
         trial_folder: the capture's trial folder handed to the factories.
         effects: rolling shutter, self-calibration and mount compliance (:class:`CameraEffects`).
         homography_filter: given a window (:class:`TermWindow`), the ``(W, C, M)`` homography weights to use instead
-            of the store's (e.g. with the matches a camera's gyro contradicts set to 0), or None.
+            of the store's (e.g. with the matches a camera's gyro contradicts set to 0), or None. The window the
+            ``extra_terms`` factories are given carries them too.
     """
 
     store: CorrespondenceStore
