@@ -13,7 +13,8 @@ in one vmapped call.
 Figures: ``error_3d_mm`` = the paper's 3D error (3DPE: per-frame rigid alignment, rotation and
 translation, to the ground truth; mean over joints, frames and paths); ``mpjpe_mm`` = Eq. 26 in each
 frame's camera frame after matching centroids (weak perspective has no absolute depth); the walk35
-figure is the mean over subject 35's walking trials 35_01…35_16; "jump" is the mean over 02_04 (jump,
+figure is the mean over subject 35's walking trials found: 35_01…35_16 (AMC) and 35_30, 35_31, 35_34 (the
+cgspeed BVH conversion, ``benchmarks/data/cmu_bvh``; 35_28, 35_29, 35_32 and 35_33 were not found); "jump" is the mean over 02_04 (jump,
 balance) and 01_01 frames 0–719 (playground, forward jumps) — CMU 13_11 (the paper's jump) is not in
 our data. ``seconds_per_300_frames``: steady-state time of one 300-frame sequence (compile excluded).
 ``error_profile`` (walk35, jump) says where the error lies: each bone's fraction of frames with the wrong
@@ -38,6 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _cmu_bvh import read_cgspeed_trial  # noqa: E402
 from _common import write_json  # noqa: E402
 
 from bcmocap.compilation_cache import enable_compilation_cache  # noqa: E402
@@ -56,20 +58,23 @@ from bcmocap.kcs import (  # noqa: E402
 from bcmocap.kinematics import joint_positions  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-WALK35 = tuple(f"35_{k:02d}" for k in range(1, 17))
+#: Subject 35's walks, as the paper's 23: 35_01-16 (AMC) and 35_28-34 (the cgspeed BVH of those found).
+WALK35 = tuple(f"35_{k:02d}" for k in (*range(1, 17), *range(28, 35)))
 JUMPS = ("02_04", "01_01")
 FRAMES = {"01_01": (0, 720)}  # excerpt with the forward jumps, before the subject turns around
 WALK35_GOAL_MM, JUMP_GOAL_MM = 18.94, 36.50
 
 
-def load_trials(cmu_dir: Path) -> tuple[KinematicChainSpace, dict[str, np.ndarray]]:
-    """Every trial under ``cmu_dir/<subject>/`` as ``(F, J, 3)`` joint positions (m) of CMU_JOINTS."""
-    trials, chain = {}, None
+def load_trials(cmu_dir: Path, bvh_dir: Path | None = None) -> tuple[KinematicChainSpace, dict[str, np.ndarray]]:
+    """Every trial under ``cmu_dir/<subject>/`` as ``(F, J, 3)`` joint positions (m) of CMU_JOINTS, and every
+    cgspeed BVH conversion ``bvh_dir/<subject>_<trial>.bvh`` of a subject found there whose AMC file is not
+    (:mod:`_cmu_bvh`: the thorax the conversion drops put back from the subject's ASF file)."""
+    trials, chain, subjects = {}, None, {}
     for folder in sorted(p for p in cmu_dir.iterdir() if p.is_dir()):
         asf_path = folder / f"{folder.name}.asf"
         if not asf_path.exists():
             continue
-        asf = read_asf(asf_path)
+        asf = subjects[folder.name] = read_asf(asf_path)
         chain = chain or KinematicChainSpace.from_skeleton(asf.skeleton, CMU_JOINTS)
         keep = [asf.skeleton.index(n) for n in CMU_JOINTS]
         for amc in sorted(folder.glob("*.amc")):
@@ -78,6 +83,10 @@ def load_trials(cmu_dir: Path) -> tuple[KinematicChainSpace, dict[str, np.ndarra
             trials[amc.stem] = x[lo:hi]
     if chain is None:
         raise SystemExit(f"kcs_table: no CMU ASF/AMC trials under {cmu_dir}")
+    for bvh in sorted(bvh_dir.glob("*.bvh")) if bvh_dir is not None and bvh_dir.is_dir() else []:
+        subject = bvh.stem.split("_")[0]
+        if bvh.stem not in trials and subject in subjects:
+            trials[bvh.stem] = read_cgspeed_trial(bvh, subjects[subject])
     return chain, trials
 
 
@@ -215,6 +224,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", help="write the figures to this file")
     parser.add_argument("--cmu-dir", type=Path, default=ROOT.parent / "shared" / "data" / "cmu" / "amc")
+    parser.add_argument("--bvh-dir", type=Path, default=ROOT / "benchmarks" / "data" / "cmu_bvh",
+                        help="cgspeed BVH conversions of trials whose AMC files are missing (benchmarks/_cmu_bvh.py)")
     parser.add_argument("--paths", type=int, default=20, help="random camera paths per sequence")
     parser.add_argument("--noise-paths", type=int, default=None, help="paths per sequence for the noise rows (default --paths)")
     parser.add_argument("--sequences", nargs="+", help="only these trials (e.g. 02_01 02_03 for development); no noise rows")
@@ -224,7 +235,7 @@ def main(argv=None) -> int:
     enable_float64()
     enable_compilation_cache()
     options = KCSOptions()
-    chain, trials = load_trials(args.cmu_dir)
+    chain, trials = load_trials(args.cmu_dir, args.bvh_dir)
     names = args.sequences or [n for n in (*WALK35, *JUMPS) if n in trials]
     missing = [n for n in names if n not in trials]
     if missing:
