@@ -181,11 +181,11 @@ def run_sequence(chain, name, trials, num_paths, noise_px, seed, options) -> dic
 
 
 def error_profile(details: dict) -> dict:
-    """Per group (walk35, jump): the 3D error against the same with the true depth signs and with a scale
+    """Per group (walk35, jump, paper_jump: 13_11): the 3D error against the same with the true depth signs and with a scale
     fitted, the paths over 35 mm, the per-joint error and each bone's wrong-sign fraction (means over the
     group's sequences)."""
     out = {}
-    for group, names in (("walk35", WALK35), ("jump", JUMPS)):
+    for group, names in (("walk35", WALK35), ("jump", JUMPS), ("paper_jump", (PAPER_JUMP,))):
         rows = [details[n] for n in names if n in details]
         if not rows:
             continue
