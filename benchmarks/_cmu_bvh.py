@@ -21,16 +21,14 @@ import numpy as np
 from bcmocap.io import read_bvh
 from bcmocap.kcs import CMU_JOINTS
 from bcmocap.kinematics import joint_positions
-from bcmocap.kinematics.skeleton import Motion
 
 #: Metres per length unit of the CMU files and of their cgspeed conversion (1/0.45 inch).
 CGSPEED_LENGTH_UNIT_M = 0.0254 / 0.45
 
 
 def rest_positions(skeleton) -> np.ndarray:
-    """``(J, 3)`` joint positions (m) of ``skeleton`` with every rotation the identity."""
-    count = len(skeleton.names)
-    return np.asarray(joint_positions(skeleton, Motion(np.zeros((1, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (1, count, 1)))))[0]
+    """``(J, 3)`` joint positions (m) of ``skeleton`` in its rest pose (:meth:`~bcmocap.kinematics.Skeleton.rest_motion`)."""
+    return np.asarray(joint_positions(skeleton, skeleton.rest_motion()))
 
 
 def cgspeed_skeleton(bvh_path: str | Path, asf):
