@@ -133,7 +133,7 @@ def test_run_refuses_a_user_term_it_cannot_import_before_reading_the_capture(tmp
     ("run.toml", "[skeleton]\nrest_seconds = [0.0, nan]\n", "skeleton.rest_seconds must be finite"),
     ("run.json", '{"skeleton": {"root_origin": [1]}}', "skeleton.root_origin must be a list of strings"),
     ("run.toml", '[frontend]\npoints = "some"\n', "frontend.points must be 'all' or 'reference', got 'some'"),
-    ("run.toml", '[skeleton]\ndegenerate = "ignore"\n', "skeleton.degenerate must be 'raise' or 'hinge', got 'ignore'"),
+    ("run.toml", '[skeleton]\ndegenerate = "ignore"\n', "skeleton.degenerate must be 'raise', 'hinge' or 'mirror', got 'ignore'"),
     ("run.toml", '[skeleton]\nunregistered_ends = "drop"\n',
      "skeleton.unregistered_ends must be 'raise' or 'mirror', got 'drop'"),
     ("run.toml", "[solver]\nregistered_pose = [0.02, 0.0]\n",

@@ -379,3 +379,37 @@ def test_an_end_joint_the_trial_did_not_move_mirrors_its_other_side():
                                          rest_frames=range(15))
     np.testing.assert_allclose(est.skeleton.offsets, full.skeleton.offsets, atol=1e-9)
     assert_same_mounts(est.segment_from_camera, full.segment_from_camera, 1e-9)
+
+
+def test_a_hip_the_trial_did_not_move_mirrors_its_other_side():
+    # The left thigh's camera is registered only while its hip is still: a joint with children, so
+    # unregistered_ends does not reach it and it stops the estimate; with degenerate = "mirror" it is the right hip's
+    # centre mirrored (exact on a symmetric body), through the midplane the knees fix, since the hips' own centres
+    # are one of the pair.
+    skeleton, rig = _two_legged_model()
+    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
+                                  **TRIAL)
+    rotations = np.asarray(trial.motion.rotations)
+    hip = {side: np.degrees(2 * np.arccos(np.clip(np.abs(rotations[:, skeleton.index(f"{side}_thigh"), 0]), 0, 1)))
+           for side in ("left", "right")}
+    registered = trial.registered.copy()
+    registered[hip["left"] > 0.01, rig.index("left_thigh")] = False
+    assert (registered[:, rig.index("left_thigh")]).sum() >= 20  # the knee keeps frames of its own
+    args = (skeleton, trial.assignment, trial.world_from_camera, registered)
+    for options in (RomOptions(), RomOptions(unregistered_ends="mirror")):
+        with pytest.raises(ValueError, match=r"joint 'left_thigh' .* does not determine its centre"):
+            skeleton_from_range_of_motion(*args, rest_frames=range(15), options=options)
+    with pytest.warns(UserWarning, match=r"joint 'left_thigh': the trial does not determine its centre .* 'right_thigh''s "
+                                         r"mirrored .*\(degenerate = 'mirror'\)"):
+        est = skeleton_from_range_of_motion(*args, rest_frames=range(15), options=RomOptions(degenerate="mirror"))
+    full = skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, trial.registered,
+                                         rest_frames=range(15))
+    np.testing.assert_allclose(est.skeleton.offsets, full.skeleton.offsets, atol=1e-9)
+    assert_same_mounts(est.segment_from_camera, full.segment_from_camera, 1e-9)
+    assert est.joints["left_thigh"].mirrored_from == "right_thigh" and full.joints["left_thigh"].mirrored_from is None
+    noted = [line for line in est.summary().splitlines() if "not determined" in line]
+    assert len(noted) == 1 and noted[0].startswith("left_thigh ") and noted[0].endswith("right_thigh's, mirrored")
+    registered[hip["right"] > 0.01, rig.index("right_thigh")] = False  # neither hip: nothing to mirror
+    with pytest.raises(ValueError, match=r"joint '(left|right)_thigh' .* does not determine its centre"):
+        skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, registered,
+                                      rest_frames=range(15), options=RomOptions(degenerate="mirror"))

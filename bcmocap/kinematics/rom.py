@@ -135,9 +135,12 @@ class RomOptions:
         max_centre_std_m: a centre whose standard error along its worst direction exceeds this is
             reported as not determined by the trial.
         robust: reweight frames (Tukey) in the joint solves and the virtual-camera averages.
-        degenerate: what to do with a ball joint exercised about one axis only: "raise" (default), or
+        degenerate: what to do with a ball joint exercised about one axis only: "raise" (default);
             "hinge" — warn and fix its centre on that axis with the straight-rest-pose constraint
-            (Eq. 17), as for a knee.
+            (Eq. 17), as for a knee; or "mirror" — warn and give any ball joint the trials do not determine
+            (moved about too few axes, its centre's standard error over ``max_centre_std_m``, or its segments
+            known together in too few frames) its other side's centre (``left_``/``right_`` names) mirrored
+            through the body's midplane, a hip or a shoulder as much as an ankle. Both sides undetermined raise.
         centred_virtual: virtual cameras at the mean of their cameras (True) or at a reference camera.
         pose_radius_deg: frames whose parent→child rotations are closer than this count as one pose
             when weighting frames (a few times the rotation noise).
@@ -160,8 +163,8 @@ class RomOptions:
     unregistered_ends: str = "raise"
 
     def __post_init__(self):
-        if self.degenerate not in ("raise", "hinge"):
-            raise ValueError(f"RomOptions: degenerate must be 'raise' or 'hinge', got {self.degenerate!r}")
+        if self.degenerate not in ("raise", "hinge", "mirror"):
+            raise ValueError(f"RomOptions: degenerate must be 'raise', 'hinge' or 'mirror', got {self.degenerate!r}")
         if self.unregistered_ends not in ("raise", "mirror"):
             raise ValueError(f"RomOptions: unregistered_ends must be 'raise' or 'mirror', got {self.unregistered_ends!r}")
 
@@ -179,6 +182,8 @@ class JointEstimate:
         rms_residual_m: RMS over inlier frames of ``|parent_from_child · c_child − c_parent|`` (m).
         spread: ``(6,)`` normalised singular values of Eq. (13)'s system, ascending.
         std_m: standard error of the centre along its worst determined direction (m).
+        mirrored_from: the other side's joint whose centre this one took, mirrored through the midplane, where the
+            trials did not determine it (the statistics above are then those of the fit that failed); else None.
     """
 
     segment: str
@@ -192,6 +197,7 @@ class JointEstimate:
     rms_residual_m: float
     spread: np.ndarray
     std_m: float
+    mirrored_from: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -225,6 +231,7 @@ class RomEstimate:
             lines.append(
                 f"{name:<18}{j.joint_type.name.lower():<7}{j.frames:>7}{100 * j.inlier_fraction:>8.0f}%"
                 f"{1e3 * j.rms_residual_m:>8.2f}{weakest:>8.3f}{1e3 * j.std_m:>8.2f}"
+                + (f"  not determined: {j.mirrored_from}'s, mirrored" if j.mirrored_from else "")
             )
         return "\n".join(lines)
 
@@ -498,6 +505,24 @@ def _hip_pair(names, parents) -> tuple[int, int]:
                      "midplane")
 
 
+def _midplane_pair(names, parents, undetermined=frozenset(), placed=frozenset()) -> tuple[int, int]:
+    """The joints whose centres at rest fix the body's midplane: the root's ``left_``/``right_`` children
+    (:func:`_hip_pair`), or where either is ``undetermined`` (a hip the trials did not determine), the first
+    ``left_`` joint of the tree whose ``right_`` twin is there and neither is, preferring a pair neither of whose
+    centres is ``placed`` by the rest pose (a knee, placed on its axis by the hip above it, would lean on the centre
+    being mirrored). ValueError without one."""
+    left, right = _hip_pair(names, parents)
+    if names[left] not in undetermined and names[right] not in undetermined:
+        return left, right
+    pairs = [(k, names.index(_other_side(name))) for k, name in enumerate(names)
+             if name.startswith("left_") and _other_side(name) in names
+             and not {name, _other_side(name)} & set(undetermined)]
+    for k, m in sorted(pairs, key=lambda pair: bool({names[pair[0]], names[pair[1]]} & set(placed))):
+        return k, m
+    raise ValueError(f"'{names[left]}' or '{names[right]}' is undetermined and no other left_/right_ pair of joints "
+                     "is determined to find the body's midplane")
+
+
 def _midplane_reflection(skeleton: Skeleton) -> np.ndarray:
     """``(3, 3)`` the reflection through the body's midplane in the rest frame (:func:`_hip_pair`)."""
     left, right = _hip_pair(skeleton.names, skeleton.parents)
@@ -631,8 +656,8 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
         rel = np.concatenate([compose_poses(invert_pose(wv[kn[:, j] & kn[:, p], p]), wv[kn[:, j] & kn[:, p], j])
                               for wv, kn in pooled])
         trials = "trial" if not more_trials else f"{1 + len(more_trials)} trials"
-        mirrorable = (options.unregistered_ends == "mirror" and not topology.children(j)
-                      and _other_side(name) in topology.names)
+        mirrorable = _other_side(name) in topology.names and (
+            options.degenerate == "mirror" or options.unregistered_ends == "mirror" and not topology.children(j))
         if len(rel) < options.min_frames:
             failure = (f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {len(rel)} "
                        f"frames (< {options.min_frames}) of the {trials}")
@@ -682,8 +707,9 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
     for name, (failure, why) in undetermined.items():  # an end whose other side is determined takes that side mirrored
         if _other_side(name) in undetermined:
             raise ValueError(failure)
+        setting = "degenerate" if options.degenerate == "mirror" else "unregistered_ends"
         warnings.warn(f"joint '{name}': {why}; its centre is '{_other_side(name)}''s mirrored through the body's "
-                      "midplane (unregistered_ends = 'mirror')", stacklevel=3)
+                      f"midplane ({setting} = 'mirror')", stacklevel=3)
         families[name] = (None, None)
     return joints, families
 
@@ -718,13 +744,16 @@ def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest, m
     # A family's placement reads its neighbours' centres; where neighbours are families too (an elbow next to a
     # wrist moved about one axis), alternate until the placements settle.
     _check_neighbouring_axes(topology, {k: v for k, v in families.items() if v[1] is not None}, world_from_v_rest)
+    undetermined = {name for name, (_, null) in families.items() if null is None}
+    placed = set(families) - undetermined
     for _ in range(1 if len(families) < 2 else 10):
         for name, (y0, null) in families.items():
             if null is None:  # a centre the trials did not determine: its other side's, mirrored
                 joints[name] = _resolve_by_mirror(topology, joints, name, np.zeros(6), np.eye(6), world_v,
-                                                  known & rest[:, None])
+                                                  known & rest[:, None], undetermined, placed)
             else:
-                joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None], mirror)
+                joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None], mirror,
+                                                undetermined, placed)
     return world_from_v_rest
 
 
@@ -788,7 +817,8 @@ def _check_neighbouring_axes(topology, families, world_from_v_rest, max_angle_de
                 )
 
 
-def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known, mirror: bool = False) -> JointEstimate:
+def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known, mirror: bool = False,
+                     undetermined=frozenset(), placed=frozenset()) -> JointEstimate:
     """Pick the point on a hinge's axis that is collinear with the joints above and below at rest (Eq. 17); for a
     joint at the end of a chain (a wrist, an ankle moved about one axis), collinear with the two joints above it
     (the straight limb extended). A neighbour that is itself on an axis is taken where it currently is. With
@@ -798,7 +828,7 @@ def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known, mirr
     p = topology.parents[j]
     kids = topology.children(j)
     if mirror and topology.parents[p] == 0 and not kids and _other_side(name) in joints:
-        return _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known)
+        return _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known, undetermined, placed)
     if topology.parents[p] < 0 or len(kids) > 1 or (not kids and topology.parents[topology.parents[p]] < 0):
         raise ValueError(
             f"joint '{name}': a centre on an axis is fixed by the straight limb of the rest pose — collinear with the "
@@ -833,19 +863,23 @@ def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known, mirr
     return dataclasses.replace(joints[name], centre_in_child=y[:3], centre_in_parent=y[3:])
 
 
-def _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known) -> JointEstimate:
+def _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known, undetermined=frozenset(),
+                       placed=frozenset()) -> JointEstimate:
     """The centre ``y0 + null · a`` (``null`` ``(6,)`` a hinge's axis, or ``(6, 6)``: any centre) nearest, over the rest
-    frames, its other side's centre mirrored through the midplane (halfway between the root's ``left_``/``right_``
-    children's centres, normal to the line between them)."""
+    frames, its other side's centre mirrored through the midplane (halfway between the centres of a ``left_``/``right_``
+    pair, normal to the line between them: :func:`_midplane_pair`, none of whose centres is ``undetermined``, and
+    preferably none ``placed`` on an axis by the rest pose)."""
     j = topology.index(name)
     p = topology.parents[j]
     other = topology.index(_other_side(name))
-    left, right = _hip_pair(topology.names, topology.parents)
-    ok = rest_known[:, j] & rest_known[:, p] & rest_known[:, other] & rest_known[:, 0]
+    left, right = _midplane_pair(topology.names, topology.parents, undetermined, placed)
+    ends = (p, other, topology.parents[left], topology.parents[right])
+    ok = rest_known[:, j] & np.all(rest_known[:, list(ends)], axis=1)
     if not ok.any():
-        raise ValueError(f"joint '{name}': it, its other side and the root are never all known in the rest frames")
+        raise ValueError(f"joint '{name}': it, its other side and the midplane's joints '{topology.names[left]}' and "
+                         f"'{topology.names[right]}' are never all known in the rest frames")
     wv = world_v[ok]
-    a, b = (apply_pose(wv[:, 0], joints[topology.names[k]].centre_in_parent) for k in (left, right))
+    a, b = (apply_pose(wv[:, topology.parents[k]], joints[topology.names[k]].centre_in_parent) for k in (left, right))
     normal = (a - b) / np.linalg.norm(a - b, axis=1, keepdims=True)
     target = apply_pose(wv[:, other], joints[topology.names[other]].centre_in_child)
     target = target - 2.0 * np.sum((target - 0.5 * (a + b)) * normal, axis=1, keepdims=True) * normal
@@ -856,7 +890,9 @@ def _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known) ->
         rows.append((rot @ step).reshape(-1, null.shape[1]))
         rhs.append((target - apply_pose(pose, base)).ravel())
     y = y0 + null @ np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
-    return dataclasses.replace(joints[name], centre_in_child=y[:3], centre_in_parent=y[3:])
+    whole = null.shape[1] == 6  # the whole centre is the other side's (not a point on the joint's own axis)
+    return dataclasses.replace(joints[name], centre_in_child=y[:3], centre_in_parent=y[3:],
+                               mirrored_from=topology.names[other] if whole else joints[name].mirrored_from)
 
 
 def _flexion_sign(world_v, known, j, p, seg_from_v_rot, axis) -> float:

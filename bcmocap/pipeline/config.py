@@ -35,8 +35,11 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     up_from = ["left_foot", "right_foot"]   # the world's +Z points from these joint centres ...
     up_to = "head"                          # ... to this one, in the rest pose
     max_centre_std_cm = 5.0   # a joint centre less certain than this (standard error) is an error
-    degenerate = "raise"      # a ball joint the ROM trial moved about one axis only: raise | hinge (warn, and
-                              # fix its centre on that axis by the straight rest pose, as for a knee)
+    degenerate = "mirror"     # a ball joint the trials do not determine (moved about too few axes, or its centre
+                              # less certain than max_centre_std_cm): mirror (warn, and give it its other side's
+                              # centre mirrored through the body's midplane; both sides undetermined raise) |
+                              # hinge (moved about one axis only: warn, and fix its centre on that axis by the
+                              # straight rest pose, as for a knee) | raise
     centre_trials = ["rom", "capture"]   # trials whose motion fits the joint centres: ["rom"] (the paper) |
                               # ["rom", "capture"] (all the motion there is; rest pose and virtual cameras stay
                               # the ROM trial's)
@@ -125,7 +128,7 @@ class SkeletonConfig:
     up_from: tuple[str, ...] = ("left_foot", "right_foot")
     up_to: str = "head"
     max_centre_std_cm: float = 5.0
-    degenerate: str = "raise"
+    degenerate: str = "mirror"
     centre_trials: tuple[str, ...] = ("rom", "capture")
     unregistered_ends: str = "mirror"
 
@@ -215,7 +218,8 @@ class RunConfig:
         _check(len(k.rest_seconds) in (0, 2) and (not k.rest_seconds or k.rest_seconds[0] < k.rest_seconds[1]),
                "skeleton.rest_seconds", "must be [] or [from, to] with from < to", list(k.rest_seconds))
         _check(k.max_centre_std_cm > 0, "skeleton.max_centre_std_cm", "must be > 0", k.max_centre_std_cm)
-        _check(k.degenerate in ("raise", "hinge"), "skeleton.degenerate", "must be 'raise' or 'hinge'", k.degenerate)
+        _check(k.degenerate in ("raise", "hinge", "mirror"), "skeleton.degenerate", "must be 'raise', 'hinge' or 'mirror'",
+               k.degenerate)
         _check(k.unregistered_ends in ("raise", "mirror"), "skeleton.unregistered_ends", "must be 'raise' or 'mirror'",
                k.unregistered_ends)
         _check(tuple(k.centre_trials) in (("rom",), ("rom", "capture")), "skeleton.centre_trials",
