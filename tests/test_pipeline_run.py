@@ -165,6 +165,16 @@ def test_an_interrupted_solve_resumes_at_the_next_window(simulated_run, tmp_path
     assert any("resuming after window 2" in line for line in lines)
     resumed = load_motion(copy / "solve" / "motion.npz")
     np.testing.assert_allclose(np.asarray(resumed.rotations), np.asarray(solved.rotations), atol=1e-9)
+    # A stage before the solve redone (its inputs changed, the settings did not): the solve starts over, never from a
+    # checkpoint that stood on the old model or initial motion.
+    (copy / "solve" / "checkpoint.json").write_text(json.dumps({**reports, "reports": first_two}))
+    log = json.loads((copy / "run.json").read_text())
+    for stage in ("initial", "solve", "outputs"):
+        log["stages"].pop(stage)
+    (copy / "run.json").write_text(json.dumps(log))
+    lines = []
+    run_pipeline(fake, copy, config, log=lines.append)
+    assert not any("resuming" in line for line in lines) and any("[5/6] solve ..." in line for line in lines)
 
 
 def test_missing_subject_is_a_clear_error(simulated_run, tmp_path):

@@ -202,6 +202,9 @@ def _run_stages(capture, out: Path, config: RunConfig, log: Callable[[str], None
                 say(f"[{i}/{len(STAGES)}] {stage}: settings changed, redoing it and the stages after it")
             redo = True
             run_log.forget_from(stage)
+            if STAGES.index(stage) < STAGES.index("solve"):  # the solve's checkpoint stood on what this stage redoes
+                for name in ("checkpoint.json", "checkpoint.npz"):
+                    (out / "solve" / name).unlink(missing_ok=True)
             say(f"[{i}/{len(STAGES)}] {stage} ...")
             clock = time.perf_counter()
             measured = reset_peak()
