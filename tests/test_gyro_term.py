@@ -376,3 +376,88 @@ def test_the_run_checks_homographies_by_the_gyros_only_with_gyro_turns(tmp_path)
     assert check.keywords == {"tolerance_deg": 1.0, "time_shifts_s": None}
     assert run._gyro_homography_check(context({"solver.gyro_turn": 0.5,
                                                "solver.terms": ["reprojection", "smoothness"]})) is None
+
+
+def test_a_camera_registered_nowhere_sits_by_its_gyro_against_its_segments_other_camera():
+    # The leg model's waist_back camera registers in no frame of its range-of-motion trial (its two siblings on the
+    # pelvis do). Its gyro's turns against waist_front's registered turns give the rotation between them within
+    # 0.02 deg (the studio's gyro noise, no bias; 0.2 deg with its turn-on bias), and the skeleton estimate takes its
+    # mount from waist_front's turned by it: the rotation is the one the full estimate finds from the camera's own
+    # frames, the skeleton the one without the camera, at waist_front's position.
+    from test_rom import assert_same_mounts
+    from test_sim_rom import TRIAL
+
+    from bcmocap.geometry import quat_conjugate, quat_multiply
+    from bcmocap.kinematics.rom import skeleton_from_range_of_motion
+    from bcmocap.pipeline.gyro_turns import rotations_from_siblings_by_gyro
+    skeleton, rig, trial, frames = _leg_trial()
+    back, front = rig.index("waist_back"), rig.index("waist_front")
+    registered = trial.registered.copy()
+    registered[:, back] = False
+    mounts = np.asarray(rig.segment_from_camera)
+    truth = quat_multiply(quat_conjugate(mounts[front, :4]), mounts[back, :4])
+    only = np.zeros(rig.num_cameras, bool)
+    only[back] = True
+    segments = [skeleton.names[s] for s in rig.segments]
+    angles = []
+    for bias in (0.0, np.radians(0.5)):
+        imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, frames - 1), seed=3, gyro_bias=bias)
+        placed, report = rotations_from_siblings_by_gyro(
+            [(trial.world_from_camera, registered, TRIAL["fps"], imu, np.zeros(rig.num_cameras))], rig.names, segments, only)
+        assert list(placed) == ["waist_back"] and placed["waist_back"][0] == "waist_front"
+        assert report["waist_back"]["placed"] and report["waist_back"]["pairs"] > 50, report
+        angles.append(np.degrees(2 * np.arccos(min(1.0, abs(placed["waist_back"][1] @ truth)))))
+    assert angles[0] < 0.02 and angles[1] < 0.2, angles
+    imu = simulate_imu(skeleton, rig, trial.motion, TRIAL["fps"], (0, frames - 1), seed=3, gyro_bias=0.0)
+    placed, _ = rotations_from_siblings_by_gyro(
+        [(trial.world_from_camera, registered, TRIAL["fps"], imu, np.zeros(rig.num_cameras))], rig.names, segments, only)
+    args = (skeleton, trial.assignment, trial.world_from_camera)
+    with pytest.raises(ValueError, match=r"camera 'waist_back' is never registered"):
+        skeleton_from_range_of_motion(*args, registered, rest_frames=trial.rest_frames)
+    with pytest.warns(UserWarning, match=r"camera 'waist_back' is registered in no frame of the trials: its mount is "
+                                         r"'waist_front''s turned"):
+        est = skeleton_from_range_of_motion(*args, registered, rest_frames=trial.rest_frames, sibling_rotations=placed)
+    full = skeleton_from_range_of_motion(*args, trial.registered, rest_frames=trial.rest_frames)
+    np.testing.assert_allclose(est.skeleton.offsets, full.skeleton.offsets, atol=1e-9)
+    keep = [i for i in range(rig.num_cameras) if i != back]
+    assert_same_mounts(est.segment_from_camera[keep], full.segment_from_camera[keep], 1e-9)
+    got, want = est.segment_from_camera[back], full.segment_from_camera[back]
+    assert np.degrees(2 * np.arccos(min(1.0, abs(got[:4] @ want[:4])))) < 0.05
+    np.testing.assert_allclose(got[4:], est.segment_from_camera[front, 4:])
+    with pytest.raises(ValueError, match=r"'waist_back' → 'chest': the sibling must be on the same segment"):
+        skeleton_from_range_of_motion(*args, registered, rest_frames=trial.rest_frames,
+                                      sibling_rotations={"waist_back": ("chest", truth)})
+    with pytest.raises(ValueError, match=r"camera 'waist_back' is registered in \d+ frames; its own frames place it"):
+        skeleton_from_range_of_motion(*args, trial.registered, rest_frames=trial.rest_frames, sibling_rotations=placed)
+
+
+def test_the_skeleton_stage_places_a_camera_registered_nowhere_by_its_gyro(tmp_path, monkeypatch):
+    # The run's glue: only a camera registered in no frame of the trials, on a segment with a camera that registered,
+    # is placed; the ROM trial's imu.npz is read at the frontend's gyro timing (the IMU clock 40 ms behind the frames),
+    # and the log names the camera, its sibling and the fit. Without a gyro file, nothing is placed.
+    from test_sim_rom import TRIAL
+
+    import bcmocap.correspondence_store as store_module
+    from bcmocap.geometry import quat_conjugate, quat_multiply
+    from bcmocap.pipeline import run
+
+    skeleton, rig, trial, frames = _leg_trial()
+    ctx, logged, timing = _gyro_timed_run(tmp_path, "rom", skeleton, rig, trial)
+    monkeypatch.setattr(store_module.CorrespondenceStore, "open", staticmethod(lambda path: types.SimpleNamespace(fps=TRIAL["fps"])))
+    assert run._sibling_rotations_from_gyros(ctx, [("rom", trial.world_from_camera, trial.registered)], 20, logged.append) == {}
+    registered = trial.registered.copy()
+    back, shin = rig.index("waist_back"), rig.index("shin")
+    registered[:, [back, shin]] = False  # the shin has no other camera: the skeleton stage will name it
+    placed = run._sibling_rotations_from_gyros(ctx, [("rom", trial.world_from_camera, registered)], 20, logged.append)
+    mounts = np.asarray(rig.segment_from_camera)
+    assert list(placed) == ["waist_back"] and placed["waist_back"][0] in ("waist_front", "waist_left")
+    sibling = rig.index(placed["waist_back"][0])
+    truth = quat_multiply(quat_conjugate(mounts[sibling, :4]), mounts[back, :4])
+    assert np.degrees(2 * np.arccos(min(1.0, abs(placed["waist_back"][1] @ truth)))) < 0.05
+    assert len(logged) == 1 and logged[0].startswith(f"skeleton: camera 'waist_back' is registered in no frame; by its "
+                                                     f"gyro it sits relative to '{rig.names[sibling]}'")
+    timing.write_text("{}")  # without the timing: the turns are read 40 ms off
+    off = run._sibling_rotations_from_gyros(ctx, [("rom", trial.world_from_camera, registered)], 20, logged.append)
+    assert np.degrees(2 * np.arccos(min(1.0, abs(off["waist_back"][1] @ truth)))) > 0.5
+    (tmp_path / "capture" / "trials" / "rom" / "imu.npz").unlink()
+    assert run._sibling_rotations_from_gyros(ctx, [("rom", trial.world_from_camera, registered)], 20, logged.append) == {}

@@ -213,9 +213,11 @@ def test_the_skeleton_stage_logs_what_the_estimate_warns(monkeypatch):
         return "estimate"
 
     monkeypatch.setattr(rom, "skeleton_from_range_of_motion", estimate)
-    for name in ("_topology", "_stacked_intrinsics", "_more_trials"):
+    for name in ("_topology", "_stacked_intrinsics"):
         monkeypatch.setattr(run, name, lambda *a, **k: None)
+    monkeypatch.setattr(run, "_more_trials", lambda *a, **k: [])
     monkeypatch.setattr(run, "_gyro_rest_orientations", lambda *a, **k: None)
+    monkeypatch.setattr(run, "_sibling_rotations_from_gyros", lambda *a, **k: {})
     config = RunConfig().with_overrides({"skeleton.unregistered_ends": "raise"})
     logged = []
     ctx = types.SimpleNamespace(capture=types.SimpleNamespace(cameras=[]), config=config, log=logged.append)

@@ -141,6 +141,8 @@ class RomOptions:
             (moved about too few axes, its centre's standard error over ``max_centre_std_m``, or its segments
             known together in too few frames) its other side's centre (``left_``/``right_`` names) mirrored
             through the body's midplane, a hip or a shoulder as much as an ankle. Both sides undetermined raise.
+            A direction moved less than ``min_spread`` but more than half of it (1° of camera noise alone reads
+            half), where the centre's standard error is within ``max_centre_std_m``, is kept as fitted (warned).
         centred_virtual: virtual cameras at the mean of their cameras (True) or at a reference camera.
         pose_radius_deg: frames whose parent→child rotations are closer than this count as one pose
             when weighting frames (a few times the rotation noise).
@@ -182,8 +184,9 @@ class JointEstimate:
         rms_residual_m: RMS over inlier frames of ``|parent_from_child · c_child − c_parent|`` (m).
         spread: ``(6,)`` normalised singular values of Eq. (13)'s system, ascending.
         std_m: standard error of the centre along its worst determined direction (m).
-        mirrored_from: the other side's joint whose centre this one took, mirrored through the midplane, where the
-            trials did not determine it (the statistics above are then those of the fit that failed); else None.
+        placed_by: where the trials did not determine the centre, how it was placed (``"right_thigh's, mirrored"``:
+            its other side's centre mirrored through the midplane); the statistics above are then those of the fit
+            that fell short. None where the trials determined it.
     """
 
     segment: str
@@ -197,7 +200,7 @@ class JointEstimate:
     rms_residual_m: float
     spread: np.ndarray
     std_m: float
-    mirrored_from: str | None = None
+    placed_by: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,7 +234,7 @@ class RomEstimate:
             lines.append(
                 f"{name:<18}{j.joint_type.name.lower():<7}{j.frames:>7}{100 * j.inlier_fraction:>8.0f}%"
                 f"{1e3 * j.rms_residual_m:>8.2f}{weakest:>8.3f}{1e3 * j.std_m:>8.2f}"
-                + (f"  not determined: {j.mirrored_from}'s, mirrored" if j.mirrored_from else "")
+                + (f"  not determined: {j.placed_by}" if j.placed_by else "")
             )
         return "\n".join(lines)
 
@@ -391,6 +394,7 @@ def skeleton_from_range_of_motion(
     world_from_rest: np.ndarray | None = None,
     more_trials: Sequence[tuple[np.ndarray, np.ndarray]] = (),
     rest_orientations: np.ndarray | None = None,
+    sibling_rotations: Mapping[str, tuple[str, np.ndarray]] | None = None,
     options: RomOptions = RomOptions(),
 ) -> RomEstimate:
     """Estimate a skeleton and its camera mounts from the camera poses of a range-of-motion trial.
@@ -419,6 +423,11 @@ def skeleton_from_range_of_motion(
             other than by a registration in the rest frames (e.g. carried there by the camera's gyro from the
             frames it registered in), NaN where not. Read only for a segment none of whose cameras is
             registered in the rest frames; its position there follows from its parent's and the joint centre.
+        sibling_rotations: camera name → ``(sibling, (4,) wxyz sibling_from_camera rotation)`` for cameras registered
+            in no frame of any trial whose orientation relative to another camera of their segment is known otherwise
+            (e.g. from their gyros: :func:`~bcmocap.pipeline.gyro_turns.rotations_from_siblings_by_gyro`). They are
+            left out of the estimate, and each one's mount is its sibling's turned by that rotation, at the sibling's
+            position: where it sits on the segment is not determined (no term that reads only its turns needs it).
         options: thresholds and choices (:class:`RomOptions`).
 
     Raises:
@@ -438,6 +447,11 @@ def skeleton_from_range_of_motion(
     world_from_camera = np.asarray(world_from_camera, dtype=np.float64)
     registered = np.asarray(registered, dtype=bool)
     _check_more_trials(pairs, more_trials)
+    if sibling_rotations:
+        return _with_sibling_mounts(sibling_rotations, topology, pairs, world_from_camera, registered,
+                                    rest_frames=rest_frames, intrinsics=intrinsics, root_origin=root_origin,
+                                    world_from_rest=world_from_rest, more_trials=more_trials,
+                                    rest_orientations=rest_orientations, options=options)
     ends = _unregistered_ends(topology, pairs, registered, options, [reg for _, reg in more_trials])
     if ends:
         return _with_mirrored_ends(ends, topology, pairs, world_from_camera, registered, rest_frames=rest_frames,
@@ -543,13 +557,9 @@ def _with_mirrored_ends(ends, topology: Topology, pairs, world_from_camera, regi
                        tuple(topology.joint_types[j] for j in keep))
     dropped = {topology.names[j] for j in ends}
     cams = [i for i, (_, s) in enumerate(pairs) if s not in dropped]
-    carried = None if rest_orientations is None else np.asarray(rest_orientations, np.float64)[cams]
     intrinsics = kwargs.pop("intrinsics")
-    part = skeleton_from_range_of_motion(
-        reduced, [pairs[i] for i in cams], np.asarray(world_from_camera)[:, cams], np.asarray(registered)[:, cams],
-        more_trials=[(np.asarray(p)[:, cams], np.asarray(r)[:, cams]) for p, r in more_trials],
-        rest_orientations=carried, options=options,
-        intrinsics=None if intrinsics is None else stack_cameras([camera_at(intrinsics, i) for i in cams]), **kwargs)
+    part = _estimate_with_cameras(cams, reduced, pairs, world_from_camera, registered, more_trials=more_trials,
+                                  rest_orientations=rest_orientations, options=options, intrinsics=intrinsics, **kwargs)
     mirror = _midplane_reflection(part.skeleton)
     n = len(topology.names)
     offsets, axes = np.zeros((n, 3)), np.zeros((n, 3))
@@ -579,6 +589,51 @@ def _with_mirrored_ends(ends, topology: Topology, pairs, world_from_camera, regi
     names = tuple(c for c, _ in pairs)
     rig = None if intrinsics is None else Rig(names, camera_segments, mounts, intrinsics)
     return RomEstimate(skeleton, rig, mounts, names, camera_segments, part.joints, part.virtual_cameras,
+                       part.segment_from_virtual)
+
+
+def _estimate_with_cameras(cams, topology: Topology, pairs, world_from_camera, registered, *, more_trials,
+                           rest_orientations, intrinsics, **kwargs) -> RomEstimate:
+    """:func:`skeleton_from_range_of_motion` on the cameras ``cams`` (indices into ``pairs``) alone."""
+    return skeleton_from_range_of_motion(
+        topology, [pairs[i] for i in cams], np.asarray(world_from_camera)[:, cams], np.asarray(registered)[:, cams],
+        more_trials=[(np.asarray(p)[:, cams], np.asarray(r)[:, cams]) for p, r in more_trials],
+        rest_orientations=None if rest_orientations is None else np.asarray(rest_orientations, np.float64)[cams],
+        intrinsics=None if intrinsics is None else stack_cameras([camera_at(intrinsics, i) for i in cams]), **kwargs)
+
+
+def _with_sibling_mounts(sibling_rotations, topology: Topology, pairs, world_from_camera, registered, *, more_trials,
+                         rest_orientations, options, **kwargs) -> RomEstimate:
+    """The estimate without the cameras of ``sibling_rotations`` (see :func:`skeleton_from_range_of_motion`), then each
+    one's mount its sibling's turned by its rotation, at the sibling's position; warns naming each."""
+    names = [c for c, _ in pairs]
+    segment_of = dict(pairs)
+    for name, (sibling, _) in sibling_rotations.items():
+        if name not in segment_of or sibling not in segment_of:
+            raise ValueError(f"sibling_rotations: '{name}' → '{sibling}': both must be assigned cameras")
+        if segment_of[name] != segment_of[sibling] or sibling in sibling_rotations:
+            raise ValueError(f"sibling_rotations: '{name}' → '{sibling}': the sibling must be on the same segment "
+                             f"('{segment_of[name]}', not '{segment_of[sibling]}') and placed by its own registrations")
+        counts = np.asarray(registered, bool)[:, names.index(name)].sum() + sum(
+            np.asarray(r, bool)[:, names.index(name)].sum() for _, r in more_trials)
+        if counts:
+            raise ValueError(f"sibling_rotations: camera '{name}' is registered in {counts} frames; its own frames place it")
+    keep = [i for i, c in enumerate(names) if c not in sibling_rotations]
+    intrinsics = kwargs.pop("intrinsics")
+    part = _estimate_with_cameras(keep, topology, pairs, world_from_camera, registered, more_trials=more_trials,
+                                  rest_orientations=rest_orientations, options=options, intrinsics=intrinsics, **kwargs)
+    mounts = np.zeros((len(pairs), 7))
+    mounts[keep] = part.segment_from_camera
+    for name, (sibling, rotation) in sibling_rotations.items():
+        source = part.segment_from_camera[part.camera_names.index(sibling)]
+        q = np.asarray(rotation, np.float64) / np.linalg.norm(rotation)
+        mounts[names.index(name)] = np.concatenate([quat_multiply(source[:4], q), source[4:]])
+        warnings.warn(f"camera '{name}' is registered in no frame of the trials: its mount is '{sibling}''s turned by "
+                      f"the rotation between them given in sibling_rotations, at '{sibling}''s position (where it sits "
+                      f"on '{segment_of[name]}' is not determined)", stacklevel=2)
+    camera_segments = tuple(topology.index(s) for _, s in pairs)
+    rig = None if intrinsics is None else Rig(tuple(names), camera_segments, mounts, intrinsics)
+    return RomEstimate(part.skeleton, rig, mounts, tuple(names), camera_segments, part.joints, part.virtual_cameras,
                        part.segment_from_virtual)
 
 
@@ -685,7 +740,16 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
                     stacklevel=3,
                 )
         elif weak or est.std_m > options.max_centre_std_m:
-            if weak == 1 and options.degenerate == "hinge":
+            # a direction moved less than min_spread but more than half of it (1° of camera noise alone reads half)
+            # that the fit still pins within the limit
+            marginal = (options.degenerate == "mirror" and est.std_m <= options.max_centre_std_m
+                        and est.spread.min() >= options.min_spread / 2)
+            if marginal:
+                warnings.warn(
+                    f"{what}: the {trials} exercised it little about one axis (spread {est.spread[0]:.4f} < "
+                    f"{options.min_spread}), but its centre's standard error, {100 * est.std_m:.2f} cm, is within the "
+                    f"limit of {100 * options.max_centre_std_m:.3g} cm: kept (degenerate = 'mirror')", stacklevel=3)
+            elif weak == 1 and options.degenerate == "hinge":
                 warnings.warn(
                     f"{what}: the trial exercised it about one axis only (spread {est.spread[0]:.4f} < "
                     f"{options.min_spread}); its centre is fixed on that axis by the straight rest pose",
@@ -892,7 +956,7 @@ def _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known, un
     y = y0 + null @ np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
     whole = null.shape[1] == 6  # the whole centre is the other side's (not a point on the joint's own axis)
     return dataclasses.replace(joints[name], centre_in_child=y[:3], centre_in_parent=y[3:],
-                               mirrored_from=topology.names[other] if whole else joints[name].mirrored_from)
+                               placed_by=f"{topology.names[other]}'s, mirrored" if whole else joints[name].placed_by)
 
 
 def _flexion_sign(world_v, known, j, p, seg_from_v_rot, axis) -> float:

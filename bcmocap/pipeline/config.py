@@ -37,7 +37,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     max_centre_std_cm = 5.0   # a joint centre less certain than this (standard error) is an error
     degenerate = "mirror"     # a ball joint the trials do not determine (moved about too few axes, or its centre
                               # less certain than max_centre_std_cm): mirror (warn, and give it its other side's
-                              # centre mirrored through the body's midplane; both sides undetermined raise) |
+                              # centre mirrored through the body's midplane; both sides undetermined raise; a
+                              # direction moved more than half min_spread, where the centre is certain enough, is
+                              # kept) |
                               # hinge (moved about one axis only: warn, and fix its centre on that axis by the
                               # straight rest pose, as for a knee) | raise
     centre_trials = ["rom", "capture"]   # trials whose motion fits the joint centres: ["rom"] (the paper) |

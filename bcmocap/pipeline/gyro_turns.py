@@ -1,7 +1,8 @@
 """What the cameras' gyros say of their turns: over each pair of a solver window's frames (``[solver] gyro_turn``,
 read at the camera's shift on the gyro's clock, as a :class:`~bcmocap.residuals.gyro.GyroTurn`), from the frames
 a camera registered in to the rest pose of a range-of-motion trial where it registered in none of the rest frames,
-and through the frames of a trial it did not register in (the initial motion's)."""
+through the frames of a trial it did not register in (the initial motion's), and, for a camera that registered
+nowhere, how it sits relative to another camera of its segment."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..cameras import camera_at
-from ..geometry import matrix_from_quat, quat_conjugate, quat_multiply, slerp
+from ..geometry import (matrix_from_quat, quat_conjugate, quat_from_matrix, quat_log, quat_multiply,
+                        rotation_from_covariance, slerp)
 from ..io.sensors import ImuRecording, integrate_gyro, read_imu
 from ..kinematics.virtual import robust_average_poses
 from ..residuals.gyro import GyroTurn
@@ -228,3 +230,74 @@ def fill_orientations_from_gyros(world_from_camera: np.ndarray, registered: np.n
         world_from_camera[gaps, i, :4] = slerp(forward, backward, frac)
         filled[gaps, i] = True
     return world_from_camera, filled
+
+
+def rotations_from_siblings_by_gyro(trials: Sequence[tuple[np.ndarray, np.ndarray, float, ImuRecording, np.ndarray]],
+                                    names: Sequence[str], segments: Sequence[str], cameras: np.ndarray, *,
+                                    stride_s: float = 0.2, min_turn_deg: float = 3.0,
+                                    min_spread: float = 0.1) -> tuple[dict, dict]:
+    """Where a camera registered in no frame of any trial, its orientation relative to another camera of its segment
+    that registered (its *sibling*: the one registered most), from its gyro: both are rigid on the segment, so over
+    any interval the sibling's turn, read from its registered poses, is the camera's turn, read from its gyro, seen
+    through the rotation ``Q`` = sibling_from_camera: ``log(ΔR_sibling) = Q · log(ΔR_camera)``. ``Q`` is the
+    least-squares (Wahba) rotation over pairs of the sibling's registered frames ``stride_s`` apart.
+
+    Args:
+        trials: per trial ``(world_from_camera (T, C, 7), registered (T, C), fps, imu, time_shifts_s (C,))``: the
+            registered poses (only registered rows are read; any world frame, a turn does not depend on it), the
+            trial's recording, and where each camera's frames lie on the gyro's clock after the frame times.
+        names, segments: ``(C,)`` camera names and their segments' names.
+        cameras: ``(C,)`` bool, the cameras to place this way.
+        stride_s: the frame pairs' spacing (s); min_turn_deg: pairs whose turns are smaller are left out (noise).
+        min_spread: the turns' axes must span more than a line: the second singular value of their cross-covariance
+            over the first at least this, or the rotation about their common axis is not determined.
+
+    Returns:
+        name → ``(sibling name, (4,) wxyz Q)`` for each camera placed, and name → ``{"sibling", "pairs",
+        "residual_deg", "spread"}`` for each chosen camera with a gyro and a registered sibling (``"placed"``: whether
+        its rotation was determined): the pairs used, the median angle between the sibling's turns and the camera's
+        turned by ``Q``, and the axes' spread.
+    """
+    c = len(names)
+    chosen = np.asarray(cameras, bool)
+    if chosen.shape != (c,) or len(segments) != c:
+        raise ValueError(f"rotations from siblings: {c} names, {len(segments)} segments, cameras of shape {chosen.shape}")
+    counts = sum(np.asarray(r, bool).sum(axis=0) for _, r, *_ in trials)
+    placed, report = {}, {}
+    for i in np.flatnonzero(chosen):
+        siblings = [k for k in range(c) if segments[k] == segments[i] and k != i and counts[k] > 0]
+        if not siblings:
+            continue
+        k = max(siblings, key=lambda m: counts[m])
+        sibling_turns, own_turns = [], []
+        for poses, registered, fps, imu, shifts in trials:
+            if names[i] not in imu.cameras:
+                continue
+            s = imu.cameras.index(names[i])
+            known = np.flatnonzero(np.asarray(registered, bool)[:, k])
+            later = np.searchsorted(known, known + max(1, round(stride_s * fps)))
+            pairs = np.stack([known[later < known.size], known[later[later < known.size]]], axis=1)
+            on_clock = pairs / fps + shifts[i]
+            pairs = pairs[((on_clock >= imu.time[0]) & (on_clock <= imu.time[-1])).all(axis=1)]
+            if not pairs.size:
+                continue
+            q = np.asarray(poses, np.float64)[:, k, :4]
+            sibling_turns.append(quat_multiply(quat_conjugate(q[pairs[:, 0]]), q[pairs[:, 1]]))
+            t0, t1 = (pairs[:, j] / fps + shifts[i] for j in (0, 1))
+            own_turns.append(_in_camera(imu, s, integrate_gyro(imu.time, imu.gyro[:, s : s + 1], t0, t1)[:, 0]))
+        if not sibling_turns:
+            continue
+        a_sibling, a_own = quat_log(np.concatenate(sibling_turns)), quat_log(np.concatenate(own_turns))
+        big = np.linalg.norm(a_own, axis=1) > np.radians(min_turn_deg)
+        a_sibling, a_own = a_sibling[big], a_own[big]
+        cov = a_sibling.T @ a_own  # Σ target sourceᵀ
+        sv = np.linalg.svd(cov, compute_uv=False)
+        spread = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
+        rot = rotation_from_covariance(cov)
+        residual = np.linalg.norm(a_sibling - a_own @ rot.T, axis=1)
+        report[names[i]] = {"sibling": names[k], "pairs": int(big.sum()), "spread": spread,
+                            "residual_deg": float(np.degrees(np.median(residual))) if big.any() else float("nan"),
+                            "placed": bool(big.sum() >= 3 and spread >= min_spread)}
+        if report[names[i]]["placed"]:
+            placed[names[i]] = (names[k], quat_from_matrix(rot))
+    return placed, report

@@ -553,13 +553,16 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest, log=N
     carried = _gyro_rest_orientations(ctx, poses, registered, rest, log)
     if carried is not None:  # the similarity turns orientations as it turns poses
         carried = to_world(np.concatenate([carried, np.zeros((len(carried), 3))], axis=1)[None])[0, :, :4]
+    more_trials = _more_trials(ctx, to_world)
+    siblings = _sibling_rotations_from_gyros(ctx, [("rom", poses, registered)] + [
+        (trial, p, r) for trial, (p, r) in zip(settings.centre_trials[1:], more_trials)], options.min_frames, log)
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             estimate = skeleton_from_range_of_motion(
                 _topology(ctx), cams, to_world(poses), registered, rest_frames=rest, options=options,
                 intrinsics=_stacked_intrinsics(ctx), root_origin=list(settings.root_origin),
-                more_trials=_more_trials(ctx, to_world), rest_orientations=carried)
+                more_trials=more_trials, rest_orientations=carried, sibling_rotations=siblings)
     except ValueError as exc:
         raise ValueError(f"{exc} (run settings: [skeleton] max_centre_std_cm = {settings.max_centre_std_cm:g}, "
                          f"degenerate = {settings.degenerate!r}, centre_trials = {list(settings.centre_trials)}, "
@@ -567,6 +570,38 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest, log=N
     for warning in caught:  # in the run's log, where a user reads what the skeleton stage assumed
         log(f"skeleton: {warning.message}")
     return estimate
+
+
+def _sibling_rotations_from_gyros(ctx: RunContext, trials, min_frames: int, log) -> dict:
+    """For each camera registered in no frame of the ``trials`` (``[(name, world_from_camera, registered)]``) whose
+    segment has a camera registered in ``min_frames``, its rotation from that camera, from its gyro in the trials'
+    ``imu.npz`` on the clock the frontend's gyro timing found
+    (:func:`~bcmocap.pipeline.gyro_turns.rotations_from_siblings_by_gyro`; each one ``log``-ged): the
+    ``sibling_rotations`` of :func:`~bcmocap.kinematics.rom.skeleton_from_range_of_motion`. Empty without gyros."""
+    from ..correspondence_store import CorrespondenceStore
+    from ..io.sensors import read_imu
+    from .gyro_turns import rotations_from_siblings_by_gyro
+
+    names = [c.name for c in ctx.capture.cameras]
+    segments = [c.segment for c in ctx.capture.cameras]
+    counts = sum(np.asarray(r, bool).sum(axis=0) for _, _, r in trials)
+    nowhere = np.array([counts[i] == 0 and any(counts[k] >= min_frames for k in range(len(names))
+                                               if segments[k] == segments[i]) for i in range(len(names))])
+    recorded = [(trial, p, r) for trial, p, r in trials if (ctx.capture.path / "trials" / trial / "imu.npz").is_file()]
+    if not nowhere.any() or not recorded:
+        return {}
+    inputs = []
+    for trial, p, r in recorded:
+        timing = _gyro_shifts(ctx, trial)
+        fps = CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences")).fps
+        inputs.append((p, r, fps, read_imu(ctx.capture.path / "trials" / trial / "imu.npz"),
+                       np.zeros(len(names)) if timing is None else timing[0]))
+    placed, report = rotations_from_siblings_by_gyro(inputs, names, segments, nowhere)
+    for name, r in report.items():
+        how = "sits" if r["placed"] else "does not sit (its turns' axes too alike, or too few)"
+        log(f"skeleton: camera '{name}' is registered in no frame; by its gyro it {how} relative to '{r['sibling']}': "
+            f"{r['pairs']} turns, median residual {r['residual_deg']:.2f}°, axes' spread {r['spread']:.2f}")
+    return placed
 
 
 def _gyro_rest_orientations(ctx: RunContext, poses, registered, rest, log) -> np.ndarray | None:
