@@ -74,6 +74,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     registered_pose = [0.02, 1.0]   # σ [m, deg] of a prior holding a registered camera-frame with few measurements
                                     # at its registered pose; [0, 0]: off (bcmocap.residuals.registered_pose)
     registered_pose_below = 20      # ... where it has fewer measurements than this, 1 to 100000
+    unmeasured_orientation = 5.0    # σ [deg] of a prior holding a camera-frame with neither a registration nor a
+                                    # measurement at the initial motion's orientation (where the gyros carried it);
+                                    # 0: off (bcmocap.residuals.registered_pose)
     gyro_turn = 0.0           # σ (deg) of each camera's turn between frames against its gyro's (trials/capture/
                               # imu.npz, read at the frontend's gyro timing); 0: off (bcmocap.residuals.gyro)
 
@@ -162,6 +165,7 @@ class SolverConfig:
     mount_compliance: tuple[float, ...] = (0.0, 0.0)
     registered_pose: tuple[float, ...] = (0.02, 1.0)
     registered_pose_below: int = 20
+    unmeasured_orientation: float = 5.0
     gyro_turn: float = 0.0
     user_terms: tuple[UserTermConfig, ...] = ()
 
@@ -243,6 +247,8 @@ class RunConfig:
         _check(isinstance(s.registered_pose_below, int) and 1 <= s.registered_pose_below <= 100000,
                "solver.registered_pose_below", "must be an integer in [1, 100000]", s.registered_pose_below)
         _check(0.0 <= s.gyro_turn <= 30.0, "solver.gyro_turn", "must be in [0, 30] deg (0: off)", s.gyro_turn)
+        _check(0.0 <= s.unmeasured_orientation <= 180.0, "solver.unmeasured_orientation", "must be in [0, 180] deg (0: off)",
+               s.unmeasured_orientation)
         _check(s.loss in LOSSES, "solver.loss", f"must be one of {LOSSES}", s.loss)
         bad = [t for t in s.terms if t not in TERMS]
         _check(not bad, "solver.terms", f"must be a subset of {TERMS}", list(s.terms))

@@ -782,6 +782,22 @@ def _user_terms(ctx: RunContext) -> list:
     return [UserTerms(import_term_factory(u.factory), u.settings, u.factory) for u in ctx.config.solver.user_terms]
 
 
+def _unmeasured_orientation_terms(ctx: RunContext, skeleton, rig) -> list:
+    """``[solver] unmeasured_orientation``: each camera-frame with neither a registration nor a measurement held at the
+    initial motion's orientation (``DIR/solve/initial.npz``: where the gyros carried the camera across the frames it
+    did not register in; :func:`~bcmocap.residuals.registered_pose.unmeasured_orientation_terms`)."""
+    from ..kinematics.rig import camera_poses
+    from ..residuals.registered_pose import unmeasured_orientation_terms
+    from ..solver.objective import UserTerms
+
+    s = ctx.config.solver
+    if not s.unmeasured_orientation:
+        return []
+    poses = np.asarray(camera_poses(skeleton, rig, load_motion(ctx.path("solve", "initial.npz"))).wxyz_xyz)
+    return [UserTerms(unmeasured_orientation_terms, {"world_from_camera": poses, "sigma_deg": s.unmeasured_orientation,
+                                                     "loss": s.loss, "loss_scale": s.loss_scale}, "unmeasured orientation")]
+
+
 def _gyro_terms(ctx: RunContext, trial_folder: Path) -> list:
     """``[solver] gyro_turn``: the cameras' gyro turns (:func:`~bcmocap.pipeline.gyro_turns.gyro_turns`), the solver's
     frame times read on the gyro's clock by the frontend's gyro timing: each camera at its own shift, or, where the
@@ -879,7 +895,8 @@ def solve_problem(ctx: RunContext):
                                       time_offset_sigma_seconds=tuple(sigma.tolist()))
     trial_folder = ctx.capture.path / "trials" / "capture"
     problem = StoredProblem(corr, skeleton, rig, objective_weights(s), include_homography="homography" in s.terms and None,
-                            extra_terms=[*_gyro_terms(ctx, trial_folder), *_user_terms(ctx)], trial_folder=trial_folder,
+                            extra_terms=[*_gyro_terms(ctx, trial_folder), *_unmeasured_orientation_terms(ctx, skeleton, rig),
+                                         *_user_terms(ctx)], trial_folder=trial_folder,
                             effects=effects, homography_filter=_gyro_homography_check(ctx))
     return problem, SolverOptions(window=s.window, overlap=s.overlap)
 
