@@ -46,6 +46,7 @@ def plain(problem, init, monkeypatch):
         return solved(problem, init)
 
 
+@pytest.mark.slow  # 24 s; the fast tier stores and reloads a program in the damaged-program test
 def test_a_stored_program_solves_bit_for_bit_as_the_traced_one(setup, folder, monkeypatch):
     skeleton, rig, *_, init = setup
     problem = Problem(skeleton, rig, paper_terms(setup))

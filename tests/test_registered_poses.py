@@ -87,6 +87,7 @@ def test_the_rolling_shutter_poses_are_found_from_perturbed_ones():
     assert _pose_errors(global_shutter.world_from_camera, truth)[0] > 1e-3
 
 
+@pytest.mark.slow  # 15 s
 def test_the_intrinsics_correction_is_estimated_with_the_poses():
     """Images through a lens 0.5 % longer and 1.5 px off-centre, the nominal lens given: with ``calibrate`` the
     correction and the poses are found (noise-free; the prior made weak: on one short sequence a focal scale is
