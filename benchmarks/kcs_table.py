@@ -13,8 +13,8 @@ in one vmapped call.
 Figures: ``error_3d_mm`` = the paper's 3D error (3DPE: per-frame rigid alignment, rotation and
 translation, to the ground truth; mean over joints, frames and paths); ``mpjpe_mm`` = Eq. 26 in each
 frame's camera frame after matching centroids (weak perspective has no absolute depth); the walk35
-figure is the mean over subject 35's walking trials found: 35_01…35_16 (AMC) and 35_30, 35_31, 35_34 (the
-cgspeed BVH conversion, ``benchmarks/data/cmu_bvh``; 35_28, 35_29, 35_32 and 35_33 were not found); "jump" is the mean over 02_04 (jump,
+figure is the mean over subject 35's walking trials found: 35_01…35_16 (AMC) and 35_28…35_34 (the cgspeed BVH
+conversion, ``benchmarks/data/cmu_bvh``: all 23 of the paper's walk35); "jump" is the mean over 02_04 (jump,
 balance) and 01_01 frames 0–719 (playground, forward jumps) — CMU 13_11 (the paper's jump) is read from its
 cgspeed BVH conversion and reported on its own. ``seconds_per_300_frames``: steady-state time of one 300-frame sequence (compile excluded).
 ``error_profile`` (walk35, jump) says where the error lies: each bone's fraction of frames with the wrong

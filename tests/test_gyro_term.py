@@ -433,8 +433,9 @@ def test_a_camera_registered_nowhere_sits_by_its_gyro_against_its_segments_other
 
 def test_the_skeleton_stage_places_a_camera_registered_nowhere_by_its_gyro(tmp_path, monkeypatch):
     # The run's glue: only a camera registered in no frame of the trials, on a segment with a camera that registered,
-    # is placed; the ROM trial's imu.npz is read at the frontend's gyro timing (the IMU clock 40 ms behind the frames),
-    # and the log names the camera, its sibling and the fit. Without a gyro file, nothing is placed.
+    # is placed; the ROM trial's imu.npz is read at the frontend's gyro timing of the sibling's frames (the IMU clock
+    # 40 ms behind them; the unregistered camera's own shift, 120 ms here, is not where the sibling's poses were), and
+    # the log names the camera, its sibling and the fit. Without a gyro file, nothing is placed.
     from test_sim_rom import TRIAL
 
     import bcmocap.correspondence_store as store_module
@@ -448,6 +449,9 @@ def test_the_skeleton_stage_places_a_camera_registered_nowhere_by_its_gyro(tmp_p
     registered = trial.registered.copy()
     back, shin = rig.index("waist_back"), rig.index("shin")
     registered[:, [back, shin]] = False  # the shin has no other camera: the skeleton stage will name it
+    shifts = [40.0] * rig.num_cameras
+    shifts[back] = 120.0
+    timing.write_text(json.dumps({"gyro_timing": {"time_shift_ms": shifts}}))
     placed = run._sibling_rotations_from_gyros(ctx, [("rom", trial.world_from_camera, registered)], 20, logged.append)
     mounts = np.asarray(rig.segment_from_camera)
     assert list(placed) == ["waist_back"] and placed["waist_back"][0] in ("waist_front", "waist_left")

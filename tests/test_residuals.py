@@ -377,29 +377,35 @@ def test_registered_pose_applies_to_registered_camera_frames_with_few_measuremen
 
 
 def test_unmeasured_orientation_holds_the_rotation_alone_of_camera_frames_with_nothing_else(rig):
-    # Only camera-frames with neither a registration nor a measurement are held, at the initial poses given; with the
-    # centre's σ infinite, a centre 1 m off reads nothing and a rotation of 0.02 rad reads 0.02 rad over σ; the
-    # Jacobian matches central differences. A window with no such frame gets no term.
+    # Only camera-frames with neither a registration nor a measurement, on a segment no other camera of which is
+    # measured in that frame, are held, at the initial poses given (the window's own frames of them); every window
+    # gets the term. With the centre's σ infinite, a centre 1 m off reads nothing and a rotation of 0.02 rad reads
+    # 0.02 rad over σ; the Jacobian matches central differences.
     import types
 
     from bcmocap.residuals.registered_pose import unmeasured_orientation_data, unmeasured_orientation_terms
 
     rng = np.random.default_rng(5)
-    poses = np.zeros((2, 3, 7))
+    poses = np.zeros((2, 4, 7))
     poses[..., 0] = 1.0
-    poses[..., 4:] = rng.normal(size=(2, 3, 3))
-    registered = np.array([[True, False, False], [False, False, True]])
-    weights = np.zeros((2, 3, 10))
-    weights[0, 2, 4] = 1.0  # one measurement: held by it, not by the prior
-    data = unmeasured_orientation_data(poses, registered, weights)
-    np.testing.assert_array_equal(data["weights"], [[0, 1, 0], [1, 1, 0]])
-    window = types.SimpleNamespace(start=1, stop=2, correspondences=types.SimpleNamespace(registered=registered[1:],
-                                                                                          weights=weights[1:]))
+    poses[..., 4:] = rng.normal(size=(2, 4, 3))
+    segments = np.array([0, 1, 2, 2])  # cameras 2 and 3 on one segment
+    registered = np.array([[True, False, False, False], [False, False, True, False]])
+    weights = np.zeros((2, 4, 10))
+    weights[0, 2, 4] = 1.0  # one measurement: held by it, not by the prior, and so is camera 3 on its segment
+    data = unmeasured_orientation_data(poses, registered, weights, segments)
+    np.testing.assert_array_equal(data["weights"], [[0, 1, 0, 0], [1, 1, 0, 1]])
+    window = types.SimpleNamespace(start=1, stop=2, rig=types.SimpleNamespace(segments=segments),
+                                   correspondences=types.SimpleNamespace(registered=registered[1:], weights=weights[1:]))
     (term,) = unmeasured_orientation_terms(window, poses, sigma_deg=5.0)
-    np.testing.assert_array_equal(np.asarray(term.data["weights"]), [[1, 1, 0]])
-    assert unmeasured_orientation_terms(types.SimpleNamespace(
-        start=0, stop=1, correspondences=types.SimpleNamespace(registered=np.ones((1, 3), bool), weights=weights[:1])),
-        poses, sigma_deg=5.0) == []
+    np.testing.assert_array_equal(np.asarray(term.data["weights"]), [[1, 1, 0, 1]])
+    np.testing.assert_array_equal(np.asarray(term.data["world_from_camera"])[0, [0, 1, 3]], poses[1, [0, 1, 3]])
+    nothing = types.SimpleNamespace(start=0, stop=1, rig=window.rig, correspondences=types.SimpleNamespace(
+        registered=np.ones((1, 4), bool), weights=weights[:1]))
+    (term,) = unmeasured_orientation_terms(nothing, poses, sigma_deg=5.0)
+    assert not np.asarray(term.data["weights"]).any()
+    with pytest.raises(ValueError, match="sigma_deg must be > 0, got 0"):
+        unmeasured_orientation_terms(window, poses, sigma_deg=0)
     initial = SE3.from_rotation_and_translation(SO3.exp(jnp.asarray(rng.normal(size=3))), jnp.asarray(rng.normal(size=3)))
     one = {"world_from_camera": initial.wxyz_xyz, "weights": jnp.asarray(1.0)}
     held = RegisteredPose(one, sigma=np.array([np.inf, np.deg2rad(5.0)]), loss=CauchyLoss(8.0), name="unmeasured")

@@ -384,8 +384,8 @@ def test_an_end_joint_the_trial_did_not_move_mirrors_its_other_side():
 def test_a_hip_the_trial_did_not_move_mirrors_its_other_side():
     # The left thigh's camera is registered only while its hip is still: a joint with children, so
     # unregistered_ends does not reach it and it stops the estimate; with degenerate = "mirror" it is the right hip's
-    # centre mirrored (exact on a symmetric body), through the midplane the knees fix, since the hips' own centres
-    # are one of the pair.
+    # centre mirrored (exact on a symmetric body), through the midplane the ankles fix (the hips are the pair at
+    # fault, and the knees are placed from the hips), which _midplane_pair picks.
     skeleton, rig = _two_legged_model()
     trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
                                   **TRIAL)
@@ -407,6 +407,11 @@ def test_a_hip_the_trial_did_not_move_mirrors_its_other_side():
     np.testing.assert_allclose(est.skeleton.offsets, full.skeleton.offsets, atol=1e-9)
     assert_same_mounts(est.segment_from_camera, full.segment_from_camera, 1e-9)
     assert est.joints["left_thigh"].placed_by == "right_thigh's, mirrored" and full.joints["left_thigh"].placed_by is None
+    from bcmocap.kinematics.rom import _midplane_pair
+    names = skeleton.names
+    assert [names[k] for k in _midplane_pair(names, skeleton.parents, {"left_thigh"}, {"left_shin", "right_shin"})] == [
+        "left_foot", "right_foot"]
+    assert [names[k] for k in _midplane_pair(names, skeleton.parents)] == ["left_thigh", "right_thigh"]
     noted = [line for line in est.summary().splitlines() if "not determined" in line]
     assert len(noted) == 1 and noted[0].startswith("left_thigh ") and noted[0].endswith("right_thigh's, mirrored")
     registered[hip["right"] > 0.01, rig.index("right_thigh")] = False  # neither hip: nothing to mirror
@@ -419,7 +424,7 @@ def test_a_joint_moved_little_about_one_axis_keeps_its_centre_where_the_fit_pins
     # The torso of the two-legged model turns about its left-right axis, and about its vertical axis by a fraction k of
     # that: with k = 0.2 the vertical direction's spread is 0.033, under min_spread (0.05) but over half of it, and
     # the (noiseless) fit pins the centre, so degenerate = "mirror" keeps it, warning, where the default raises; with
-    # k = 0.1 (spread 0.016, what 1° of camera noise alone reads) it raises in every mode.
+    # k = 0.1 (spread 0.016, under half the threshold: 1° of camera noise alone reads about 0.025) "mirror" raises too.
     from bcmocap.geometry import quat_multiply
     from bcmocap.kinematics.rig import camera_poses
     from bcmocap.kinematics.skeleton import Motion
@@ -449,3 +454,19 @@ def test_a_joint_moved_little_about_one_axis_keeps_its_centre_where_the_fit_pins
     np.testing.assert_allclose(est.skeleton.offsets, full.skeleton.offsets, atol=1e-9)
     with pytest.raises(ValueError, match=r"joint 'torso' .* \(spreads \[0.016"):
         skeleton_from_range_of_motion(*args(0.1), rest_frames=range(15), options=RomOptions(degenerate="mirror"))
+
+
+def test_a_knee_the_trials_saw_too_little_is_an_error_that_names_it_not_a_mirror():
+    # degenerate = "mirror" mirrors ball joints only: a hinge whose segments are known together in too few frames (the
+    # thigh and shin cameras registered together only in the 15 rest frames) stops the estimate with its own message.
+    skeleton, rig = _two_legged_model()
+    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
+                                  **TRIAL)
+    registered = trial.registered.copy()
+    thigh, shin = rig.index("left_thigh"), rig.index("left_shin")
+    registered[15:, thigh] = np.arange(15, len(registered)) % 2 == 0
+    registered[15:, shin] = np.arange(15, len(registered)) % 2 == 1
+    with pytest.raises(ValueError, match=r"joint 'left_shin' \(between 'left_thigh' and 'left_shin'\): both segments "
+                                         r"are known in only 15 frames"):
+        skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, registered,
+                                      rest_frames=range(15), options=RomOptions(degenerate="mirror"))

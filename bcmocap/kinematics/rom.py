@@ -434,7 +434,8 @@ def skeleton_from_range_of_motion(
         ValueError: an assignment naming unknown segments; a segment without cameras; a camera with
             too few registered frames in all trials and no other camera on its segment; a joint the trials
             did not exercise (naming it and what is missing); a segment neither registered in the rest frames
-            nor given a rest orientation.
+            nor given a rest orientation; a ``sibling_rotations`` entry naming an unknown camera, a sibling on
+            another segment or itself placed by a sibling, a camera that is registered, or no quaternion.
 
     Warns:
         UserWarning: a camera registered with its segment's other cameras in few frames; a hinge whose
@@ -517,6 +518,15 @@ def _hip_pair(names, parents) -> tuple[int, int]:
             return k, kids[_other_side(name)]
     raise ValueError("unregistered_ends = 'mirror': the root has no pair of left_/right_ children to find the body's "
                      "midplane")
+
+
+def _has_hip_pair(topology: Topology) -> bool:
+    """Whether the root has a ``left_``/``right_`` pair of children (:func:`_hip_pair`), which mirroring needs."""
+    try:
+        _hip_pair(topology.names, topology.parents)
+    except ValueError:
+        return False
+    return True
 
 
 def _midplane_pair(names, parents, undetermined=frozenset(), placed=frozenset()) -> tuple[int, int]:
@@ -611,9 +621,15 @@ def _with_sibling_mounts(sibling_rotations, topology: Topology, pairs, world_fro
     for name, (sibling, _) in sibling_rotations.items():
         if name not in segment_of or sibling not in segment_of:
             raise ValueError(f"sibling_rotations: '{name}' → '{sibling}': both must be assigned cameras")
-        if segment_of[name] != segment_of[sibling] or sibling in sibling_rotations:
+        if segment_of[name] != segment_of[sibling]:
             raise ValueError(f"sibling_rotations: '{name}' → '{sibling}': the sibling must be on the same segment "
-                             f"('{segment_of[name]}', not '{segment_of[sibling]}') and placed by its own registrations")
+                             f"('{segment_of[name]}', not '{segment_of[sibling]}')")
+        if sibling in sibling_rotations:
+            raise ValueError(f"sibling_rotations: '{name}' → '{sibling}': the sibling must be placed by its own "
+                             "registrations, not by another camera")
+        rotation = np.asarray(sibling_rotations[name][1], np.float64)
+        if rotation.shape != (4,) or not np.isfinite(rotation).all() or not np.linalg.norm(rotation) > 0:
+            raise ValueError(f"sibling_rotations: '{name}': expected a (4,) wxyz quaternion, got {rotation.tolist()}")
         counts = np.asarray(registered, bool)[:, names.index(name)].sum() + sum(
             np.asarray(r, bool)[:, names.index(name)].sum() for _, r in more_trials)
         if counts:
@@ -704,21 +720,24 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
     """
     joints: dict[str, JointEstimate] = {}
     families: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    undetermined: dict[str, tuple[str, str]] = {}  # end segment → (the error, why): mirrored, or raised
+    undetermined: dict[str, tuple[str, str, str]] = {}  # joint → (the error, why, the setting mirroring it)
     for j in range(1, len(topology.names)):
         name, p = topology.names[j], topology.parents[j]
         pname, jtype = topology.names[p], topology.joint_types[j]
         rel = np.concatenate([compose_poses(invert_pose(wv[kn[:, j] & kn[:, p], p]), wv[kn[:, j] & kn[:, p], j])
                               for wv, kn in pooled])
         trials = "trial" if not more_trials else f"{1 + len(more_trials)} trials"
-        mirrorable = _other_side(name) in topology.names and (
-            options.degenerate == "mirror" or options.unregistered_ends == "mirror" and not topology.children(j))
+        end_mirrorable = (options.unregistered_ends == "mirror" and not topology.children(j)
+                          and _other_side(name) in topology.names)
+        mirrorable = end_mirrorable or (options.degenerate == "mirror" and jtype == JointType.BALL
+                                        and _other_side(name) in topology.names and _has_hip_pair(topology))
         if len(rel) < options.min_frames:
             failure = (f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {len(rel)} "
                        f"frames (< {options.min_frames}) of the {trials}")
             if not mirrorable:
                 raise ValueError(failure)
-            undetermined[name] = (failure, f"both segments are known in only {len(rel)} frames")
+            undetermined[name] = (failure, f"both segments are known in only {len(rel)} frames",
+                                  "unregistered_ends" if end_mirrorable else "degenerate")
             joints[name] = JointEstimate(name, pname, jtype, np.zeros(3), np.zeros(3), None, len(rel), 0.0, np.nan,
                                          np.zeros(6), np.inf)
             continue
@@ -742,8 +761,9 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
         elif weak or est.std_m > options.max_centre_std_m:
             # a direction moved less than min_spread but more than half of it (1° of camera noise alone reads half)
             # that the fit still pins within the limit
-            marginal = (options.degenerate == "mirror" and est.std_m <= options.max_centre_std_m
-                        and est.spread.min() >= options.min_spread / 2)
+            # (an end unregistered_ends mirrors is mirrored, as before this rule)
+            marginal = (options.degenerate == "mirror" and not end_mirrorable and weak == 1
+                        and est.std_m <= options.max_centre_std_m and est.spread.min() >= options.min_spread / 2)
             if marginal:
                 warnings.warn(
                     f"{what}: the {trials} exercised it little about one axis (spread {est.spread[0]:.4f} < "
@@ -766,12 +786,12 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
                            "the joint about more axes, or declare it a hinge")
                 if not mirrorable:
                     raise ValueError(failure)
-                undetermined[name] = (failure, f"the {trials} do{'es' * (not more_trials)} not determine its centre ({why})")
+                undetermined[name] = (failure, f"the {trials} do{'es' * (not more_trials)} not determine its centre ({why})",
+                                      "unregistered_ends" if end_mirrorable else "degenerate")
         joints[name] = est
-    for name, (failure, why) in undetermined.items():  # an end whose other side is determined takes that side mirrored
+    for name, (failure, why, setting) in undetermined.items():  # one whose other side is determined takes it mirrored
         if _other_side(name) in undetermined:
             raise ValueError(failure)
-        setting = "degenerate" if options.degenerate == "mirror" else "unregistered_ends"
         warnings.warn(f"joint '{name}': {why}; its centre is '{_other_side(name)}''s mirrored through the body's "
                       f"midplane ({setting} = 'mirror')", stacklevel=3)
         families[name] = (None, None)

@@ -34,7 +34,7 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     rest_seconds = []         # [from, to] s after the ROM trial's first clap; [] = from capture.json
     up_from = ["left_foot", "right_foot"]   # the world's +Z points from these joint centres ...
     up_to = "head"                          # ... to this one, in the rest pose
-    max_centre_std_cm = 5.0   # a joint centre less certain than this (standard error) is an error
+    max_centre_std_cm = 5.0   # a joint centre less certain than this (standard error) is not determined (degenerate)
     degenerate = "mirror"     # a ball joint the trials do not determine (moved about too few axes, or its centre
                               # less certain than max_centre_std_cm): mirror (warn, and give it its other side's
                               # centre mirrored through the body's midplane; both sides undetermined raise; a
@@ -75,8 +75,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
                                     # at its registered pose; [0, 0]: off (bcmocap.residuals.registered_pose)
     registered_pose_below = 20      # ... where it has fewer measurements than this, 1 to 100000
     unmeasured_orientation = 5.0    # σ [deg] of a prior holding a camera-frame with neither a registration nor a
-                                    # measurement at the initial motion's orientation (where the gyros carried it);
-                                    # 0: off (bcmocap.residuals.registered_pose)
+                                    # measurement, on a segment no camera of which is measured there, at the initial
+                                    # motion's orientation (carried by its gyro where it could be); 0: off
+                                    # (bcmocap.residuals.registered_pose)
     gyro_turn = 0.0           # σ (deg) of each camera's turn between frames against its gyro's (trials/capture/
                               # imu.npz, read at the frontend's gyro timing); 0: off (bcmocap.residuals.gyro)
 

@@ -240,7 +240,9 @@ def rotations_from_siblings_by_gyro(trials: Sequence[tuple[np.ndarray, np.ndarra
     that registered (its *sibling*: the one registered most), from its gyro: both are rigid on the segment, so over
     any interval the sibling's turn, read from its registered poses, is the camera's turn, read from its gyro, seen
     through the rotation ``Q`` = sibling_from_camera: ``log(ΔR_sibling) = Q · log(ΔR_camera)``. ``Q`` is the
-    least-squares (Wahba) rotation over pairs of the sibling's registered frames ``stride_s`` apart.
+    least-squares (Wahba) rotation over pairs of the sibling's registered frames ``stride_s`` apart (at most 1.5 times
+    that: none across a gap), read on the gyro's clock at the sibling's shift, fitted again without the pairs whose
+    residual is over 3 times the median (a wrong registration).
 
     Args:
         trials: per trial ``(world_from_camera (T, C, 7), registered (T, C), fps, imu, time_shifts_s (C,))``: the
@@ -262,7 +264,7 @@ def rotations_from_siblings_by_gyro(trials: Sequence[tuple[np.ndarray, np.ndarra
     chosen = np.asarray(cameras, bool)
     if chosen.shape != (c,) or len(segments) != c:
         raise ValueError(f"rotations from siblings: {c} names, {len(segments)} segments, cameras of shape {chosen.shape}")
-    counts = sum(np.asarray(r, bool).sum(axis=0) for _, r, *_ in trials)
+    counts = sum((np.asarray(r, bool).sum(axis=0) for _, r, *_ in trials), np.zeros(c, int))
     placed, report = {}, {}
     for i in np.flatnonzero(chosen):
         siblings = [k for k in range(c) if segments[k] == segments[i] and k != i and counts[k] > 0]
@@ -275,29 +277,36 @@ def rotations_from_siblings_by_gyro(trials: Sequence[tuple[np.ndarray, np.ndarra
                 continue
             s = imu.cameras.index(names[i])
             known = np.flatnonzero(np.asarray(registered, bool)[:, k])
-            later = np.searchsorted(known, known + max(1, round(stride_s * fps)))
+            step = max(1, round(stride_s * fps))
+            later = np.searchsorted(known, known + step)
             pairs = np.stack([known[later < known.size], known[later[later < known.size]]], axis=1)
-            on_clock = pairs / fps + shifts[i]
+            pairs = pairs[pairs[:, 1] - pairs[:, 0] <= 1.5 * step]  # no pair across a gap: the gyro drifts over it
+            on_clock = pairs / fps + shifts[k]  # the sibling's frames, where its exposures lie on the gyro's clock
             pairs = pairs[((on_clock >= imu.time[0]) & (on_clock <= imu.time[-1])).all(axis=1)]
             if not pairs.size:
                 continue
             q = np.asarray(poses, np.float64)[:, k, :4]
             sibling_turns.append(quat_multiply(quat_conjugate(q[pairs[:, 0]]), q[pairs[:, 1]]))
-            t0, t1 = (pairs[:, j] / fps + shifts[i] for j in (0, 1))
+            t0, t1 = (pairs[:, j] / fps + shifts[k] for j in (0, 1))
             own_turns.append(_in_camera(imu, s, integrate_gyro(imu.time, imu.gyro[:, s : s + 1], t0, t1)[:, 0]))
         if not sibling_turns:
             continue
         a_sibling, a_own = quat_log(np.concatenate(sibling_turns)), quat_log(np.concatenate(own_turns))
         big = np.linalg.norm(a_own, axis=1) > np.radians(min_turn_deg)
         a_sibling, a_own = a_sibling[big], a_own[big]
-        cov = a_sibling.T @ a_own  # Σ target sourceᵀ
+        rot = rotation_from_covariance(a_sibling.T @ a_own)  # Σ target sourceᵀ
+        residual = np.linalg.norm(a_sibling - a_own @ rot.T, axis=1)
+        if residual.size:  # once more without the turns a wrong registration gave (over 3 times the median residual)
+            keep = residual <= 3.0 * np.median(residual)
+            a_sibling, a_own = a_sibling[keep], a_own[keep]
+        cov = a_sibling.T @ a_own
         sv = np.linalg.svd(cov, compute_uv=False)
         spread = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
         rot = rotation_from_covariance(cov)
         residual = np.linalg.norm(a_sibling - a_own @ rot.T, axis=1)
-        report[names[i]] = {"sibling": names[k], "pairs": int(big.sum()), "spread": spread,
-                            "residual_deg": float(np.degrees(np.median(residual))) if big.any() else float("nan"),
-                            "placed": bool(big.sum() >= 3 and spread >= min_spread)}
+        report[names[i]] = {"sibling": names[k], "pairs": len(residual), "spread": spread,
+                            "residual_deg": float(np.degrees(np.median(residual))) if residual.size else float("nan"),
+                            "placed": bool(residual.size >= 3 and spread >= min_spread)}
         if report[names[i]]["placed"]:
             placed[names[i]] = (names[k], quat_from_matrix(rot))
     return placed, report

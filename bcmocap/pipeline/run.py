@@ -84,6 +84,7 @@ class RunContext:
 #: Settings added after runs were made, left out of the fingerprints at these (default) values, so that those
 #: runs stay reusable.
 _LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 0.0], "registered_pose_below": 20,
+                              "unmeasured_orientation": 0.0,
                               "gyro_turn": 0.0},
                    "skeleton": {"centre_trials": ["rom"], "unregistered_ends": "mirror"},
                    "frontend": {"rolling_shutter_readout": 0.0, "self_calibration": False, "gyro_timing": "clock",
@@ -783,9 +784,10 @@ def _user_terms(ctx: RunContext) -> list:
 
 
 def _unmeasured_orientation_terms(ctx: RunContext, skeleton, rig) -> list:
-    """``[solver] unmeasured_orientation``: each camera-frame with neither a registration nor a measurement held at the
-    initial motion's orientation (``DIR/solve/initial.npz``: where the gyros carried the camera across the frames it
-    did not register in; :func:`~bcmocap.residuals.registered_pose.unmeasured_orientation_terms`)."""
+    """``[solver] unmeasured_orientation``: each camera-frame with neither a registration nor a measurement, on a
+    segment no camera of which is measured there, held at the initial motion's orientation (``DIR/solve/initial.npz``:
+    carried across the gap by the camera's gyro where it could be, else interpolated;
+    :func:`~bcmocap.residuals.registered_pose.unmeasured_orientation_terms`)."""
     from ..kinematics.rig import camera_poses
     from ..residuals.registered_pose import unmeasured_orientation_terms
     from ..solver.objective import UserTerms

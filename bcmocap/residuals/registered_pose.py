@@ -10,8 +10,9 @@ ties such a camera-frame to its registered pose with a Gaussian prior on the rot
 A camera-frame with neither a registration nor a measurement is held by nothing but its neighbours and, with
 gyros, its turns: across a stretch where a foot camera sees only a blank floor, the solve lets the segment's
 orientation drift as a whole (the studio's sparse walk: the unregistered right ankle's angle error 12.9° initially,
-17.0° solved). :func:`unmeasured_orientation_data` ties such camera-frames to the initial motion's orientation
-(where the gyros carried the camera across the gap) with the same term, its centre left free (σ = ∞).
+17.0° solved). :func:`unmeasured_orientation_data` ties such camera-frames, where no other camera of the segment is
+measured, to the initial motion's orientation (carried across the gap by the camera's gyro where it could be, else
+interpolated by the inverse kinematics) with the same term, its centre left free (σ = ∞).
 """
 
 from __future__ import annotations
@@ -69,15 +70,21 @@ def registered_pose_data(world_from_camera: np.ndarray, registered: np.ndarray, 
     return {"world_from_camera": poses, "weights": use.astype(np.float64)}
 
 
-def unmeasured_orientation_data(world_from_camera: np.ndarray, registered: np.ndarray, weights: np.ndarray) -> dict:
-    """The data of :class:`RegisteredPose` holding each camera-frame with neither a registration nor a measurement at
-    the orientation of ``world_from_camera`` (the initial motion's camera poses); use with ``sigma = (inf, σ_rot)``.
+def unmeasured_orientation_data(world_from_camera: np.ndarray, registered: np.ndarray, weights: np.ndarray,
+                                segments: np.ndarray) -> dict:
+    """The data of :class:`RegisteredPose` holding each camera-frame with neither a registration nor a measurement,
+    on a segment no camera of which is measured in that frame, at the orientation of ``world_from_camera`` (the
+    initial motion's camera poses); use with ``sigma = (inf, σ_rot)``.
 
     Args:
         world_from_camera: ``(T, C, 7)`` the initial motion's camera poses (finite).
         registered: ``(T, C)`` bool. weights: ``(T, C, N)`` the reprojection term's measurement weights.
+        segments: ``(C,)`` each camera's segment index.
     """
-    use = ~np.asarray(registered, bool) & ~(np.asarray(weights) > 0).any(axis=-1)
+    segments = np.asarray(segments)
+    measured = (np.asarray(weights) > 0).any(axis=-1)  # (T, C)
+    segment_measured = np.stack([measured[:, segments == s].any(axis=1) for s in segments], axis=1)
+    use = ~np.asarray(registered, bool) & ~segment_measured
     poses = np.where(use[..., None], np.asarray(world_from_camera, dtype=np.float64), IDENTITY_POSE)
     return {"world_from_camera": poses, "weights": use.astype(np.float64)}
 
@@ -85,12 +92,14 @@ def unmeasured_orientation_data(world_from_camera: np.ndarray, registered: np.nd
 def unmeasured_orientation_terms(window, world_from_camera: np.ndarray, sigma_deg: float, loss: str = "cauchy",
                                  loss_scale: float = 8.0) -> list:
     """A term factory (``[solver] unmeasured_orientation``): over ``window`` (a
-    :class:`~bcmocap.residuals.term_window.TermWindow` with its correspondences), the :class:`RegisteredPose` holding
-    its camera-frames with neither a registration nor a measurement at the orientations of ``world_from_camera``
-    ``(T, C, 7)`` (the trial's initial camera poses), σ ``sigma_deg``; none where the window has no such frame."""
+    :class:`~bcmocap.residuals.term_window.TermWindow` with its rig and correspondences), the :class:`RegisteredPose`
+    holding its camera-frames with neither a registration nor a measurement, on a segment measured by no other camera
+    in that frame, at the orientations of ``world_from_camera`` ``(T, C, 7)`` (the trial's initial camera poses), σ
+    ``sigma_deg`` > 0. Every window gets the term (weights 0 where it holds nothing), so every window has one shape."""
+    if not sigma_deg > 0:
+        raise ValueError(f"unmeasured orientation: sigma_deg must be > 0, got {sigma_deg}")
     c = window.correspondences
-    data = unmeasured_orientation_data(np.asarray(world_from_camera)[window.start:window.stop], c.registered, c.weights)
-    if not data["weights"].any():
-        return []
+    data = unmeasured_orientation_data(np.asarray(world_from_camera)[window.start:window.stop], c.registered, c.weights,
+                                       np.asarray(window.rig.segments))
     return [RegisteredPose(data, sigma=np.array([np.inf, np.radians(sigma_deg)]), loss=loss_from_name(loss, loss_scale),
                            name="unmeasured orientation")]
