@@ -125,6 +125,18 @@ def _busy_pid(data: np.ndarray, seconds: float) -> int:
     return os.getpid()
 
 
+def test_a_map_goes_on_where_copying_its_function_to_every_worker_fails():
+    # The function's copies to every worker only spread the load: where the scheduler cannot make them (a worker lost
+    # meanwhile made distributed's replicate sample more workers than it has: ValueError), the map still runs.
+    with open_executor("local:2", log=lambda line: None) as ex:
+        def replicate(*args, **kwargs):
+            raise ValueError("Sample larger than population or is negative")
+
+        ex.client.replicate = replicate
+        out = ex.map(functools.partial(_busy_pid, np.zeros(10)), [0.0] * 4, label="sq")
+    assert len(out) == 4 and all(isinstance(pid, int) for pid in out)
+
+
 def test_two_maps_at_once_share_the_workers_to_the_end():
     """Two trials' maps at once, each function held by one worker at first: when the short map is done, the
     long map's remaining tasks go to both workers (they were queued on one worker and ran there one by one)."""

@@ -151,7 +151,10 @@ class Executor:
         # ... and to every worker, so that no worker is preferred for holding it.
         wait([shared])
         if shared.status == "finished" and len(self.client.nthreads()) > 1:
-            self.client.replicate([shared])
+            try:
+                self.client.replicate([shared])
+            except (ValueError, OSError):  # a worker lost meanwhile (the scheduler then samples more workers than it
+                pass  # has, or a connection closes): the copies only spread the load, the tasks fetch fn as they need
         # At most one task per worker thread is handed to the scheduler at a time, the next as one finishes:
         # tasks given at once are queued on workers up front, and a worker's queue was not moved to a worker
         # left idle (the last chunks of one trial ran one after another on one worker while the other waited).
