@@ -294,16 +294,20 @@ def rotations_from_siblings_by_gyro(trials: Sequence[tuple[np.ndarray, np.ndarra
         a_sibling, a_own = quat_log(np.concatenate(sibling_turns)), quat_log(np.concatenate(own_turns))
         big = np.linalg.norm(a_own, axis=1) > np.radians(min_turn_deg)
         a_sibling, a_own = a_sibling[big], a_own[big]
-        rot = rotation_from_covariance(a_sibling.T @ a_own)  # Σ target sourceᵀ
-        residual = np.linalg.norm(a_sibling - a_own @ rot.T, axis=1)
+
+        def wahba(target, source):
+            """The rotation with ``target ≈ R source`` (from ``Σ target sourceᵀ``), each row's residual and the
+            cross-covariance's singular values."""
+            cov = target.T @ source
+            rot = rotation_from_covariance(cov)
+            return rot, np.linalg.norm(target - source @ rot.T, axis=1), np.linalg.svd(cov, compute_uv=False)
+
+        rot, residual, _ = wahba(a_sibling, a_own)
         if residual.size:  # once more without the turns a wrong registration gave (over 3 times the median residual)
             keep = residual <= 3.0 * np.median(residual)
             a_sibling, a_own = a_sibling[keep], a_own[keep]
-        cov = a_sibling.T @ a_own
-        sv = np.linalg.svd(cov, compute_uv=False)
+        rot, residual, sv = wahba(a_sibling, a_own)
         spread = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
-        rot = rotation_from_covariance(cov)
-        residual = np.linalg.norm(a_sibling - a_own @ rot.T, axis=1)
         report[names[i]] = {"sibling": names[k], "pairs": len(residual), "spread": spread,
                             "residual_deg": float(np.degrees(np.median(residual))) if residual.size else float("nan"),
                             "placed": bool(residual.size >= 3 and spread >= min_spread)}

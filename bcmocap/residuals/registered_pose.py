@@ -65,7 +65,12 @@ def registered_pose_data(world_from_camera: np.ndarray, registered: np.ndarray, 
         below: the prior applies where a registered camera-frame has fewer measurements than this.
     """
     count = (np.asarray(weights) > 0).sum(axis=-1)
-    use = np.asarray(registered, bool) & (count < below)
+    return _held_at(world_from_camera, np.asarray(registered, bool) & (count < below))
+
+
+def _held_at(world_from_camera: np.ndarray, use: np.ndarray) -> dict:
+    """:class:`RegisteredPose` data holding the camera-frames ``use`` ``(T, C)`` at ``world_from_camera`` ``(T, C, 7)``
+    (the identity elsewhere, so that the unused rows stay finite)."""
     poses = np.where(use[..., None], np.asarray(world_from_camera, dtype=np.float64), IDENTITY_POSE)
     return {"world_from_camera": poses, "weights": use.astype(np.float64)}
 
@@ -83,10 +88,8 @@ def unmeasured_orientation_data(world_from_camera: np.ndarray, registered: np.nd
     """
     segments = np.asarray(segments)
     measured = (np.asarray(weights) > 0).any(axis=-1)  # (T, C)
-    segment_measured = np.stack([measured[:, segments == s].any(axis=1) for s in segments], axis=1)
-    use = ~np.asarray(registered, bool) & ~segment_measured
-    poses = np.where(use[..., None], np.asarray(world_from_camera, dtype=np.float64), IDENTITY_POSE)
-    return {"world_from_camera": poses, "weights": use.astype(np.float64)}
+    segment_measured = measured.astype(int) @ (segments[:, None] == segments[None, :]) > 0  # (T, C): any camera on it
+    return _held_at(world_from_camera, ~np.asarray(registered, bool) & ~segment_measured)
 
 
 def unmeasured_orientation_terms(window, world_from_camera: np.ndarray, sigma_deg: float, loss: str = "cauchy",
