@@ -31,7 +31,10 @@ offsets and clock rates from the claps against the truth, and, where the solver 
 time offsets against the truth (relative to their mean: a common offset is a shift of the whole motion).
 
 Everything lives in ``--out`` (``captures/NAME``, ``runs/CONDITION/NAME``); a rerun resumes (the studio, the
-calibration and ``bcmocap run`` all resume). ``--quick`` runs one clean and one realistic walk in the textured
+calibration and ``bcmocap run`` all resume). With ``--records DIR`` each finished run's record is also kept in
+``DIR/NAME.json`` with the commit of the code it ran (the code must be committed: :data:`PIPELINE_CODE`), runs with a
+record are not run again, and ``--json`` summarises every record there of the planned grid: a grid longer than one
+sitting is run in parts (``--only``) and its records committed, and the summary refuses records of different code. ``--quick`` runs one clean and one realistic walk in the textured
 room (about 20 minutes on 2 cores); the full grid is every motion in every room realistic (20 runs) and every
 motion in two rooms clean (10 runs).
 
@@ -72,6 +75,10 @@ COVERED_DEG = 80.0  # the part of the image the board covers well (and the body 
 # (COLMAP's tutorial: "capture images with enough overlap"). With 24 photos the mapper joined 12 of the sparse room's
 # (seed 2; consecutive photos of its painted walls shared no features); with 48 it joins 46.
 REFERENCE_PHOTOS = {"sparse": 48}
+# What a run's figures depend on (git pathspecs): a record is valid for code that differs from its commit only outside
+# these (the KCS and marker commands, the viewer and the C3D reader are not on the path of bcmocap run).
+PIPELINE_CODE = ("bcmocap", "benchmarks/suite.py", "benchmarks/configs", "pyproject.toml", ":(exclude)bcmocap/kcs",
+                 ":(exclude)bcmocap/markers", ":(exclude)bcmocap/viewer", ":(exclude)bcmocap/io/c3d.py")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -297,6 +304,44 @@ def summarise(rows: list[dict]) -> dict:
     }
 
 
+def settings_of(args) -> dict:
+    """The options that shape the grid's runs (not where they are written, nor which of them this sitting runs)."""
+    return {k: v for k, v in vars(args).items() if k not in ("out", "json", "only", "records", "cluster")}
+
+
+def _git(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=False)
+
+
+def code_commit() -> str:
+    """The commit of the code the runs use; SystemExit where :data:`PIPELINE_CODE` has uncommitted changes."""
+    dirty = _git("status", "--porcelain", "--", *PIPELINE_CODE).stdout.strip()
+    if dirty:
+        raise SystemExit(f"--records: the code has uncommitted changes ({dirty.splitlines()[0].strip()} ...); commit "
+                         "them, so that each record names the code it ran")
+    return _git("rev-parse", "HEAD").stdout.strip()
+
+
+def same_code(commit: str, head: str) -> bool:
+    """Whether :data:`PIPELINE_CODE` is the same at ``commit`` and ``head``."""
+    return commit == head or _git("diff", "--quiet", commit, head, "--", *PIPELINE_CODE).returncode == 0
+
+
+def read_records(folder: Path, runs: list[Run], head: str) -> dict[str, dict]:
+    """The records in ``folder`` of the planned ``runs`` (name → record); SystemExit for one of other code."""
+    records = {}
+    for run in runs:
+        path = folder / f"{run.name}.json"
+        if not path.exists():
+            continue
+        record = json.loads(path.read_text())
+        if not same_code(record.get("commit", ""), head):
+            raise SystemExit(f"{path}: a record of the code at {record.get('commit', '?')[:10]}, which differs from "
+                             f"HEAD's ({head[:10]}) in {' '.join(PIPELINE_CODE[:4])}; run it again (remove the record)")
+        records[run.name] = record
+    return records
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="working folder (captures and runs; a rerun resumes)")
@@ -315,6 +360,8 @@ def main() -> int:
     ap.add_argument("--cluster", help="bcmocap batch --cluster (e.g. local:2)")
     ap.add_argument("--only", help="comma-separated run names of the grid to run (e.g. realistic-run-sparse-s1); the "
                                    "results then hold those runs only, marked partial")
+    ap.add_argument("--records", help="keep each finished run's record here (NAME.json, with the code's commit), skip "
+                                      "runs with one, and summarise them all in --json (e.g. benchmarks/results/suite_runs)")
     args = ap.parse_args()
 
     from bcmocap.compilation_cache import enable_compilation_cache
@@ -331,10 +378,16 @@ def main() -> int:
         if unknown:
             raise SystemExit(f"--only: {unknown} are not in the grid ({', '.join(r.name for r in runs)})")
         runs = [r for r in runs if r.name in wanted]
+    records_dir = Path(args.records) if args.records else None
+    head = code_commit() if records_dir else None
+    grid = runs if not args.only else planned_runs(args.quick, args.seeds)
+    kept = read_records(records_dir, grid, head) if records_dir else {}
+    runs = [r for r in runs if r.name not in kept]
     log = lambda text: print(text, flush=True)  # noqa: E731
     clock = time.perf_counter()
     prepared, rows = {}, []
     for run in runs:  # captures, board videos and calibrations (resumable)
+        started = time.perf_counter()
         folder = out / "captures" / run.name
         manifest = folder / "capture.json"
         settings = capture_settings(run, args)
@@ -348,7 +401,7 @@ def main() -> int:
         log(f"{run.name}: calibrating")
         model = args.lens_model or LENS_MODELS[run.condition]
         prepared[run] = {"lenses": calibrate_capture(folder, model, args.board_views, log, out / "calibrations"),
-                         "clocks": clock_errors(folder)}
+                         "clocks": clock_errors(folder), "setup_seconds": round(time.perf_counter() - started, 1)}
     setup_seconds = time.perf_counter() - clock
     for condition in ("clean", "realistic"):
         chosen = [r for r in runs if r.condition == condition]
@@ -376,18 +429,29 @@ def main() -> int:
             else:
                 record["ok"] = False
             rows.append(record)
+            if records_dir:
+                write_json(str(records_dir / f"{run.name}.json"), {**record, "commit": head, "settings": settings_of(args)})
             if record["ok"]:
                 log(f"{run.name}: {record['solved']['joint_position_error_cm']:.2f} cm, "
                     f"{record['solved']['joint_angle_error_deg']:.2f} deg (initial "
                     f"{record['initial']['joint_position_error_cm']:.2f} cm, {record['initial']['joint_angle_error_deg']:.2f} deg)")
             else:
                 log(f"{run.name}: FAILED {record.get('error')}")
+    if records_dir:  # every record of the grid (this sitting's and earlier ones'), in the grid's order
+        kept = read_records(records_dir, grid, head)
+        rows = [kept[r.name] for r in grid if r.name in kept]
+        for row in rows:
+            if row.get("settings") != settings_of(args):
+                raise SystemExit(f"{records_dir / (row['name'] + '.json')}: a record of other settings ({row.get('settings')})")
     conditions = {c: summarise([r for r in rows if r["condition"] == c]) for c in ("clean", "realistic")
                   if any(r["condition"] == c for r in rows)}
     conditions["all"] = summarise(rows)
-    result = {"quick": args.quick, "partial": bool(args.only), "conditions": conditions, "runs": rows,
-              "settings": {k: v for k, v in vars(args).items() if k not in ("out", "json")},
+    missing = [r.name for r in grid if r.name not in {row["name"] for row in rows}]
+    result = {"quick": args.quick, "partial": bool(missing), "missing": missing, "conditions": conditions, "runs": rows,
+              "commit": head, "settings": settings_of(args),
               "setup_seconds": round(setup_seconds, 1), "seconds": round(time.perf_counter() - clock, 1),
+              # the grid's time on this machine, run by run (studio, calibration and bcmocap run of each)
+              "runs_seconds": round(sum((r.get("setup_seconds") or 0.0) + (r.get("seconds") or 0.0) for r in rows), 1),
               "machine": machine()}
     for name, c in conditions.items():
         p, a = c["joint_position_error_cm"], c["joint_angle_error_deg"]

@@ -470,3 +470,27 @@ def test_a_knee_the_trials_saw_too_little_is_an_error_that_names_it_not_a_mirror
                                          r"are known in only 15 frames"):
         skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, registered,
                                       rest_frames=range(15), options=RomOptions(degenerate="mirror"))
+
+
+def test_a_knee_whose_centre_the_trial_leaves_uncertain_keeps_its_axis_and_takes_the_mirrored_centre():
+    # The left shin's camera registers with 3 cm of position noise (the right shin's none): its knee, flexed through
+    # its range, has a well-fixed axis (rotations alone) but a centre the fit cannot pin to 2 mm; with
+    # degenerate = "mirror" it keeps its own axis and takes the right knee's centre, mirrored (exact on this
+    # symmetric body), where the default raises.
+    skeleton, rig = _two_legged_model()
+    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
+                                  **TRIAL)
+    poses = np.array(trial.world_from_camera)
+    shin = rig.index("left_shin")
+    poses[:, shin, 4:] += np.random.default_rng(0).normal(0.0, 0.03, (len(poses), 3))
+    args = (skeleton, trial.assignment, poses, trial.registered)
+    strict = dict(max_centre_std_m=0.002, unregistered_ends="mirror")
+    with pytest.raises(ValueError, match=r"joint 'left_shin' .* centre standard error"):
+        skeleton_from_range_of_motion(*args, rest_frames=range(15), options=RomOptions(**strict))
+    with pytest.warns(UserWarning, match=r"joint 'left_shin': the trial does not determine its centre \(centre standard "
+                                         r"error .*'right_shin''s mirrored .*\(degenerate = 'mirror'\)"):
+        est = skeleton_from_range_of_motion(*args, rest_frames=range(15), options=RomOptions(**strict, degenerate="mirror"))
+    assert est.joints["left_shin"].placed_by == "right_shin's, mirrored"
+    knee = skeleton.index("left_shin")
+    np.testing.assert_allclose(est.skeleton.offsets[knee], skeleton.offsets[knee], atol=1e-6)  # in the thigh: exact
+    np.testing.assert_allclose(est.skeleton.hinge_axes[knee], skeleton.hinge_axes[knee], atol=1e-3)  # its own axis

@@ -140,7 +140,9 @@ class RomOptions:
             (Eq. 17), as for a knee; or "mirror" — warn and give any ball joint the trials do not determine
             (moved about too few axes, its centre's standard error over ``max_centre_std_m``, or its segments
             known together in too few frames) its other side's centre (``left_``/``right_`` names) mirrored
-            through the body's midplane, a hip or a shoulder as much as an ankle. Both sides undetermined raise.
+            through the body's midplane, a hip or a shoulder as much as an ankle; and a hinge flexed enough to
+            fix its axis but whose centre's standard error is over ``max_centre_std_m`` its own axis with its
+            other side's centre, mirrored. Both sides undetermined raise.
             A direction moved less than ``min_spread`` but more than half of it (1° of camera noise alone reads
             half), where the centre's standard error is within ``max_centre_std_m``, is kept as fitted (warned).
         centred_virtual: virtual cameras at the mean of their cameras (True) or at a reference camera.
@@ -747,11 +749,16 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
         what = f"joint '{name}' (between '{pname}' and '{name}', {jtype.name.lower()})"
         if hinge:
             if weak > 1 or est.std_m > options.max_centre_std_m:
-                raise ValueError(
-                    f"{what}: the {trials} did not exercise it: rotation spread about its axis {est.spread[1]:.4f} "
-                    f"(need ≥ {options.min_spread}), centre standard error {100 * est.std_m:.2f} cm; flex the joint "
-                    "through its range in the trial"
-                )
+                failure = (f"{what}: the {trials} did not exercise it: rotation spread about its axis "
+                           f"{est.spread[1]:.4f} (need ≥ {options.min_spread}), centre standard error "
+                           f"{100 * est.std_m:.2f} cm; flex the joint through its range in the trial")
+                # its axis comes from the rotations alone: where they fix it (one weak direction, the axis itself),
+                # "mirror" keeps the axis and takes the centre from the other side
+                if not (options.degenerate == "mirror" and weak <= 1 and _other_side(name) in topology.names
+                        and _has_hip_pair(topology)):
+                    raise ValueError(failure)
+                undetermined[name] = (failure, f"the {trials} do{'es' * (not more_trials)} not determine its centre "
+                                      f"(centre standard error {100 * est.std_m:.2f} cm)", "degenerate")
             if est.spread[0] > max(options.min_spread, 0.3 * est.spread[1]):
                 warnings.warn(
                     f"{what}: its rotations are not about a single axis (spreads {est.spread[0]:.3f} and "

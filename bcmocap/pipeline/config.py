@@ -39,7 +39,7 @@ values of the wrong type (also inside lists), numbers that are not finite and va
                               # less certain than max_centre_std_cm): mirror (warn, and give it its other side's
                               # centre mirrored through the body's midplane; both sides undetermined raise; a
                               # direction moved more than half min_spread, where the centre is certain enough, is
-                              # kept) |
+                              # kept; a hinge whose axis is fixed but centre is not keeps its axis, takes the centre) |
                               # hinge (moved about one axis only: warn, and fix its centre on that axis by the
                               # straight rest pose, as for a knee) | raise
     centre_trials = ["rom", "capture"]   # trials whose motion fits the joint centres: ["rom"] (the paper) |
