@@ -32,9 +32,10 @@ time offsets against the truth (relative to their mean: a common offset is a shi
 
 Everything lives in ``--out`` (``captures/NAME``, ``runs/CONDITION/NAME``); a rerun resumes (the studio, the
 calibration and ``bcmocap run`` all resume). With ``--records DIR`` each finished run's record is also kept in
-``DIR/NAME.json`` with the commit of the code it ran (the code must be committed: :data:`PIPELINE_CODE`), runs with a
-record are not run again, and ``--json`` summarises every record there of the planned grid: a grid longer than one
-sitting is run in parts (``--only``) and its records committed, and the summary refuses records of different code. ``--quick`` runs one clean and one realistic walk in the textured
+``DIR/NAME.json`` with the commit of the code it ran (the code must be committed: :data:`PIPELINE_CODE`), its
+capture's studio settings, the suite's constants and the libraries' versions; runs with a record are not run again,
+and ``--json`` summarises every record there of the planned grid: a grid longer than one sitting is run in parts
+(``--only``) and its records committed, and the summary refuses a record that differs from this code in any of them. ``--quick`` runs one clean and one realistic walk in the textured
 room (about 20 minutes on 2 cores); the full grid is every motion in every room realistic (20 runs) and every
 motion in two rooms clean (10 runs).
 
@@ -75,10 +76,16 @@ COVERED_DEG = 80.0  # the part of the image the board covers well (and the body 
 # (COLMAP's tutorial: "capture images with enough overlap"). With 24 photos the mapper joined 12 of the sparse room's
 # (seed 2; consecutive photos of its painted walls shared no features); with 48 it joins 46.
 REFERENCE_PHOTOS = {"sparse": 48}
-# What a run's figures depend on (git pathspecs): a record is valid for code that differs from its commit only outside
-# these (the KCS and marker commands, the viewer and the C3D reader are not on the path of bcmocap run).
-PIPELINE_CODE = ("bcmocap", "benchmarks/suite.py", "benchmarks/configs", "pyproject.toml", ":(exclude)bcmocap/kcs",
-                 ":(exclude)bcmocap/markers", ":(exclude)bcmocap/viewer", ":(exclude)bcmocap/io/c3d.py")
+# What a run's figures depend on, besides the grid's own definition (each record keeps the studio settings of its
+# capture and the suite's constants, checked against this script's) and the libraries (their versions, checked too):
+# the code on the path of bcmocap run (git pathspecs; the KCS and marker commands, the viewer, the C3D reader and what
+# only bcmocap init reads, the camera files' telemetry, are not on it).
+PIPELINE_CODE = ("bcmocap", "benchmarks/configs", ":(exclude)bcmocap/kcs", ":(exclude)bcmocap/markers",
+                 ":(exclude)bcmocap/viewer", ":(exclude)bcmocap/io/c3d.py", ":(exclude)bcmocap/io/gopro.py",
+                 ":(exclude)bcmocap/frontend/telemetry.py", ":(exclude)bcmocap/frontend/assemble.py",
+                 ":(exclude)bcmocap/frontend/init_command.py")
+LIBRARIES = ("jax", "jaxlib", "numpy", "scipy", "opencv-python-headless", "pycolmap", "equinox", "optimistix", "lineax",
+             "av")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,6 +311,15 @@ def summarise(rows: list[dict]) -> dict:
     }
 
 
+def suite_constants() -> dict:
+    """The suite's constants that shape a run, and the libraries' versions."""
+    from importlib.metadata import version
+
+    return {"lens_models": LENS_MODELS, "fit_views": FIT_VIEWS, "covered_deg": COVERED_DEG,
+            "reference_photos": REFERENCE_PHOTOS, "configs": {k: str(v.relative_to(ROOT)) for k, v in CONFIGS.items()},
+            "libraries": {name: version(name) for name in LIBRARIES}}
+
+
 def settings_of(args) -> dict:
     """The options that shape the grid's runs (not where they are written, nor which of them this sitting runs)."""
     return {k: v for k, v in vars(args).items() if k not in ("out", "json", "only", "records", "cluster")}
@@ -327,17 +343,26 @@ def same_code(commit: str, head: str) -> bool:
     return commit == head or _git("diff", "--quiet", commit, head, "--", *PIPELINE_CODE).returncode == 0
 
 
-def read_records(folder: Path, runs: list[Run], head: str) -> dict[str, dict]:
-    """The records in ``folder`` of the planned ``runs`` (name → record); SystemExit for one of other code."""
+def read_records(folder: Path, runs: list[Run], head: str, args) -> dict[str, dict]:
+    """The records in ``folder`` of the planned ``runs`` (name → record); SystemExit for one of other code, other
+    capture settings, other suite constants or other libraries."""
     records = {}
+    expected = suite_constants()
     for run in runs:
         path = folder / f"{run.name}.json"
         if not path.exists():
             continue
         record = json.loads(path.read_text())
         if not same_code(record.get("commit", ""), head):
+            changed = _git("diff", "--name-only", record.get("commit", ""), head, "--", *PIPELINE_CODE).stdout.split()
             raise SystemExit(f"{path}: a record of the code at {record.get('commit', '?')[:10]}, which differs from "
-                             f"HEAD's ({head[:10]}) in {' '.join(PIPELINE_CODE[:4])}; run it again (remove the record)")
+                             f"HEAD's ({head[:10]}) in {', '.join(changed[:5]) or 'unknown files'}; run it again "
+                             "(remove the record)")
+        capture = json.loads(json.dumps(capture_settings(run, args).to_dict()))
+        for what, got, want in (("capture settings", record.get("capture_settings"), capture),
+                                ("suite constants", record.get("suite_constants"), expected)):
+            if got != want:
+                raise SystemExit(f"{path}: a record of other {what} ({got}, here {want}); run it again (remove it)")
         records[run.name] = record
     return records
 
@@ -381,7 +406,7 @@ def main() -> int:
     records_dir = Path(args.records) if args.records else None
     head = code_commit() if records_dir else None
     grid = runs if not args.only else planned_runs(args.quick, args.seeds)
-    kept = read_records(records_dir, grid, head) if records_dir else {}
+    kept = read_records(records_dir, grid, head, args) if records_dir else {}
     runs = [r for r in runs if r.name not in kept]
     log = lambda text: print(text, flush=True)  # noqa: E731
     clock = time.perf_counter()
@@ -430,7 +455,9 @@ def main() -> int:
                 record["ok"] = False
             rows.append(record)
             if records_dir:
-                write_json(str(records_dir / f"{run.name}.json"), {**record, "commit": head, "settings": settings_of(args)})
+                write_json(str(records_dir / f"{run.name}.json"), {
+                    **record, "commit": head, "settings": settings_of(args), "suite_constants": suite_constants(),
+                    "capture_settings": json.loads(json.dumps(capture_settings(run, args).to_dict()))})
             if record["ok"]:
                 log(f"{run.name}: {record['solved']['joint_position_error_cm']:.2f} cm, "
                     f"{record['solved']['joint_angle_error_deg']:.2f} deg (initial "
@@ -438,7 +465,7 @@ def main() -> int:
             else:
                 log(f"{run.name}: FAILED {record.get('error')}")
     if records_dir:  # every record of the grid (this sitting's and earlier ones'), in the grid's order
-        kept = read_records(records_dir, grid, head)
+        kept = read_records(records_dir, grid, head, args)
         rows = [kept[r.name] for r in grid if r.name in kept]
         for row in rows:
             if row.get("settings") != settings_of(args):

@@ -12,6 +12,8 @@ writes the folder :func:`~.capture.read_capture` reads (the layout of :mod:`bcmo
     intrinsics/<camera>.json|.yml      the camera's calibration files (copied: small)
     reference/<photo>, camera.json|.yml the reference photos and their camera
     trials/<trial>/<camera>.<ext>      a video holding one trial (and <camera>.wav if the video had none)
+    trials/<trial>/imu.npz             the cameras' own gyroscopes and accelerometers (GoPro files' GPMF
+                                       telemetry, :mod:`.telemetry`), where some camera has any
     videos/<camera>.<ext>              a video holding several trials, cut by the stretches in rig.json
 
 Videos and photos are **symbolic links** to the user's files (absolute targets), or copies with
@@ -49,17 +51,21 @@ from ..io.capture_folder import (
     shared_video_path,
     subject_record,
     trial_audio_path,
+    trial_dir,
     trial_video_path,
     write_json,
     write_manifest,
 )
+from ..io.gopro import read_gopro_imu
 from ..io.media import probe_media, read_audio_track
 from ..io.names import checked_name
 from ..io.opencv_calibration import read_opencv_fisheye_calibration
+from ..io.sensors import IMU_FILE, ImuRecording, write_imu
 from ..io.wav import read_wav
 from .capture import read_camera_json, read_capture
 from .rig_file import RigFile
 from .sync import clap_candidates, common_claps, synchronize_tracks
+from .telemetry import CameraTelemetry, trial_imu
 
 __all__ = ["VIDEO_SUFFIXES", "CameraFile", "TrialStretch", "assemble_capture"]
 
@@ -301,6 +307,33 @@ def _check_sync(rig: RigFile, stretches: dict[tuple[str, str], TrialStretch]) ->
     return found
 
 
+def _trial_imus(rig: RigFile, stretches: dict[tuple[str, str], TrialStretch], claps: dict[str, dict],
+                log) -> dict[str, ImuRecording]:
+    """Each trial's ``imu.npz`` content from the cameras' own telemetry (:mod:`.telemetry`; GoPro files), for the
+    trials where some camera has any; a line saying which cameras have none (their gyro terms are then off)."""
+    found = {}
+    for path in {s.source.path for s in stretches.values()}:
+        found[path] = read_gopro_imu(path) if path.suffix.lower() in (".mp4", ".mov", ".lrv") else None
+    with_imu = [c.name for c in rig.cameras if any(found[stretches[(t, c.name)].source.path] for t in rig.trials)]
+    if not with_imu:
+        return {}
+    without = [c.name for c in rig.cameras if c.name not in with_imu]
+    devices = sorted({imu.device or "?" for imu in found.values() if imu is not None})
+    log(f"telemetry (GPMF: {', '.join(devices)}) in {len(with_imu)} of {len(rig.cameras)} cameras"
+        + (f"; none in {', '.join(without)}: their gyro terms are off" if without else ""))
+    imus = {}
+    for trial in rig.trials:
+        cameras = []
+        for c, cam in enumerate(rig.cameras):
+            s = stretches[(trial, cam.name)]
+            cameras.append(CameraTelemetry(cam.name, found[s.source.path], s.first_frame, s.num_frames,
+                                           int(claps[trial]["first_clap_frames"][c]), s.source.fps))
+        recording = trial_imu(cameras, where=f"trial {trial!r}")
+        if recording is not None:
+            imus[trial] = recording
+    return imus
+
+
 def _calibration_files(rig: RigFile, calibration: Path, size: dict[str, tuple[int, int]]) -> dict[str, list[Path]]:
     """``{camera: [lens .json and/or cv2.fisheye .yml]}``, each read and checked against the video's size."""
     out = {}
@@ -394,6 +427,7 @@ def assemble_capture(capture_dir: str | os.PathLike, videos: str | os.PathLike, 
     photos, photo_cameras = _reference_files(None if reference_photos is None else Path(reference_photos))
     stretches = _stretches(rig, sources, log)  # the audio work last: the cheap checks fail first
     claps = _check_sync(rig, stretches)
+    imus = _trial_imus(rig, stretches, claps, log)
 
     capture_dir.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{capture_dir.name}.init-", dir=capture_dir.parent))
@@ -437,6 +471,9 @@ def assemble_capture(capture_dir: str | os.PathLike, videos: str | os.PathLike, 
             _place(photo, reference_photo_path(work, photo.name), copy)
         for file in photo_cameras:
             _place(file, reference_camera_path(work, file.suffix), copy=True)
+        for trial, recording in imus.items():
+            trial_dir(work, trial).mkdir(parents=True, exist_ok=True)
+            write_imu(trial_dir(work, trial) / IMU_FILE, recording)
         write_json(rig_path(work), {"cameras": entries, "segments": list(rig.segment_names)})
         manifest = new_manifest(
             fps=first.fps,
