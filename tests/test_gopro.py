@@ -17,6 +17,7 @@ from bcmocap.frontend import read_capture, synchronize
 from bcmocap.frontend.telemetry import CameraTelemetry, trial_imu
 from bcmocap.geometry import matrix_from_quat
 from bcmocap.io.gopro import CAMERA_FROM_GOPRO_IMU, GoProImu, SensorSamples, _channel_axes, read_gopro_imu
+from bcmocap.io.media import probe_media
 from bcmocap.io.sensors import read_imu
 
 SAMPLE = Path(__file__).parent / "data" / "gopro" / "karma.mp4"
@@ -105,8 +106,9 @@ def test_trial_imu_puts_each_camera_s_samples_on_the_trial_clock():
                   where="trial 'x'")
 
 
-def _with_gopro_telemetry(take: Path, out: Path) -> None:
-    """``take``'s video and audio, with the sample's GPMF track beside them (muxed as recorded)."""
+def _with_gopro_telemetry(take: Path, out: Path, seconds: float = np.inf) -> None:
+    """``take``'s video and audio, with the sample's GPMF track beside them (muxed as recorded; its payloads that start
+    within ``seconds``)."""
     with av.open(str(take)) as source, av.open(str(SAMPLE)) as gopro, av.open(str(out), "w", format="mp4") as target:
         meta = next(s for s in gopro.streams.data if "GoPro MET" in s.metadata.get("handler_name", ""))
         streams = {s: target.add_stream_from_template(s) for s in (*source.streams.video, *source.streams.audio)}
@@ -116,7 +118,7 @@ def _with_gopro_telemetry(take: Path, out: Path) -> None:
                 packet.stream = streams[packet.stream]
                 target.mux(packet)
         for packet in gopro.demux(meta):
-            if packet.dts is not None:
+            if packet.dts is not None and packet.pts * packet.time_base < seconds:
                 packet.stream = gpmf
                 target.mux(packet)
 
@@ -148,3 +150,35 @@ def test_init_writes_the_cameras_telemetry_on_each_trial_s_clock(shoot, tmp_path
             want = np.stack([np.interp(file_time, sample.gyro.time_s, sample.gyro.values[:, k]) for k in range(3)], 1)
             np.testing.assert_allclose(imu.gyro[:, s], want, atol=1e-12)
         np.testing.assert_allclose(imu.camera_from_imu[:, :4], np.tile(CAMERA_FROM_GOPRO_IMU, (2, 1)))
+
+
+def test_a_take_s_chapters_telemetry_is_joined_on_the_joined_clock(shoot, tmp_path, capsys):  # noqa: F811
+    # The head camera's take in two chapters, each with the sample's GPMF track from its own first frame: in the joined
+    # take, the second chapter's samples follow from its start (global frame 90).
+    from test_chapters import write_chapters
+    from test_init import LAST, STARTS, write_rig
+
+    folder = tmp_path / "shoot"
+    shutil.copytree(shoot, folder)
+    (folder / "videos" / "head.mp4").unlink()
+    plain = write_chapters(tmp_path, ["GX010003.MP4", "GX020003.MP4"], 0, STARTS[0], LAST, [90])
+    for chapter in plain:  # a chapter's telemetry ends with it
+        _with_gopro_telemetry(chapter, folder / "videos" / chapter.name, probe_media(chapter).duration_s)
+    write_rig(folder / "rig.toml", {"head": {"segment": "head", "lens": "wide", "video": "GX010003.MP4"},
+                                    "chest": {"segment": "torso", "lens": "wide"},
+                                    "left_foot": {"segment": "left_foot"}}, {"margin_s": 0.5})
+    assert run_init(folder, tmp_path / "capture") == 0
+    capture = read_capture(tmp_path / "capture")
+    parts = [read_gopro_imu(folder / "videos" / c.name) for c in plain]
+    second = (90 - STARTS[0]) / FPS  # s: where the second chapter starts in the joined take
+    for trial in capture.trials:
+        imu = read_imu(tmp_path / "capture" / "trials" / trial / "imu.npz")
+        assert imu.cameras == ("head",)
+        source = capture.trial_video(trial, "head")
+        file_time = imu.time + (source.first_frame + synchronize(capture, trial).offset("head")) / FPS
+        first = parts[0].gyro.time_s < second  # the first chapter's last payload's fit reaching past its end: dropped
+        times = np.concatenate([parts[0].gyro.time_s[first], parts[1].gyro.time_s + second])
+        values = np.concatenate([parts[0].gyro.values[first], parts[1].gyro.values])
+        assert np.all(np.diff(times) > 0)
+        want = np.stack([np.interp(file_time, times, values[:, k]) for k in range(3)], 1)
+        np.testing.assert_allclose(imu.gyro[:, 0], want, atol=1e-12)

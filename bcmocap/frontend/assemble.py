@@ -14,6 +14,10 @@ writes the folder :func:`~.capture.read_capture` reads (the layout of :mod:`bcmo
     trials/<trial>/<camera>.<ext>      a video holding one trial (and <camera>.wav if the video had none)
     trials/<trial>/imu.npz             the cameras' own gyroscopes and accelerometers (GoPro files' GPMF
                                        telemetry, :mod:`.telemetry`), where some camera has any
+
+A take a camera split over chapter files (a GoPro's ``GX01nnnn.MP4``, ``GX02nnnn.MP4``…: :mod:`bcmocap.io.chapters`)
+is joined into one file, its packets copied unchanged, which the capture folder holds (not a link); naming any of its
+chapters names the take.
     videos/<camera>.<ext>              a video holding several trials, cut by the stretches in rig.json
 
 Videos and photos are **symbolic links** to the user's files (absolute targets), or copies with
@@ -56,6 +60,7 @@ from ..io.capture_folder import (
     write_json,
     write_manifest,
 )
+from ..io.chapters import join_chapters, take_chapters
 from ..io.gopro import read_gopro_imu
 from ..io.media import probe_media, read_audio_track
 from ..io.names import checked_name
@@ -307,13 +312,59 @@ def _check_sync(rig: RigFile, stretches: dict[tuple[str, str], TrialStretch]) ->
     return found
 
 
+def _join_takes(takes: dict[Path, list[Path]], work: Path, log) -> dict[Path, tuple[Path, list[float]]]:
+    """The takes of several chapters joined into ``work/.chapters/`` (:func:`~bcmocap.io.chapters.join_chapters`):
+    ``{file named: (the joined file, each chapter's start in it, s)}``."""
+    joined = {}
+    for number, (path, chapters) in enumerate(sorted(takes.items())):
+        if len(chapters) < 2:
+            continue
+        folder = work / ".chapters"
+        folder.mkdir(exist_ok=True)
+        out = folder / f"{number}-{checked_name(chapters[0].stem, 'a video name', str(chapters[0]))}.mp4"
+        starts = join_chapters(chapters, out)
+        joined[path] = (out, starts)
+        log(f"joined {len(chapters)} chapters of one take: {', '.join(c.name for c in chapters)}")
+    return joined
+
+
+def _telemetry(path: Path, chapters: tuple[list[Path], list[float]] | None):
+    """A camera file's GoPro telemetry (None without), a joined take's from its chapters on the joined clock."""
+    from ..io.gopro import GoProImu, SensorSamples
+
+    if chapters is None:
+        return read_gopro_imu(path) if path.suffix.lower() in (".mp4", ".mov", ".lrv") else None
+    parts = [read_gopro_imu(c) if c.suffix.lower() in (".mp4", ".mov", ".lrv") else None for c in chapters[0]]
+    if all(p is None for p in parts):
+        return None
+    if any(p is None for p in parts):
+        missing = next(c for c, p in zip(chapters[0], parts) if p is None)
+        raise ValueError(f"{missing}: a chapter without the telemetry the take's other chapters carry")
+
+    ends = [*chapters[1][1:], np.inf]  # a chapter's samples past its video's end (its last payload's fit) are dropped
+
+    def joined(kind: str):
+        samples = [getattr(p, kind) for p in parts]
+        if any(x is None for x in samples):
+            return None
+        keep = [x.time_s + start < end for x, start, end in zip(samples, chapters[1], ends)]
+        return SensorSamples(np.concatenate([x.time_s[k] + start for x, k, start in zip(samples, keep, chapters[1])]),
+                             np.concatenate([x.values[k] for x, k in zip(samples, keep)]),
+                             float(np.median([x.rate_hz for x in samples])))
+
+    gyro = joined("gyro")
+    if np.any(np.diff(gyro.time_s) <= 0):
+        raise ValueError(f"{chapters[0][0]}: the chapters' gyro samples overlap in time once joined")
+    return GoProImu(path, parts[0].device, gyro, joined("accel"), parts[0].channels)
+
+
 def _trial_imus(rig: RigFile, stretches: dict[tuple[str, str], TrialStretch], claps: dict[str, dict],
-                log) -> dict[str, ImuRecording]:
+                chapters: dict[Path, tuple[list[Path], list[float]]], log) -> dict[str, ImuRecording]:
     """Each trial's ``imu.npz`` content from the cameras' own telemetry (:mod:`.telemetry`; GoPro files), for the
     trials where some camera has any; a line saying which cameras have none (their gyro terms are then off)."""
     found = {}
     for path in {s.source.path for s in stretches.values()}:
-        found[path] = read_gopro_imu(path) if path.suffix.lower() in (".mp4", ".mov", ".lrv") else None
+        found[path] = _telemetry(path, chapters.get(path))
     with_imu = [c.name for c in rig.cameras if any(found[stretches[(t, c.name)].source.path] for t in rig.trials)]
     if not with_imu:
         return {}
@@ -421,17 +472,22 @@ def assemble_capture(capture_dir: str | os.PathLike, videos: str | os.PathLike, 
         raise ValueError(f"{videos}: videos folder does not exist")
     if not calibration.is_dir():
         raise ValueError(f"{calibration}: calibration folder does not exist")
-    sources = _probe_all(rig, _find_videos(rig, videos))
-    first = sources[(rig.trials[0], rig.cameras[0].name)]
-    lenses = _calibration_files(rig, calibration, {c: (s.width, s.height) for (_, c), s in sources.items()})
-    photos, photo_cameras = _reference_files(None if reference_photos is None else Path(reference_photos))
-    stretches = _stretches(rig, sources, log)  # the audio work last: the cheap checks fail first
-    claps = _check_sync(rig, stretches)
-    imus = _trial_imus(rig, stretches, claps, log)
-
+    paths = _find_videos(rig, videos)
+    takes = {path: take_chapters(path) for files in paths.values() for path in set(files.values())}
     capture_dir.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{capture_dir.name}.init-", dir=capture_dir.parent))
     try:
+        joined = _join_takes(takes, work, log)  # file named in paths -> (its take joined, each chapter's start)
+        paths = {camera: {t: joined[p][0] if p in joined else p for t, p in files.items()} for camera, files in paths.items()}
+        sources = _probe_all(rig, paths)
+        first = sources[(rig.trials[0], rig.cameras[0].name)]
+        lenses = _calibration_files(rig, calibration, {c: (s.width, s.height) for (_, c), s in sources.items()})
+        photos, photo_cameras = _reference_files(None if reference_photos is None else Path(reference_photos))
+        stretches = _stretches(rig, sources, log)  # the audio work last: the cheap checks fail first
+        claps = _check_sync(rig, stretches)
+        chapters = {file: (takes[source], starts) for source, (file, starts) in joined.items()}
+        imus = _trial_imus(rig, stretches, claps, chapters, log)
+
         placed: dict[Path, tuple[Path, Path]] = {}  # source file -> its path in the capture, and its WAV's
         entries = []
         for cam in rig.cameras:
@@ -455,7 +511,11 @@ def assemble_capture(capture_dir: str | os.PathLike, videos: str | os.PathLike, 
                     else:
                         target = trial_video_path(work, trial, cam.name, suffix)
                         wav = trial_audio_path(work, trial, cam.name)
-                    _place(s.source.path, target, copy)
+                    if s.source.path in chapters:  # a take joined from its chapters: made here, moved in
+                        target.parent.mkdir(parents=True, exist_ok=True)
+                        os.replace(s.source.path, target)
+                    else:
+                        _place(s.source.path, target, copy)
                     if s.source.wav is not None:
                         _place(s.source.wav, wav, copy)
                     placed[s.source.path] = (target, wav)
@@ -474,6 +534,7 @@ def assemble_capture(capture_dir: str | os.PathLike, videos: str | os.PathLike, 
         for trial, recording in imus.items():
             trial_dir(work, trial).mkdir(parents=True, exist_ok=True)
             write_imu(trial_dir(work, trial) / IMU_FILE, recording)
+        shutil.rmtree(work / ".chapters", ignore_errors=True)  # the joined takes are in place
         write_json(rig_path(work), {"cameras": entries, "segments": list(rig.segment_names)})
         manifest = new_manifest(
             fps=first.fps,
