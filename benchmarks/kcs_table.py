@@ -52,7 +52,7 @@ from bcmocap.kcs import (  # noqa: E402
     aligned_joint_distances,
     aligned_joint_errors,
     joint_errors,
-    mean_pose,
+    pool_mean_pose,
     reconstruct,
 )
 from bcmocap.kinematics import joint_positions  # noqa: E402
@@ -95,9 +95,9 @@ def load_trials(cmu_dir: Path, bvh_dir: Path | None = None) -> tuple[KinematicCh
 
 
 def prior_for(name: str, trials: dict[str, np.ndarray], chain: KinematicChainSpace) -> np.ndarray:
-    """Mean pose of all *other* trials (each evenly subsampled to at most 300 frames, so none dominates)."""
-    others = [trials[k] for k in trials if k != name]
-    return mean_pose([x[np.linspace(0, len(x) - 1, min(len(x), 300)).astype(int)] for x in others], chain)
+    """Mean pose of all *other* trials (each evenly subsampled to at most 300 frames, so none dominates), kept in a
+    file keyed by that pool (:func:`bcmocap.kcs.pool_mean_pose`): a rerun reads it."""
+    return pool_mean_pose({k: x for k, x in trials.items() if k != name}, chain, max_frames=300)
 
 
 def camera_paths(num_frames: int, num_paths: int, rng: np.random.Generator):

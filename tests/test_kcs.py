@@ -387,3 +387,52 @@ def test_smoothing_in_time_is_a_renormalised_gaussian_and_handles_short_sequence
     np.testing.assert_allclose(np.asarray(_smooth_in_time(jnp.asarray(x), 3.0)), expected, atol=1e-12)
     short = np.asarray(_smooth_in_time(jnp.asarray(x[:5]), 3.0))  # shorter than the 19-tap kernel
     assert short.shape == (5, 3) and np.allclose(_smooth_in_time(jnp.ones((5, 3)), 3.0), 1.0)
+
+
+def test_padding_to_a_bucket_changes_no_result(scene):
+    # 37 frames with holes, solved as they are and padded to 48: the same joints, cameras, lengths, history
+    chain, joints, rest, rotations, uv = scene
+    seq = uv[0, :37].copy()
+    seq[5:9, 3] = np.nan
+    padded, plain = reconstruct(chain, seq, rest), reconstruct(chain, seq, rest, pad=False)
+    assert padded.joints.shape == plain.joints.shape == (37, chain.num_joints, 3)
+    assert padded.cameras.rotation.shape == (37, 3, 3) and int(padded.iterations) == int(plain.iterations)
+    for got, want in ((padded.joints, plain.joints), (padded.cameras.scale, plain.cameras.scale),
+                      (padded.bone_lengths, plain.bone_lengths), (padded.reprojection_px, plain.reprojection_px)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-8, equal_nan=True)
+
+
+def test_padded_lengths_are_few():
+    from bcmocap.kcs.solve import padded_length
+
+    lengths = [padded_length(f) for f in range(3, 2001)]
+    assert all(f <= size <= max(16, 1.5 * f) for f, size in zip(range(3, 2001), lengths))
+    assert sorted(set(lengths)) == [16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512, 768, 1024, 1536, 2048]
+
+
+def test_a_pool_s_mean_pose_is_kept_in_a_file_keyed_by_the_pool(scene, tmp_path, monkeypatch):
+    from bcmocap.kcs import prior
+    from bcmocap.kcs.prior import pool_mean_pose
+
+    chain, joints, rest, rotations, uv = scene
+    pool = {"a": joints[:30], "b": joints[10:]}
+    first = pool_mean_pose(pool, chain, max_frames=20, folder=tmp_path)
+    sub = [x[np.linspace(0, len(x) - 1, 20).astype(int)] for x in pool.values()]
+    np.testing.assert_allclose(first, mean_pose(sub, chain), atol=1e-12)
+    files = list(tmp_path.glob("kcs-prior-*.npz"))
+    assert len(files) == 1
+
+    def fail(*args, **kwargs):
+        raise AssertionError("computed again")
+
+    monkeypatch.setattr(prior, "mean_pose", fail)
+    np.testing.assert_array_equal(pool_mean_pose(pool, chain, max_frames=20, folder=tmp_path), first)  # read back
+    with pytest.raises(AssertionError, match="computed again"):  # another pool: another key
+        pool_mean_pose({"a": joints[:30], "b": joints[11:]}, chain, max_frames=20, folder=tmp_path)
+    with pytest.raises(AssertionError, match="computed again"):  # other settings
+        pool_mean_pose(pool, chain, max_frames=None, folder=tmp_path)
+    monkeypatch.undo()
+    files[0].write_bytes(b"damaged")
+    np.testing.assert_allclose(pool_mean_pose(pool, chain, max_frames=20, folder=tmp_path), first, atol=1e-12)
+    with pytest.raises(ValueError, match="no trial"):
+        pool_mean_pose({}, chain)

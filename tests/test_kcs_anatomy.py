@@ -125,3 +125,16 @@ def test_options_check_the_new_weights():
     for name in ("hinge_weight", "rigid_weight", "limb_smoothness", "limb_agreement"):
         with pytest.raises(ValueError, match="non-negative"):
             KCSOptions(**{name: -1.0})
+
+
+def test_padding_changes_no_result_with_anatomy_and_depth_smoothing(cmu):
+    """The human chain's limb signs, per-bone signs and depth smoothing over 50 frames padded to 64."""
+    chain, x = cmu
+    prior = mean_pose(x[::2], chain)
+    x = x[:50]
+    centred = x - x.mean(axis=1, keepdims=True)
+    uv = 200.0 * np.einsum("ij,fkj->fki", view(35.0)[:2], centred) + 320.0
+    options = KCSOptions(max_iterations=4, depth_smoothing=1.5)
+    padded, plain = (reconstruct(chain, uv, prior, options=options, pad=pad) for pad in (True, False))
+    np.testing.assert_allclose(np.asarray(padded.joints), np.asarray(plain.joints), atol=1e-8)
+    np.testing.assert_allclose(np.asarray(padded.bone_lengths), np.asarray(plain.bone_lengths), atol=1e-10)

@@ -10,6 +10,7 @@ its 2-D joints seen by one uncalibrated camera with little or no motion:
   singular value thresholding, jitted and vmapped over sequences or camera paths;
 * :func:`human_anatomy`, :func:`limb_signs` — beyond the paper: depth signs of whole limbs chosen over
   time with anatomical hinges (knees, ankles, elbows) and the rigid pelvis and thorax;
+* :func:`pool_mean_pose` — the mean pose of a pool of motions, kept in a file keyed by the pool;
 * :func:`motion_from_joints` — a :class:`~bcmocap.kinematics.Skeleton` and
   :class:`~bcmocap.kinematics.Motion` (for :func:`~bcmocap.io.write_bvh`) from reconstructed joints;
 * :func:`aligned_joint_errors` (3DPE; per joint :func:`aligned_joint_distances`) and :func:`joint_errors` (MPJPE).
@@ -33,6 +34,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "aligned_joint_distances": "metrics",
     "aligned_joint_errors": "metrics",
     "joint_errors": "metrics",
+    "pool_mean_pose": "prior",
     "KCSOptions": "solve",
     "KCSResult": "solve",
     "limb_signs": "solve",

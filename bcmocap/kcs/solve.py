@@ -54,7 +54,8 @@ from .anatomy import Anatomy, human_anatomy
 from .cameras import WeakPerspectiveCameras, fit_cameras, initial_cameras, reprojection_rms
 from .chain_space import KinematicChainSpace
 
-__all__ = ["KCSOptions", "KCSResult", "limb_signs", "reconstruct", "singular_value_threshold", "solve_bones"]
+__all__ = ["KCSOptions", "KCSResult", "limb_signs", "padded_length", "reconstruct", "singular_value_threshold",
+           "solve_bones"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,38 +173,45 @@ def singular_value_threshold(matrix: jax.Array, threshold) -> jax.Array:
     return jnp.swapaxes(out, -1, -2) if wide else out
 
 
-def _viterbi_signs(candidates: jax.Array, target: jax.Array, smoothness) -> jax.Array:
+def _viterbi_signs(candidates: jax.Array, target: jax.Array, smoothness, frames=None) -> jax.Array:
     """Depth signs of one bone over time (second-order dynamic programming).
 
     Args:
         candidates: ``(F, 2, 3)`` the bone with positive (index 0) and negative (1) depth, camera frame.
         target: ``(F, 3)`` the unconstrained estimate to agree with.
         smoothness: weight of ``‖b_{k−1} − 2 b_k + b_{k+1}‖²``.
+        frames: ``(F,)`` 1 for the sequence's frames, 0 for padding after them (None: all frames).
 
     Returns:
         ``(F,)`` chosen candidate index per frame.
     """
     unary = jnp.sum((candidates - target[:, None]) ** 2, axis=-1)  # (F, 2)
-    return _viterbi_states(unary, candidates[:, :, None], smoothness)
+    return _viterbi_states(unary, candidates[:, :, None], smoothness, frames)
 
 
-def _viterbi_states(unary: jax.Array, points: jax.Array, smoothness) -> jax.Array:
+def _viterbi_states(unary: jax.Array, points: jax.Array, smoothness, frames=None) -> jax.Array:
     """Second-order dynamic programme over ``S`` discrete states per frame.
 
     Args:
         unary: ``(F, S)`` cost of each state in each frame.
         points: ``(F, S, n, 3)`` points that each state places; the pairwise cost is ``smoothness`` ×
             ``Σ ‖p_{k−1} − 2 p_k + p_{k+1}‖²`` over the ``n`` points.
+        frames: ``(F,)`` 1 for the sequence's frames, 0 for padding after them: a padded frame's unary and
+            every second difference ending at it cost nothing, so the sequence's states are those of the
+            unpadded programme (None: all frames).
 
     Returns:
         ``(F,)`` the state sequence of least total cost (F ≥ 3).
     """
     s = unary.shape[1]
+    if frames is not None:
+        unary = unary * frames[:, None]
+    live = jnp.ones(unary.shape[0]) if frames is None else frames
     cost0 = unary[0][:, None] + unary[1][None, :]  # states (s_{k-1}, s_k)
 
     def forward(cost, k):
         acc = points[k - 2][:, None, None] - 2 * points[k - 1][None, :, None] + points[k][None, None, :]
-        total = cost[:, :, None] + smoothness * jnp.sum(acc**2, axis=(-1, -2))  # (a, b, c)
+        total = cost[:, :, None] + live[k] * smoothness * jnp.sum(acc**2, axis=(-1, -2))  # (a, b, c)
         back = jnp.argmin(total, axis=0)  # (b, c)
         return jnp.min(total, axis=0) + unary[k][None, :], back
 
@@ -234,6 +242,7 @@ def limb_signs(
     target=None,
     rest_bones=None,
     rigid_weight=KCSOptions.rigid_weight,
+    frames=None,
 ):
     """Depth signs of whole limbs chosen jointly over time with anatomical hinges (beyond the paper).
 
@@ -252,6 +261,7 @@ def limb_signs(
         rest_bones: ``(b, 3)`` the initial configuration ``B0``: the angles of ``anatomy.rigid`` pairs
             are held to theirs (``rigid_weight`` × the absolute difference of cosines); ``None`` = unused.
         rigid_weight: weight of those rigid angles.
+        frames: ``(F,)`` 1 for the sequence's frames, 0 for padding after them (None: all frames).
 
     Returns:
         ``(F, b, 3)`` the bones with the limbs' depth signs replaced (other bones unchanged).
@@ -295,21 +305,22 @@ def limb_signs(
             den = lengths[:, :, i] * lengths[:, :, j]
             cos = jnp.sum(states[:, :, i] * states[:, :, j], axis=-1) / jnp.where(den > 0, den, 1.0)
             unary = unary + rigid_weight * jnp.abs(cos - rest_cos)
-        pick = _viterbi_states(unary, jnp.cumsum(states, axis=2), smoothness)
+        pick = _viterbi_states(unary, jnp.cumsum(states, axis=2), smoothness, frames)
         out = out.at[:, list(limb)].set(states[jnp.arange(f), pick])
     return out
 
 
-def _anatomical_signs(camera_bones, anatomy: Anatomy, rest_bones, options: KCSOptions, target=None):
+def _anatomical_signs(camera_bones, anatomy: Anatomy, rest_bones, options: KCSOptions, target=None, frames=None):
     """:func:`limb_signs` with the weights of ``options``."""
     return limb_signs(
         camera_bones, anatomy, options.hinge_weight, options.limb_smoothness, options.limb_agreement, target,
-        rest_bones, options.rigid_weight,
+        rest_bones, options.rigid_weight, frames,
     )
 
 
-def _smooth_in_time(x, sigma: float):
-    """Gaussian smoothing (σ in frames) of ``(F, b)`` along frames, renormalised at the ends."""
+def _smooth_in_time(x, sigma: float, frames=None):
+    """Gaussian smoothing (σ in frames) of ``(F, b)`` along frames, renormalised at the ends (and where ``frames``
+    ``(F,)`` marks padding after the sequence with 0, at the sequence's end)."""
     if sigma <= 0 or x.shape[0] < 2:
         return x
     half = max(1, int(np.ceil(3 * sigma)))
@@ -323,11 +334,13 @@ def _smooth_in_time(x, sigma: float):
         padded = jnp.pad(v, ((half, half), (0, 0)))
         return sum(float(w) * padded[i : i + f] for i, w in enumerate(k))
 
-    return conv(x) / conv(jnp.ones_like(x))
+    live = jnp.ones_like(x) if frames is None else jnp.broadcast_to(frames[:, None], x.shape)
+    return conv(x * live) / jnp.maximum(conv(live), 1e-300)
 
 
 def _project_lengths(
-    bones, rotation, observed, lengths, weight, smoothness, choose_signs: bool, depth_sigma=0.0, limbs=None
+    bones, rotation, observed, lengths, weight, smoothness, choose_signs: bool, depth_sigma=0.0, limbs=None,
+    frames=None,
 ):
     """Relaxed projection of ``(F, 3, b)`` bones onto constant ``lengths`` (b,).
 
@@ -336,7 +349,7 @@ def _project_lengths(
     depth ``l² − ‖u‖²`` is smoothed over ``depth_sigma`` frames first: its square root amplifies image
     noise wherever a bone lies near the image plane (1 px at 200 px/m gives ~7 cm on a 40 cm bone).
     ``limbs`` = ``(anatomy, rest bones B0ᵀ, options)`` also chooses the limbs' signs (:func:`limb_signs`)
-    after the per-bone choice; None = not.
+    after the per-bone choice; None = not. ``frames`` ``(F,)``: 0 for padding after the sequence (None: none).
     """
     cam = rotation @ bones  # (F, 3, b)
     norm = jnp.linalg.norm(cam, axis=1)
@@ -345,22 +358,24 @@ def _project_lengths(
     norm_u = jnp.linalg.norm(u, axis=1)
     shrink = jnp.minimum(1.0, lengths / jnp.where(norm_u > 0, norm_u, 1.0))
     u = u * shrink[:, None]
-    depth = jnp.sqrt(jnp.maximum(_smooth_in_time(lengths**2 - jnp.sum(u * u, axis=1), depth_sigma), 0.0))
+    depth = jnp.sqrt(jnp.maximum(_smooth_in_time(lengths**2 - jnp.sum(u * u, axis=1), depth_sigma, frames), 0.0))
     if choose_signs and bones.shape[0] >= 3:
         cand = jnp.stack([jnp.concatenate([u, depth[:, None]], 1), jnp.concatenate([u, -depth[:, None]], 1)], 1)
-        pick = jax.vmap(_viterbi_signs, in_axes=(3, 2, None), out_axes=1)(cand, cam, smoothness)  # (F, b)
+        pick = jax.vmap(_viterbi_signs, in_axes=(3, 2, None, None), out_axes=1)(cand, cam, smoothness, frames)  # (F, b)
         sign = 1.0 - 2.0 * pick
     else:
         sign = jnp.where(cam[:, 2] < 0, -1.0, 1.0)
     chosen = jnp.concatenate([u, (sign * depth)[:, None]], axis=1)
     if choose_signs and limbs is not None and bones.shape[0] >= 3:
         anatomy, rest, options = limbs
-        chosen = _anatomical_signs(chosen.swapaxes(1, 2), anatomy, rest, options, cam.swapaxes(1, 2)).swapaxes(1, 2)
+        chosen = _anatomical_signs(chosen.swapaxes(1, 2), anatomy, rest, options, cam.swapaxes(1, 2),
+                                   frames).swapaxes(1, 2)
     projected = rotation.swapaxes(1, 2) @ chosen
     return bones + weight * (projected - bones)
 
 
-def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptions(), anatomy: Anatomy | None = None):
+def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptions(), anatomy: Anatomy | None = None,
+                frames=None):
     """Algorithm 1 on one sequence in the KCS (pure, jittable, vmappable; no input checks).
 
     Args:
@@ -370,6 +385,9 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
         options: settings (static).
         anatomy: limbs and hinges (static) for the final choice of limb signs (:func:`limb_signs`),
             used when ``options.anatomy``; ``None`` = none.
+        frames: ``(F,)`` 1 for the sequence's frames, 0 for padding after them (their ``weights`` 0 too): the
+            padded frames' shape coefficients are held at 0 and they enter no mean, smoothing or sign choice, so
+            the sequence's result is the unpadded one's (None: no padding).
 
     Returns:
         ``(bones (F, 3, b), cameras, lengths (b,), reprojection history, iterations, converged)``.
@@ -378,6 +396,10 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
     w = weights
     b0 = initial_bones
     f, _, nb = y.shape
+    live = jnp.ones(f) if frames is None else frames
+
+    def mean_length(bones):
+        return jnp.sum(jnp.linalg.norm(bones, axis=1) * live[:, None], axis=0) / jnp.maximum(jnp.sum(live), 1.0)
     cams = initial_cameras(y, w, b0, options.initial_camera_steps)
     if options.rank is None or options.rank >= nb:
         basis = jnp.eye(nb)
@@ -402,10 +424,10 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
         res = w[:, None, :] * (y - p @ bones)
         grad = -(p.swapaxes(1, 2) @ res) / s_max**2
         a = a - grad @ basis.T
-        a = singular_value_threshold(a.reshape(3 * f, r), tau).reshape(f, 3, r)
+        a = singular_value_threshold((a * live[:, None, None]).reshape(3 * f, r), tau).reshape(f, 3, r)
         if options.constant_bone_lengths:
             bones = b0 + a @ basis
-            lengths = jnp.mean(jnp.linalg.norm(bones, axis=1), axis=0)
+            lengths = mean_length(bones)
             bones = _project_lengths(
                 bones,
                 cams.rotation,
@@ -416,9 +438,10 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
                 choose_signs,
                 options.depth_smoothing,
                 limbs,
+                frames,
             )
             a = (bones - b0) @ basis.T
-        return a
+        return a * live[:, None, None]
 
     def shape_step(a, cams):
         def block(_, a):
@@ -439,7 +462,8 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
         history = history.at[2 * it + 1].set(reprojection_rms(y, w, bones, cams))
         cams = fit_cameras(y, w, bones, cams, options.camera_steps)
         history = history.at[2 * it + 2].set(reprojection_rms(y, w, bones, cams))
-        change = jnp.linalg.norm(bones - old) / jnp.maximum(jnp.linalg.norm(old), 1e-300)
+        size = jnp.linalg.norm(old * live[:, None, None])  # the sequence's bones (the padding's are B0's)
+        change = jnp.linalg.norm(bones - old) / jnp.maximum(size, 1e-300)
         return it + 1, a, cams, history, change < options.tolerance
 
     a0 = jnp.zeros((f, 3, r))
@@ -447,21 +471,33 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
     bones = b0 + a @ basis
     if use_anatomy:
         cam = (cams.rotation @ bones).swapaxes(1, 2)  # (F, b, 3)
-        cam = _anatomical_signs(cam, anatomy, b0.T, options)
+        cam = _anatomical_signs(cam, anatomy, b0.T, options, frames=frames)
         bones = cams.rotation.swapaxes(1, 2) @ cam.swapaxes(1, 2)
-    lengths = jnp.mean(jnp.linalg.norm(bones, axis=1), axis=0)
+    lengths = mean_length(bones)
     return bones, cams, lengths, history, it, converged
 
 
 @functools.partial(jax.jit, static_argnames=("options", "anatomy"))
-def _solve_batch(bones_2d, weights, initial_bones, d_joints, options, anatomy=None):
+def _solve_batch(bones_2d, weights, initial_bones, d_joints, frames, options, anatomy=None):
     def one(y, w, b0):
-        bones, cams, lengths, history, it, converged = solve_bones(y, w, b0, options, anatomy)
+        bones, cams, lengths, history, it, converged = solve_bones(y, w, b0, options, anatomy, frames)
         joints = (bones @ d_joints).swapaxes(1, 2)  # (F, J, 3)
         joints_camera = joints @ cams.rotation.swapaxes(1, 2)
         return KCSResult(joints, joints_camera, bones.swapaxes(1, 2), cams, lengths, history, it, converged)
 
     return jax.vmap(one)(bones_2d, weights, initial_bones)
+
+
+def padded_length(frames: int) -> int:
+    """The length a sequence of ``frames`` frames is padded to (:func:`reconstruct`): the least of 16, 24, 32, 48, 64,
+    96, … (``2ᵏ`` and ``1.5 · 2ᵏ``) that holds it, so any length reuses one of a few compiled programs at most a
+    half longer; fewer than 3 frames are not padded (no sign choice over time there)."""
+    if frames < 3:
+        return frames
+    size = 16
+    while size < frames:
+        size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
+    return size
 
 
 def _prepare(chain: KinematicChainSpace, joints_2d, mean_pose, mask):
@@ -518,6 +554,7 @@ def reconstruct(
     mask=None,
     options: KCSOptions = KCSOptions(),
     anatomy: Anatomy | None = None,
+    pad: bool = True,
 ) -> KCSResult:
     """3-D motion of a kinematic chain from its 2-D joints in one uncalibrated camera (Algorithm 1).
 
@@ -531,6 +568,8 @@ def reconstruct(
         options: solver settings.
         anatomy: limbs and hinges for the final limb-sign choice (``options.anatomy``); default
             :func:`~bcmocap.kcs.anatomy.human_anatomy` of ``chain`` (``None`` for non-human chains).
+        pad: solve the sequences padded to :func:`padded_length` frames (padding that changes no result: see
+            :func:`solve_bones`), so that a new length reuses a compiled program; False solves them as they are.
 
     Returns:
         A :class:`KCSResult` with the batch shape of ``joints_2d``.
@@ -549,12 +588,20 @@ def reconstruct(
             )
     y, w, b0, batch = _prepare(chain, joints_2d, mean_pose, mask)
     f, b = y.shape[-3], y.shape[-1]
+    size = padded_length(f) if pad else f
+    y = np.concatenate([y.reshape(-1, f, 2, b), np.zeros((int(np.prod(batch, dtype=int)), size - f, 2, b))], axis=1)
+    w = np.concatenate([w.reshape(-1, f, b), np.zeros((len(y), size - f, b))], axis=1)
     flat = _solve_batch(
-        jnp.asarray(y.reshape(-1, f, 2, b)),
-        jnp.asarray(w.reshape(-1, f, b)),
+        jnp.asarray(y),
+        jnp.asarray(w),
         jnp.asarray(b0.reshape(-1, 3, b)),
         jnp.asarray(chain.D_least_squares),
+        jnp.asarray(np.arange(size) < f, dtype=jnp.float64),
         options,
         (anatomy if anatomy is not None else human_anatomy(chain)) if options.anatomy else None,
     )
+    if size > f:  # the sequence's frames of the per-frame fields
+        cut = lambda a: a[:, :f]  # noqa: E731
+        flat = dataclasses.replace(flat, joints=cut(flat.joints), joints_camera=cut(flat.joints_camera),
+                                   bones=cut(flat.bones), cameras=jax.tree.map(cut, flat.cameras))
     return jax.tree.map(lambda a: a.reshape(*batch, *a.shape[1:]), flat)
