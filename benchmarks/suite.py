@@ -196,7 +196,6 @@ def calibrate_capture(folder: Path, model: str, views: int, log, shared_root: Pa
     A calibration is done once per :func:`lens_key` and kept in ``shared_root/KEY/``: the captures of one condition
     and seed have the same lens units, board videos and fits (as a user calibrates their cameras once, not per
     take), and copy them from there; ``"calibrated_in"`` names the capture whose board videos were fitted."""
-    import shutil
 
     from bcmocap.cameras import camera_at
     from bcmocap.frontend import read_capture
