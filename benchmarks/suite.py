@@ -80,11 +80,13 @@ REFERENCE_PHOTOS = {"sparse": 48}
 # What a run's figures depend on, besides the grid's own definition (each record keeps the studio settings of its
 # capture and the suite's constants, checked against this script's) and the libraries (their versions, checked too):
 # the code on the path of bcmocap run (git pathspecs; the KCS and marker commands, the viewer, the C3D reader and what
-# only bcmocap init reads, the camera files' telemetry and chapters, are not on it).
+# only bcmocap init reads, the camera files' telemetry and chapters, and the simulate command and its GoPro
+# files, which the suite does not call, are not on it).
 PIPELINE_CODE = ("bcmocap", "benchmarks/configs", ":(exclude)bcmocap/kcs", ":(exclude)bcmocap/markers",
                  ":(exclude)bcmocap/viewer", ":(exclude)bcmocap/io/c3d.py", ":(exclude)bcmocap/io/gopro.py",
                  ":(exclude)bcmocap/frontend/telemetry.py", ":(exclude)bcmocap/frontend/assemble.py",
-                 ":(exclude)bcmocap/frontend/init_command.py", ":(exclude)bcmocap/io/chapters.py")
+                 ":(exclude)bcmocap/frontend/init_command.py", ":(exclude)bcmocap/io/chapters.py",
+                 ":(exclude)bcmocap/sim/gopro_files.py", ":(exclude)bcmocap/sim/studio_command.py")
 LIBRARIES = ("jax", "jaxlib", "numpy", "scipy", "opencv-python-headless", "pycolmap", "equinox", "optimistix", "lineax",
              "av")
 

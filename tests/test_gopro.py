@@ -11,6 +11,7 @@ from pathlib import Path
 import av
 import numpy as np
 import pytest
+from conftest import one_line_error
 from test_init import CAMERAS, FPS, run_init, shoot  # noqa: F401  (the fixture)
 
 from bcmocap.frontend import read_capture, synchronize
@@ -182,3 +183,50 @@ def test_a_take_s_chapters_telemetry_is_joined_on_the_joined_clock(shoot, tmp_pa
         assert np.all(np.diff(times) > 0)
         want = np.stack([np.interp(file_time, times, values[:, k]) for k in range(3)], 1)
         np.testing.assert_allclose(imu.gyro[:, 0], want, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_the_studio_writes_gopro_files_and_init_reads_their_imu_back_on_the_trial_clock(tmp_path, capsys):
+    """A small studio capture with sub-frame starts, drifting clocks and an IMU clock offset, written as GoPro files
+    (bcmocap.sim.gopro_files: the IMU in each file's GPMF track on its own clock); `bcmocap init` on them writes each
+    trial's imu.npz on the trial's clock: the studio's own IMU (turned into the camera) within a shift of the claps'
+    sub-frame part and the IMU offset, to the GPMF's int16 steps."""
+    from bcmocap.cli import main
+    from bcmocap.frontend.rig_file import format_rig_file
+    from bcmocap.io.capture_folder import load_ground_truth
+    from test_init import STUDIO_ARGS, studio_rig
+
+    folder = tmp_path / "studio"
+    args = [a if a != "0.1" else "2.5" for a in STUDIO_ARGS]  # 2.5 s trials: three GPMF payloads and more
+    assert main(["simulate", str(folder), *args, "--container", "mp4-aac", "--start-subframe", "--clock-ppm", "50",
+                 "--imu-offset-ms", "30"]) == 0
+    assert main(["simulate", str(folder), "--gopro-files", str(tmp_path / "gopro")]) == 0
+    assert "rom: 18 GoPro files in" in capsys.readouterr().out
+    assert sorted(p.name for p in (tmp_path / "gopro").iterdir()) == ["capture", "rom"]
+    assert main(["simulate", str(folder), "--gopro-files", str(tmp_path / "gopro")]) == 2  # never over a folder
+    one_line_error(capsys, "simulate", "exists and is not an empty folder")
+    (tmp_path / "rig.toml").write_text(format_rig_file(studio_rig(folder, None)))
+    assert main(["init", str(tmp_path / "capture"), "--videos", str(tmp_path / "gopro"), "--rig", str(tmp_path / "rig.toml"),
+                 "--calibration", str(folder / "intrinsics")]) == 0
+    assert "telemetry (GPMF: bcmocap studio) in 18 of 18 cameras" in capsys.readouterr().out
+    truth = load_ground_truth(folder)
+    for trial in ("rom", "capture"):
+        ours, studio = read_imu(tmp_path / "capture" / "trials" / trial / "imu.npz"), read_imu(folder / "trials" / trial / "imu.npz")
+        assert ours.cameras == studio.cameras
+        bound = 1.0 / truth.trials[trial].fps + 0.031  # the claps' sub-frame part and the IMU offset
+        # within the studio's own recording (a GoPro file's IMU runs from its first frame: the studio's subject holds
+        # still before and after, and the GoPro files repeat the trial's first and last samples there)
+        inside = (ours.time > studio.time[0] + 0.1) & (ours.time < studio.time[-1] - 0.1)
+        assert ours.time[0] < studio.time[0] and ours.time[-1] > studio.time[-1]
+        for s in range(len(ours.cameras)):
+            mine = (ours.gyro[:, s] @ matrix_from_quat(ours.camera_from_imu[s, :4]).T)[inside]  # into the camera
+            theirs = studio.gyro[:, s] @ matrix_from_quat(studio.camera_from_imu[s, :4]).T
+            errors = []
+            for shift in np.arange(-bound, bound, 0.0005):
+                want = np.stack([np.interp(ours.time[inside] + shift, studio.time, theirs[:, k]) for k in range(3)], 1)
+                errors.append(np.sqrt(np.mean((mine - want) ** 2)))
+            best = int(np.argmin(errors))
+            assert 0 < best < len(errors) - 1, (trial, s)  # the shift lies inside the bound
+            # to the int16 steps, and two linear interpolations of 240 Hz samples (init's grid, this comparison's
+            # shift) of a foot's sharpest turns: 2.6 % of its RMS rate at worst here
+            assert errors[best] < 0.04 * np.sqrt(np.mean(theirs**2)) + 1e-3, (trial, s, errors[best])

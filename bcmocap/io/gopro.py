@@ -171,7 +171,7 @@ def _samples(path: Path, handle, sensor: str, origin_s: float) -> tuple[np.ndarr
     if len(chunks) >= 3:  # every payload's start but the last's
         design = np.stack([np.ones(len(chunks) - 1), first[:-1]], axis=1)
         t0, period = np.linalg.lstsq(design, np.array(starts[:-1]), rcond=None)[0]
-    else:
+    else:  # the first payload's own span (a file of one or two payloads: seconds long)
         period = spans[0] / counts[0]
         t0 = starts[0]
     if not (np.isfinite(period) and period > 0):
@@ -230,3 +230,83 @@ def read_gopro_imu(path: str | os.PathLike) -> GoProImu | None:
             raise ValueError(f"{path}: the GPMF track's {name} samples are not finite or not in time order")
     return GoProImu(path, device, SensorSamples(gyro[0], gyro[1] @ to_axes.T, gyro[2]),
                     None if accel is None else SensorSamples(accel[0], accel[1] @ to_axes.T, accel[2]), channels)
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing: a GPMF track as a GoPro writes one, for the studio's camera files.
+
+
+def _klv(key: str, kind: str, size: int, repeat: int, data: bytes) -> bytes:
+    """One GPMF key-length-value: the key, the type, the structure size, the repeat count, the data padded to 4 bytes."""
+    import struct
+
+    if len(key) != 4 or repeat > 0xFFFF or size > 0xFF:
+        raise ValueError(f"GPMF {key!r}: {repeat} structures of {size} bytes do not fit one KLV")
+    return key.encode("ascii") + struct.pack(">cBH", kind.encode("latin-1"), size, repeat) + data + b"\0" * (-len(data) % 4)
+
+
+def _text_klv(key: str, text: str) -> bytes:
+    data = text.encode("latin-1")
+    return _klv(key, "c", 1, len(data), data)
+
+
+def _sensor_stream(name: str, key: str, unit: str, values: np.ndarray, scale: float) -> bytes:
+    """A ``STRM`` of one 3-axis sensor: its name, unit, scale, ``ORIO XYZ`` and ``values`` ``(N, 3)`` as int16 × scale
+    (the scale lowered where the values would not fit, as far as 1)."""
+    import struct
+
+    largest = float(np.abs(values).max(initial=0.0))
+    scale = float(max(1, min(int(scale), int(32767 // largest) if largest > 0 else int(scale))))
+    raw = np.round(np.asarray(values, np.float64) * scale)
+    if np.abs(raw).max(initial=0.0) > 32767:
+        raise ValueError(f"GPMF {key}: values up to {largest:.4g} {unit} do not fit int16")
+    body = (_text_klv("STNM", name) + _text_klv("SIUN", unit) + _klv("SCAL", "s", 2, 1, struct.pack(">h", int(scale)))
+            + _text_klv("ORIO", "XYZ") + _klv(key, "s", 6, len(raw), raw.astype(">i2").tobytes()))
+    return _klv("STRM", "\0", 1, len(body), body)
+
+
+def gpmf_payload(gyro: np.ndarray, accel: np.ndarray, device: str = "bcmocap studio") -> bytes:
+    """One GPMF payload (a ``DEVC`` with a gyro and an accelerometer stream in GoPro's IMU axes, ``ORIO XYZ``):
+    ``gyro`` ``(N, 3)`` rad/s (scale 1000: ±32 rad/s in steps of 1 mrad/s, lower for faster turns), ``accel``
+    ``(M, 3)`` m/s² (scale 100)."""
+    import struct
+
+    body = (_klv("DVID", "L", 4, 1, struct.pack(">I", 1)) + _text_klv("DVNM", device)
+            + _sensor_stream("Gyroscope", "GYRO", "rad/s", gyro, 1000.0)
+            + _sensor_stream("Accelerometer", "ACCL", "m/s\xb2", accel, 100.0))
+    return _klv("DEVC", "\0", 1, len(body), body)
+
+
+def write_gopro_file(source: str | os.PathLike, out: str | os.PathLike, gyro: SensorSamples, accel: SensorSamples,
+                     *, device: str = "bcmocap studio") -> Path:
+    """``source``'s video and audio (packets copied) with a GPMF track of ``gyro`` and ``accel`` (times in s after the
+    file's first video frame, values in GoPro's IMU axes), a payload per second of the file as a GoPro writes it, into
+    the MP4 ``out``; :func:`read_gopro_imu` reads them back (to the int16 steps of :func:`gpmf_payload`)."""
+    import fractions
+
+    import av
+
+    source, out = Path(source), Path(out)
+    end = max(float(gyro.time_s[-1]), float(accel.time_s[-1]))
+    with av.open(str(source)) as media, av.open(str(out), "w", format="mp4") as target:
+        streams = {s: target.add_stream_from_template(s) for s in (*media.streams.video, *media.streams.audio)}
+        data = target.add_data_stream("bin_data")
+        data.codec_tag = "gpmd"  # the mp4 muxer's GoPro metadata track ("GoPro MET")
+        for packet in media.demux(list(streams)):
+            if packet.dts is not None:
+                packet.stream = streams[packet.stream]
+                target.mux(packet)
+        for second in range(int(np.floor(end)) + 1):
+            g = (gyro.time_s >= second) & (gyro.time_s < second + 1)
+            a = (accel.time_s >= second) & (accel.time_s < second + 1)
+            if not (g.any() and a.any()):
+                continue
+            packet = av.Packet(gpmf_payload(gyro.values[g], accel.values[a], device))
+            packet.stream = data
+            packet.time_base = fractions.Fraction(1, 1000)
+            packet.pts = packet.dts = 1000 * second
+            # a second each; the last until its last sample's period ends (a file of one payload keeps its rate)
+            last = float(gyro.time_s[g][-1]) + 1.0 / gyro.rate_hz - second
+            packet.duration = 1000 if second + 1 <= end else max(1, int(round(1000 * min(last, 1.0))))
+            target.mux(packet)
+    return out

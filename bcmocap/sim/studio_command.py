@@ -42,6 +42,8 @@ def add_simulate_command(sub: argparse._SubParsersAction) -> None:
             return 2
         if args.board_videos:
             return _add_board_videos(args)
+        if args.gopro_files:
+            return _add_gopro_files(args)
         if args.sensors_only:
             return _add_sensor_files(args)
         return _simulate_capture(cmd, args)
@@ -140,41 +142,70 @@ def _add_mode_arguments(cmd: argparse.ArgumentParser) -> None:
                      help="only add calibration videos to the existing capture CAPTURE_DIR: calibration/lens_K.mp4, a "
                      "ChArUco board moved in front of each distinct rendered lens, and calibration/lenses.json (the "
                      "board and which cameras have each lens), for bcmocap calibrate; the other options are ignored")
+    cmd.add_argument("--gopro-files", metavar="DIR",
+                     help="only write the existing capture CAPTURE_DIR's camera files as GoPro cameras write them into "
+                     "the new folder DIR: DIR/<trial>/<camera>.mp4, each trial's video and audio with the camera's IMU "
+                     "in a GPMF track on the camera's own clock, for bcmocap init (the capture must have been written "
+                     "with --container mp4-aac; the other options are ignored)")
     cmd.add_argument("--sensors-only", action="store_true",
                      help="only add trials/<trial>/imu.npz and contacts.npz to the existing capture CAPTURE_DIR from its "
                      "ground truth (nothing rendered; the other options are ignored)")
+
+
+def _file_mode(work, report) -> int:
+    """An add-files mode: ``work()`` (a ValueError is one line on stderr, exit code 2), then ``report(its result,
+    seconds)``; the exit code."""
+    start = time.perf_counter()
+    try:
+        result = work()
+    except ValueError as err:
+        print(f"bcmocap simulate: {err}", file=sys.stderr)
+        return 2
+    report(result, time.perf_counter() - start)
+    return 0
 
 
 def _add_board_videos(args: argparse.Namespace) -> int:
     """``--board-videos``: add the calibration board videos to the capture ``args.capture_dir``; the exit code."""
     from .board_video import write_board_videos
 
-    start = time.perf_counter()
-    try:
-        lenses = write_board_videos(args.capture_dir, progress=lambda name: print(f"rendering {name} ...", flush=True))
-    except ValueError as err:
-        print(f"bcmocap simulate: {err}", file=sys.stderr)
+    def report(lenses, seconds):
+        for name, cameras in lenses.items():
+            print(f"{Path(args.capture_dir) / 'calibration' / name}.mp4: {', '.join(cameras)}")
+        print(f"wrote {len(lenses)} calibration videos in {seconds:.1f} s")
+
+    return _file_mode(lambda: write_board_videos(args.capture_dir, progress=lambda name: print(
+        f"rendering {name} ...", flush=True)), report)
+
+
+def _add_gopro_files(args: argparse.Namespace) -> int:
+    """``--gopro-files DIR``: the capture's camera files as GoPro files (:mod:`.gopro_files`); the exit code."""
+    from .gopro_files import write_gopro_files
+
+    out = Path(args.gopro_files)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        print(f"bcmocap simulate: {out} exists and is not an empty folder; --gopro-files writes into a new one",
+              file=sys.stderr)
         return 2
-    for name, cameras in lenses.items():
-        print(f"{Path(args.capture_dir) / 'calibration' / name}.mp4: {', '.join(cameras)}")
-    print(f"wrote {len(lenses)} calibration videos in {time.perf_counter() - start:.1f} s")
-    return 0
+
+    def report(written, seconds):
+        for trial, files in written.items():
+            print(f"{trial}: {len(files)} GoPro files in {out / trial}")
+        print(f"wrote the GoPro files of {len(written)} trials in {seconds:.1f} s")
+
+    return _file_mode(lambda: write_gopro_files(args.capture_dir, out), report)
 
 
 def _add_sensor_files(args: argparse.Namespace) -> int:
     """``--sensors-only``: add the IMU and contact files to the capture ``args.capture_dir``; the exit code."""
     from .sensors import write_sensor_data
 
-    start = time.perf_counter()
-    try:
-        written = write_sensor_data(args.capture_dir)
-    except ValueError as err:
-        print(f"bcmocap simulate: {err}", file=sys.stderr)
-        return 2
-    for trial, paths in written.items():
-        print(f"{trial}: " + ", ".join(str(p) for p in paths))
-    print(f"wrote the sensor files of {len(written)} trials in {time.perf_counter() - start:.1f} s")
-    return 0
+    def report(written, seconds):
+        for trial, paths in written.items():
+            print(f"{trial}: " + ", ".join(str(p) for p in paths))
+        print(f"wrote the sensor files of {len(written)} trials in {seconds:.1f} s")
+
+    return _file_mode(lambda: write_sensor_data(args.capture_dir), report)
 
 
 def _simulate_capture(cmd: argparse.ArgumentParser, args: argparse.Namespace) -> int:
