@@ -84,12 +84,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--paths", type=int, default=5, help="camera paths per walk (default 5)")
+    ap.add_argument("--keypoint-smoothing", type=float, default=0.0, help="KCSOptions.keypoint_smoothing (frames)")
     args = ap.parse_args()
 
     from kcs_table import camera_paths, load_trials
 
     from bcmocap.compilation_cache import enable_compilation_cache
-    from bcmocap.kcs import aligned_joint_distances, reconstruct
+    from bcmocap.kcs import KCSOptions, aligned_joint_distances, reconstruct
     from bcmocap.kcs.keypoints import keypoint_input
     from bcmocap.precision import enable_float64
 
@@ -114,7 +115,8 @@ def main() -> int:
                     write_coco_results(path, coco_keypoints(truth, names, rotation[p], scale[p]), rng, noise)
                     data = keypoint_input(path, "coco17")
                     images.append(data.joints_2d)
-                result = reconstruct(data.chain, np.stack(images), data.rest)
+                result = reconstruct(data.chain, np.stack(images), data.rest,
+                                     options=KCSOptions(keypoint_smoothing=args.keypoint_smoothing))
                 distances = np.asarray(aligned_joint_distances(np.asarray(result.joints),
                                                                np.broadcast_to(truth, result.joints.shape)))
                 per_walk[walk] = {"all_joints_mm": float(distances.mean() * 1000),

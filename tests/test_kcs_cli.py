@@ -115,8 +115,8 @@ def test_cli_refuses_a_bad_fps_in_the_npz_before_writing_anything(tmp_path, capt
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("flag, value", [("--hinge-weight", "nan"), ("--nuclear-weight", "inf"), ("--fps", "inf"),
-                                         ("--fps", "nan")])
+@pytest.mark.parametrize("flag, value", [("--hinge-weight", "nan"), ("--keypoint-smoothing", "-1"),
+                                         ("--nuclear-weight", "inf"), ("--fps", "inf"), ("--fps", "nan")])
 def test_cli_refuses_non_finite_options(tmp_path, capture, capsys, flag, value):
     _, rest, uv = capture
     npz = write_npz(tmp_path / "in.npz", rest, uv)

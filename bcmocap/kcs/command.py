@@ -55,6 +55,13 @@ def add_kcs_command(sub: argparse._SubParsersAction) -> None:
         help="weight of the anatomical hinges (knees, ankles, elbows) in the choice of limb depth signs (default 100)",
     )
     kcs.add_argument(
+        "--keypoint-smoothing",
+        type=float,
+        default=None,
+        help="σ (frames) of a Gaussian smoothing of the observed 2-D joints over time before the solve, for a "
+        "detector's jitter (default 0: none; e.g. 3 at 30 frames/s)",
+    )
+    kcs.add_argument(
         "--no-bone-lengths",
         action="store_true",
         help="solve Eq. 21 as printed, without the constant-bone-length projection",
@@ -78,7 +85,8 @@ def _flag_problem(args: argparse.Namespace) -> str | None:
         return f"--max-iterations must be at least 1, got {args.max_iterations}"
     if not (math.isfinite(args.min_confidence) and 0 <= args.min_confidence <= 1):
         return f"--min-confidence must be between 0 and 1, got {args.min_confidence}"
-    for flag, value in (("--nuclear-weight", args.nuclear_weight), ("--hinge-weight", args.hinge_weight)):
+    for flag, value in (("--nuclear-weight", args.nuclear_weight), ("--hinge-weight", args.hinge_weight),
+                        ("--keypoint-smoothing", args.keypoint_smoothing)):
         if value is not None and not (math.isfinite(value) and value >= 0):
             return f"{flag} must be a finite number ≥ 0, got {value}"
     return None
@@ -114,6 +122,8 @@ def run_kcs(args: argparse.Namespace) -> int:
         overrides["nuclear_weight"] = args.nuclear_weight
     if args.hinge_weight is not None:
         overrides["hinge_weight"] = args.hinge_weight
+    if args.keypoint_smoothing is not None:
+        overrides["keypoint_smoothing"] = args.keypoint_smoothing
     if args.no_bone_lengths:
         overrides["constant_bone_lengths"] = False
     options = KCSOptions(**overrides)

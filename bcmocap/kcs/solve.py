@@ -89,6 +89,9 @@ class KCSOptions:
         limb_agreement: weight of the squared distance to Algorithm 1's bones (m²).
         anatomy_in_loop: also choose the limb signs inside Algorithm 1, at every per-bone sign choice
             (after it), so that the shape and camera steps continue from anatomically plausible limbs.
+        keypoint_smoothing: σ (frames) of a Gaussian smoothing of the observed 2-D bones over time before the solve,
+            each bone over the frames where it is observed (0 = none): a detector's keypoints jitter from frame to
+            frame, which the constancy projection's square root amplifies in depth.
     """
 
     max_iterations: int = 30
@@ -109,6 +112,7 @@ class KCSOptions:
     limb_smoothness: float = 30.0
     limb_agreement: float = 1.0
     anatomy_in_loop: bool = True
+    keypoint_smoothing: float = 0.0
 
     def __post_init__(self):
         for name in ("max_iterations", "shape_steps", "camera_steps", "initial_camera_steps", "sign_every"):
@@ -119,7 +123,7 @@ class KCSOptions:
                 f"KCSOptions: shape_steps ({self.shape_steps}) must be a multiple of sign_every ({self.sign_every})"
             )
         nonneg = ("nuclear_weight", "tolerance", "sign_smoothness", "depth_smoothing", "hinge_weight", "rigid_weight",
-                  "limb_smoothness", "limb_agreement")
+                  "limb_smoothness", "limb_agreement", "keypoint_smoothing")
         if not min(getattr(self, n) for n in nonneg) >= 0:
             raise ValueError(f"KCSOptions: {', '.join(nonneg)} must be non-negative")
         if not 0 < self.length_weight <= 1:
@@ -397,6 +401,11 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
     b0 = initial_bones
     f, _, nb = y.shape
     live = jnp.ones(f) if frames is None else frames
+    if options.keypoint_smoothing > 0:  # each observed bone averaged over the frames it is observed in
+        flat = jnp.concatenate([(y * w[:, None, :]).reshape(f, 2 * nb), w], axis=1)
+        smooth = _smooth_in_time(flat * live[:, None], options.keypoint_smoothing)  # Σ k·y·w and Σ k·w, normalised alike
+        total, count = smooth[:, : 2 * nb].reshape(f, 2, nb), smooth[:, 2 * nb:]
+        y = jnp.where(w[:, None, :] > 0, total / jnp.where(count > 0, count, 1.0)[:, None, :], 0.0)
 
     def mean_length(bones):
         return jnp.sum(jnp.linalg.norm(bones, axis=1) * live[:, None], axis=0) / jnp.maximum(jnp.sum(live), 1.0)
