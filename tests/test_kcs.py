@@ -438,6 +438,7 @@ def test_a_pool_s_mean_pose_is_kept_in_a_file_keyed_by_the_pool(scene, tmp_path,
         pool_mean_pose({}, chain)
 
 
+@pytest.mark.slow  # two more compilations of the solver (8 s)
 def test_keypoint_smoothing_averages_each_observed_bone_and_helps_on_jittery_input(scene):
     # 3 px of independent jitter per frame on the quadruped: smoothing the observed bones over time (σ 3 frames)
     # brings the 3-D error down; with it, padding still changes nothing
