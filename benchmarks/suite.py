@@ -313,18 +313,42 @@ def summarise(rows: list[dict]) -> dict:
     }
 
 
+FIGURE_FUNCTIONS = ("capture_settings", "_lens_error", "lens_key", "_capture_lens_key", "_calibrate_lenses",
+                    "calibrate_capture", "clock_errors", "time_offset_errors")
+
+
+def figure_code(text: str) -> str:
+    """A hash of :data:`FIGURE_FUNCTIONS` in ``text`` (this script's source at some commit): the functions that make
+    a capture's settings, its calibration and the figures a record keeps, as syntax trees without their docstrings
+    and import statements (where a module is imported does not change a figure)."""
+    import ast
+    import hashlib
+
+    digest = hashlib.sha256()
+    for node in ast.parse(text).body:
+        if isinstance(node, ast.FunctionDef) and node.name in FIGURE_FUNCTIONS:
+            body = [n for n in node.body if not isinstance(n, (ast.Import, ast.ImportFrom))]
+            if body and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant) \
+                    and isinstance(body[0].value.value, str):
+                body = body[1:]
+            node.body = body
+            digest.update(ast.dump(node).encode())
+    return digest.hexdigest()[:16]
+
+
 def suite_constants() -> dict:
-    """The suite's constants that shape a run, and the libraries' versions."""
+    """The suite's constants that shape a run, the libraries' versions, and :func:`figure_code` of this script."""
     from importlib.metadata import version
 
     return {"lens_models": LENS_MODELS, "fit_views": FIT_VIEWS, "covered_deg": COVERED_DEG,
             "reference_photos": REFERENCE_PHOTOS, "configs": {k: str(v.relative_to(ROOT)) for k, v in CONFIGS.items()},
-            "libraries": {name: version(name) for name in LIBRARIES}}
+            "libraries": {name: version(name) for name in LIBRARIES},
+            "figure_code": figure_code(Path(__file__).read_text())}
 
 
 def settings_of(args) -> dict:
     """The options that shape the grid's runs (not where they are written, nor which of them this sitting runs)."""
-    return {k: v for k, v in vars(args).items() if k not in ("out", "json", "only", "records", "cluster")}
+    return {k: v for k, v in vars(args).items() if k not in ("out", "json", "only", "records", "cluster", "summarise")}
 
 
 def _git(*args: str) -> subprocess.CompletedProcess:
@@ -347,7 +371,8 @@ def same_code(commit: str, head: str) -> bool:
 
 def read_records(folder: Path, runs: list[Run], head: str, args) -> dict[str, dict]:
     """The records in ``folder`` of the planned ``runs`` (name → record); SystemExit for one of other code, other
-    capture settings, other suite constants or other libraries."""
+    capture settings, other suite constants or other libraries. A failed run's record is kept like any other: a
+    failure counts and is not run again until it is dropped by hand, with the reason logged."""
     records = {}
     expected = suite_constants()
     for run in runs:
@@ -361,8 +386,11 @@ def read_records(folder: Path, runs: list[Run], head: str, args) -> dict[str, di
                              f"HEAD's ({head[:10]}) in {', '.join(changed[:5]) or 'unknown files'}; run it again "
                              "(remove the record)")
         capture = json.loads(json.dumps(capture_settings(run, args).to_dict()))
+        constants = dict(record.get("suite_constants") or {})
+        if "figure_code" not in constants:  # a record from before the hash: that of its commit's script
+            constants["figure_code"] = figure_code(_git("show", f"{record.get('commit', '')}:benchmarks/suite.py").stdout)
         for what, got, want in (("capture settings", record.get("capture_settings"), capture),
-                                ("suite constants", record.get("suite_constants"), expected)):
+                                ("suite constants", constants, expected)):
             if got != want:
                 raise SystemExit(f"{path}: a record of other {what} ({got}, here {want}); run it again (remove it)")
         records[run.name] = record
@@ -387,6 +415,7 @@ def main() -> int:
     ap.add_argument("--cluster", help="bcmocap batch --cluster (e.g. local:2)")
     ap.add_argument("--only", help="comma-separated run names of the grid to run (e.g. realistic-run-sparse-s1); the "
                                    "results then hold those runs only, marked partial")
+    ap.add_argument("--summarise", action="store_true", help="run nothing: summarise the --records there are into --json")
     ap.add_argument("--records", help="keep each finished run's record here (NAME.json, with the code's commit), skip "
                                       "runs with one, and summarise them all in --json (e.g. benchmarks/results/suite_runs)")
     args = ap.parse_args()
@@ -410,6 +439,10 @@ def main() -> int:
     grid = runs if not args.only else planned_runs(args.quick, args.seeds)
     kept = read_records(records_dir, grid, head, args) if records_dir else {}
     runs = [r for r in runs if r.name not in kept]
+    if args.summarise:
+        if not records_dir:
+            raise SystemExit("--summarise needs --records")
+        runs = []
     log = lambda text: print(text, flush=True)  # noqa: E731
     clock = time.perf_counter()
     prepared, rows = {}, []

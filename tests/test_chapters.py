@@ -97,3 +97,10 @@ def test_init_joins_the_chapters_a_rig_file_names(shoot, tmp_path, capsys):  # n
         assert frames == [global_frame(image) for _, image in whole.frames(trial, "head")]
     assert joined.manifest["claps"] == whole.manifest["claps"]
     assert CAMERAS[0] == "head" and CLAPS[1] < 90 < CLAPS[2]
+
+
+def test_a_hero5_take_without_its_first_chapter_is_refused(tmp_path):
+    for name in ("GP010007.MP4", "GP020007.MP4"):
+        (tmp_path / name).write_bytes(b"")
+    with pytest.raises(ValueError, match=r"GP010007.MP4: chapter\(s\) \[0\] of its take"):
+        take_chapters(tmp_path / "GP010007.MP4")

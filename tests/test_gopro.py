@@ -97,8 +97,9 @@ def test_trial_imu_puts_each_camera_s_samples_on_the_trial_clock():
     assert recording.cameras == ("a", "b") and recording.rate == pytest.approx(200.0)
     np.testing.assert_allclose(recording.gyro[:, 0, 0], recording.time + 1.5, atol=1e-9)
     np.testing.assert_allclose(recording.gyro[:, 1, 0], 10 + recording.time + 2.0, atol=1e-9)
-    # within both stretches: a's from -0.5 s to 3.5 s, b's from -2.0 s to 3.0 s
-    assert recording.time[0] == pytest.approx(-0.5) and 3.0 - 1 / 200 < recording.time[-1] <= 3.0
+    # within both stretches, first frame to last: a's from -0.5 s to 3.467 s, b's from -2.0 s to 2.967 s
+    last = (150 - 1 - 60) / 30.0
+    assert recording.time[0] == pytest.approx(-0.5) and last - 1 / 200 < recording.time[-1] <= last
     np.testing.assert_allclose(recording.accel[:, 0, 0], recording.time + 1.5 + 9.81, atol=1e-9)
     assert trial_imu([CameraTelemetry("none", None, 0, 10, 0, 30.0)]) is None
     late = _constant_imu(t + 100, np.zeros((len(t), 3)))

@@ -15,9 +15,6 @@ writes the folder :func:`~.capture.read_capture` reads (the layout of :mod:`bcmo
     trials/<trial>/imu.npz             the cameras' own gyroscopes and accelerometers (GoPro files' GPMF
                                        telemetry, :mod:`.telemetry`), where some camera has any
 
-A take a camera split over chapter files (a GoPro's ``GX01nnnn.MP4``, ``GX02nnnn.MP4``…: :mod:`bcmocap.io.chapters`)
-is joined into one file, its packets copied unchanged, which the capture folder holds (not a link); naming any of its
-chapters names the take.
     videos/<camera>.<ext>              a video holding several trials, cut by the stretches in rig.json
 
 Videos and photos are **symbolic links** to the user's files (absolute targets), or copies with
@@ -27,6 +24,11 @@ Videos and photos are **symbolic links** to the user's files (absolute targets),
 trials) or by given times (seconds of each video's own clock). Each trial is then synchronised as the
 frontend will (:func:`~.sync.synchronize_tracks`), so a trial whose claps some camera missed fails here, not
 later. The folder is written under a temporary name beside ``capture_dir`` and renamed when complete.
+
+A take a camera split over chapter files (a GoPro's ``GX01nnnn.MP4``, ``GX02nnnn.MP4``…: :mod:`bcmocap.io.chapters`)
+is joined into one file, its packets copied unchanged, which the capture folder holds (not a link); naming any of its
+chapters names the take. The chapters are joined first, in the temporary folder (the checks read the joined take),
+and an error about a joined take names its chapters.
 
 Every path written is built from checked names (:mod:`bcmocap.io.names`) inside the new folder; every
 expected failure is a ``ValueError`` naming the file and the field.
@@ -479,14 +481,20 @@ def assemble_capture(capture_dir: str | os.PathLike, videos: str | os.PathLike, 
     try:
         joined = _join_takes(takes, work, log)  # file named in paths -> (its take joined, each chapter's start)
         paths = {camera: {t: joined[p][0] if p in joined else p for t, p in files.items()} for camera, files in paths.items()}
-        sources = _probe_all(rig, paths)
-        first = sources[(rig.trials[0], rig.cameras[0].name)]
-        lenses = _calibration_files(rig, calibration, {c: (s.width, s.height) for (_, c), s in sources.items()})
-        photos, photo_cameras = _reference_files(None if reference_photos is None else Path(reference_photos))
-        stretches = _stretches(rig, sources, log)  # the audio work last: the cheap checks fail first
-        claps = _check_sync(rig, stretches)
-        chapters = {file: (takes[source], starts) for source, (file, starts) in joined.items()}
-        imus = _trial_imus(rig, stretches, claps, chapters, log)
+        try:
+            sources = _probe_all(rig, paths)
+            first = sources[(rig.trials[0], rig.cameras[0].name)]
+            lenses = _calibration_files(rig, calibration, {c: (s.width, s.height) for (_, c), s in sources.items()})
+            photos, photo_cameras = _reference_files(None if reference_photos is None else Path(reference_photos))
+            stretches = _stretches(rig, sources, log)  # the audio work last: the cheap checks fail first
+            claps = _check_sync(rig, stretches)
+            chapters = {file: (takes[source], starts) for source, (file, starts) in joined.items()}
+            imus = _trial_imus(rig, stretches, claps, chapters, log)
+        except ValueError as err:  # name the user's chapters, not the joined take in the temporary folder
+            message = str(err)
+            for source, (file, _) in joined.items():
+                message = message.replace(str(file), f"the take joined from {', '.join(str(c) for c in takes[source])}")
+            raise ValueError(message) from None
 
         placed: dict[Path, tuple[Path, Path]] = {}  # source file -> its path in the capture, and its WAV's
         entries = []

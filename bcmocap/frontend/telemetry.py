@@ -11,7 +11,7 @@ camera with telemetry covers. What this leaves off (the telemetry's time base, t
 sub-frame part) the frontend's gyro timing finds in the frames (:mod:`~.gyro_timing`).
 
 A camera without telemetry is left out of the file (its gyro terms are then off); a trial where no camera has any
-gets no ``imu.npz``.
+gets no ``imu.npz``; a camera whose telemetry has a gyroscope but no accelerometer stops ``init``, named.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def trial_imu(cameras: list[CameraTelemetry], *, where: str = "trial") -> ImuRec
         zero = (c.first_frame + c.offset) / c.fps  # the first clap, in s after the file's first frame
         shifted.append((c.imu.gyro.time_s - zero, c.imu.accel.time_s - zero if c.imu.accel is not None else None))
     start = max(max(g[0], -c.offset / c.fps) for (g, _), c in zip(shifted, found))  # within the trial's stretch
-    stop = min(min(g[-1], (c.num_frames - c.offset) / c.fps) for (g, _), c in zip(shifted, found))
+    stop = min(min(g[-1], (c.num_frames - 1 - c.offset) / c.fps) for (g, _), c in zip(shifted, found))
     for _, a in shifted:
         if a is not None:
             start, stop = max(start, a[0]), min(stop, a[-1])

@@ -51,7 +51,7 @@ def take_chapters(path: Path) -> list[Path]:
         if other is not None and other[:2] == (family, number) and sibling.is_file():
             chapters[other[2]] = sibling
     order = sorted(chapters)
-    first = 0 if family == "GP" and 0 in chapters else 1
+    first = 0 if family == "GP" else 1  # a HERO5 take starts with GOPRnnnn (chapter 0)
     expected = list(range(first, first + len(order)))
     if order != expected:
         missing = sorted(set(range(first, max(order) + 1)) - set(order))

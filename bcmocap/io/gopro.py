@@ -145,9 +145,10 @@ def _samples(path: Path, handle, sensor: str, origin_s: float) -> tuple[np.ndarr
 
     fourcc = gpmf.Str2FourCC(sensor)
     chunks, starts, spans = [], [], []
+    resource = 0  # one buffer, grown as needed and reused for every payload
     for index in range(gpmf.GetNumberPayloads(handle)):
         size = gpmf.GetPayloadSize(handle, index)
-        resource = gpmf.GetPayloadResource(handle, 0, size)
+        resource = gpmf.GetPayloadResource(handle, resource, size)
         payload = gpmf.GetPayload(handle, resource, index, size)
         ok, stream = gpmf.GPMF_Init(payload, size)
         if ok != gpmf.GPMF_ERROR.GPMF_OK:
@@ -255,6 +256,8 @@ def _sensor_stream(name: str, key: str, unit: str, values: np.ndarray, scale: fl
     (the scale lowered where the values would not fit, as far as 1)."""
     import struct
 
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"GPMF {key}: values that are not finite")
     largest = float(np.abs(values).max(initial=0.0))
     scale = float(max(1, min(int(scale), int(32767 // largest) if largest > 0 else int(scale))))
     raw = np.round(np.asarray(values, np.float64) * scale)
@@ -281,32 +284,51 @@ def write_gopro_file(source: str | os.PathLike, out: str | os.PathLike, gyro: Se
                      *, device: str = "bcmocap studio") -> Path:
     """``source``'s video and audio (packets copied) with a GPMF track of ``gyro`` and ``accel`` (times in s after the
     file's first video frame, values in GoPro's IMU axes), a payload per second of the file as a GoPro writes it, into
-    the MP4 ``out``; :func:`read_gopro_imu` reads them back (to the int16 steps of :func:`gpmf_payload`)."""
-    import fractions
-
+    the MP4 ``out`` (written under a temporary name and renamed when complete; ValueError naming ``out``);
+    :func:`read_gopro_imu` reads them back (to the int16 steps of :func:`gpmf_payload`)."""
     import av
 
     source, out = Path(source), Path(out)
     end = max(float(gyro.time_s[-1]), float(accel.time_s[-1]))
-    with av.open(str(source)) as media, av.open(str(out), "w", format="mp4") as target:
-        streams = {s: target.add_stream_from_template(s) for s in (*media.streams.video, *media.streams.audio)}
-        data = target.add_data_stream("bin_data")
-        data.codec_tag = "gpmd"  # the mp4 muxer's GoPro metadata track ("GoPro MET")
-        for packet in media.demux(list(streams)):
-            if packet.dts is not None:
-                packet.stream = streams[packet.stream]
-                target.mux(packet)
-        for second in range(int(np.floor(end)) + 1):
-            g = (gyro.time_s >= second) & (gyro.time_s < second + 1)
-            a = (accel.time_s >= second) & (accel.time_s < second + 1)
-            if not (g.any() and a.any()):
-                continue
-            packet = av.Packet(gpmf_payload(gyro.values[g], accel.values[a], device))
-            packet.stream = data
-            packet.time_base = fractions.Fraction(1, 1000)
-            packet.pts = packet.dts = 1000 * second
-            # a second each; the last until its last sample's period ends (a file of one payload keeps its rate)
-            last = float(gyro.time_s[g][-1]) + 1.0 / gyro.rate_hz - second
-            packet.duration = 1000 if second + 1 <= end else max(1, int(round(1000 * min(last, 1.0))))
-            target.mux(packet)
+    origin_ms = int(round(1000 * _video_origin(source)))  # the times are after the first video frame, not the MP4's 0
+    partial = out.with_name(f".{out.name}.partial")
+    try:
+        with av.open(str(source)) as media, av.open(str(partial), "w", format="mp4") as target:
+            _mux_with_gpmf(media, target, gyro, accel, device, end, origin_ms)
+        partial.replace(out)
+    except ValueError as err:
+        partial.unlink(missing_ok=True)
+        raise ValueError(f"{out}: {err}") from None
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
     return out
+
+
+def _mux_with_gpmf(media, target, gyro: SensorSamples, accel: SensorSamples, device: str, end: float,
+                   origin_ms: int) -> None:
+    """``media``'s video and audio packets, then a GPMF payload per second of samples, into ``target``."""
+    import fractions
+
+    import av
+
+    streams = {s: target.add_stream_from_template(s) for s in (*media.streams.video, *media.streams.audio)}
+    data = target.add_data_stream("bin_data")
+    data.codec_tag = "gpmd"  # the mp4 muxer's GoPro metadata track ("GoPro MET")
+    for packet in media.demux(list(streams)):
+        if packet.dts is not None:
+            packet.stream = streams[packet.stream]
+            target.mux(packet)
+    for second in range(int(np.floor(end)) + 1):
+        g = (gyro.time_s >= second) & (gyro.time_s < second + 1)
+        a = (accel.time_s >= second) & (accel.time_s < second + 1)
+        if not (g.any() and a.any()):
+            continue
+        packet = av.Packet(gpmf_payload(gyro.values[g], accel.values[a], device))
+        packet.stream = data
+        packet.time_base = fractions.Fraction(1, 1000)
+        packet.pts = packet.dts = origin_ms + 1000 * second
+        # a second each; the last until its last sample's period ends (a file of one payload keeps its rate)
+        last = float(gyro.time_s[g][-1]) + 1.0 / gyro.rate_hz - second
+        packet.duration = 1000 if second + 1 <= end else max(1, int(round(1000 * min(last, 1.0))))
+        target.mux(packet)

@@ -52,6 +52,18 @@ def write_gopro_files(capture: str | os.PathLike, out: str | os.PathLike) -> dic
     capture, out = Path(capture), Path(out)
     truth = load_ground_truth(capture)
     gopro_from_camera = matrix_from_quat(CAMERA_FROM_GOPRO_IMU).T
+    made = not out.exists()
+    try:
+        return _write_all(capture, out, truth, gopro_from_camera)
+    except BaseException:
+        if made:  # nothing half-written is left: a rerun finds no folder in its way
+            import shutil
+
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def _write_all(capture: Path, out: Path, truth, gopro_from_camera: np.ndarray) -> dict[str, dict[str, Path]]:
     written: dict[str, dict[str, Path]] = {}
     for trial in truth.trials:
         checked_name(trial, "a trial name", str(capture / "capture.json"))  # an untrusted folder: plain names only
