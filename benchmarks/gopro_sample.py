@@ -64,7 +64,7 @@ def klt_pairs(frames: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
 
 def visual_rates(pairs, lens, period_s: np.ndarray, max_row: float) -> tuple[np.ndarray, np.ndarray]:
     """``(rates (P, 3) rad/s in the camera, used (P,) pair indices)``: each pair's rotation (features above ``max_row``)."""
-    from bcmocap.geometry import rotation_from_covariance
+    from bcmocap.geometry import quat_from_matrix, quat_log, rotation_from_covariance
 
     rates, used = [], []
     for k, (a, b) in enumerate(pairs):
@@ -80,10 +80,7 @@ def visual_rates(pairs, lens, period_s: np.ndarray, max_row: float) -> tuple[np.
             rotation = rotation_from_covariance((weight[:, None] * ba).T @ bb)
             residual = np.linalg.norm(ba - bb @ rotation.T, axis=1)
             weight = 1.0 / (1.0 + (residual / (3.0 * np.median(residual) + 1e-9)) ** 2)
-        angle = np.arccos(np.clip(0.5 * (np.trace(rotation) - 1.0), -1.0, 1.0))
-        axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
-        vector = axis / max(2.0 * np.sin(angle), 1e-12) * angle if angle > 1e-9 else 0.5 * axis
-        rates.append(vector / period_s[k])
+        rates.append(np.asarray(quat_log(quat_from_matrix(rotation)), np.float64) / period_s[k])
         used.append(k)
     return np.array(rates), np.array(used, np.int64)
 

@@ -330,13 +330,18 @@ def _join_takes(takes: dict[Path, list[Path]], work: Path, log) -> dict[Path, tu
     return joined
 
 
+def _gopro_imu(path: Path):
+    """A file's GoPro telemetry, or None (a container GoPro does not write, or no GPMF track)."""
+    return read_gopro_imu(path) if path.suffix.lower() in (".mp4", ".mov", ".lrv") else None
+
+
 def _telemetry(path: Path, chapters: tuple[list[Path], list[float]] | None):
     """A camera file's GoPro telemetry (None without), a joined take's from its chapters on the joined clock."""
     from ..io.gopro import GoProImu, SensorSamples
 
     if chapters is None:
-        return read_gopro_imu(path) if path.suffix.lower() in (".mp4", ".mov", ".lrv") else None
-    parts = [read_gopro_imu(c) if c.suffix.lower() in (".mp4", ".mov", ".lrv") else None for c in chapters[0]]
+        return _gopro_imu(path)
+    parts = [_gopro_imu(c) for c in chapters[0]]
     if all(p is None for p in parts):
         return None
     if any(p is None for p in parts):
