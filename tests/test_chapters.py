@@ -99,6 +99,22 @@ def test_init_joins_the_chapters_a_rig_file_names(shoot, tmp_path, capsys):  # n
     assert CAMERAS[0] == "head" and CLAPS[1] < 90 < CLAPS[2]
 
 
+def test_a_rig_file_naming_a_later_chapter_is_refused(shoot, tmp_path, capsys):  # noqa: F811
+    # GX020003 is the second chapter of the take GX010003 starts: naming it for a trial would join it to the first.
+    folder = tmp_path / "shoot"
+    shutil.copytree(shoot, folder)
+    (folder / "videos" / "head.mp4").unlink()
+    write_chapters(folder / "videos", ["GX010003.MP4", "GX020003.MP4"], 0, STARTS[0], LAST, [90])
+    write_rig(folder / "rig.toml", {"head": {"segment": "head", "mount": "forehead", "lens": "wide",
+                                             "video": "GX020003.MP4"},
+                                    "chest": {"segment": "torso", "lens": "wide"},
+                                    "left_foot": {"segment": "left_foot"}}, {"margin_s": 0.5})
+    assert run_init(folder, tmp_path / "capture") == 2
+    err = capsys.readouterr().err
+    assert "cameras.head.video names GX020003.MP4" in err and "chapter 2 of the take that starts with GX010003" in err
+    assert not (tmp_path / "capture").exists()
+
+
 def test_a_hero5_take_without_its_first_chapter_is_refused(tmp_path):
     for name in ("GP010007.MP4", "GP020007.MP4"):
         (tmp_path / name).write_bytes(b"")

@@ -472,7 +472,7 @@ def test_init_on_muxed_camera_files_reproduces_the_studio_capture(studio, tmp_pa
     names = {}
     for t, trial in enumerate(("rom", "capture")):
         for c, camera in enumerate(TEMPLATE.cameras):
-            file = f"GX{t + 1:02d}{c:04d}.MP4"
+            file = f"GX01{100 * t + c:04d}.MP4"  # a take per trial: file numbers 00nn, 01nn; chapter 01
             mux(studio / "trials" / trial / f"{camera.name}.mp4", studio / "trials" / trial / f"{camera.name}.wav",
                 shoot / "videos" / file)
             names.setdefault(camera.name, {})[trial] = file

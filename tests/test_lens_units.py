@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from bcmocap.calibrate.compare import camera_difference, pixel_grid
+from bcmocap.calibrate.compare import camera_difference, pixel_grid, turned_difference
 from bcmocap.cameras import FOVCamera, OpenCVFisheyeCamera, TiltedThinPrismFisheyeCamera, camera_at
 from bcmocap.cli import main
 from bcmocap.sim.lens_units import (
@@ -195,12 +195,13 @@ def test_a_units_board_video_calibrates_close_to_the_unit(design, tmp_path):
                       distance_m=(0.3, 0.7))
     views = detect_views(tmp_path / "unit.mp4", board)
     fitted = calibrate(views.subset(select_views(views, 40)), "opencv_fisheye")
-    # Over the middle of the image (within 80 deg of the axis, where the board was seen) within half a pixel;
-    # the nominal lens is pixels off there.
+    # Over the middle of the image (within 80 deg of the axis, where the board was seen), after the camera turn that
+    # best undoes the unit's sensor tilt (a turn the camera's mount takes up), within a third of a pixel RMS (0.20
+    # measured); the nominal lens is pixels off there. Without the turn Kannala-Brandt cannot hold the tilt (0.55).
+    calibrated, angle_deg = turned_difference(fitted.camera, unit, step=8, max_angle_deg=80.0)
     grid = pixel_grid(640, 360, 8)
     middle = np.degrees(np.arccos(np.asarray(unit.unproject(grid))[:, 2])) < 80.0
     mask = np.zeros((360, 640), bool)
     mask[grid[middle, 1].astype(int), grid[middle, 0].astype(int)] = True
-    calibrated = camera_difference(fitted.camera, unit, step=8, mask=mask)
     nominal = camera_difference(design, unit, step=8, mask=mask)
-    assert np.sqrt(np.mean(calibrated.distance**2)) < 0.5 and nominal.mean_px > 1.0
+    assert calibrated.rms_px < 0.3 and angle_deg < 0.5 and nominal.mean_px > 1.0

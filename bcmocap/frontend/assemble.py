@@ -314,6 +314,21 @@ def _check_sync(rig: RigFile, stretches: dict[tuple[str, str], TrialStretch]) ->
     return found
 
 
+def _takes(rig: RigFile, paths: dict[str, dict[str, Path]]) -> dict[Path, list[Path]]:
+    """``{file named: the chapters of its take}`` (:func:`~bcmocap.io.chapters.take_chapters`). ValueError naming the
+    rig field when a named file is a later chapter of a take (it is joined to the take's first chapter, so the rig
+    must name that one)."""
+    takes = {}
+    for camera, files in paths.items():
+        for trial, path in files.items():
+            chapters = takes.setdefault(path, take_chapters(path))
+            if chapters[0] != path:
+                raise ValueError(f"{rig.path}: cameras.{camera}.video names {path.name} for trial {trial!r}, but by "
+                                 f"GoPro's naming it is chapter {chapters.index(path) + 1} of the take that starts with "
+                                 f"{chapters[0].name} (its chapters are joined); name each take by its first chapter")
+    return takes
+
+
 def _join_takes(takes: dict[Path, list[Path]], work: Path, log) -> dict[Path, tuple[Path, list[float]]]:
     """The takes of several chapters joined into ``work/.chapters/`` (:func:`~bcmocap.io.chapters.join_chapters`):
     ``{file named: (the joined file, each chapter's start in it, s)}``."""
@@ -480,7 +495,7 @@ def assemble_capture(capture_dir: str | os.PathLike, videos: str | os.PathLike, 
     if not calibration.is_dir():
         raise ValueError(f"{calibration}: calibration folder does not exist")
     paths = _find_videos(rig, videos)
-    takes = {path: take_chapters(path) for files in paths.values() for path in set(files.values())}
+    takes = _takes(rig, paths)
     capture_dir.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{capture_dir.name}.init-", dir=capture_dir.parent))
     try:
