@@ -30,6 +30,19 @@ def write_chapters(folder: Path, names: list[str], c: int, first: int, last: int
     return paths
 
 
+def chaptered_shoot(shoot: Path, tmp_path: Path, named: str) -> Path:
+    """A copy of the shoot whose head camera's take is two chapters (split at global frame 90, between the trials'
+    claps), GX010003.MP4 and GX020003.MP4, the rig file naming ``named`` for it."""
+    folder = tmp_path / "shoot"
+    shutil.copytree(shoot, folder)
+    (folder / "videos" / "head.mp4").unlink()
+    write_chapters(folder / "videos", ["GX010003.MP4", "GX020003.MP4"], 0, STARTS[0], LAST, [90])
+    write_rig(folder / "rig.toml", {"head": {"segment": "head", "mount": "forehead", "lens": "wide", "video": named},
+                                    "chest": {"segment": "torso", "lens": "wide"},
+                                    "left_foot": {"segment": "left_foot"}}, {"margin_s": 0.5})
+    return folder
+
+
 def decoded(path: Path) -> list[int]:
     video = cv2.VideoCapture(str(path))
     frames = []
@@ -73,16 +86,8 @@ def test_joined_chapters_are_the_take_frame_for_frame_with_its_sound(tmp_path):
 
 
 def test_init_joins_the_chapters_a_rig_file_names(shoot, tmp_path, capsys):  # noqa: F811
-    # The head camera's take as two chapters (split at global frame 90, between the trials' claps); the rig file
-    # names the first. The capture is the one the unsplit take gives.
-    folder = tmp_path / "shoot"
-    shutil.copytree(shoot, folder)
-    (folder / "videos" / "head.mp4").unlink()
-    write_chapters(folder / "videos", ["GX010003.MP4", "GX020003.MP4"], 0, STARTS[0], LAST, [90])
-    write_rig(folder / "rig.toml", {"head": {"segment": "head", "mount": "forehead", "lens": "wide",
-                                             "video": "GX010003.MP4"},
-                                    "chest": {"segment": "torso", "lens": "wide"},
-                                    "left_foot": {"segment": "left_foot"}}, {"margin_s": 0.5})
+    # The rig file names the take's first chapter: the capture is the one the unsplit take gives.
+    folder = chaptered_shoot(shoot, tmp_path, "GX010003.MP4")
     assert run_init(folder, tmp_path / "joined") == 0
     assert "joined 2 chapters of one take: GX010003.MP4, GX020003.MP4" in capsys.readouterr().out
     assert run_init(shoot, tmp_path / "whole") == 0
@@ -101,14 +106,7 @@ def test_init_joins_the_chapters_a_rig_file_names(shoot, tmp_path, capsys):  # n
 
 def test_a_rig_file_naming_a_later_chapter_is_refused(shoot, tmp_path, capsys):  # noqa: F811
     # GX020003 is the second chapter of the take GX010003 starts: naming it for a trial would join it to the first.
-    folder = tmp_path / "shoot"
-    shutil.copytree(shoot, folder)
-    (folder / "videos" / "head.mp4").unlink()
-    write_chapters(folder / "videos", ["GX010003.MP4", "GX020003.MP4"], 0, STARTS[0], LAST, [90])
-    write_rig(folder / "rig.toml", {"head": {"segment": "head", "mount": "forehead", "lens": "wide",
-                                             "video": "GX020003.MP4"},
-                                    "chest": {"segment": "torso", "lens": "wide"},
-                                    "left_foot": {"segment": "left_foot"}}, {"margin_s": 0.5})
+    folder = chaptered_shoot(shoot, tmp_path, "GX020003.MP4")
     assert run_init(folder, tmp_path / "capture") == 2
     err = capsys.readouterr().err
     assert "cameras.head.video names GX020003.MP4" in err and "chapter 2 of the take that starts with GX010003" in err
