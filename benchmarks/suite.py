@@ -456,8 +456,8 @@ def main() -> int:
             if written.get("settings") != json.loads(json.dumps(settings.to_dict())):
                 raise SystemExit(f"{folder}: a capture with other settings; give another --out")
         else:
-            if folder.exists():  # a render cut short is rendered again whole: resumed, the range-of-motion trial of
-                shutil.rmtree(folder)  # one (realistic, run, repeated room) matched nothing of its reference
+            if folder.exists():  # a render cut short is rendered again whole (a resumed render is not checked
+                shutil.rmtree(folder)  # to equal a whole one)
             log(f"{run.name}: rendering")
             write_capture(folder, settings, progress=False)
         log(f"{run.name}: calibrating")
