@@ -14,7 +14,8 @@ the verdict (None where the file was never looked at).
 
     python benchmarks/c3d_files.py --out ~/.cache/bcmocap/c3d
     python benchmarks/markers_real.py --json benchmarks/results/markers_real.json [--out DIR] [--pictures DIR]
-        [--files NAME ...]
+        [--files NAME ...] [--label-prior 0]
+    python benchmarks/markers_real.py --json benchmarks/results/markers_real.json --eye-only
 """
 
 from __future__ import annotations
@@ -51,14 +52,14 @@ FULL_BODY = (
 
 
 
-def fit_file(path: Path, out: Path | None) -> dict:
-    """Fit one file with the defaults (saved into ``out`` if given); the verdict, the report's figures, the tree."""
+def fit_file(path: Path, out: Path | None, options: MarkerOptions = MarkerOptions()) -> dict:
+    """Fit one file with ``options`` (saved into ``out`` if given); the verdict, the report's figures, the tree."""
     data = read_c3d(path)
     trajectories = MarkerTrajectories.from_c3d(data)
     wall, cpu = time.perf_counter(), cpu_seconds()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the same warnings are in result.notes
-        result = fit_marker_skeleton(trajectories, MarkerOptions())
+        result = fit_marker_skeleton(trajectories, options)
     wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
     if out is not None:
         result.save(out)
@@ -122,6 +123,20 @@ def take_pictures(folders: dict[str, Path], pictures: Path) -> None:
             server.stop()
 
 
+def confirm_by_eye(results: Path) -> int:
+    """Fill ``confirmed_by_eye`` and ``seen_by_eye`` of a results file from :data:`EYE`, the verdicts unchanged."""
+    figures = json.loads(results.read_text())
+    eye = json.loads(EYE.read_text()) if EYE.is_file() else {}
+    for name, row in figures["files"].items():
+        look = eye.get(name)
+        row["confirmed_by_eye"] = None if look is None else bool(look["human"]) == row["human"]
+        row["seen_by_eye"] = None if look is None else look["seen"]
+    figures["confirmed_by_eye"] = sum(bool(r["confirmed_by_eye"]) for r in figures["files"].values())
+    write_json(str(results), figures)
+    print(f"{figures['confirmed_by_eye']} of {len(figures['files'])} verdicts confirmed by eye")
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data",
@@ -131,8 +146,17 @@ def main(argv=None) -> int:
     parser.add_argument("--files", nargs="+", help="only these files (names of either set)")
     parser.add_argument("--out", type=Path, help="save each file's markers folder here (OUT/NAME)")
     parser.add_argument("--pictures", type=Path, help="write the picture bcmocap view shows of each (needs --out)")
+    parser.add_argument("--label-prior", type=float, default=MarkerOptions.label_prior,
+                        help="MarkerOptions.label_prior: the weight of the markers' names (0: the names unused)")
     parser.add_argument("--json", help="write the figures to this file")
+    parser.add_argument("--eye-only", action="store_true",
+                        help="fit nothing: fill the --json file's confirmed_by_eye from markers_real_eye.json (after "
+                             "looking at the pictures of the run that wrote it)")
     args = parser.parse_args(argv)
+    if args.eye_only:
+        if not args.json:
+            parser.error("--eye-only needs --json")
+        return confirm_by_eye(Path(args.json))
     if args.pictures and not args.out:
         parser.error("--pictures needs --out")
     shared = {name: args.data / "c3d" / name for name in FULL_BODY}
@@ -153,11 +177,12 @@ def main(argv=None) -> int:
     eye = json.loads(EYE.read_text()) if EYE.is_file() else {}
     enable_float64()
     enable_compilation_cache()
+    options = MarkerOptions(label_prior=args.label_prior)
     rows, folders = {}, {}
     for name in names:
         out = args.out / Path(name).stem if args.out else None
         try:
-            row = rows[name] = {"source": source[name], **fit_file(paths[name], out)}
+            row = rows[name] = {"source": source[name], **fit_file(paths[name], out, options)}
         except ValueError as exc:  # the file or the pipeline refused it: a failed file, never a dropped one
             rows[name] = {"source": source[name], "human": False, "error": str(exc), "confirmed_by_eye": None}
             print(f"\n{name}: FAILED {exc}", flush=True)
@@ -176,7 +201,7 @@ def main(argv=None) -> int:
     print(f"\nhuman verdicts: {sum(r['human'] for r in rows.values())} of {len(rows)} ({100 * share:.0f} %)")
     if args.pictures:
         take_pictures(folders, args.pictures)
-    write_json(args.json, {"files": rows, "human_share": share,
+    write_json(args.json, {"files": rows, "human_share": share, "label_prior": args.label_prior,
                            "confirmed_by_eye": sum(bool(r["confirmed_by_eye"]) for r in rows.values()),
                            "machine": machine(), "peak_rss_mb": peak_rss_mb()})
     return 0

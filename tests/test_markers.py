@@ -255,3 +255,19 @@ def test_identity_merging_on_the_linkage():
         assert len(set(sim.label_marker[ident.marker_of_label == k])) == 1
     with pytest.raises(ValueError, match="more than num_markers=5"):
         merge_identities(traj, 5)
+
+
+def test_a_still_marker_far_from_the_body_is_dropped():
+    """A marker left on the floor 2 m away (c3d.org's zerowire trial has one) is not on the body; a still foot
+    among the others is kept."""
+    rng = np.random.default_rng(0)
+    frames = 200
+    walk = np.cumsum(rng.normal(size=(frames, 1, 3)) * 0.01, axis=0)
+    body = rng.normal(size=(1, 6, 3)) * 0.2 + walk
+    foot = np.zeros((frames, 1, 3)) + rng.normal(size=(frames, 1, 3)) * 3e-4  # still, beside the body's start
+    floor = np.array([2.0, 0.0, 0.0]) + rng.normal(size=(frames, 1, 3)) * 3e-4
+    positions = np.concatenate([body, foot + body[:1, :1], floor], axis=1)
+    labels = [f"m{k}" for k in range(6)] + ["foot", "floor"]
+    clean, report = preprocess(MarkerTrajectories.from_array(positions, 100.0, labels), spike_threshold_m=None)
+    assert "floor" not in clean.labels and "foot" in clean.labels
+    assert report.dropped == (("floor", "still (within 2 mm) and over 0.4 m from every other marker: not on the body"),)

@@ -164,3 +164,24 @@ def test_body_regions_come_from_where_the_markers_are_without_the_tree(walk):
     # A body as wide as it is tall in most frames (no axis stands out): no region, no penalty.
     blob = np.random.default_rng(0).normal(size=markers.shape)
     assert set(body_regions(blob, segment, skeleton.num_segments)) == {"?"}
+
+
+def test_names_that_tell_the_sides_apart_decide_them_where_the_geometry_is_mirrored(walk):
+    """A mirror image of the walk: the knees' and elbows' bending puts its left on the right; the markers' names
+    (LTH1, RSH2, …) put it back, and a chain the names put on an arm costs more as a leg."""
+    from bcmocap.markers.label_hints import marker_hints
+    from bcmocap.sim.markers import full_body_markers
+
+    skeleton, joints, markers, segment = walk
+    specs = full_body_markers(skeleton, jitter_m=0.01, seed=0)
+    hints = marker_hints([s.name for s in specs])
+    mirror = np.array([-1.0, 1.0, 1.0])
+    parents = list(skeleton.parents)
+    left_leg = tuple(skeleton.index(f"left_{s}") for s in ("thigh", "shin", "foot"))
+    mirrored = label_anatomy(parents, joints * mirror, markers * mirror, segment, names=skeleton.names)
+    assert mirrored.limbs["right_leg"] == left_leg  # the geometry alone
+    named = label_anatomy(parents, joints * mirror, markers * mirror, segment, names=skeleton.names, hints=hints)
+    assert named.human and named.limbs["left_leg"] == left_leg
+    assert list(named.labels) == [_expected(n) for n in skeleton.names]
+    with pytest.raises(ValueError, match="3 hints for 45 markers"):
+        label_anatomy(parents, joints, markers, segment, hints=hints[:3])

@@ -56,7 +56,7 @@ CAUSES = ("missing", "rigid_leg", "too_many", "length", "legs_apart", "not_hangi
 _NAMINGS = {
     "leg": {1: [("leg+",), ("shin+",)], 2: [("thigh", "shin+")], 3: [("thigh", "shin", "foot")],
             4: [("thigh", "shin", "foot", "toes"), ("thigh", "shin", "ankle", "foot")]},
-    "arm": {1: [("arm+",), ("forearm+",)], 2: [("upper_arm", "forearm+")],
+    "arm": {1: [("arm+",), ("forearm+",)], 2: [("upper_arm", "forearm+"), ("arm", "hand")],
             3: [("upper_arm", "forearm", "hand"), ("shoulder", "upper_arm", "forearm+")],
             4: [("shoulder", "upper_arm", "forearm", "hand")]},
     "head": {1: [("head",)], 2: [("neck", "head")]},
@@ -64,10 +64,11 @@ _NAMINGS = {
 #: Each segment's length over the body's size (:func:`_body_size`, about its height): joint to joint, or for the
 #: last segment of a limb joint to its farthest marker. From de Leva (1996, J Biomech 29:1223): thigh 0.245,
 #: shank 0.246, upper arm 0.186, forearm 0.146; the foot, hand and head from the ankle, wrist and neck to the
-#: markers that end them (toe, knuckles, a headband's markers at the forehead); "+" with the parts below; an
+#: markers that end them (toe, knuckles, a headband's markers at the forehead); "+" with the parts below; an "arm"
+#: is the upper arm and forearm together, shoulder to wrist (an elbow that did not bend, its hand apart); an
 #: "ankle" is the shank's lower part where its markers there (malleoli, a cluster) moved apart from the upper ones.
 _LENGTHS = {"leg+": 0.55, "thigh": 0.245, "shin": 0.246, "shin+": 0.27, "foot": 0.11, "toes": 0.04, "ankle": 0.08,
-            "arm+": 0.38, "shoulder": 0.09, "upper_arm": 0.186, "forearm": 0.146, "forearm+": 0.2, "hand": 0.06,
+            "arm+": 0.38, "arm": 0.33, "shoulder": 0.09, "upper_arm": 0.186, "forearm": 0.146, "forearm+": 0.2, "hand": 0.06,
             "neck": 0.06, "head": 0.09}
 #: A segment that holds both the legs and the arms is the whole trunk only if its markers spread this far along the
 #: body (over its size): the pelvis's alone span about 0.1, the trunk's 0.3 and more.
@@ -87,6 +88,7 @@ _LEG_REACH, _ARM_REACH, _HEAD_REACH = 0.58, 0.42, 0.1
 _MISSING_LIMB = 12.0  # cost of leaving an arm or a leg without a chain
 _MISSING_HEAD = 2.0  # a head may be part of the core (it moved with the thorax) or carry no markers
 _EXTRA_CHAIN = 1.0  # a chain left over (a wand, a marker cluster of something held)
+_NAMES_DISAGREE = 20.0  # a chain all of whose named markers the names put on another limb (a share: less)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,7 +156,7 @@ class _Chain:
 class _Tree:
     """The recovered tree with its chains, core and the frames the matching looks at."""
 
-    def __init__(self, parents, joints, markers, marker_segment):
+    def __init__(self, parents, joints, markers, marker_segment, hints=None):
         self.parents, self.joints, self.markers, self.marker_segment = parents, joints, markers, marker_segment
         self.size = len(parents)
         self.height = _body_size(markers)
@@ -170,6 +172,20 @@ class _Tree:
         held = {j for c in self.chains for j in c.segments} | set(self.twigs)
         self.core = [j for j in range(self.size) if j not in held]
         self.hops = self._core_hops()
+        self.named = [self._names_say(c, hints) for c in self.chains]
+
+    def _names_say(self, chain: _Chain, hints) -> tuple[dict, float]:
+        """What the chain's markers' names say (:mod:`~bcmocap.markers.label_hints`): the share of its named limb
+        markers on each limb kind, and its side from -1 (right) to 1 (left); ``({}, 0)`` without names, a half on
+        each kind where the names give the chain no limb marker."""
+        if hints is None:
+            return {}, 0.0
+        said = [hints[m] for m in np.flatnonzero(np.isin(self.marker_segment, chain.segments))
+                if hints[m] is not None and hints[m].limb() is not None]
+        if not said:  # among named markers, a chain with no limb's names: as likely no limb as any
+            return {"leg": 0.5, "arm": 0.5, "head": 0.5}, 0.0
+        kinds = {kind: sum(h.limb() == kind for h in said) / len(said) for kind in ("leg", "arm", "head")}
+        return kinds, sum((h.side == "L") - (h.side == "R") for h in said) / len(said)
 
     def joint(self, a: int, b: int) -> np.ndarray:
         """``(F, 3)`` the joint between neighbours ``a`` and ``b`` (the child's origin)."""
@@ -286,6 +302,11 @@ class _Tree:
                 cost += self.hop(chains[pair[0]].attachment, chains[pair[1]].attachment)
         for kind, group in (("leg", legs), ("arm", arms), ("head", head)):
             cost += sum(self.naming(kind, i)[0] for i in group)
+            # the markers' names (where given) that put a chain on another limb
+            cost += sum(_NAMES_DISAGREE * (1.0 - self.named[i][0].get(kind, 1.0)) for i in group)
+        assigned = {*legs, *arms, *head}  # and a chain left over that the names put on a limb
+        cost += sum(_NAMES_DISAGREE * max(self.named[i][0].values(), default=0.0) for i in range(len(chains))
+                    if i not in assigned and self.named[i][0] and max(self.named[i][0].values()) > 0.5)
         axis = self.body_axis(legs, arms)
         if axis is not None:
             cost += (np.log(max(self.trunk(legs, arms), 1e-3) / _TRUNK) / 0.3) ** 2  # hips to shoulders
@@ -370,6 +391,9 @@ class _Tree:
 
     def sides(self, pair, left) -> tuple[tuple, float]:
         """``pair`` ordered left first, and the weighted share of frames that agree (0.5 without a left)."""
+        if len(pair) == 2 and abs(self.named[pair[0]][1] - self.named[pair[1]][1]) > 1.0:  # the names say
+            first_left = self.named[pair[0]][1] > self.named[pair[1]][1]
+            return (tuple(pair) if first_left else tuple(pair[::-1])), 1.0
         if len(pair) != 2 or left is None:
             return tuple(pair), 0.5
         along = np.einsum("fi,fi->f", self.chains[pair[0]].start - self.chains[pair[1]].start, left)
@@ -451,7 +475,7 @@ _COMPARED = 200
 
 
 def label_anatomy(parents, joints: np.ndarray, markers: np.ndarray, marker_segment: np.ndarray,
-                  names=None, max_frames: int = 500) -> Anatomy:
+                  names=None, max_frames: int = 500, hints=None) -> Anatomy:
     """Label a recovered tree against the human template (module docstring).
 
     Args:
@@ -461,6 +485,9 @@ def label_anatomy(parents, joints: np.ndarray, markers: np.ndarray, marker_segme
         marker_segment: ``(M,)`` the segment each marker is on.
         names: segment names for the messages (default ``segment <index>``).
         max_frames: frames (evenly spaced) looked at.
+        hints: ``(M,)`` what each marker's name says (:func:`~bcmocap.markers.label_hints.marker_hints`), or None:
+            a chain whose named markers are on another limb costs more (a soft prior), and names that tell a pair
+            of limbs' sides apart decide them.
 
     Raises:
         ValueError: shapes that do not match (naming them).
@@ -477,7 +504,9 @@ def label_anatomy(parents, joints: np.ndarray, markers: np.ndarray, marker_segme
         raise ValueError(f"label_anatomy: markers {markers.shape} and marker_segment {marker_segment.shape} do not "
                          f"match joints {joints.shape}")
     frames = np.unique(np.linspace(0, len(joints) - 1, min(max_frames, len(joints))).round().astype(int))
-    tree = _Tree(parents, joints[frames], markers[frames], marker_segment)
+    if hints is not None and len(hints) != markers.shape[1]:
+        raise ValueError(f"label_anatomy: {len(hints)} hints for {markers.shape[1]} markers")
+    tree = _Tree(parents, joints[frames], markers[frames], marker_segment, hints)
     ranked = tree.assignments()
     best_cost, legs, arms, head = ranked[0]
     labels, limbs, shares = tree.labelled(legs, arms, head)
@@ -521,9 +550,9 @@ def _verdict(tree: _Tree, legs, arms, head, limbs, labels, names) -> tuple[dict,
             flag(limb, "rigid_leg", limbs[limb], f"one rigid segment ({names[limbs[limb][0]]}) from hip to foot: its "
                  "markers were grouped across the knee")
             continue
-        if naming == ("arm+",):
-            notes.append(f"the {limb.replace('_', ' ')} is one rigid segment ({names[limbs[limb][0]]}): its elbow did "
-                         "not move")
+        if naming[0] in ("arm+", "arm"):
+            notes.append(f"the {limb.replace('_', ' ')} is one rigid segment ({names[limbs[limb][0]]}"
+                         f"{' with its hand apart' if naming[0] == 'arm' else ''}): its elbow did not move")
         for j, name, length in zip(limbs[limb], naming, chains[i].lengths):
             if (tree.marker_segment == j).sum() < 2:
                 continue  # one marker has no rigid frame: its segment's joint, and length, are not determined
@@ -576,7 +605,8 @@ _JOINED = {frozenset(pair) for pair in (
     ("thorax", "shoulder"), ("thorax", "upper_arm"), ("trunk", "shoulder"), ("trunk", "upper_arm"),
     ("shoulder", "upper_arm"), ("upper_arm", "forearm"), ("forearm", "hand"),
     ("thorax", "neck"), ("thorax", "head"), ("trunk", "neck"), ("trunk", "head"), ("neck", "head"),
-    ("spine", "shoulder"), ("spine", "upper_arm"))}
+    ("spine", "shoulder"), ("spine", "upper_arm"),
+    ("thorax", "arm"), ("trunk", "arm"), ("spine", "arm"), ("shoulder", "arm"), ("arm", "hand"))}
 
 
 def template_penalties(segment_groups, anatomy: Anatomy, num_groups: int, factor: float,

@@ -27,6 +27,7 @@ from . import files
 from .anatomy import Anatomy, body_regions, label_anatomy, region_penalties, template_penalties
 from .identities import IdentityMerge, concurrent_labels, merge_identities
 from .ik import IkResult, initial_motion, solve_ik
+from .label_hints import group_label_penalties, informative, marker_hints, marker_label_weights
 from .joints import MIN_COVERAGE, MIN_FRAMES, JointSolution, joint_cost_matrix, minimum_spanning_tree, solve_joints
 from .preprocess import MarkerTrajectories, PreprocessReport, preprocess
 from .rigid import RigidSkeleton, build_skeleton
@@ -72,6 +73,11 @@ class MarkerOptions:
             again and kept if it is more of a body (0: off). A soft cost: a joint the data support well still
             wins.
         template_rounds: how many times the tree may be rebuilt that way.
+        label_prior: where the markers' names follow a known marker set (:mod:`~bcmocap.markers.label_hints`: at
+            least 10 named, on both sides), the segmentation's affinity of two markers whose names put them on bones
+            no rigid segment holds together (a thigh's and a shin's, a left and a right shin's) is divided by this,
+            and the joint cost of two segments whose names no joint of the body joins is multiplied by it (0: off).
+            A soft cost, as ``template_prior``: the motion still decides.
         ik_chunk: frames solved together in inverse kinematics.
         seed: random seed (samplings, k-means).
     """
@@ -96,6 +102,7 @@ class MarkerOptions:
     rigid_tolerance_m: float = 0.015
     template_prior: float = 10.0
     template_rounds: int = 2
+    label_prior: float = 100.0
     ik_chunk: int = 256
     seed: int = 0
 
@@ -373,7 +380,7 @@ class _TreeFit:
 
 
 def _fit_tree(clean: MarkerTrajectories, groups: np.ndarray, edges, names, options: MarkerOptions, seconds: dict,
-              known: tuple[JointSolution, ...] = ()) -> _TreeFit:
+              known: tuple[JointSolution, ...] = (), hints=None) -> _TreeFit:
     """The stages after the topology for the tree ``edges``: its joints on all frames (those in ``known`` reused),
     the rigid skeleton, inverse kinematics and the labels against the human template (each stage's time added to
     ``seconds``)."""
@@ -405,7 +412,7 @@ def _fit_tree(clean: MarkerTrajectories, groups: np.ndarray, edges, names, optio
 
     t0 = time.perf_counter()
     anatomy = label_anatomy(rigid.skeleton.parents, np.asarray(joint_positions(rigid.skeleton, ik.motion)),
-                            ik.marker_positions, rigid.marker_segment, names=rigid.skeleton.names)
+                            ik.marker_positions, rigid.marker_segment, names=rigid.skeleton.names, hints=hints)
     seconds["anatomy"] = seconds.get("anatomy", 0.0) + time.perf_counter() - t0
     return _TreeFit(tuple(joints), rigid, by_child, ik, anatomy)
 
@@ -452,6 +459,8 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
     seconds["preprocess"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    hints = marker_hints(clean.labels) if options.label_prior else []
+    use_names = bool(options.label_prior) and informative(hints)
     seg = segment_markers(
         clean,
         options.num_groups,
@@ -460,12 +469,19 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
         max_groups=options.max_groups,
         rigid_tolerance_m=options.rigid_tolerance_m,
         min_coverage=options.min_coverage,
+        label_weights=marker_label_weights(hints, options.label_prior) if use_names else None,
         seed=options.seed,
     )
+    if use_names:
+        note(f"the markers' names follow a known marker set ({sum(h is not None for h in hints)} of "
+             f"{len(hints)} named): they weigh on the segments and the tree as a soft prior (label_prior "
+             f"{options.label_prior:g}; 0 turns it off)")
     if len(seg.left_out):
         note(f"markers {[clean.labels[k] for k in seg.left_out]} are seen together with too few others (or only "
              "while still) to place them on a segment; they are left out")
-        clean, seg = _without(clean, seg, np.flatnonzero(seg.groups >= 0))
+        keep = np.flatnonzero(seg.groups >= 0)
+        clean, seg = _without(clean, seg, keep)
+        hints = [hints[k] for k in keep] if hints else hints
     seconds["segmentation"] = time.perf_counter() - t0
     names = _segment_names(clean, seg.groups)
     for g in range(seg.num_groups):
@@ -483,7 +499,9 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
                                               dof_corrected=options.dof_corrected_topology, min_coverage=options.min_coverage)
     for w in caught:
         note(str(w.message))
-    edges = minimum_spanning_tree(q, names)
+    names_penalty = (group_label_penalties(hints, seg.groups, seg.num_groups, options.label_prior) if use_names
+                     else np.ones_like(q))
+    edges = minimum_spanning_tree(q * names_penalty, names)
     by_pair = {frozenset(s.groups): s for s in pair_solutions}
     for a, b in edges:
         s = by_pair[frozenset((a, b))]
@@ -493,7 +511,8 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
                  "connects them")
     seconds["topology"] = time.perf_counter() - t0
 
-    fit = _fit_tree(clean, seg.groups, edges, names, options, seconds)
+    given = hints if use_names else None
+    fit = _fit_tree(clean, seg.groups, edges, names, options, seconds, hints=given)
     if options.template_prior and not fit.anatomy.human:
         t0 = time.perf_counter()
         tried = {frozenset(map(frozenset, edges))}
@@ -504,12 +523,13 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
                 break
             penalty = np.maximum(template_penalties(fit.rigid.segment_groups, fit.anatomy, len(names),
                                                     options.template_prior),
-                                 region_penalties(regions, options.template_prior))
+                                 region_penalties(regions, options.template_prior)) * names_penalty
             new_edges = minimum_spanning_tree(q * penalty, names)
             if frozenset(map(frozenset, new_edges)) in tried:
                 break
             tried.add(frozenset(map(frozenset, new_edges)))
-            candidate = _fit_tree(clean, seg.groups, new_edges, names, options, template_seconds, known=fit.joints)
+            candidate = _fit_tree(clean, seg.groups, new_edges, names, options, template_seconds, known=fit.joints,
+                                  hints=given)
             if _better(candidate.anatomy, fit.anatomy):
                 moved = sorted(set(map(frozenset, new_edges)) - set(map(frozenset, edges)), key=sorted)
                 note("the tree was rebuilt with the human template's prior on its joints (it was not a body): "

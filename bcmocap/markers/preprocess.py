@@ -131,6 +131,26 @@ def _remove_spikes(positions: np.ndarray, half_window: int, threshold_m: float) 
     return out, int(spikes.sum())
 
 
+def _off_the_body(positions: np.ndarray, markers: list[int], still_m: float, apart_m: float) -> list[int]:
+    """The markers among ``markers`` that stay still and far from every other one (see :func:`preprocess`)."""
+    out = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        spreads = [np.sqrt(np.nanmean(np.sum((positions[:, m] - np.nanmedian(positions[:, m], axis=0)) ** 2, axis=-1)))
+                   for m in markers]
+        if not np.nanmedian(spreads) > 10.0 * still_m:
+            return []  # the body barely moved: a still marker is no sign of anything
+        for m, spread in zip(markers, spreads):
+            track = positions[:, m]
+            if not spread <= still_m:
+                continue
+            others = positions[:, [k for k in markers if k != m]]
+            nearest = np.nanmin(np.linalg.norm(others - track[:, None], axis=-1), axis=1)
+            if np.nanmedian(nearest) > apart_m:
+                out.append(m)
+    return out
+
+
 def preprocess(
     trajectories: MarkerTrajectories,
     *,
@@ -138,6 +158,8 @@ def preprocess(
     min_run_seconds: float = 0.5,
     spike_threshold_m: float | None = 0.03,
     spike_half_window: int = 2,
+    still_m: float = 0.002,
+    apart_m: float = 0.4,
     warn: bool = True,
 ) -> tuple[MarkerTrajectories, PreprocessReport]:
     """Clean marker trajectories as in §3 of Kirk et al.
@@ -149,6 +171,10 @@ def preprocess(
         spike_threshold_m: remove samples farther than this from the median of their neighbours
             (None: keep them).
         spike_half_window: neighbours on each side for that median.
+        still_m, apart_m: a marker that stays within ``still_m`` (RMS about its median position) and lies farther
+            than ``apart_m`` from every other marker (median over frames) while most markers move (their median
+            RMS over ten times ``still_m``) is not on the body (a marker on the floor or on the lab's equipment)
+            and is dropped.
         warn: emit a :class:`UserWarning` naming the markers dropped for having no data.
 
     Returns:
@@ -189,6 +215,10 @@ def preprocess(
             continue
         keep.append(m)
     positions[~visible] = np.nan
+    for m in _off_the_body(positions, keep, still_m, apart_m):
+        keep.remove(m)
+        dropped.append((trajectories.labels[m], f"still (within {still_m * 1000:g} mm) and over {apart_m:g} m from "
+                                                "every other marker: not on the body"))
     empty = [label for label, why in dropped if why == "no data"]
     if warn and empty:
         warnings.warn(f"markers with no data were ignored: {empty}", UserWarning, stacklevel=2)

@@ -260,6 +260,62 @@ def least_rigid(a: np.ndarray, groups: np.ndarray) -> float:
     return max(least_rigid_pair(a, np.flatnonzero(groups == g))[0] for g in np.unique(groups[groups >= 0]))
 
 
+def split_named_conflicts(groups: np.ndarray, label_weights: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """``groups`` with each group that holds two markers the names put on different bones (``label_weights`` below
+    1) split so that none does: its markers, those with the most such pairs first, each join the part of the group
+    it is most rigid with (mean distance std over ``reference``) among those holding none of its conflicts, or start
+    a new part (a new group number after the last)."""
+    out = groups.copy()
+    following = int(groups.max()) + 1
+    for g in np.unique(groups[groups >= 0]):
+        members = np.flatnonzero(groups == g)
+        conflict = label_weights[np.ix_(members, members)] < 1.0
+        if not conflict.any():
+            continue
+        parts: list[list[int]] = []
+        for m in members[np.argsort(-conflict.sum(1), kind="stable")]:
+            fits = [p for p in parts if (label_weights[m, p] >= 1.0).all()]
+            if fits:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    rigid = [np.nanmean(reference[m, p]) for p in fits]
+                fits[int(np.argmin(np.nan_to_num(rigid, nan=np.inf)))].append(int(m))
+            else:
+                parts.append([int(m)])
+        for part in parts[1:]:
+            out[part] = following
+            following += 1
+    return out
+
+
+def merge_named_singles(groups: np.ndarray, label_weights: np.ndarray, reference: np.ndarray,
+                        tolerance_m: float) -> np.ndarray:
+    """``groups`` with each named marker alone on its segment (one the names put somewhere: a row of
+    ``label_weights`` below 1) moved into the group it is most rigid with (mean distance std) among those whose
+    every marker the names allow on its bone, where it stays rigid with all of them (std at most ``tolerance_m``);
+    the groups numbered again from 0 in order. A thigh's lone marker joins the thigh and knee markers rather than
+    hang as a segment of its own."""
+    out = groups.copy()
+    named = (label_weights < 1.0).any(axis=1)
+    for g in np.unique(groups[groups >= 0]):
+        members = np.flatnonzero(out == g)
+        if len(members) != 1 or not named[members[0]]:
+            continue
+        m = members[0]
+        best, best_std = None, np.inf
+        for h in np.unique(out[(out >= 0) & (out != g)]):
+            others = np.flatnonzero(out == h)
+            stds = reference[m, others]
+            if (label_weights[m, others] < 1.0).any() or not np.isfinite(stds).all() or stds.max() > tolerance_m:
+                continue
+            if stds.mean() < best_std:
+                best, best_std = h, float(stds.mean())
+        if best is not None:
+            out[m] = best
+    kept = np.unique(out[out >= 0])
+    return np.where(out >= 0, np.searchsorted(kept, out), -1)
+
+
 def _affinity(a: np.ndarray, scale: float, weight: np.ndarray | None = None) -> np.ndarray:
     w = np.exp(-0.5 * (np.nan_to_num(a, nan=np.inf) / scale) ** 2)
     if weight is not None:
@@ -293,6 +349,7 @@ def segment_markers(
     min_coverage: float = 0.3,
     min_known: int = 3,
     coverage_frames: int = 600,
+    label_weights: np.ndarray | None = None,
     seed: int = 0,
 ) -> Segmentation:
     """Group markers into rigid segments (§3.1), gaps handled as in the module docstring.
@@ -304,14 +361,18 @@ def segment_markers(
         interval_s, jitter_s, min_samples: the sampling (see :func:`jittered_samples`).
         scale_m: σ of the affinity ``exp(−A²/2σ²)`` (m); None picks it from the data.
         rigid_tolerance_m: with the eigengap, raise the count one at a time (up to ``max_groups``)
-            while a group has two markers whose distance varies more than this (std): such a group
-            spans a joint. The eigengap alone merges whole limbs on short real trials (a CMU file:
+            while a group has two markers whose distance varies more than this (std): such a group spans a joint.
+            A group holding two markers the names put on different bones (``label_weights`` below 1) is then split
+            (:func:`split_named_conflicts`). The eigengap alone merges whole limbs on short real trials (a CMU file:
             10 groups, one of them a whole arm whose markers vary by 53 mm; 15 rigid ones).
         min_common: a pair seen together in fewer of the frames the statistics use is unknown.
         min_coverage: a pair whose frames together show less of the motion around it is unknown.
         min_known: a marker with no rigid partner is a segment of its own with at least this many known
             pairs, and left out with fewer.
         coverage_frames: evenly spaced frames (at most) for the pairs' counts and coverage.
+        label_weights: ``(M, M)`` multipliers of the affinities from the markers' names
+            (:func:`~bcmocap.markers.label_hints.marker_label_weights`; None: none); a lone marker's partner is
+            chosen by its distance std divided by them.
         seed: random seed of the samplings and k-means.
 
     Raises:
@@ -346,6 +407,8 @@ def segment_markers(
     np.fill_diagonal(reference, 0.0)
     scale = float(scale_m) if scale_m is not None else _auto_scale(reference)
     weight = np.where(known, stats.coverage, 0.0)
+    if label_weights is not None:
+        weight = weight * label_weights
     # Markers with no rigid partner the spectral embedding can see: in the normalised affinity
     # W_ij / √(d_i d_j) their strongest link is weak (their partners belong to tighter groups; markers only
     # loosely rigid with each other but with nothing else still link strongly), and the embedding would
@@ -359,8 +422,11 @@ def segment_markers(
     if len(rest) == 0:
         raise ValueError("segment_markers: no marker has a rigid partner it is seen with long enough")
     partner_std = np.where(known[:, rest], reference[:, rest], np.inf)
-    partner = rest[np.argmin(partner_std, axis=1)]
-    best_std = partner_std.min(1)
+    if label_weights is not None:
+        partner = rest[np.argmin(partner_std / label_weights[:, rest], axis=1)]
+    else:
+        partner = rest[np.argmin(partner_std, axis=1)]
+    best_std = partner_std[np.arange(m), np.searchsorted(rest, partner)]
     attach = np.flatnonzero(alone & np.isfinite(best_std) & (best_std <= (np.inf if rigid_tolerance_m is None else rigid_tolerance_m)))
     single = np.flatnonzero(alone & ~np.isin(np.arange(m), attach) & (known.sum(1) - 1 >= min_known))
     fixed = len(single)
@@ -402,10 +468,21 @@ def segment_markers(
         if n > eig_n:
             chosen_by = f"eigengap {eig_n + fixed}, raised for rigid groups (tolerance {rigid_tolerance_m * 1000:.0f} mm)"
     labels = full(labels)
+    cost = min(costs)
+    if num_groups is None and label_weights is not None:
+        split = split_named_conflicts(labels, label_weights, reference)
+        if split.max() > labels.max():
+            chosen_by += f"; {split.max() - labels.max()} split where the markers' names put them on two bones"
+        merged = merge_named_singles(split, label_weights, reference, 2.0 * (rigid_tolerance_m or 0.015))
+        if merged.max() < split.max():
+            chosen_by += f"; {split.max() - merged.max()} lone named marker(s) moved to the segment of their bone"
+        if merged.max() != labels.max() or (merged != labels).any():
+            n += int(merged.max() - labels.max())
+            labels, cost = merged, within_group_cost(reference, merged)
     return Segmentation(
         groups=labels,
         num_groups=n + fixed,
-        cost=min(costs),
+        cost=cost,
         distance_std=reference,
         scale_m=scale,
         eigenvalues=eigenvalues,
