@@ -135,3 +135,18 @@ def test_markers_left_out_with_drop_and_an_unknown_one_named(tmp_path, capsys):
     trajectories, note = _load(Namespace(file=str(tmp_path / "a.npy"), fps=60.0, frames=None, drop=["m1", "m3"],
                                          markers=None, keep_modelled=False))
     assert trajectories.labels == ("m0", "m2") and "dropped 2 markers" in note
+
+
+@pytest.mark.slow  # two fits of a real 3 s file
+def test_the_full_body_file_is_human_with_the_names_and_the_names_can_be_left_out(tmp_path, capsys):
+    """BTK's Plug-in Gait walk: with its names (LTHI, RKNE…) a human body; `--ignore-names` fits it from the
+    motion alone, into other segments."""
+    from test_markers import FULL_BODY
+
+    assert main(["markers", str(FULL_BODY), "--out", str(tmp_path / "named")]) == 0
+    named = json.loads((tmp_path / "named" / "skeleton.json").read_text())
+    assert named["verdict"]["human"] and any("names follow a known marker set" in n for n in named["notes"])
+    assert main(["markers", str(FULL_BODY), "--out", str(tmp_path / "unnamed"), "--ignore-names"]) == 0
+    unnamed = json.loads((tmp_path / "unnamed" / "skeleton.json").read_text())
+    assert not any("names follow" in n for n in unnamed["notes"])
+    assert [s["markers"] for s in unnamed["segments"]] != [s["markers"] for s in named["segments"]]

@@ -82,7 +82,8 @@ def run_markers(args: argparse.Namespace) -> int:
         print(f"bcmocap markers: {exc}", file=sys.stderr)
         return 2
     print(note, flush=True)
-    options = MarkerOptions(num_groups=args.groups, merge=args.merge, num_markers=args.num_markers, seed=args.seed)
+    options = MarkerOptions(num_groups=args.groups, merge=args.merge, num_markers=args.num_markers, seed=args.seed,
+                            label_prior=MarkerOptions.label_prior if args.names else 0.0)
     try:
         result = fit_marker_skeleton(trajectories, options)
     except ValueError as exc:
@@ -114,6 +115,9 @@ def add_markers_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--num-markers", type=int, default=None, help="physical markers when merging labels")
     p.add_argument("--frames", default=None, help="frame range FIRST:LAST (0-based, LAST excluded)")
     p.add_argument("--fps", type=float, default=None, help="frame rate of a .npy input (Hz)")
+    p.add_argument("--ignore-names", dest="names", action="store_false",
+                   help="do not use the markers' names (by default, names that follow a known marker set, such as "
+                        "Plug-in Gait's LTHI, RKNE, are a soft prior on the segments and the tree)")
     p.add_argument("--seed", type=int, default=0)
 
     def run(args: argparse.Namespace) -> int:
