@@ -34,6 +34,9 @@ def test_a_subject_initial_before_every_name_is_dropped():
     assert [(h.side, h.region) for h in marker_hints(names)] == [
         (None, "head"), ("L", "thigh"), ("R", "thigh"), ("L", "shank"), ("R", "shank"), (None, "trunk"),
         ("L", "upper_arm"), ("R", "elbow")]
+    # an unlabelled trajectory among them changes nothing; a label with a copy suffix and spaces is read
+    assert [h and (h.side, h.region) for h in marker_hints([*names, "*12", " LRKNE#2 "])][-3:] == [
+        ("R", "elbow"), None, ("R", "knee")]
 
 
 def test_a_limb_marker_without_a_side_and_too_few_names_say_nothing():
@@ -58,7 +61,7 @@ def test_segments_no_joint_of_the_body_joins_are_penalised():
     labels = ["LASI", "RASI", "LTHI", "LKNE", "LTIB", "LANK", "LHEE", "LTOE", "RTHI", "RTIB", "*9"]
     groups = np.array([0, 0, 1, 1, 2, 2, 3, 3, 4, 5, 6])
     p = group_label_penalties(marker_hints(labels), groups, 7, 10.0)
-    joined = [(0, 1), (1, 2), (2, 3), (0, 4), (4, 5), (1, 1)]
+    joined = [(0, 1), (1, 2), (2, 3), (0, 4), (4, 5)]
     apart = [(0, 3), (0, 2), (1, 5), (2, 5), (1, 4)]  # a foot or a shank on the pelvis, a left on a right…
     assert all(p[a, b] == 1.0 for a, b in joined)
     assert all(p[a, b] == p[b, a] == 10.0 for a, b in apart)
@@ -116,3 +119,33 @@ def test_a_named_marker_alone_joins_the_segment_of_its_bone_where_it_is_rigid_wi
     merged = merge_named_singles(groups, weights, reference, 0.03)
     assert merged.tolist() == [0, 0, 1, 1, 2, 3]  # RTHI with RKNE; LTHI (nothing rigid) and *5 (unnamed) stay
     assert merge_named_singles(groups, weights, reference, 0.01).tolist() == [0, 1, 2, 2, 3, 4]
+
+
+def test_with_the_eigengap_the_names_split_what_the_motion_cannot_and_the_count_follows():
+    """Thigh and shin markers that never move apart, segmented with the eigengap: the names split them, and the
+    segmentation's count agrees with its groups."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(1)
+    frames = 300
+    body = rng.normal(size=(6, 3)) * 0.1
+    rotations = Rotation.from_rotvec(np.cumsum(rng.normal(size=(frames, 3)) * 0.05, axis=0)).as_matrix()
+    positions = np.einsum("fij,mj->fmi", rotations, body) + rng.normal(size=(frames, 6, 3)) * 1e-4
+    labels = ["LTH1", "LTH2", "LTH3", "LSH1", "LSH2", "LSH3"]
+    trajectories = MarkerTrajectories.from_array(positions, 100.0, labels)
+    seg = segment_markers(trajectories, None, rigid_tolerance_m=0.015,
+                          label_weights=marker_label_weights(marker_hints(labels), 100.0))
+    assert seg.num_groups == seg.groups.max() + 1 == 2
+    assert len(set(seg.groups[:3])) == len(set(seg.groups[3:])) == 1 and seg.groups[0] != seg.groups[3]
+
+
+def test_a_label_prior_between_0_and_1_is_refused():
+    import pytest
+
+    from bcmocap.markers import MarkerOptions, fit_marker_skeleton
+    from bcmocap.precision import enable_float64
+
+    enable_float64()
+    trajectories = MarkerTrajectories.from_array(np.zeros((10, 3, 3)), 100.0, ["a", "b", "c"])
+    with pytest.raises(ValueError, match="label_prior must be 0 .off. or at least 1, got 0.5"):
+        fit_marker_skeleton(trajectories, MarkerOptions(label_prior=0.5))

@@ -486,8 +486,9 @@ def label_anatomy(parents, joints: np.ndarray, markers: np.ndarray, marker_segme
         names: segment names for the messages (default ``segment <index>``).
         max_frames: frames (evenly spaced) looked at.
         hints: ``(M,)`` what each marker's name says (:func:`~bcmocap.markers.label_hints.marker_hints`), or None:
-            a chain whose named markers are on another limb costs more (a soft prior), and names that tell a pair
-            of limbs' sides apart decide them.
+            a chain whose named markers are on another limb costs more (a soft prior), as does a chain the names put
+            on a limb left unassigned; a chain with no limb marker's name (unnamed, or pelvis and shoulder names
+            only) costs half as much on any limb; and names that tell a pair of limbs' sides apart decide them.
 
     Raises:
         ValueError: shapes that do not match (naming them).

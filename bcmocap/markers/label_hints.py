@@ -81,28 +81,27 @@ def _parse(name: str) -> MarkerHint | None:
         if region is not None:
             if side is None and region not in _AXIAL:
                 return None  # a limb marker without a side says too little
-            return MarkerHint(None if region in ("head", "trunk") else side, region)
-    if side is not None:  # "RHEA" is a head marker (rear head), not a right "HEA"; "SACR" has no side
-        whole = _REGION_OF.get(side + code)
-        if whole is not None and whole in _AXIAL:
-            return MarkerHint(None, whole)
+            return MarkerHint(None if region in ("head", "trunk") else side, region)  # RHEA: the rear of the head
     return None
 
 
 def _stem(label: str) -> str:
-    return re.sub(r"#\d+$", "", label.split(":")[-1]).strip().upper()
+    return re.sub(r"#\d+$", "", label.split(":")[-1].strip()).strip().upper()
 
 
 def marker_hints(labels: Sequence[str]) -> list[MarkerHint | None]:
-    """Each label's hint (None where its name says nothing known). Where most names share one extra leading
-    letter before their side (a subject's initial: ``LLTHI``, ``LRKNE``), that letter is dropped first."""
+    """Each label's hint (None where its name says nothing known). Where at least 80 % of the names that start
+    with a letter share one extra leading letter before their side (a subject's initial: ``LLTHI``, ``LRKNE``),
+    and fewer than half parse as they are, that letter is dropped from those names first."""
     stems = [_stem(label) for label in labels]
     hints = [_parse(s) for s in stems]
-    first = {s[:1] for s in stems if s}
-    if len(first) == 1 and sum(h is not None for h in hints) < len(stems) / 2:
-        shifted = [_parse(s[1:]) for s in stems]
-        if sum(h is not None for h in shifted) > sum(h is not None for h in hints):
-            hints = shifted
+    initials = [s[0] for s in stems if s[:1].isalpha()]
+    if initials and sum(h is not None for h in hints) < len(stems) / 2:
+        letter = max(set(initials), key=initials.count)
+        if initials.count(letter) >= 0.8 * len(initials):
+            shifted = [_parse(s[1:]) if s[:1] == letter else h for s, h in zip(stems, hints)]
+            if sum(h is not None for h in shifted) > sum(h is not None for h in hints):
+                hints = shifted
     return hints
 
 

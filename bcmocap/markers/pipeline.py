@@ -75,9 +75,13 @@ class MarkerOptions:
         template_rounds: how many times the tree may be rebuilt that way.
         label_prior: where the markers' names follow a known marker set (:mod:`~bcmocap.markers.label_hints`: at
             least 10 named, on both sides), the segmentation's affinity of two markers whose names put them on bones
-            no rigid segment holds together (a thigh's and a shin's, a left and a right shin's) is divided by this,
-            and the joint cost of two segments whose names no joint of the body joins is multiplied by it (0: off).
-            A soft cost, as ``template_prior``: the motion still decides.
+            no rigid segment holds together (a thigh's and a shin's, a left and a right shin's) is divided by this;
+            with the eigengap (``num_groups`` None) a group still holding such a pair is then split and a lone
+            named marker joins a group it is rigid with and whose names allow it
+            (:func:`~.segmentation.split_named_conflicts`, :func:`~.segmentation.merge_named_singles`); the joint
+            cost of two segments whose names no joint of the body joins is multiplied by it; and the human
+            template weighs the names (:func:`~.anatomy.label_anatomy`'s ``hints``). 0 turns it all off, else at
+            least 1. A soft cost, as ``template_prior``: the motion still decides the joints.
         ik_chunk: frames solved together in inverse kinematics.
         seed: random seed (samplings, k-means).
     """
@@ -440,6 +444,8 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
         notes.append(message)
         warnings.warn(message, UserWarning, stacklevel=3)
 
+    if options.label_prior and options.label_prior < 1.0:
+        raise ValueError(f"options.label_prior must be 0 (off) or at least 1, got {options.label_prior!r}")
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -290,11 +290,11 @@ def split_named_conflicts(groups: np.ndarray, label_weights: np.ndarray, referen
 
 def merge_named_singles(groups: np.ndarray, label_weights: np.ndarray, reference: np.ndarray,
                         tolerance_m: float) -> np.ndarray:
-    """``groups`` with each named marker alone on its segment (one the names put somewhere: a row of
-    ``label_weights`` below 1) moved into the group it is most rigid with (mean distance std) among those whose
-    every marker the names allow on its bone, where it stays rigid with all of them (std at most ``tolerance_m``);
-    the groups numbered again from 0 in order. A thigh's lone marker joins the thigh and knee markers rather than
-    hang as a segment of its own."""
+    """``groups`` with each named marker alone on its segment (one the names keep apart from some other: a row of
+    ``label_weights`` below 1) moved into the group it is most rigid with (mean distance std) among those holding no
+    marker the names keep apart from it (unnamed markers allow it), where it stays rigid with all of them (std at
+    most ``tolerance_m``); the groups numbered again from 0 in order. A thigh's lone marker joins the thigh and knee
+    markers rather than hang as a segment of its own."""
     out = groups.copy()
     named = (label_weights < 1.0).any(axis=1)
     for g in np.unique(groups[groups >= 0]):
