@@ -2,8 +2,9 @@
 
 Kirk et al.'s pipeline finds rigid marker groups and the tree that connects them, but nothing in it knows what a
 body is. This module labels the recovered tree against a human template, from the tree's shape, the segments'
-rigid lengths and the motion alone (never from marker names, which differ between labs and are absent from
-unlabelled files):
+rigid lengths and the motion; marker names (which differ between labs and are absent from unlabelled files) only
+weigh in where the caller passes what they say (``hints``: a soft prior on which chain is which limb, and the sides
+where they tell them apart; :mod:`~bcmocap.markers.label_hints`):
 
 - **Template.** A core (pelvis, spine, thorax; one rigid segment where they did not move relative to each other)
   with five limbs hanging from it: two legs from the pelvis (thigh, shin, foot, toes), two arms from the thorax
