@@ -321,7 +321,9 @@ def _takes(rig: RigFile, paths: dict[str, dict[str, Path]]) -> dict[Path, list[P
     takes = {}
     for camera, files in paths.items():
         for trial, path in files.items():
-            chapters = takes.setdefault(path, take_chapters(path))
+            if path not in takes:  # a file named for several trials: its folder listed once
+                takes[path] = take_chapters(path)
+            chapters = takes[path]
             if chapters[0] != path:
                 raise ValueError(f"{rig.path}: cameras.{camera}.video names {path.name} for trial {trial!r}, but by "
                                  f"GoPro's naming it is chapter {chapters.index(path) + 1} of the take that starts with "

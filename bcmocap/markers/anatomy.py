@@ -174,6 +174,9 @@ class _Tree:
         self.core = [j for j in range(self.size) if j not in held]
         self.hops = self._core_hops()
         self.named = [self._names_say(c, hints) for c in self.chains]
+        # what leaving each chain unassigned costs: its names put it on a limb (most of its limb markers' names)
+        self.left_over = [_NAMES_DISAGREE * max(kinds.values()) if kinds and max(kinds.values()) > 0.5 else 0.0
+                          for kinds, _ in self.named]
 
     def _names_say(self, chain: _Chain, hints) -> tuple[dict, float]:
         """What the chain's markers' names say (:mod:`~bcmocap.markers.label_hints`): the share of its named limb
@@ -306,8 +309,7 @@ class _Tree:
             # the markers' names (where given) that put a chain on another limb
             cost += sum(_NAMES_DISAGREE * (1.0 - self.named[i][0].get(kind, 1.0)) for i in group)
         assigned = {*legs, *arms, *head}  # and a chain left over that the names put on a limb
-        cost += sum(_NAMES_DISAGREE * max(self.named[i][0].values(), default=0.0) for i in range(len(chains))
-                    if i not in assigned and self.named[i][0] and max(self.named[i][0].values()) > 0.5)
+        cost += sum(c for i, c in enumerate(self.left_over) if i not in assigned)
         axis = self.body_axis(legs, arms)
         if axis is not None:
             cost += (np.log(max(self.trunk(legs, arms), 1e-3) / _TRUNK) / 0.3) ** 2  # hips to shoulders

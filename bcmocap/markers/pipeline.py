@@ -465,8 +465,9 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
     seconds["preprocess"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    hints = marker_hints(clean.labels) if options.label_prior else []
-    use_names = bool(options.label_prior) and informative(hints)
+    hints = marker_hints(clean.labels) if options.label_prior else None  # None: the names are not used
+    if hints is not None and not informative(hints):
+        hints = None
     seg = segment_markers(
         clean,
         options.num_groups,
@@ -475,10 +476,10 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
         max_groups=options.max_groups,
         rigid_tolerance_m=options.rigid_tolerance_m,
         min_coverage=options.min_coverage,
-        label_weights=marker_label_weights(hints, options.label_prior) if use_names else None,
+        label_weights=None if hints is None else marker_label_weights(hints, options.label_prior),
         seed=options.seed,
     )
-    if use_names:
+    if hints is not None:
         note(f"the markers' names follow a known marker set ({sum(h is not None for h in hints)} of "
              f"{len(hints)} named): they weigh on the segments and the tree as a soft prior (label_prior "
              f"{options.label_prior:g}; 0 turns it off)")
@@ -487,7 +488,7 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
              "while still) to place them on a segment; they are left out")
         keep = np.flatnonzero(seg.groups >= 0)
         clean, seg = _without(clean, seg, keep)
-        hints = [hints[k] for k in keep] if hints else hints
+        hints = None if hints is None else [hints[k] for k in keep]
     seconds["segmentation"] = time.perf_counter() - t0
     names = _segment_names(clean, seg.groups)
     for g in range(seg.num_groups):
@@ -505,8 +506,8 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
                                               dof_corrected=options.dof_corrected_topology, min_coverage=options.min_coverage)
     for w in caught:
         note(str(w.message))
-    names_penalty = (group_label_penalties(hints, seg.groups, seg.num_groups, options.label_prior) if use_names
-                     else np.ones_like(q))
+    names_penalty = (np.ones_like(q) if hints is None
+                     else group_label_penalties(hints, seg.groups, seg.num_groups, options.label_prior))
     edges = minimum_spanning_tree(q * names_penalty, names)
     by_pair = {frozenset(s.groups): s for s in pair_solutions}
     for a, b in edges:
@@ -517,8 +518,7 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
                  "connects them")
     seconds["topology"] = time.perf_counter() - t0
 
-    given = hints if use_names else None
-    fit = _fit_tree(clean, seg.groups, edges, names, options, seconds, hints=given)
+    fit = _fit_tree(clean, seg.groups, edges, names, options, seconds, hints=hints)
     if options.template_prior and not fit.anatomy.human:
         t0 = time.perf_counter()
         tried = {frozenset(map(frozenset, edges))}
@@ -535,7 +535,7 @@ def fit_marker_skeleton(trajectories: MarkerTrajectories, options: MarkerOptions
                 break
             tried.add(frozenset(map(frozenset, new_edges)))
             candidate = _fit_tree(clean, seg.groups, new_edges, names, options, template_seconds, known=fit.joints,
-                                  hints=given)
+                                  hints=hints)
             if _better(candidate.anatomy, fit.anatomy):
                 moved = sorted(set(map(frozenset, new_edges)) - set(map(frozenset, edges)), key=sorted)
                 note("the tree was rebuilt with the human template's prior on its joints (it was not a body): "

@@ -422,10 +422,8 @@ def segment_markers(
     if len(rest) == 0:
         raise ValueError("segment_markers: no marker has a rigid partner it is seen with long enough")
     partner_std = np.where(known[:, rest], reference[:, rest], np.inf)
-    if label_weights is not None:
-        partner = rest[np.argmin(partner_std / label_weights[:, rest], axis=1)]
-    else:
-        partner = rest[np.argmin(partner_std, axis=1)]
+    ranked = partner_std if label_weights is None else partner_std / label_weights[:, rest]
+    partner = rest[np.argmin(ranked, axis=1)]
     best_std = partner_std[np.arange(m), np.searchsorted(rest, partner)]
     attach = np.flatnonzero(alone & np.isfinite(best_std) & (best_std <= (np.inf if rigid_tolerance_m is None else rigid_tolerance_m)))
     single = np.flatnonzero(alone & ~np.isin(np.arange(m), attach) & (known.sum(1) - 1 >= min_known))
@@ -476,7 +474,7 @@ def segment_markers(
         merged = merge_named_singles(split, label_weights, reference, 2.0 * (rigid_tolerance_m or 0.015))
         if merged.max() < split.max():
             chosen_by += f"; {split.max() - merged.max()} lone named marker(s) moved to the segment of their bone"
-        if merged.max() != labels.max() or (merged != labels).any():
+        if (merged != labels).any():
             n += int(merged.max() - labels.max())
             labels, cost = merged, within_group_cost(reference, merged)
     return Segmentation(
