@@ -334,6 +334,51 @@ def _auto_scale(a: np.ndarray) -> float:
     return float(max(2.0 * np.median(nearest), 1e-3)) if len(nearest) else 1e-2
 
 
+def _lone_markers(reference: np.ndarray, known: np.ndarray, w: np.ndarray, label_weights: np.ndarray | None,
+                  rigid_tolerance_m: float | None, min_known: int) -> tuple[np.ndarray, ...]:
+    """Markers the spectral embedding cannot place, and where they go.
+
+    Args:
+        reference: ``(M, M)`` distance std (m); known: ``(M, M)`` pairs seen together long enough;
+        w: ``(M, M)`` affinity; the others as in :func:`segment_markers`.
+
+    Returns:
+        ``rest`` (markers clustered), ``partner`` ``(M,)`` (each marker's most rigid partner in ``rest``),
+        ``attach`` (lone markers joining their partner's group) and ``single`` (lone markers that are segments
+        of their own); the lone markers in neither are left out.
+    """
+    m = len(reference)
+    root_degree = np.sqrt(np.maximum(w.sum(1), 1e-300))
+    alone = (w / root_degree[:, None] / root_degree[None, :]).max(1) < WEAK_LINK
+    rest = np.flatnonzero(~alone)
+    if len(rest) == 0:
+        raise ValueError("segment_markers: no marker has a rigid partner it is seen with long enough")
+    partner_std = np.where(known[:, rest], reference[:, rest], np.inf)
+    ranked = partner_std if label_weights is None else partner_std / label_weights[:, rest]
+    partner = rest[np.argmin(ranked, axis=1)]
+    best_std = partner_std[np.arange(m), np.searchsorted(rest, partner)]
+    tolerance = np.inf if rigid_tolerance_m is None else rigid_tolerance_m
+    attach = np.flatnonzero(alone & np.isfinite(best_std) & (best_std <= tolerance))
+    single = np.flatnonzero(alone & ~np.isin(np.arange(m), attach) & (known.sum(1) - 1 >= min_known))
+    return rest, partner, attach, single
+
+
+def _refine_by_names(labels: np.ndarray, label_weights: np.ndarray, reference: np.ndarray,
+                     rigid_tolerance_m: float | None) -> tuple[np.ndarray, str]:
+    """Split groups the names put on two bones, then move lone named markers to their bone's segment.
+
+    Returns the new ``(M,)`` labels and a note for ``chosen_by`` (empty when nothing changed).
+    """
+    note = ""
+    split = split_named_conflicts(labels, label_weights, reference)
+    if split.max() > labels.max():
+        note += f"; {split.max() - labels.max()} split where the markers' names put them on two bones"
+    merged = merge_named_singles(split, label_weights, reference, 2.0 * (rigid_tolerance_m or 0.015))
+    if merged.max() < split.max():
+        note += f"; {split.max() - merged.max()} lone named marker(s) moved to the segment of their bone"
+    return merged, note
+
+
 def segment_markers(
     trajectories: MarkerTrajectories,
     num_groups: int | None = None,
@@ -415,18 +460,8 @@ def segment_markers(
     # place them at random. Each joins the group of its most rigid partner among the others if it is rigid
     # enough with it (``rigid_tolerance_m``), else it is a segment of its own, or left out with too few
     # pairs known.
-    w = _affinity(reference, scale, weight)
-    root_degree = np.sqrt(np.maximum(w.sum(1), 1e-300))
-    alone = (w / root_degree[:, None] / root_degree[None, :]).max(1) < WEAK_LINK
-    rest = np.flatnonzero(~alone)
-    if len(rest) == 0:
-        raise ValueError("segment_markers: no marker has a rigid partner it is seen with long enough")
-    partner_std = np.where(known[:, rest], reference[:, rest], np.inf)
-    ranked = partner_std if label_weights is None else partner_std / label_weights[:, rest]
-    partner = rest[np.argmin(ranked, axis=1)]
-    best_std = partner_std[np.arange(m), np.searchsorted(rest, partner)]
-    attach = np.flatnonzero(alone & np.isfinite(best_std) & (best_std <= (np.inf if rigid_tolerance_m is None else rigid_tolerance_m)))
-    single = np.flatnonzero(alone & ~np.isin(np.arange(m), attach) & (known.sum(1) - 1 >= min_known))
+    rest, partner, attach, single = _lone_markers(reference, known, _affinity(reference, scale, weight), label_weights,
+                                                  rigid_tolerance_m, min_known)
     fixed = len(single)
     sub = np.ix_(rest, rest)
     r = len(rest)
@@ -468,15 +503,11 @@ def segment_markers(
     labels = full(labels)
     cost = min(costs)
     if num_groups is None and label_weights is not None:
-        split = split_named_conflicts(labels, label_weights, reference)
-        if split.max() > labels.max():
-            chosen_by += f"; {split.max() - labels.max()} split where the markers' names put them on two bones"
-        merged = merge_named_singles(split, label_weights, reference, 2.0 * (rigid_tolerance_m or 0.015))
-        if merged.max() < split.max():
-            chosen_by += f"; {split.max() - merged.max()} lone named marker(s) moved to the segment of their bone"
-        if (merged != labels).any():
-            n += int(merged.max() - labels.max())
-            labels, cost = merged, within_group_cost(reference, merged)
+        named, note = _refine_by_names(labels, label_weights, reference, rigid_tolerance_m)
+        chosen_by += note
+        if (named != labels).any():
+            n += int(named.max() - labels.max())
+            labels, cost = named, within_group_cost(reference, named)
     return Segmentation(
         groups=labels,
         num_groups=n + fixed,
