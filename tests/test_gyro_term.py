@@ -315,6 +315,7 @@ def test_the_initial_stage_orients_unregistered_frames_on_the_gyro_clock_of_the_
     assert not none.any() and same is poses
 
 
+@pytest.mark.slow  # 24 s; moved out of the fast tier for its 5-minute budget
 def test_homography_matches_a_gyro_contradicts_are_dropped(walk):
     """A homography match on the static scene agrees with the camera's gyro turn; one on something that moved with
     the camera (the wearer's body) does not and is dropped. A frame pair where fewer than half agree, or fewer than

@@ -182,6 +182,7 @@ def test_velocities_are_central_one_sided_or_zero():
     np.testing.assert_allclose(v, expected, atol=1e-9)
 
 
+@pytest.mark.slow  # 26 s (its own traces of the refinement); moved out of the fast tier for its 5-minute budget
 def test_frames_with_too_few_measurements_keep_their_pose_and_bad_inputs_are_refused():
     rng = np.random.default_rng(4)
     cameras = stack_cameras([fov_camera(), fov_camera()])
