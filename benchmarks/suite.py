@@ -25,7 +25,8 @@ the solver estimating readout, time offsets and lens corrections).
 Reported per condition and overall: mean, sd, 90th percentile and worst of the runs' mean joint position and
 joint angle errors (after the §5.1 similarity alignment, from each run's ``metrics.json``), the same for the
 initial motion (registration and IK alone), how often the solve improved on it (both errors), the registered
-fractions, failures (counted, never dropped), the calibrated lenses' pixel error against the true lens (RMS and
+fractions, the registered camera-frames more than 10 cm from the truth (``benchmarks/registration_truth.py``: a
+repeated pattern's copy), failures (counted, never dropped), the calibrated lenses' pixel error against the true lens (RMS and
 max over the part of the image within ``COVERED_DEG`` of the axis, and over the whole image), the sub-frame
 offsets and clock rates from the claps against the truth, and, where the solver estimated them, the cameras'
 time offsets against the truth (relative to their mean: a common offset is a shift of the whole motion).
@@ -281,6 +282,17 @@ def time_offset_errors(run_dir: Path, clocks: dict) -> dict | None:
     return out or None
 
 
+def registrations_off(run_dir: Path, capture_dir: Path) -> dict | None:
+    """Per trial, the registered camera-frames and those more than 10 cm from the truth, with the cameras they
+    belong to (:func:`registration_truth.registration_errors`); None before the frontend finished."""
+    from registration_truth import registration_errors
+
+    if not (run_dir / "frontend" / "rom" / "registration.json").exists():
+        return None
+    found = registration_errors(run_dir, capture_dir)
+    return {trial: {k: row[k] for k in ("registered", "off", "cameras_with_off")} for trial, row in found["trials"].items()}
+
+
 def _spread(values: list[float]) -> dict:
     v = np.asarray([x for x in values if x is not None and np.isfinite(x)], float)
     if not len(v):
@@ -308,13 +320,15 @@ def summarise(rows: list[dict]) -> dict:
         "clap_rate_error_ppm_max": _spread([r["clocks"]["rate_error_ppm_max"] for r in rows]),
         "gyro_time_offset_error_frames_max": _spread([((r.get("time_offsets") or {}).get("gyro") or {}).get("max_frames")
                                                       for r in rows]),
+        "registered_camera_frames_off": {trial: sum(((r.get("registrations_off") or {}).get(trial) or {}).get("off", 0)
+                                                    for r in rows) for trial in ("rom", "capture")},
         "solver_time_offset_error_frames_max": _spread([((r.get("time_offsets") or {}).get("solver") or {}).get("max_frames")
                                                         for r in rows]),
     }
 
 
 FIGURE_FUNCTIONS = ("capture_settings", "_lens_error", "lens_key", "_capture_lens_key", "_calibrate_lenses",
-                    "calibrate_capture", "clock_errors", "time_offset_errors")
+                    "calibrate_capture", "clock_errors", "time_offset_errors", "registrations_off")
 
 
 def figure_code(text: str) -> str:
@@ -483,6 +497,7 @@ def main() -> int:
                       "registered_rom": row.get("registered_rom"), "registered_capture": row.get("registered_capture"),
                       **prepared[run]}
             metrics_path = run_dir / "metrics.json"
+            record["registrations_off"] = registrations_off(run_dir, out / "captures" / run.name)
             if record["ok"] and metrics_path.exists():
                 metrics = json.loads(metrics_path.read_text())
                 for which in ("initial", "solved"):

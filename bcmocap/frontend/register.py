@@ -11,7 +11,8 @@ A frame is registered on its own against the reference reconstruction:
    frame's camera (e.g. the FOV fisheye, via :func:`~bcmocap.io.colmap.to_pycolmap`) to
    ``pycolmap.estimate_and_refine_absolute_pose`` (LO-RANSAC P3P, then non-linear refinement);
 3. the pose is accepted with more than ``min_inliers`` inliers and a mean inlier reprojection error
-   below ``max_mean_error_px``.
+   below ``max_mean_error_px``, unless the correspondences it leaves support a second pose nearly as well
+   (:func:`~bcmocap.frontend.poses.second_pose`: a repeated pattern).
 
 Poses are ``world_from_camera`` as ``wxyz_xyz`` (bcmocap's convention; COLMAP's ``cam_from_world``
 inverted). :func:`register_trial` does it for every ``stride``-th frame of one camera of a trial.
@@ -30,7 +31,7 @@ import numpy as np
 from ..cameras import CameraModel
 from ..io.colmap import to_pycolmap
 from ..native_crashes import load_pycolmap
-from .poses import world_from_camera_wxyz_xyz
+from .poses import second_pose, world_from_camera_wxyz_xyz
 from .reference import DescriptorIndex, ReferenceModel, extract_sift
 
 __all__ = ["ReferenceIndex", "FrameRegistration", "RegistrationOptions", "TrialRegistration",
@@ -48,6 +49,11 @@ class RegistrationOptions:
         ransac_max_error_px: RANSAC inlier threshold (COLMAP's ``max_error``).
         min_inliers: a pose needs more than this many inliers; max_mean_error_px: and a mean inlier
             reprojection error below this.
+        ambiguity_ratio, ambiguity_shift: and no second pose (:func:`~.poses.second_pose`) with this share of its
+            inliers among the correspondences it leaves, centred more than ``ambiguity_shift`` × the inliers'
+            median depth away (0: no check). In the repeated room the limb cameras' poses a period of the floor
+            off had a second pose with 33–95 % of their inliers, right poses there up to 83 % (an ambiguous view is
+            refused even when it happened to be right); in the sparse room, right poses at most 8 %.
     """
 
     ratio: float = 0.8
@@ -56,6 +62,8 @@ class RegistrationOptions:
     ransac_max_error_px: float = 4.0
     min_inliers: int = 50
     max_mean_error_px: float = 1.0
+    ambiguity_ratio: float = 0.25
+    ambiguity_shift: float = 0.1
 
 
 @dataclasses.dataclass
@@ -191,6 +199,7 @@ def register_frame(image: np.ndarray, camera: CameraModel | object, index: Refer
     mean_error = float(np.nanmean(errors)) if len(errors) else np.inf
     pose = world_from_camera_wxyz_xyz(cam_from_world)
     ok = int(inl.sum()) > options.min_inliers and mean_error < options.max_mean_error_px
+    ok = ok and second_pose(xy - 0.5, xyz, inl, cam_from_world, cam, options) is None
     if not ok:
         return _failed(len(query), int(inl.sum()), mean_error, pose)
     return FrameRegistration(True, pose, xy[inl] - 0.5, index.point3D_ids[rows[inl]], len(query), int(inl.sum()),
