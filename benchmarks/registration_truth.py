@@ -5,7 +5,9 @@ The registrations are in the reference model's frame (``DIR/world/registered/TRI
 re-fitted them, else the frontend's store). They are put in the true world by the similarity that carries the
 reference photos' centres onto their true ones (Umeyama; independent of the registrations it then judges), and
 camera ``c``'s registration at solver frame ``k`` is compared with the truth at trial frame
-``clap_frames[0] + stride · k``, as ``metrics.json`` compares the motion.
+``clap_frames[0] + stride · k``, as ``metrics.json`` compares the motion (each camera's sub-frame start is not taken
+into account: up to half a frame, 4 cm for a limb camera of the run, under the 10 cm counted as off). A reference
+model far from the truth (``reference_photo_residual_cm``) makes every registration look off.
 
     python benchmarks/registration_truth.py RUN_DIR CAPTURE_DIR [--json F]
 """
@@ -39,6 +41,8 @@ def _photo_similarity(run_dir: Path, truth) -> tuple[float, np.ndarray, np.ndarr
         if image.name in names:
             est.append(np.asarray(image.projection_center(), float))
             true.append(np.asarray(truth.reference_poses[names.index(image.name)][4:7], float))
+    if len(est) < 3:
+        raise ValueError(f"{run_dir}: {len(est)} reference photos of the model are in the truth; the similarity needs 3")
     est, true = np.array(est), np.array(true)
     s, r, t = similarity(est, true)
     residual = np.linalg.norm(s * est @ np.asarray(r).T + t - true, axis=1)
@@ -67,12 +71,12 @@ def registration_errors(run_dir: str | Path, capture_dir: str | Path) -> dict:
     run_dir, capture_dir = Path(run_dir), Path(capture_dir)
     truth = load_ground_truth(capture_dir)
     s, r, t, photo_residual = _photo_similarity(run_dir, truth)
-    cameras = json.loads((capture_dir / "capture.json").read_text())["cameras"]
     out = {"reference_photo_residual_cm": 100 * photo_residual, "off_threshold_cm": 100 * OFF_M, "trials": {}}
     for trial in ("rom", "capture"):
         if not (run_dir / "frontend" / trial / "registration.json").exists():
             continue
         poses, registered, stride = _registered(run_dir, trial)
+        cameras = json.loads((run_dir / "frontend" / trial / "registration.json").read_text())["cameras"]
         gt = truth.trials[trial]
         frames = int(gt.clap_frames[0]) + stride * np.arange(len(poses))
         valid = (frames >= 0) & (frames < len(gt.world_from_camera))

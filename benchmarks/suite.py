@@ -284,13 +284,29 @@ def time_offset_errors(run_dir: Path, clocks: dict) -> dict | None:
 
 def registrations_off(run_dir: Path, capture_dir: Path) -> dict | None:
     """Per trial, the registered camera-frames and those more than 10 cm from the truth, with the cameras they
-    belong to (:func:`registration_truth.registration_errors`); None before the frontend finished."""
+    belong to (:func:`registration_truth.registration_errors`), and the reference photos' residual against the
+    truth; None where the range-of-motion trial's registration is missing, ``{"error": …}`` where they cannot be
+    compared (a record is kept either way)."""
     from registration_truth import registration_errors
 
     if not (run_dir / "frontend" / "rom" / "registration.json").exists():
         return None
-    found = registration_errors(run_dir, capture_dir)
-    return {trial: {k: row[k] for k in ("registered", "off", "cameras_with_off")} for trial, row in found["trials"].items()}
+    try:
+        found = registration_errors(run_dir, capture_dir)
+    except (OSError, ValueError, KeyError, np.linalg.LinAlgError) as exc:
+        return {"error": str(exc)}
+    out = {trial: {k: row[k] for k in ("registered", "off", "cameras_with_off")} for trial, row in found["trials"].items()}
+    return {**out, "reference_photo_residual_cm": found["reference_photo_residual_cm"]}
+
+
+#: A run whose reference photos are this far (cm, median) from the truth is left out of the registrations' count:
+#: every registration against such a model looks off (:mod:`registration_truth`).
+REFERENCE_OFF_CM = 10.0
+
+
+def _registrations_measured(rows: list[dict]) -> list[dict]:
+    return [r["registrations_off"] for r in rows if (r.get("registrations_off") or {}).get("reference_photo_residual_cm")
+            is not None and r["registrations_off"]["reference_photo_residual_cm"] <= REFERENCE_OFF_CM]
 
 
 def _spread(values: list[float]) -> dict:
@@ -320,8 +336,11 @@ def summarise(rows: list[dict]) -> dict:
         "clap_rate_error_ppm_max": _spread([r["clocks"]["rate_error_ppm_max"] for r in rows]),
         "gyro_time_offset_error_frames_max": _spread([((r.get("time_offsets") or {}).get("gyro") or {}).get("max_frames")
                                                       for r in rows]),
-        "registered_camera_frames_off": {trial: sum(((r.get("registrations_off") or {}).get(trial) or {}).get("off", 0)
-                                                    for r in rows) for trial in ("rom", "capture")},
+        "registered_camera_frames_off": {
+            "runs_measured": len(_registrations_measured(rows)),
+            **{trial: sum((m.get(trial) or {}).get("off", 0) for m in _registrations_measured(rows)) for trial in ("rom", "capture")},
+            **{f"{trial}_registered": sum((m.get(trial) or {}).get("registered", 0) for m in _registrations_measured(rows))
+               for trial in ("rom", "capture")}},
         "solver_time_offset_error_frames_max": _spread([((r.get("time_offsets") or {}).get("solver") or {}).get("max_frames")
                                                         for r in rows]),
     }
@@ -351,13 +370,17 @@ def figure_code(text: str) -> str:
 
 
 def suite_constants() -> dict:
-    """The suite's constants that shape a run, the libraries' versions, and :func:`figure_code` of this script."""
+    """The suite's constants that shape a run, the libraries' versions, :func:`figure_code` of this script and a hash of
+    ``registration_truth.py`` (the records' ``registrations_off``)."""
+    import hashlib
     from importlib.metadata import version
 
     return {"lens_models": LENS_MODELS, "fit_views": FIT_VIEWS, "covered_deg": COVERED_DEG,
             "reference_photos": REFERENCE_PHOTOS, "configs": {k: str(v.relative_to(ROOT)) for k, v in CONFIGS.items()},
             "libraries": {name: version(name) for name in LIBRARIES},
-            "figure_code": figure_code(Path(__file__).read_text())}
+            "figure_code": figure_code(Path(__file__).read_text()),
+            "registration_truth_code": hashlib.sha256((Path(__file__).resolve().parent / "registration_truth.py")
+                                                      .read_bytes()).hexdigest()[:16]}
 
 
 def settings_of(args) -> dict:

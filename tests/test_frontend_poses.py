@@ -13,7 +13,7 @@ from bcmocap.frontend.register import RegistrationOptions
 PERIOD = np.array([0.6, 0.6, 0.0])  # a diagonal step of 0.6 m floor tiles: the repeated room's worst alias
 
 
-def _floor_view(copied: float, outliers: float = 0.0, seed: int = 0):
+def _floor_view(copied: float, outliers: float = 0.0, seed: int = 0, period=PERIOD):
     """Correspondences of a camera 1.2 m over the floor looking down: ``copied`` of them matched to the point one
     period away (the pattern's copy), ``outliers`` to random points. Returns the camera, its true centre, pixels
     (OpenCV convention) and points."""
@@ -28,7 +28,7 @@ def _floor_view(copied: float, outliers: float = 0.0, seed: int = 0):
     xy, points = xy[seen], points[seen].copy()
     pick = rng.permutation(len(points))
     n_copy, n_out = int(copied * len(points)), int(outliers * len(points))
-    points[pick[:n_copy]] += PERIOD
+    points[pick[:n_copy]] += period
     points[pick[n_copy:n_copy + n_out]] = rng.uniform(-2, 2, (n_out, 3))
     return cam, centre, xy, points
 
@@ -56,3 +56,23 @@ def test_a_pose_the_pattern_could_place_a_period_away_is_refused(copied):
     shifts = sorted([np.linalg.norm(_centre(first) - centre), np.linalg.norm(_centre(second) - centre)])
     assert shifts[0] < 0.01 and abs(shifts[1] - np.linalg.norm(PERIOD)) < 0.01  # the truth and its copy
     assert inliers.sum() >= options.ambiguity_ratio * unchecked[1].sum()
+
+
+def test_a_second_pose_next_to_the_first_is_no_copy():
+    """Correspondences 5 cm off (a fine pattern, or a lens or shutter error over part of the view) give a second pose
+    within a tenth of the depth: the view is kept, and with ``ambiguity_shift`` 0 it would be refused."""
+    cam, centre, xy, points = _floor_view(copied=0.3, period=np.array([0.05, 0.0, 0.0]))
+    options = RegistrationOptions()
+    found = estimate_pose(xy, points, cam, options)
+    assert found is not None and np.linalg.norm(_centre(found[0]) - centre) < 0.01
+    assert second_pose(xy, points, found[1], found[0], cam, options) is None
+    assert estimate_pose(xy, points, cam, dataclasses.replace(options, ambiguity_shift=0.0)) is None
+
+
+def test_no_first_inliers_or_no_ratio_is_no_second_pose():
+    cam, _, xy, points = _floor_view(copied=0.3)
+    first = estimate_pose(xy, points, cam, dataclasses.replace(RegistrationOptions(), ambiguity_ratio=0.0))[0]
+    assert second_pose(xy, points, np.zeros(len(xy), bool), first, cam, RegistrationOptions()) is None
+    for ratio in (0.0, float("nan")):
+        assert second_pose(xy, points, np.ones(len(xy), bool), first, cam,
+                           dataclasses.replace(RegistrationOptions(), ambiguity_ratio=ratio)) is None

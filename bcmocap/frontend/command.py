@@ -39,9 +39,10 @@ MAX_MEASUREMENTS = 300
 (``benchmarks/measurement_budget.py``) 200, 300, 400, 600 and all gave the same accuracy within 0.006 cm and
 0.002°, and the warm solve ran at 93, 79, 67, 53 and 31 frames/s."""
 
-SETTINGS_VERSION = 2
+SETTINGS_VERSION = 3
 """Bumped when registration changes for the same settings (2: the tracking frontend's rounds work on every
-third frame left, :func:`~.tracking.round_seeds`), so an earlier ``registration.json`` is not reused."""
+third frame left, :func:`~.tracking.round_seeds`; 3: a pose whose correspondences support a second one is refused,
+:func:`~.poses.second_pose`), so an earlier ``registration.json`` is not reused."""
 #: Version of :mod:`~.gyro_timing`'s estimate, in the saved settings of registrations that used it.
 GYRO_TIMING_VERSION = 1
 

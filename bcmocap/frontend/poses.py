@@ -57,7 +57,8 @@ def estimate_pose(xy: np.ndarray, xyz: np.ndarray, cam, options):
 
 
 def second_pose(xy: np.ndarray, xyz: np.ndarray, inliers: np.ndarray, cam_from_world, cam, options):
-    """A second pose the correspondences support nearly as well as the first: the sign of a repeated pattern.
+    """A second pose, elsewhere, that the correspondences the first leaves out support with a good share of its
+    inliers (a quarter by default): the sign of a repeated pattern.
 
     A floor of identical tiles or a wall of identical bricks matches each feature to one copy of its pattern
     chosen by chance, and the pose with most inliers is then often a copy's: the right rotation, the centre
@@ -74,15 +75,19 @@ def second_pose(xy: np.ndarray, xyz: np.ndarray, inliers: np.ndarray, cam_from_w
 
     Returns:
         ``(cam_from_world, inliers)`` of a second pose with at least ``ambiguity_ratio`` of the first's inliers
-        whose centre lies more than ``ambiguity_shift`` of the first inliers' median depth away from the first's,
-        or None.
+        whose centre lies more than ``ambiguity_shift`` of the first inliers' median depth away from the first's
+        (its ``inliers`` a mask over the correspondences the first left out, ``(K − first's inliers,)``), or None
+        (also without first inliers or with a ratio that is not positive).
     """
     pycolmap = load_pycolmap()
 
-    ratio = getattr(options, "ambiguity_ratio", 0.0)
+    ratio = float(getattr(options, "ambiguity_ratio", 0.0))
+    inliers = np.asarray(inliers, bool).reshape(-1)
+    if not (np.isfinite(ratio) and ratio > 0) or not inliers.any():
+        return None
     need = int(np.ceil(ratio * int(inliers.sum())))
-    rest = ~np.asarray(inliers, bool)
-    if ratio <= 0 or rest.sum() < max(need, 4):
+    rest = ~inliers
+    if rest.sum() < max(need, 4):
         return None
     est = pycolmap.AbsolutePoseEstimationOptions()
     est.ransac.max_error = options.ransac_max_error_px
@@ -97,6 +102,8 @@ def second_pose(xy: np.ndarray, xyz: np.ndarray, inliers: np.ndarray, cam_from_w
     if int(inl.sum()) < need:
         return None
     depth = float(np.median(np.asarray(cam_from_world * xyz[inliers], np.float64)[:, 2]))
+    if not np.isfinite(depth):
+        return None
     first = np.asarray(cam_from_world.inverse().translation, np.float64)
     second = np.asarray(result["cam_from_world"].inverse().translation, np.float64)
     if np.linalg.norm(second - first) <= options.ambiguity_shift * abs(depth):

@@ -11,8 +11,8 @@ A frame is registered on its own against the reference reconstruction:
    frame's camera (e.g. the FOV fisheye, via :func:`~bcmocap.io.colmap.to_pycolmap`) to
    ``pycolmap.estimate_and_refine_absolute_pose`` (LO-RANSAC P3P, then non-linear refinement);
 3. the pose is accepted with more than ``min_inliers`` inliers and a mean inlier reprojection error
-   below ``max_mean_error_px``, unless the correspondences it leaves support a second pose nearly as well
-   (:func:`~bcmocap.frontend.poses.second_pose`: a repeated pattern).
+   below ``max_mean_error_px``, unless the correspondences it leaves support a second pose elsewhere with a
+   quarter of its inliers or more (:func:`~bcmocap.frontend.poses.second_pose`: a repeated pattern).
 
 Poses are ``world_from_camera`` as ``wxyz_xyz`` (bcmocap's convention; COLMAP's ``cam_from_world``
 inverted). :func:`register_trial` does it for every ``stride``-th frame of one camera of a trial.
@@ -51,7 +51,7 @@ class RegistrationOptions:
             reprojection error below this.
         ambiguity_ratio, ambiguity_shift: and no second pose (:func:`~.poses.second_pose`) with this share of its
             inliers among the correspondences it leaves, centred more than ``ambiguity_shift`` × the inliers'
-            median depth away (0: no check). In the repeated room the limb cameras' poses a period of the floor
+            median depth away (``ambiguity_ratio`` 0: no check). In the repeated room the limb cameras' poses a period of the floor
             off had a second pose with 33–95 % of their inliers, right poses there up to 83 % (an ambiguous view is
             refused even when it happened to be right); in the sparse room, right poses at most 8 %.
     """
