@@ -304,9 +304,15 @@ def registrations_off(run_dir: Path, capture_dir: Path) -> dict | None:
 REFERENCE_OFF_CM = 10.0
 
 
-def _registrations_measured(rows: list[dict]) -> list[dict]:
-    return [r["registrations_off"] for r in rows if (r.get("registrations_off") or {}).get("reference_photo_residual_cm")
-            is not None and r["registrations_off"]["reference_photo_residual_cm"] <= REFERENCE_OFF_CM]
+def _registrations_total(rows: list[dict]) -> dict:
+    """The runs' registrations off summed per trial, over the runs measured against a right reference."""
+    measured = [r["registrations_off"] for r in rows
+                if (r.get("registrations_off") or {}).get("reference_photo_residual_cm") is not None
+                and r["registrations_off"]["reference_photo_residual_cm"] <= REFERENCE_OFF_CM]
+    out = {"runs_measured": len(measured)}
+    for key, field in (("{}", "off"), ("{}_registered", "registered")):
+        out.update({key.format(trial): sum((m.get(trial) or {}).get(field, 0) for m in measured) for trial in ("rom", "capture")})
+    return out
 
 
 def _spread(values: list[float]) -> dict:
@@ -336,11 +342,7 @@ def summarise(rows: list[dict]) -> dict:
         "clap_rate_error_ppm_max": _spread([r["clocks"]["rate_error_ppm_max"] for r in rows]),
         "gyro_time_offset_error_frames_max": _spread([((r.get("time_offsets") or {}).get("gyro") or {}).get("max_frames")
                                                       for r in rows]),
-        "registered_camera_frames_off": {
-            "runs_measured": len(_registrations_measured(rows)),
-            **{trial: sum((m.get(trial) or {}).get("off", 0) for m in _registrations_measured(rows)) for trial in ("rom", "capture")},
-            **{f"{trial}_registered": sum((m.get(trial) or {}).get("registered", 0) for m in _registrations_measured(rows))
-               for trial in ("rom", "capture")}},
+        "registered_camera_frames_off": _registrations_total(rows),
         "solver_time_offset_error_frames_max": _spread([((r.get("time_offsets") or {}).get("solver") or {}).get("max_frames")
                                                         for r in rows]),
     }
