@@ -12,6 +12,7 @@ from pathlib import Path
 
 
 def machine() -> dict:
+    """The machine, with :func:`machine_score` (measured once per process)."""
     import jax
 
     return {
@@ -20,7 +21,67 @@ def machine() -> dict:
         "cpus": os.cpu_count(),
         "jax": jax.__version__,
         "backend": jax.default_backend(),
+        "score": machine_score(),
     }
+
+
+_SCORE: dict | None = None
+
+
+def machine_score(repeats: int = 3) -> dict:
+    """Seconds of a fixed small workload of what the pipeline uses, the best of ``repeats`` (lower is faster).
+
+    Machines of one kind differ 2–3x in speed, so an absolute time in a results file means something only beside
+    the speed of the machine it was measured on: ``sift_s`` (OpenCV SIFT on a fixed 640×480 image), ``jax_s`` (a
+    jitted, vmapped float64 kernel: 20 000 rotations of 64 points, compile excluded), ``numpy_s`` (sorting 2 million
+    numbers and a cumulative sum of their roots: no BLAS, whose thread spinning makes a busy machine's score
+    erratic) and their sum ``total_s``. It takes about a second, and it is measured in the conditions of the run
+    (a busy machine scores slower).
+    """
+    global _SCORE
+    if _SCORE is not None:
+        return _SCORE
+    import time
+
+    import cv2
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    image = cv2.GaussianBlur((rng.random((480, 640)) * 255).astype(np.uint8), (0, 0), 2.0)
+    sift = cv2.SIFT_create(nfeatures=2000)
+    with jax.enable_x64(True):
+        angles = jnp.asarray(rng.normal(size=(20000, 3)))
+        points = jnp.asarray(rng.normal(size=(64, 3)))
+
+        @jax.jit
+        def rotate(angles, points):
+            def one(a):
+                theta = jnp.linalg.norm(a) + 1e-12
+                k = a / theta
+                return (points * jnp.cos(theta) + jnp.cross(k, points) * jnp.sin(theta)
+                        + k * (points @ k)[:, None] * (1 - jnp.cos(theta))).sum()
+            return jax.vmap(one)(angles).sum()
+
+        rotate(angles, points).block_until_ready()
+        values = rng.random(2_000_000)
+
+        def best(work) -> float:
+            times = []
+            for _ in range(repeats):
+                start = time.perf_counter()
+                work()
+                times.append(time.perf_counter() - start)
+            return min(times)
+
+        parts = {
+            "sift_s": best(lambda: sift.detectAndCompute(image, None)),
+            "jax_s": best(lambda: rotate(angles, points).block_until_ready()),
+            "numpy_s": best(lambda: (np.sort(values), np.cumsum(np.sqrt(values)))),
+        }
+    _SCORE = {**{k: round(v, 4) for k, v in parts.items()}, "total_s": round(sum(parts.values()), 4)}
+    return _SCORE
 
 
 def peak_rss_mb() -> float:
