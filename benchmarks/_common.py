@@ -35,8 +35,9 @@ def machine_score(repeats: int = 3) -> dict:
     the speed of the machine it was measured on: ``sift_s`` (OpenCV SIFT on a fixed 640×480 image), ``jax_s`` (a
     jitted, vmapped float64 kernel: 20 000 rotations of 64 points, compile excluded), ``numpy_s`` (sorting 2 million
     numbers and a cumulative sum of their roots: no BLAS, whose thread spinning makes a busy machine's score
-    erratic) and their sum ``total_s``. It takes about a second, and it is measured in the conditions of the run
-    (a busy machine scores slower).
+    erratic) and their sum ``total_s``. It takes a few seconds with the imports, once per process (later calls return
+    the first result, whatever ``repeats``), when the results file is written: a machine busy then scores slower.
+    ``jax_s`` runs on JAX's default backend, so scores compare between machines of one backend.
     """
     global _SCORE
     if _SCORE is not None:

@@ -61,9 +61,11 @@ def main(problem_path: str, result_path: str) -> int:
         start = time.perf_counter()
         solver.solve_ik(**kwargs)
         first = time.perf_counter() - start
-        start = time.perf_counter()
-        params = solver.solve_ik(**kwargs)
-        seconds = time.perf_counter() - start
+        seconds = []
+        for _ in range(int(p["repeats"])):
+            start = time.perf_counter()
+            params = solver.solve_ik(**kwargs)
+            seconds.append(time.perf_counter() - start)
         state = geometry.model_parameters_to_skeleton_state(character, params.detach().numpy())  # (F, J, 8): xyz, xyzw, s
         state = np.asarray(state, np.float64)
         x, y, z, w = np.moveaxis(state[..., p["marker_segment"], 3:7], -1, 0)  # each marker's joint rotation
@@ -73,10 +75,12 @@ def main(problem_path: str, result_path: str) -> int:
         out[f"joint_positions_{steps}"] = state[..., :3] / cm
         out[f"marker_positions_{steps}"] = markers / cm
         out[f"first_seconds_{steps}"] = first
-        out[f"seconds_{steps}"] = seconds
+        out[f"seconds_{steps}"] = np.array(seconds)
     np.savez(result_path, threads=torch.get_num_threads(), **out)
     return 0
 
 
 if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        raise SystemExit("usage: PYTHON _momentum_side.py PROBLEM.npz RESULT.npz (see benchmarks/peer_momentum.py)")
     raise SystemExit(main(*sys.argv[1:3]))
