@@ -43,21 +43,21 @@ def main(problem_path: str, result_path: str) -> int:
     frames = targets.shape[0]
     init = np.zeros((frames, len(names)), np.float32)
     init[:, :3] = cm * p["initial_root"] - offsets[0]
+    problem = dict(  # the same for every iteration limit
+        character=character,
+        active_parameters=torch.ones(len(names), dtype=torch.bool),
+        model_parameters_init=torch.from_numpy(init),
+        active_error_functions=[solver.ErrorFunctionType.Position],
+        error_function_weights=torch.ones(frames, 1),
+        position_cons_parents=torch.from_numpy(p["marker_segment"].astype(np.int32)),
+        position_cons_offsets=torch.from_numpy((cm * p["marker_offsets"]).astype(np.float32)),
+        position_cons_weights=seen,
+        position_cons_targets=targets,
+    )
     out = {}
     for steps in p["max_steps"]:
         options = solver.SolverOptions(max_iter=int(steps), min_iter=1, threshold=float(p["threshold"]), verbose=False)
-        kwargs = dict(
-            character=character,
-            active_parameters=torch.ones(len(names), dtype=torch.bool),
-            model_parameters_init=torch.from_numpy(init),
-            active_error_functions=[solver.ErrorFunctionType.Position],
-            error_function_weights=torch.ones(frames, 1),
-            options=options,
-            position_cons_parents=torch.from_numpy(p["marker_segment"].astype(np.int32)),
-            position_cons_offsets=torch.from_numpy((cm * p["marker_offsets"]).astype(np.float32)),
-            position_cons_weights=seen,
-            position_cons_targets=targets,
-        )
+        kwargs = {**problem, "options": options}
         start = time.perf_counter()
         solver.solve_ik(**kwargs)
         first = time.perf_counter() - start

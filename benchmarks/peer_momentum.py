@@ -152,7 +152,7 @@ def main(argv=None) -> int:
                    "ms_per_frame_min_max": [1000 * min(times) / frames, 1000 * max(times) / frames],
                    "first_call_extra_seconds": first - seconds, **errors(joints_, true_joints, markers_, observed)}
             rows.append(row)
-            print(f"{name:8s} ≤{steps:3d} steps: {row['ms_per_frame']:8.3f} ms/frame ({row['ms_per_frame_min_max'][0]:.2f}–{row['ms_per_frame_min_max'][1]:.2f}; first call +{first - seconds:.1f} s); joint error "
+            print(f"{name:8s} ≤{steps:3d} steps: {row['ms_per_frame']:8.3f} ms/frame ({row['ms_per_frame_min_max'][0]:.2f}–{row['ms_per_frame_min_max'][1]:.2f}; first call +{row['first_call_extra_seconds']:.1f} s); joint error "
                   f"{row['joint_position_error_mm']:.2f} mm (p90 {row['joint_position_error_p90_mm']:.2f}), frames over "
                   f"5 cm {100 * row['frames_over_5cm']:.1f} %; marker rms {row['marker_rms_mm']:.3f} mm", flush=True)
     last = args.max_steps[-1]
