@@ -153,8 +153,11 @@ class Executor:
         if shared.status == "finished" and len(self.client.nthreads()) > 1:
             try:
                 self.client.replicate([shared])
-            except (ValueError, OSError):  # a worker lost meanwhile (the scheduler then samples more workers than it
-                pass  # has, or a connection closes): the copies only spread the load, the tasks fetch fn as they need
+            except Exception:  # noqa: BLE001  a worker lost meanwhile: the scheduler samples more workers than it has
+                # (ValueError), a connection closes (OSError), or the lost worker held the only copy (the scheduler's
+                # AssertionError). The copies only spread the load: the tasks fetch fn as they need it, and the
+                # scheduler computes it again if every copy is lost.
+                pass
         # At most one task per worker thread is handed to the scheduler at a time, the next as one finishes:
         # tasks given at once are queued on workers up front, and a worker's queue was not moved to a worker
         # left idle (the last chunks of one trial ran one after another on one worker while the other waited).
