@@ -379,7 +379,7 @@ def _project_lengths(
 
 
 def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptions(), anatomy: Anatomy | None = None,
-                frames=None):
+                frames=None, known_lengths=None):
     """Algorithm 1 on one sequence in the KCS (pure, jittable, vmappable; no input checks).
 
     Args:
@@ -392,6 +392,8 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
         frames: ``(F,)`` 1 for the sequence's frames, 0 for padding after them (their ``weights`` 0 too): the
             padded frames' shape coefficients are held at 0 and they enter no mean, smoothing or sign choice, so
             the sequence's result is the unpadded one's (None: no padding).
+        known_lengths: ``(b,)`` bone lengths (metres) to project onto instead of the current mean lengths (None:
+            estimated), e.g. measured on the subject.
 
     Returns:
         ``(bones (F, 3, b), cameras, lengths (b,), reprojection history, iterations, converged)``.
@@ -436,7 +438,7 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
         a = singular_value_threshold((a * live[:, None, None]).reshape(3 * f, r), tau).reshape(f, 3, r)
         if options.constant_bone_lengths:
             bones = b0 + a @ basis
-            lengths = mean_length(bones)
+            lengths = mean_length(bones) if known_lengths is None else known_lengths
             bones = _project_lengths(
                 bones,
                 cams.rotation,
@@ -487,14 +489,15 @@ def solve_bones(bones_2d, weights, initial_bones, options: KCSOptions = KCSOptio
 
 
 @functools.partial(jax.jit, static_argnames=("options", "anatomy"))
-def _solve_batch(bones_2d, weights, initial_bones, d_joints, frames, options, anatomy=None):
-    def one(y, w, b0):
-        bones, cams, lengths, history, it, converged = solve_bones(y, w, b0, options, anatomy, frames)
+def _solve_batch(bones_2d, weights, initial_bones, d_joints, frames, known_lengths, options, anatomy=None):
+    def one(y, w, b0, known):
+        bones, cams, lengths, history, it, converged = solve_bones(y, w, b0, options, anatomy, frames, known)
         joints = (bones @ d_joints).swapaxes(1, 2)  # (F, J, 3)
         joints_camera = joints @ cams.rotation.swapaxes(1, 2)
         return KCSResult(joints, joints_camera, bones.swapaxes(1, 2), cams, lengths, history, it, converged)
 
-    return jax.vmap(one)(bones_2d, weights, initial_bones)
+    return jax.vmap(one, in_axes=(0, 0, 0, None if known_lengths is None else 0))(bones_2d, weights, initial_bones,
+                                                                                   known_lengths)
 
 
 def padded_length(frames: int) -> int:
@@ -564,6 +567,7 @@ def reconstruct(
     options: KCSOptions = KCSOptions(),
     anatomy: Anatomy | None = None,
     pad: bool = True,
+    bone_lengths=None,
 ) -> KCSResult:
     """3-D motion of a kinematic chain from its 2-D joints in one uncalibrated camera (Algorithm 1).
 
@@ -579,13 +583,17 @@ def reconstruct(
             :func:`~bcmocap.kcs.anatomy.human_anatomy` of ``chain`` (``None`` for non-human chains).
         pad: solve the sequences padded to :func:`padded_length` frames (padding that changes no result: see
             :func:`solve_bones`), so that a new length reuses a compiled program; False solves them as they are.
+        bone_lengths: ``(b,)`` or ``(..., b)`` known bone lengths in the mean pose's units (metres), in the order of
+            ``chain.links``, e.g. measured on the subject: the constancy projection holds the bones to them instead of
+            to their current mean lengths (None: estimated). Bone lengths carry most of the error left with estimated
+            ones (docs/benchmarks/kcs.md).
 
     Returns:
         A :class:`KCSResult` with the batch shape of ``joints_2d``.
 
     Raises:
         ValueError: wrong shapes (naming the expected and actual ones), infinite values, a mean pose with
-            NaN, or a sequence where no frame observes two bones.
+            NaN, a sequence where no frame observes two bones, or bone lengths that are not positive and finite.
     """
     require_float64("bcmocap.kcs.reconstruct")
     if options.rank is not None:
@@ -597,6 +605,18 @@ def reconstruct(
             )
     y, w, b0, batch = _prepare(chain, joints_2d, mean_pose, mask)
     f, b = y.shape[-3], y.shape[-1]
+    known = None
+    if bone_lengths is not None:
+        known = np.asarray(bone_lengths, dtype=np.float64)
+        if known.ndim < 1 or known.shape[-1] != b:
+            raise ValueError(f"reconstruct: bone_lengths must have shape (..., {b}) (one per link of the chain), got "
+                             f"{known.shape}")
+        try:
+            known = np.broadcast_to(known, (*batch, b)).reshape(-1, b)
+        except ValueError:
+            raise ValueError(f"reconstruct: bone_lengths {known.shape} does not broadcast to the batch shape {batch}") from None
+        if not (np.all(np.isfinite(known)) and np.all(known > 0)):
+            raise ValueError("reconstruct: bone_lengths must be positive and finite (metres)")
     size = padded_length(f) if pad else f
     y = np.concatenate([y.reshape(-1, f, 2, b), np.zeros((int(np.prod(batch, dtype=int)), size - f, 2, b))], axis=1)
     w = np.concatenate([w.reshape(-1, f, b), np.zeros((len(y), size - f, b))], axis=1)
@@ -606,6 +626,7 @@ def reconstruct(
         jnp.asarray(b0.reshape(-1, 3, b)),
         jnp.asarray(chain.D_least_squares),
         jnp.asarray(np.arange(size) < f, dtype=jnp.float64),
+        None if known is None else jnp.asarray(known),
         options,
         (anatomy if anatomy is not None else human_anatomy(chain)) if options.anatomy else None,
     )
