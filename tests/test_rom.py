@@ -372,12 +372,17 @@ def test_an_undetermined_joint_whose_other_side_is_left_out_says_why_it_is_not_m
     registered = trial.registered.copy()
     registered[:, rig.index("left_foot")] = False
     registered[ankle > 0.01, rig.index("right_foot")] = False
-    with pytest.raises(ValueError, match=r"joint 'right_foot' .* does not determine its centre.*\(degenerate = "
+    with pytest.raises(ValueError, match=r"joint 'right_foot' .* does not determine its centre.*\(unregistered_ends = "
                                          r"'mirror' could not place it: its other side 'left_foot' is not in the model "
-                                         r"being fitted"):
+                                         r"being fitted \(an end segment whose cameras registered too little is left out"):
         skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, registered,
                                       rest_frames=range(15),
                                       options=RomOptions(unregistered_ends="mirror", degenerate="mirror"))
+    # the ankle is an end, so the message names unregistered_ends, with degenerate = "mirror" or without it
+    with pytest.raises(ValueError, match=r"joint 'right_foot' .*\(unregistered_ends = 'mirror' could not place it: its "
+                                         r"other side 'left_foot' is not in the model being fitted"):
+        skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, registered,
+                                      rest_frames=range(15), options=RomOptions(unregistered_ends="mirror"))
 
 
 def test_an_end_joint_the_trial_did_not_move_mirrors_its_other_side():
@@ -416,8 +421,9 @@ def test_a_hip_the_trial_did_not_move_mirrors_its_other_side():
     registered[hip["left"] > 0.01, rig.index("left_thigh")] = False
     assert (registered[:, rig.index("left_thigh")]).sum() >= 20  # the knee keeps frames of its own
     args = (skeleton, trial.assignment, trial.world_from_camera, registered)
-    for options in (RomOptions(), RomOptions(unregistered_ends="mirror")):
-        with pytest.raises(ValueError, match=r"joint 'left_thigh' .* does not determine its centre"):
+    for options, why in ((RomOptions(), "$"), (RomOptions(unregistered_ends="mirror"),
+                                              r" \(unregistered_ends = 'mirror' places end segments only")):
+        with pytest.raises(ValueError, match=r"joint 'left_thigh' .* does not determine its centre.*" + why):
             skeleton_from_range_of_motion(*args, rest_frames=range(15), options=options)
     with pytest.warns(UserWarning, match=r"joint 'left_thigh': the trial does not determine its centre .* 'right_thigh''s "
                                          r"mirrored .*\(degenerate = 'mirror'\)"):

@@ -493,24 +493,32 @@ def _other_side(name: str) -> str | None:
     return None
 
 
-def _why_not_mirrored(name: str, topology: Topology, options: RomOptions, *, other_undetermined: bool = False) -> str:
-    """Why ``degenerate = "mirror"`` did not place joint ``name`` from its other side: a clause to append to the
-    error (empty when mirroring is off)."""
-    if options.degenerate != "mirror" and options.unregistered_ends != "mirror":
+def _why_not_mirrored(name: str, topology: Topology, options: RomOptions, *, end: bool,
+                      other_undetermined: bool = False) -> str:
+    """Why neither ``unregistered_ends = "mirror"`` (for an ``end`` segment's joint) nor ``degenerate = "mirror"``
+    placed the undetermined joint ``name`` from its other side: a clause to append to the error ("" where neither
+    setting is on for it)."""
+    by_ends = end and options.unregistered_ends == "mirror"
+    if not by_ends and options.degenerate != "mirror":
+        if options.unregistered_ends == "mirror":
+            return (" (unregistered_ends = 'mirror' places end segments only, and this one has children; degenerate = "
+                    "'mirror' would mirror a ball joint)")
         return ""
+    setting = "unregistered_ends" if by_ends else "degenerate"
     other = _other_side(name)
     if other is None:
         why = "it has no left_/right_ counterpart to mirror"
     elif other_undetermined:
         why = f"its other side '{other}' is undetermined too"
     elif other not in topology.names:
-        why = (f"its other side '{other}' is not in the model being fitted (an end segment whose cameras registered "
-               "too little is left out, to be mirrored from this side)")
-    elif not _has_hip_pair(topology):
+        why = f"its other side '{other}' is not in the model being fitted"
+        if options.unregistered_ends == "mirror":
+            why += " (an end segment whose cameras registered too little is left out, to be mirrored from this side)"
+    elif not by_ends and not _has_hip_pair(topology):
         why = "the root has no left_/right_ pair of children to find the body's midplane"
     else:
         why = "only ball joints, and hinges whose axis the trials fix, are mirrored"
-    return f" (degenerate = 'mirror' could not place it: {why})"
+    return f" ({setting} = 'mirror' could not place it: {why})"
 
 
 def _unregistered_ends(topology: Topology, pairs, registered, options: RomOptions, more_registered) -> list[int]:
@@ -757,7 +765,7 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
             failure = (f"joint '{name}' (between '{pname}' and '{name}'): both segments are known in only {len(rel)} "
                        f"frames (< {options.min_frames}) of the {trials}")
             if not mirrorable:
-                raise ValueError(failure + _why_not_mirrored(name, topology, options))
+                raise ValueError(failure + _why_not_mirrored(name, topology, options, end=not topology.children(j)))
             undetermined[name] = (failure, f"both segments are known in only {len(rel)} frames",
                                   "unregistered_ends" if end_mirrorable else "degenerate")
             joints[name] = JointEstimate(name, pname, jtype, np.zeros(3), np.zeros(3), None, len(rel), 0.0, np.nan,
@@ -776,9 +784,10 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
                 # "mirror" keeps the axis and takes the centre from the other side
                 if not (options.degenerate == "mirror" and weak <= 1 and _other_side(name) in topology.names
                         and _has_hip_pair(topology)):
-                    raise ValueError(failure + (
+                    raise ValueError(failure + (  # hinges are mirrored by degenerate only
                         " (degenerate = 'mirror' could not place it: the rotations do not fix its axis either)"
-                        if options.degenerate == "mirror" and weak > 1 else _why_not_mirrored(name, topology, options)))
+                        if options.degenerate == "mirror" and weak > 1
+                        else _why_not_mirrored(name, topology, options, end=False)))
                 undetermined[name] = (failure, f"the {trials} do{'es' * (not more_trials)} not determine its centre "
                                       f"(centre standard error {100 * est.std_m:.2f} cm)", "degenerate")
             if est.spread[0] > max(options.min_spread, 0.3 * est.spread[1]):
@@ -814,13 +823,14 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
                 failure = (f"{what}: the {trials} do{'es' * (not more_trials)} not determine its centre: {why}; exercise "
                            "the joint about more axes, or declare it a hinge")
                 if not mirrorable:
-                    raise ValueError(failure + _why_not_mirrored(name, topology, options))
+                    raise ValueError(failure + _why_not_mirrored(name, topology, options, end=not topology.children(j)))
                 undetermined[name] = (failure, f"the {trials} do{'es' * (not more_trials)} not determine its centre ({why})",
                                       "unregistered_ends" if end_mirrorable else "degenerate")
         joints[name] = est
     for name, (failure, why, setting) in undetermined.items():  # one whose other side is determined takes it mirrored
         if _other_side(name) in undetermined:
-            raise ValueError(failure + _why_not_mirrored(name, topology, options, other_undetermined=True))
+            raise ValueError(failure + _why_not_mirrored(name, topology, options, end=setting == "unregistered_ends",
+                                                         other_undetermined=True))
         warnings.warn(f"joint '{name}': {why}; its centre is '{_other_side(name)}''s mirrored through the body's "
                       f"midplane ({setting} = 'mirror')", stacklevel=3)
         families[name] = (None, None)
