@@ -470,8 +470,14 @@ def test_known_bone_lengths_are_held_and_carry_the_error_the_estimated_ones_leav
     assert errors[1] < 0.85 * errors[0], errors
     np.testing.assert_allclose(np.asarray(known.bone_lengths), np.broadcast_to(true_lengths, (2, len(true_lengths))),
                                rtol=0.02)
+    # one set of lengths per camera path, each held on its own path
+    per_path = reconstruct(chain, uv, rest, bone_lengths=np.stack([true_lengths, 1.1 * true_lengths]))
+    np.testing.assert_allclose(np.asarray(per_path.bone_lengths), np.stack([true_lengths, 1.1 * true_lengths]), rtol=0.02)
     for bad, match in ((true_lengths[:-1], r"bone_lengths must have shape \(\.\.\., %d\)" % len(true_lengths)),
                        (np.stack([true_lengths] * 3), "does not broadcast to the batch shape"),
-                       (-true_lengths, "positive and finite")):
+                       (-true_lengths, "positive and finite"),
+                       (np.where(np.arange(len(true_lengths)) == 0, np.nan, true_lengths), "positive and finite")):
         with pytest.raises(ValueError, match=match):
             reconstruct(chain, uv, rest, bone_lengths=bad)
+    with pytest.raises(ValueError, match="constant_bone_lengths=True"):
+        reconstruct(chain, uv, rest, options=KCSOptions(constant_bone_lengths=False), bone_lengths=true_lengths)

@@ -593,7 +593,8 @@ def reconstruct(
 
     Raises:
         ValueError: wrong shapes (naming the expected and actual ones), infinite values, a mean pose with
-            NaN, a sequence where no frame observes two bones, or bone lengths that are not positive and finite.
+            NaN, a sequence where no frame observes two bones, or bone lengths that are not positive and finite
+            (or given with ``constant_bone_lengths=False``).
     """
     require_float64("bcmocap.kcs.reconstruct")
     if options.rank is not None:
@@ -607,6 +608,9 @@ def reconstruct(
     f, b = y.shape[-3], y.shape[-1]
     known = None
     if bone_lengths is not None:
+        if not options.constant_bone_lengths:
+            raise ValueError("reconstruct: bone_lengths needs KCSOptions(constant_bone_lengths=True): the relaxation "
+                             "as printed holds no bone to a length")
         known = np.asarray(bone_lengths, dtype=np.float64)
         if known.ndim < 1 or known.shape[-1] != b:
             raise ValueError(f"reconstruct: bone_lengths must have shape (..., {b}) (one per link of the chain), got "
