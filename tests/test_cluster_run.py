@@ -8,6 +8,7 @@ The run without a cluster is a ``bcmocap run`` process of its own, as a user sta
 workers unpickled a task's camera models before switching JAX to float64, so the cluster tracked with float32
 intrinsics: workers now start in float64.)"""
 
+import contextlib
 import json
 import os
 import shutil
@@ -32,7 +33,6 @@ pytestmark = pytest.mark.slow
 CONFIG = RunConfig().with_overrides({"frontend.registration": "tracking", "frontend.stride": 1,
                                      "frontend.rom_stride": 1, "frontend.max_features": 2000,
                                      "frontend.chunk_frames": 5})
-FIELDS = ("point_ids", "pixels", "weights", "registered", "world_from_camera", "points")
 
 
 @pytest.fixture(scope="module")
@@ -51,50 +51,51 @@ def capture_and_run(tmp_path_factory):
     return root
 
 
-def _same_frontend(a, b) -> None:
-    for trial in ("rom", "capture"):
-        x = CorrespondenceStore.open(a / "frontend" / trial / "correspondences").load()
-        y = CorrespondenceStore.open(b / "frontend" / trial / "correspondences").load()
-        assert x.registered.mean() > 0.5, (trial, x.registered.mean())
-        for field in FIELDS:
-            assert np.array_equal(getattr(x, field), getattr(y, field), equal_nan=True), (trial, field)
-
-
 @pytest.fixture
 def command_line_cluster(tmp_path):
     """``dask scheduler`` and two ``dask worker`` processes (one thread each, with their nannies), started by their
-    command lines as on a machine of a real cluster; yields the scheduler's ``tcp://`` address."""
+    command lines as on a machine of a real cluster, each in a session of its own (its logs in ``tmp_path``); yields
+    the scheduler's ``tcp://`` address. Afterwards each session is ended, a nanny's worker with it."""
     dask = [str(Path(sys.executable).with_name("dask"))]
     scheduler_file = tmp_path / "scheduler.json"
     environment = {**os.environ, **WORKER_ENVIRONMENT}
-    processes = [subprocess.Popen([*dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                                   "--scheduler-file", str(scheduler_file)], stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.DEVNULL)]
+
+    def start(name, command, env=None):
+        log = open(tmp_path / f"{name}.log", "w")
+        return subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+
+    processes = [start("scheduler", [*dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                                     "--scheduler-file", str(scheduler_file)])]
     try:
-        deadline = time.monotonic() + 60
-        while not scheduler_file.exists() and time.monotonic() < deadline:
-            time.sleep(0.2)
-        address = json.loads(scheduler_file.read_text())["address"]
+        deadline, address = time.monotonic() + 60, None
+        while address is None and time.monotonic() < deadline:
+            try:  # the file may be there before its whole text
+                address = json.loads(scheduler_file.read_text())["address"]
+            except (OSError, ValueError, KeyError):
+                time.sleep(0.2)
+        assert address, "the scheduler wrote no address: " + (tmp_path / "scheduler.log").read_text()[-2000:]
         for k in range(2):
-            processes.append(subprocess.Popen(
-                [*dask, "worker", "--scheduler-file", str(scheduler_file), "--nthreads", "1", "--no-dashboard",
-                 "--name", f"worker-{k}", "--local-directory", str(tmp_path / f"worker-{k}")],
-                env=environment, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            processes.append(start(f"worker-{k}", [*dask, "worker", "--scheduler-file", str(scheduler_file), "--nthreads",
+                                                   "1", "--no-dashboard", "--name", f"worker-{k}", "--local-directory",
+                                                   str(tmp_path / f"worker-{k}")], environment))
         yield address
     finally:
         for process in reversed(processes):
-            process.terminate()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(process.pid, signal.SIGTERM)
         for process in reversed(processes):
             try:
                 process.wait(timeout=30)
             except subprocess.TimeoutExpired:
-                process.kill()
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
 
 
 def test_a_cluster_run_with_a_worker_killed_mid_task_equals_the_run_without_one(capture_and_run, command_line_cluster):
     """``bcmocap run --cluster tcp://...`` on the command-line cluster, as a user runs it; a worker running a chunk's
-    registration is killed from a client of the same scheduler, its nanny starts it again and the run's stores are
-    those of the run without a cluster, bit for bit."""
+    registration is killed from a client of the same scheduler, its nanny starts it again, and the run registers the
+    frames the run without a cluster registers, at its poses within 2.5 cm (see below for why not bit for bit)."""
     from distributed import Client
 
     root = capture_and_run
@@ -107,21 +108,26 @@ def test_a_cluster_run_with_a_worker_killed_mid_task_equals_the_run_without_one(
         run = subprocess.Popen([sys.executable, "-c", code, "run", str(root / "capture"), "--out", str(root / "cluster"),
                                 "--config", str(root / "config.json"), "--stop-after", "frontend", "--cluster",
                                 command_line_cluster], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        output = []
-        reader = threading.Thread(target=lambda: output.extend(run.stdout), daemon=True)
-        reader.start()
-        killed = []
-        deadline = time.monotonic() + 1500
-        while run.poll() is None and not killed and time.monotonic() < deadline:
-            registering = [address for address, keys in client.processing().items()
-                           if any(key.startswith("register") for key in keys)]
-            if registering:
-                pid = client.run(os.getpid, workers=[registering[0]])[registering[0]]
-                os.kill(pid, signal.SIGKILL)
-                killed.append(pid)
-            time.sleep(0.2)
-        assert run.wait(timeout=max(1.0, deadline - time.monotonic())) == 0, "".join(output)[-3000:]
-        reader.join()
+        try:
+            output = []
+            reader = threading.Thread(target=lambda: output.extend(run.stdout), daemon=True)
+            reader.start()
+            killed = []
+            deadline = time.monotonic() + 1500
+            while run.poll() is None and not killed and time.monotonic() < deadline:
+                registering = [address for address, keys in client.processing().items()  # a chunk, not the function
+                               if any(key.startswith("register") and "-function-" not in key for key in keys)]
+                if registering:
+                    pid = client.run(os.getpid, workers=[registering[0]])[registering[0]]
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+                time.sleep(0.2)
+            assert run.wait(timeout=max(1.0, deadline - time.monotonic())) == 0, "".join(output)[-3000:]
+            reader.join()
+        finally:
+            if run.poll() is None:
+                run.kill()
+                run.wait()
     assert killed, "no worker was killed during a chunk's registration"
     log = "".join(output)
     assert f"cluster: {command_line_cluster}, 2 worker(s)" in log and "chunks as tasks" in log
@@ -134,11 +140,11 @@ def test_a_cluster_run_with_a_worker_killed_mid_task_equals_the_run_without_one(
     for trial in ("rom", "capture"):
         x = CorrespondenceStore.open(root / "alone" / "frontend" / trial / "correspondences").load()
         y = CorrespondenceStore.open(root / "cluster" / "frontend" / trial / "correspondences").load()
-        assert np.array_equal(x.registered, y.registered), trial
+        assert x.registered.mean() > 0.5 and np.array_equal(x.registered, y.registered), trial
         a, b = np.asarray(x.world_from_camera)[x.registered], np.asarray(y.world_from_camera)[x.registered]
         turn = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(a[:, :4] * b[:, :4], axis=1)), 0.0, 1.0)))
         shift = np.linalg.norm(a[:, 4:] - b[:, 4:], axis=1)
-        assert shift.max() < 0.03 and np.median(shift) < 1e-3 and turn.max() < 0.2, (trial, shift.max(), turn.max())
+        assert shift.max() < 0.025 and np.median(shift) < 1e-3 and turn.max() < 0.2, (trial, shift.max(), turn.max())
 
 
 def test_a_batch_reports_a_failed_capture_and_finishes_the_others(capture_and_run, tmp_path):

@@ -153,10 +153,11 @@ class Executor:
         if shared.status == "finished" and len(self.client.nthreads()) > 1:
             try:
                 self.client.replicate([shared])
-            except Exception:  # noqa: BLE001  a worker lost meanwhile: the scheduler samples more workers than it has
-                # (ValueError), a connection closes (OSError), or the lost worker held the only copy (the scheduler's
-                # AssertionError). The copies only spread the load: the tasks fetch fn as they need it, and the
-                # scheduler computes it again if every copy is lost.
+            except (ValueError, OSError, AssertionError, TimeoutError):
+                # a worker lost meanwhile: the scheduler samples more workers than it has (ValueError), a connection
+                # closes (OSError), or the lost worker held the only copy (the scheduler's AssertionError). The copies
+                # only spread the load: the tasks fetch fn as they need it, and the scheduler computes it again if
+                # every copy is lost.
                 pass
         # At most one task per worker thread is handed to the scheduler at a time, the next as one finishes:
         # tasks given at once are queued on workers up front, and a worker's queue was not moved to a worker
