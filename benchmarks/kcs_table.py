@@ -154,7 +154,8 @@ def run_sequence(chain, name, trials, num_paths, noise_px, seed, options, true_l
     rotation, scale = camera_paths(len(truth), num_paths, rng)
     images = project(truth, rotation, scale, noise_px, rng)
     start = time.perf_counter()
-    result = reconstruct(chain, images, prior_for(name, trials, chain), options=options)
+    prior = prior_for(name, trials, chain)
+    result = reconstruct(chain, images, prior, options=options)
     joints = np.asarray(result.joints)
     seconds = time.perf_counter() - start
     truth_b = np.broadcast_to(truth, joints.shape)
@@ -167,8 +168,7 @@ def run_sequence(chain, name, trials, num_paths, noise_px, seed, options, true_l
     extra = {}
     if true_lengths:  # the same paths solved again with the subject's true bone lengths given (as if measured)
         lengths = np.linalg.norm(chain.bones(truth), axis=-1).mean(axis=0)
-        known = np.asarray(reconstruct(chain, images, prior_for(name, trials, chain), options=options,
-                                       bone_lengths=lengths).joints)
+        known = np.asarray(reconstruct(chain, images, prior, options=options, bone_lengths=lengths).joints)
         known_distances = np.asarray(aligned_joint_distances(known, truth_b))
         extra["error_3d_true_lengths_mm"] = float(known_distances.mean() * 1000)
         extra["per_joint_3d_true_lengths_mm"] = dict(zip(chain.names, (known_distances.mean(axis=(0, 1)) * 1000).round(2).tolist()))

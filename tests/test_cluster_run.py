@@ -33,6 +33,8 @@ pytestmark = pytest.mark.slow
 CONFIG = RunConfig().with_overrides({"frontend.registration": "tracking", "frontend.stride": 1,
                                      "frontend.rom_stride": 1, "frontend.max_features": 2000,
                                      "frontend.chunk_frames": 5})
+#: ``bcmocap`` as a user runs it, in a process of its own
+BCMOCAP = [sys.executable, "-c", "import sys; from bcmocap.cli import main; sys.exit(main(sys.argv[1:]))"]
 
 
 @pytest.fixture(scope="module")
@@ -43,8 +45,7 @@ def capture_and_run(tmp_path_factory):
     write_capture(root / "capture", StudioSettings(seconds=0.5, rom_seconds=0.5, fps=20.0, reference_photos=24,
                                                    reference_width=640, reference_height=480, seed=1), progress=False)
     (root / "config.json").write_text(json.dumps(CONFIG.to_dict()))
-    code = "import sys; from bcmocap.cli import main; sys.exit(main(sys.argv[1:]))"
-    done = subprocess.run([sys.executable, "-c", code, "run", str(root / "capture"), "--out", str(root / "alone"),
+    done = subprocess.run([*BCMOCAP, "run", str(root / "capture"), "--out", str(root / "alone"),
                            "--config", str(root / "config.json"), "--stop-after", "frontend"],
                           capture_output=True, text=True, timeout=1200)
     assert done.returncode == 0, done.stderr[-2000:]
@@ -61,8 +62,8 @@ def command_line_cluster(tmp_path):
     environment = {**os.environ, **WORKER_ENVIRONMENT}
 
     def start(name, command, env=None):
-        log = open(tmp_path / f"{name}.log", "w")
-        return subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        with open(tmp_path / f"{name}.log", "w") as log:  # the process keeps its own copy of the file
+            return subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
     processes = [start("scheduler", [*dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
                                      "--scheduler-file", str(scheduler_file)])]
@@ -99,13 +100,12 @@ def test_a_cluster_run_with_a_worker_killed_mid_task_equals_the_run_without_one(
     from distributed import Client
 
     root = capture_and_run
-    code = "import sys; from bcmocap.cli import main; sys.exit(main(sys.argv[1:]))"
     with Client(command_line_cluster, timeout="60s") as client:
         deadline = time.monotonic() + 120
         while len(client.nthreads()) < 2 and time.monotonic() < deadline:
             time.sleep(0.5)
         assert len(client.nthreads()) == 2, "the two workers did not join the scheduler"
-        run = subprocess.Popen([sys.executable, "-c", code, "run", str(root / "capture"), "--out", str(root / "cluster"),
+        run = subprocess.Popen([*BCMOCAP, "run", str(root / "capture"), "--out", str(root / "cluster"),
                                 "--config", str(root / "config.json"), "--stop-after", "frontend", "--cluster",
                                 command_line_cluster], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:

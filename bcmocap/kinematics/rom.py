@@ -494,10 +494,10 @@ def _other_side(name: str) -> str | None:
 
 
 def _why_not_mirrored(name: str, topology: Topology, options: RomOptions, *, end: bool,
-                      other_undetermined: bool = False) -> str:
+                      other_undetermined: bool = False, axis_unfixed: bool = False) -> str:
     """Why neither ``unregistered_ends = "mirror"`` (for an ``end`` segment's joint) nor ``degenerate = "mirror"``
     placed the undetermined joint ``name`` from its other side: a clause to append to the error ("" where neither
-    setting is on for it)."""
+    setting is on for it). ``axis_unfixed``: a hinge whose rotations do not fix its axis (mirroring keeps the axis)."""
     by_ends = end and options.unregistered_ends == "mirror"
     if not by_ends and options.degenerate != "mirror":
         if options.unregistered_ends == "mirror":
@@ -506,7 +506,9 @@ def _why_not_mirrored(name: str, topology: Topology, options: RomOptions, *, end
         return ""
     setting = "unregistered_ends" if by_ends else "degenerate"
     other = _other_side(name)
-    if other is None:
+    if axis_unfixed and not by_ends:
+        why = "the rotations do not fix its axis either"
+    elif other is None:
         why = "it has no left_/right_ counterpart to mirror"
     elif other_undetermined:
         why = f"its other side '{other}' is undetermined too"
@@ -784,10 +786,8 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
                 # "mirror" keeps the axis and takes the centre from the other side
                 if not (options.degenerate == "mirror" and weak <= 1 and _other_side(name) in topology.names
                         and _has_hip_pair(topology)):
-                    raise ValueError(failure + (  # hinges are mirrored by degenerate only
-                        " (degenerate = 'mirror' could not place it: the rotations do not fix its axis either)"
-                        if options.degenerate == "mirror" and weak > 1
-                        else _why_not_mirrored(name, topology, options, end=False)))
+                    raise ValueError(failure + _why_not_mirrored(  # hinges are mirrored by degenerate only
+                        name, topology, options, end=False, axis_unfixed=weak > 1))
                 undetermined[name] = (failure, f"the {trials} do{'es' * (not more_trials)} not determine its centre "
                                       f"(centre standard error {100 * est.std_m:.2f} cm)", "degenerate")
             if est.spread[0] > max(options.min_spread, 0.3 * est.spread[1]):
