@@ -385,6 +385,51 @@ def test_an_undetermined_joint_whose_other_side_is_left_out_says_why_it_is_not_m
                                       rest_frames=range(15), options=RomOptions(unregistered_ends="mirror"))
 
 
+def test_a_segment_no_rest_frame_registers_takes_its_other_sides_rest_orientation_mirrored():
+    # The grid's failure at 8e7bf77 (jump, sparse room, seed 0): the left upper arm's camera registered elsewhere but
+    # in no rest frame, and no gyro carried it there. With unregistered_rest = "mirror" the segment is turned so that
+    # its bone and its child joint's bend are its other side's, mirrored through the midplane: exact on a symmetric
+    # body where the child joint is a hinge (the thigh above the knee: the knee's axis and the bone normal to it), and
+    # within a thousandth of a degree through a ball joint (the shin above the ankle: the mean side of the foot camera,
+    # which the two feet's different motions move). The hinges' flexion sides are as before.
+    skeleton, rig = _two_legged_model()
+    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
+                                  **TRIAL)
+    rest = np.asarray(trial.rest_frames)
+    full = skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, trial.registered,
+                                         rest_frames=rest)
+    mirror = RomOptions(unregistered_rest="mirror")
+    for segment, tolerance_deg in (("left_thigh", 1e-9), ("right_thigh", 1e-9), ("left_shin", 1e-3)):
+        registered = trial.registered.copy()
+        registered[rest, rig.index(segment)] = False
+        args = (skeleton, trial.assignment, trial.world_from_camera, registered)
+        with pytest.raises(ValueError, match=rf"segment '{segment}': none of its cameras is registered in the rest "
+                                             r"frames, and none has a rest orientation carried from other frames"):
+            skeleton_from_range_of_motion(*args, rest_frames=rest)
+        other = segment.replace("left_", "right_") if segment.startswith("left_") else segment.replace("right_", "left_")
+        with pytest.warns(UserWarning, match=rf"segment '{segment}': .* its rest orientation puts its bone and its "
+                                             rf"child joint's bend where '{other}''s are, mirrored"):
+            est = skeleton_from_range_of_motion(*args, rest_frames=rest, options=mirror)
+        np.testing.assert_allclose(est.skeleton.offsets, full.skeleton.offsets, atol=1e-9)
+        np.testing.assert_allclose(est.skeleton.hinge_axes, full.skeleton.hinge_axes, atol=max(tolerance_deg, 1e-9))
+        turned = np.degrees(quat_distance(est.segment_from_camera[:, :4], full.segment_from_camera[:, :4]))
+        assert turned.max() < max(tolerance_deg, 1e-9) and (segment == "left_shin") == (turned.max() > 1e-6), segment
+    registered = trial.registered.copy()  # both thighs: neither side has a rest orientation to give
+    registered[np.ix_(rest, [rig.index("left_thigh"), rig.index("right_thigh")])] = False
+    with pytest.raises(ValueError, match=r"segment 'left_thigh': .* unregistered_rest = 'mirror' could not take its "
+                                         r"other side's: 'right_thigh' has no rest orientation either"):
+        skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, registered, rest_frames=rest,
+                                      options=mirror)
+    registered = trial.registered.copy()  # the torso has no other side
+    registered[rest, rig.index("chest")] = False
+    with pytest.raises(ValueError, match=r"segment 'torso': .* could not take its other side's: it has no left_/right_ "
+                                         "counterpart"):
+        skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, registered, rest_frames=rest,
+                                      options=mirror)
+    with pytest.raises(ValueError, match="unregistered_rest must be"):
+        RomOptions(unregistered_rest="carry")
+
+
 def test_an_end_joint_the_trial_did_not_move_mirrors_its_other_side():
     # The left foot's camera is registered everywhere but while its ankle turns: its centre is undetermined, which
     # stops the estimate by default; with unregistered_ends = "mirror" it is the right ankle's mirrored (exact on a

@@ -155,6 +155,11 @@ class RomOptions:
             ``left_`` and ``right_`` children), and a camera that never registered its other side's camera's
             mount, mirrored; a knee whose foot is left out so is placed on its axis nearest the other knee,
             mirrored. Both sides undetermined still raise.
+        unregistered_rest: what to do with a segment none of whose cameras is registered in the rest frames and that
+            has no carried rest orientation (``rest_orientations``): "raise" (default), or "mirror" — warn, and turn
+            its virtual camera so that, at rest, its bone and the way its child joint bends are its other side's
+            (``left_``/``right_`` names) mirrored through the body's midplane (a symmetric rest pose; its camera
+            registrations elsewhere, in any trial, give both in its own frame).
     """
 
     min_frames: int = 20
@@ -165,12 +170,15 @@ class RomOptions:
     centred_virtual: bool = True
     pose_radius_deg: float = 5.0
     unregistered_ends: str = "raise"
+    unregistered_rest: str = "raise"
 
     def __post_init__(self):
         if self.degenerate not in ("raise", "hinge", "mirror"):
             raise ValueError(f"RomOptions: degenerate must be 'raise', 'hinge' or 'mirror', got {self.degenerate!r}")
         if self.unregistered_ends not in ("raise", "mirror"):
             raise ValueError(f"RomOptions: unregistered_ends must be 'raise' or 'mirror', got {self.unregistered_ends!r}")
+        if self.unregistered_rest not in ("raise", "mirror"):
+            raise ValueError(f"RomOptions: unregistered_rest must be 'raise' or 'mirror', got {self.unregistered_rest!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -471,10 +479,11 @@ def skeleton_from_range_of_motion(
     vcs, pooled = _segment_virtual_cameras(topology, pairs, seg_cams, world_from_camera, registered, more_trials, options)
     world_v, known = pooled[0]
     joints, families = _estimate_joint_centres(topology, pooled, more_trials, options)
+    all_v, all_known = (np.concatenate(x) for x in zip(*pooled))
     world_from_v_rest = _rest_pose(topology, joints, families, world_v, known, rest,
                                    _carried_segment_rest(topology, seg_cams, vcs, carried),
-                                   mirror=options.unregistered_ends == "mirror")
-    all_v, all_known = (np.concatenate(x) for x in zip(*pooled))
+                                   mirror=options.unregistered_ends == "mirror",
+                                   mirror_rest=(all_v, all_known) if options.unregistered_rest == "mirror" else None)
     skeleton, seg_from_v = _segment_frames(topology, joints, world_from_v_rest, world_from_rest, root_origin, all_v, all_known)
     camera_segments = tuple(topology.index(s) for _, s in pairs)
     mounts = np.zeros((len(pairs), 7))
@@ -837,31 +846,40 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
     return joints, families
 
 
-def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest, mirror: bool = False) -> np.ndarray:
+def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest, mirror: bool = False,
+               mirror_rest: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Rest pose (Eq. 17): ``(J, 4)`` world_from_virtual orientations of the segments in the ``rest`` frames
     ``(T,)``; places each hinge-like family's centre on its axis, updating ``joints`` in place.
 
     A segment none of whose cameras is registered in the rest frames takes its ``carried_rest`` ``(J, 4)``
-    orientation (NaN: none, ValueError), and its virtual camera's pose in each rest frame where its parent's is
-    known is put where that orientation and the joint centre hang it from the parent (for the families' placement).
+    orientation, else (``mirror_rest``: the ``(world_v, known)`` of all trials) its other side's mirrored
+    (:func:`_mirrored_rest_orientation`), else ValueError; its virtual camera's pose in each rest frame where its
+    parent's is known is put where that orientation and the joint centre hang it from the parent (for the families'
+    placement).
     """
     world_v, known = world_v.copy(), known.copy()
-    world_from_v_rest = np.zeros((len(topology.names), 4))
-    for j in range(len(topology.names)):  # parents first
-        ok = rest & known[:, j]
-        if ok.any():
-            world_from_v_rest[j] = _average_rotation(world_v[ok, j, :4])
+    n = len(topology.names)
+    at_rest = np.array([rest & known[:, j] for j in range(n)]).T  # (T, J)
+    world_from_v_rest = np.full((n, 4), np.nan)
+    for j in range(n):  # registered at rest, else carried there: what a mirrored segment reads of its other side
+        world_from_v_rest[j] = _average_rotation(world_v[at_rest[:, j], j, :4]) if at_rest[:, j].any() else carried_rest[j]
+    for j in range(n):  # parents first
+        if at_rest[:, j].any():
             continue
-        if not np.isfinite(carried_rest[j]).all():
-            raise ValueError(f"segment '{topology.names[j]}': none of its cameras is registered in the rest frames, "
-                             "and none has a rest orientation carried from other frames (e.g. by its gyro)")
-        world_from_v_rest[j] = carried_rest[j]
+        if not np.isfinite(world_from_v_rest[j]).all():
+            why = (f"segment '{topology.names[j]}': none of its cameras is registered in the rest frames, and none has "
+                   "a rest orientation carried from other frames (e.g. by its gyro)")
+            if mirror_rest is None:
+                raise ValueError(why)
+            world_from_v_rest[j] = _mirrored_rest_orientation(topology, joints, families, j, world_from_v_rest,
+                                                              world_v, known, rest, *mirror_rest, why)
+        q_rest = world_from_v_rest[j]
         p = topology.parents[j]
         hang = rest & known[:, p] if p >= 0 else np.zeros_like(rest)
         if hang.any():
             est = joints[topology.names[j]]
             centre = apply_pose(world_v[hang, p], est.centre_in_parent)
-            q = np.broadcast_to(carried_rest[j], (int(hang.sum()), 4))
+            q = np.broadcast_to(q_rest, (int(hang.sum()), 4))
             world_v[hang, j] = np.concatenate([q, centre - rotate_by_quat(q, est.centre_in_child)], axis=1)
             known[hang, j] = True
     # A family's placement reads its neighbours' centres; where neighbours are families too (an elbow next to a
@@ -878,6 +896,100 @@ def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest, m
                 joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None], mirror,
                                                 undetermined, placed)
     return world_from_v_rest
+
+
+def _bone_directions(topology, joints, families, s: int, all_v, all_known, fail) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Segment ``s``'s bone and how its child joint bends, in its virtual camera frame (from the frames of all trials
+    ``all_v`` ``(T, J, 7)``, ``all_known`` ``(T, J)``): ``(2, 3)`` unit vectors and whether the second is a hinge's
+    axis. A hinge child: the bone's direction normal to the hinge's axis (where along the axis its centre lies is
+    not known before the rest pose) and the axis; a ball child: the bone (joint centre to the child's centre) and,
+    normal to it, the mean direction from the child's centre to the child's virtual camera. A bone that starts at a
+    hinge placed on its axis by the rest pose is taken normal to that axis too. Also ``(3,)`` that mean direction
+    (which side a hinge bends to). ``fail(why)`` raises."""
+    name = topology.names[s]
+    kids = topology.children(s)
+    if len(kids) != 1:
+        fail(f"'{name}' has {len(kids)} child joints, not one whose centre gives its bone")
+    c = kids[0]
+    undetermined = [n for n in (name, topology.names[c]) if families.get(n, (0, 0))[1] is None]
+    if undetermined:
+        fail(f"the centre of '{undetermined[0]}' is not determined")
+    est_s, est_c = joints[name], joints[topology.names[c]]
+    both = all_known[:, s] & all_known[:, c]
+    if not both.any():
+        fail(f"'{name}' and its child '{topology.names[c]}' are never known in one frame")
+    rot_s = matrix_from_quat(all_v[both, s, :4])  # (N, 3, 3)
+    child_origin = np.einsum("nba,nb->na", rot_s, all_v[both, c, 4:] - all_v[both, s, 4:])
+    bend = np.mean(child_origin - est_c.centre_in_parent, axis=0)  # child's centre → its camera, in s's frame
+    bone = est_c.centre_in_parent - est_s.centre_in_child
+    if est_s.axis_in_child is not None and name in families:  # its own centre's place on its own axis: not known yet
+        bone = bone - (bone @ est_s.axis_in_child) * est_s.axis_in_child
+    if est_c.axis_in_child is not None:
+        rot_sc = np.einsum("nba,nbc->nac", rot_s, matrix_from_quat(all_v[both, c, :4]))
+        axis = np.mean(rot_sc @ est_c.axis_in_child, axis=0)
+        axis /= np.linalg.norm(axis)
+        bone = bone - (bone @ axis) * axis
+        second, hinge = axis, True
+    else:
+        unit = bone / np.linalg.norm(bone)
+        second, hinge = bend - (bend @ unit) * unit, False
+    for v, what in ((bone, "bone"), (second, "child's bend")):
+        if np.linalg.norm(v) < 1e-9:
+            fail(f"'{name}''s {what} has no direction")
+    return np.stack([bone / np.linalg.norm(bone), second / np.linalg.norm(second)]), bend, hinge
+
+
+def _rotation_between(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``(3, 3)`` the rotation taking the unit vectors ``source`` ``(K, 3)`` nearest ``target`` ``(K, 3)`` (Kabsch)."""
+    u, _, vt = np.linalg.svd(target.T @ source)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
+def _mirrored_rest_orientation(topology, joints, families, j, world_from_v_rest, world_v, known, rest, all_v, all_known,
+                               why) -> np.ndarray:
+    """``(4,)`` the world_from_virtual rest orientation of segment ``j``, which no rest frame registered: the one that
+    puts its bone and its child joint's bend (:func:`_bone_directions`, from the frames of all trials) where its
+    other side's, at rest (``world_from_v_rest`` ``(J, 4)``), mirrored through the body's midplane puts them (the
+    plane halfway between the centres of :func:`_midplane_pair` in the ``rest`` frames of ``world_v``, ``known``).
+    A hinge's axis is a line: of its two directions, the one that puts the child's camera on the mirrored side.
+    ValueError (``why`` and what is missing) where that cannot be done; warns naming the segment."""
+    name = topology.names[j]
+
+    def fail(reason):
+        raise ValueError(f"{why}; unregistered_rest = 'mirror' could not take its other side's: {reason}")
+
+    other = _other_side(name)
+    if other not in topology.names:
+        fail("it has no left_/right_ counterpart")
+    o = topology.index(other)
+    if not np.isfinite(world_from_v_rest[o]).all():
+        fail(f"'{other}' has no rest orientation either")
+    undetermined = {n for n, (_, null) in families.items() if null is None}
+    try:
+        left, right = _midplane_pair(topology.names, topology.parents, undetermined,
+                                     set(families) - undetermined)
+    except ValueError as err:
+        fail(str(err))
+    ends = [topology.parents[left], topology.parents[right]]
+    ok = rest & known[:, ends].all(axis=1)
+    if not ok.any():
+        fail(f"the midplane's joints '{topology.names[left]}' and '{topology.names[right]}' are never known in "
+             "the rest frames")
+    a, b = (np.mean(apply_pose(world_v[ok, topology.parents[k]], joints[topology.names[k]].centre_in_parent), axis=0)
+            for k in (left, right))
+    normal = (a - b) / np.linalg.norm(a - b)
+    reflect = np.eye(3) - 2.0 * np.outer(normal, normal)
+    own, own_bend, hinge = _bone_directions(topology, joints, families, j, all_v, all_known, fail)
+    theirs, their_bend, _ = _bone_directions(topology, joints, families, o, all_v, all_known, fail)
+    rot_o = matrix_from_quat(world_from_v_rest[o])
+    target = (reflect @ rot_o @ theirs.T).T  # polar vectors, and a hinge's axis up to its sign
+    target_bend = reflect @ rot_o @ their_bend
+    candidates = [_rotation_between(own, target * np.array([[1.0], [sign]])) for sign in ((1.0, -1.0) if hinge else (1.0,))]
+    rot = max(candidates, key=lambda r: float((r @ own_bend) @ target_bend))
+    warnings.warn(f"segment '{name}': none of its cameras is registered in the rest frames and none has a carried rest "
+                  f"orientation; its rest orientation puts its bone and its child joint's bend where '{other}''s are, "
+                  f"mirrored through the body's midplane (unregistered_rest = 'mirror')", stacklevel=4)
+    return quat_from_matrix(rot)
 
 
 def _segment_frames(topology, joints, world_from_v_rest, world_from_rest, root_origin, world_v, known):
@@ -1019,10 +1131,13 @@ def _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known, un
 
 
 def _flexion_sign(world_v, known, j, p, seg_from_v_rot, axis) -> float:
-    """+1 if the hinge angles over the trial are mostly positive about ``axis`` (flexion positive), else −1."""
+    """+1 if the hinge angles over the trial, where it is bent (more than 1° from the rest pose), are mostly positive
+    about ``axis`` (flexion positive), else −1. (Frames near rest are left out: where they are the most, their median
+    sign is that of noise.)"""
     ok = known[:, j] & known[:, p]
     seg = quat_multiply(world_v[ok][:, [p, j], :4], quat_conjugate(seg_from_v_rot[[p, j]]))
     local = quat_multiply(quat_conjugate(seg[:, 0]), seg[:, 1])
     angle = 2.0 * np.arctan2(local[:, 1:] @ axis, local[:, 0])
-    return 1.0 if np.median(angle) >= 0 else -1.0
+    bent = angle[np.abs(angle) > np.radians(1.0)]
+    return 1.0 if not bent.size or np.median(bent) >= 0 else -1.0
 

@@ -48,6 +48,9 @@ values of the wrong type (also inside lists), numbers that are not finite and va
     unregistered_ends = "mirror"   # an end segment (a foot, a hand) whose cameras register in neither trial:
                               # mirror (warn, and give it its other side's joint centre and camera mounts mirrored
                               # through the body's midplane) | raise
+    unregistered_rest = "mirror"   # a segment no rest frame registers and no gyro carries there: mirror (warn,
+                              # and give it the rest orientation that puts its bone and its child joint's bend
+                              # where its other side's are, mirrored) | raise
 
     [solver]
     window = 60               # frames per window, 2 to 100000
@@ -137,6 +140,7 @@ class SkeletonConfig:
     degenerate: str = "mirror"
     centre_trials: tuple[str, ...] = ("rom", "capture")
     unregistered_ends: str = "mirror"
+    unregistered_rest: str = "mirror"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -229,6 +233,8 @@ class RunConfig:
                k.degenerate)
         _check(k.unregistered_ends in ("raise", "mirror"), "skeleton.unregistered_ends", "must be 'raise' or 'mirror'",
                k.unregistered_ends)
+        _check(k.unregistered_rest in ("raise", "mirror"), "skeleton.unregistered_rest", "must be 'raise' or 'mirror'",
+               k.unregistered_rest)
         _check(tuple(k.centre_trials) in (("rom",), ("rom", "capture")), "skeleton.centre_trials",
                "must be [\"rom\"] or [\"rom\", \"capture\"]", list(k.centre_trials))
         _check(2 <= s.window <= MAX_WINDOW, "solver.window", f"must be in [2, {MAX_WINDOW}]", s.window)

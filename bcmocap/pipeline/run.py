@@ -86,7 +86,7 @@ class RunContext:
 _LATER_DEFAULTS = {"solver": {"windows": "sequential", "registered_pose": [0.0, 0.0], "registered_pose_below": 20,
                               "unmeasured_orientation": 0.0,
                               "gyro_turn": 0.0},
-                   "skeleton": {"centre_trials": ["rom"], "unregistered_ends": "mirror"},
+                   "skeleton": {"centre_trials": ["rom"], "unregistered_ends": "mirror", "unregistered_rest": "mirror"},
                    "frontend": {"rolling_shutter_readout": 0.0, "self_calibration": False, "gyro_timing": "clock",
                                 "estimate_readout": False}}
 
@@ -549,7 +549,7 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest, log=N
     cams = [(c.name, c.segment) for c in ctx.capture.cameras]
     settings = ctx.config.skeleton
     options = RomOptions(max_centre_std_m=settings.max_centre_std_cm / 100, degenerate=settings.degenerate,
-                         unregistered_ends=settings.unregistered_ends)
+                         unregistered_ends=settings.unregistered_ends, unregistered_rest=settings.unregistered_rest)
     log = ctx.log if log is None else log
     carried = _gyro_rest_orientations(ctx, poses, registered, rest, log)
     if carried is not None:  # the similarity turns orientations as it turns poses
@@ -567,7 +567,8 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest, log=N
     except ValueError as exc:
         raise ValueError(f"{exc} (run settings: [skeleton] max_centre_std_cm = {settings.max_centre_std_cm:g}, "
                          f"degenerate = {settings.degenerate!r}, centre_trials = {list(settings.centre_trials)}, "
-                         f"unregistered_ends = {settings.unregistered_ends!r})") from None
+                         f"unregistered_ends = {settings.unregistered_ends!r}, "
+                         f"unregistered_rest = {settings.unregistered_rest!r})") from None
     for warning in caught:  # in the run's log, where a user reads what the skeleton stage assumed
         log(f"skeleton: {warning.message}")
     return estimate
