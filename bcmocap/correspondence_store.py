@@ -220,18 +220,27 @@ class CorrespondenceStore:
 
     def transformed(self, path: str | Path, points: Callable[[np.ndarray], np.ndarray],
                     poses: Callable[[np.ndarray], np.ndarray], *, world_from_camera: np.ndarray | None = None,
-                    registered: np.ndarray | None = None) -> CorrespondenceStore:
+                    registered: np.ndarray | None = None, dropped: np.ndarray | None = None) -> CorrespondenceStore:
         """A copy at ``path`` with points and camera poses mapped (e.g. by a similarity into the metric
         world); the measurement blocks are copied unchanged, the points mapped in pieces. ``world_from_camera``
-        ``(T, C, 7)`` and ``registered`` ``(T, C)``: these poses instead of the store's (re-fitted ones)."""
+        ``(T, C, 7)`` and ``registered`` ``(T, C)``: these poses instead of the store's (re-fitted ones);
+        ``dropped`` ``(T, C)`` bool: camera-frames whose point measurements get weight 0 (their blocks rewritten)."""
         world_from_camera = self.world_from_camera if world_from_camera is None else np.asarray(world_from_camera)
         registered = self.registered if registered is None else np.asarray(registered, bool)
-        if world_from_camera.shape != self.world_from_camera.shape or registered.shape != self.registered.shape:
-            raise ValueError(f"{self.path}: world_from_camera {world_from_camera.shape} and registered "
-                             f"{registered.shape} for a store of poses {self.world_from_camera.shape}")
+        dropped = np.zeros_like(self.registered) if dropped is None else np.asarray(dropped, bool)
+        if (world_from_camera.shape != self.world_from_camera.shape or registered.shape != self.registered.shape
+                or dropped.shape != self.registered.shape):
+            raise ValueError(f"{self.path}: world_from_camera {world_from_camera.shape}, registered "
+                             f"{registered.shape} and dropped {dropped.shape} for a store of poses "
+                             f"{self.world_from_camera.shape}")
         with _Folder(Path(path)) as tmp:
-            for b in self.blocks:
-                shutil.copyfile(self.path / b.file, tmp / b.file)
+            for k, b in enumerate(self.blocks):
+                if not dropped[b.start:b.stop].any():
+                    shutil.copyfile(self.path / b.file, tmp / b.file)
+                    continue
+                data = self.block(k)
+                data["weights"] = np.where(dropped[b.start:b.stop, :, None], 0.0, data["weights"]).astype(data["weights"].dtype)
+                np.savez_compressed(tmp / b.file, **data)
             with open(tmp / "points.f64", "wb") as dst:
                 for piece in self.iter_points():
                     dst.write(np.ascontiguousarray(points(piece), "<f8").tobytes())

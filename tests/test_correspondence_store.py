@@ -132,8 +132,17 @@ def test_transformed_copy_maps_points_and_poses(tmp_path, corr):
     other = store.transformed(tmp_path / "c", lambda p: p, lambda q: q, world_from_camera=poses, registered=registered)
     np.testing.assert_array_equal(other.world_from_camera, poses)
     np.testing.assert_array_equal(other.registered, registered)
-    with pytest.raises(ValueError, match=r"world_from_camera \(\d+, 7\) and registered"):
+    with pytest.raises(ValueError, match=r"world_from_camera \(\d+, 7\), registered"):
         store.transformed(tmp_path / "d", lambda p: p, lambda q: q, world_from_camera=poses[0])
+    # dropped camera-frames (made on a repeated pattern's copy) keep their measurements at weight 0; the rest as given
+    dropped = np.zeros_like(registered)
+    dropped[7, 1] = dropped[8] = True
+    cut = store.transformed(tmp_path / "e", lambda p: p, lambda q: q, dropped=dropped)
+    before, after = store.frames(0, store.num_frames), cut.frames(0, cut.num_frames)
+    assert (np.asarray(before.weights)[dropped] > 0).any() and not np.asarray(after.weights)[dropped].any()
+    np.testing.assert_array_equal(np.asarray(after.weights)[~dropped], np.asarray(before.weights)[~dropped])
+    np.testing.assert_array_equal(after.pixels, before.pixels)
+    np.testing.assert_array_equal(after.homography_weights, before.homography_weights)
 
 
 def test_errors_name_the_file_and_a_failed_write_keeps_the_earlier_store(tmp_path, corr):

@@ -718,14 +718,36 @@ def _stage_initial(ctx: RunContext) -> dict:
     sim = load_similarity(ctx.out)
     corr = CorrespondenceStore.open(ctx.path("frontend", "capture", "correspondences"))
     poses, registered = _registered_poses(ctx, "capture", corr)
-    metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses, world_from_camera=poses,
-                              registered=registered)
+    repair = _repaired_slips(ctx, poses, registered, corr.fps, sim.scale)
+    metric = corr.transformed(ctx.path("solve", "correspondences"), sim.points, sim.poses,
+                              world_from_camera=repair.world_from_camera, registered=repair.registered,
+                              dropped=repair.changed)
     skeleton, rig = load_model(ctx.out)
     poses, oriented = _gyro_filled_poses(ctx, rig, metric.world_from_camera, metric.registered, corr.fps)
     initial = motion_from_camera_poses(skeleton, rig, poses, metric.registered | oriented, robust=True)
     save_motion(ctx.path("solve", "initial.npz"), initial)
     return {"frames": metric.num_frames, "registered_fraction": float(metric.registered.mean()),
-            "gyro_filled_fraction": float(oriented.mean())}
+            "gyro_filled_fraction": float(oriented.mean()), "slips": len(repair.slips),
+            "slipped_camera_frames_moved": int(repair.moved.sum()),
+            "slipped_camera_frames_left_out": int(repair.left_out.sum())}
+
+
+def _repaired_slips(ctx: RunContext, poses, registered, fps: float, metres_per_unit: float):
+    """The capture's registrations with the body's and each camera's slips onto a repeated pattern's copy undone
+    (:func:`~bcmocap.pipeline.slips.repair_slips`), each ``log``-ged; the solve reads no measurement of a camera-frame
+    moved or left out (it was made on the copy)."""
+    from .slips import repair_slips
+
+    repair = repair_slips(poses, registered, fps, metres_per_unit)
+    for slip in repair.slips:
+        ctx.log(f"initial: capture: between frames {slip.frame - 1} and {slip.frame} the {slip.cameras} cameras "
+                f"registered in both jumped {100 * metres_per_unit * np.linalg.norm(slip.jump):.0f} cm together, "
+                "further than a body moves (a repeated pattern's copy): the frames after it are moved back")
+    if repair.changed.any():
+        ctx.log(f"initial: capture: {int(repair.moved.sum())} registered camera-frames moved back from a slip onto a "
+                f"repeated pattern's copy and {int(repair.left_out.sum())} left out as unregistered; the solve reads "
+                "none of their measurements")
+    return repair
 
 
 def _gyro_filled_poses(ctx: RunContext, rig, poses, registered, fps) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,184 @@
+"""Whole-body slips of a trial's registrations: every camera jumping at once by a repeated pattern's period.
+
+In a room of repeated tiles the frontend can carry a trial's registrations onto a copy of the pattern: from one
+frame on, every camera is registered a tile's period away from where it was (the studio's realistic walk in the
+repeated room, seed 2: all 15 registered cameras 1.33 m off over the last 24 of 75 frames), consistently with one
+another, so no check between the cameras of a frame sees it. Between two consecutive frames the body cannot move
+that far: :func:`find_slips` finds the frame pairs whose cameras, in the median, moved further than a body moves
+(``max_speed_m_s``), and :func:`undo_slips` moves each stretch between slips back by the jumps that separate it from
+the stretch with the most registrations (each jump: the cameras' median displacement at the slip less the body's
+median displacement over the frame pairs on either side). Cameras do not all slip at the same frame, and some come
+back earlier: :func:`repair_slips` then moves each camera-frame that lies further from the frame's median camera than
+any camera sits on a body by the slips' jumps that bring it back, and leaves out those no jump brings back.
+
+Poses are ``world_from_camera`` wxyz_xyz in any frame whose unit is ``metres_per_unit`` metres (the reference
+model's, with the world stage's scale).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+__all__ = ["Slip", "SlipRepair", "find_slips", "repair_slips", "undo_slips"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Slip:
+    """Between frames ``frame - 1`` and ``frame`` the registered cameras jumped by ``jump`` ``(3,)`` (the poses'
+    units; the body's own motion taken off), measured on ``cameras`` cameras registered in both frames."""
+
+    frame: int
+    jump: np.ndarray
+    cameras: int
+
+
+def _displacements(positions: np.ndarray, registered: np.ndarray, min_cameras: int) -> np.ndarray:
+    """``(T - 1, 3)`` the median displacement of the cameras registered in frames ``t`` and ``t + 1`` (NaN where
+    fewer than ``min_cameras`` are)."""
+    both = registered[:-1] & registered[1:]
+    step = positions[1:] - positions[:-1]
+    out = np.full((len(step), 3), np.nan)
+    for t in np.flatnonzero(both.sum(axis=1) >= min_cameras):
+        out[t] = np.median(step[t, both[t]], axis=0)
+    return out
+
+
+def find_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: float, metres_per_unit: float, *,
+               max_speed_m_s: float = 10.0, noise_m: float = 0.05, min_cameras: int = 3) -> list[Slip]:
+    """The frame pairs where the cameras registered in both moved, in the median, further than the body can.
+
+    Args:
+        world_from_camera: ``(T, C, 7)`` registered poses (only registered rows are read).
+        registered: ``(T, C)`` bool. fps: the frames' rate (Hz).
+        metres_per_unit: metres per unit of the poses' positions.
+        max_speed_m_s: fastest the body moves (a sprinter's peak is about 12 m/s; the limbs' cameras, which swing
+            faster, are outvoted by the median); noise_m: registration noise allowed on top (m).
+        min_cameras: fewer cameras registered in both frames give no verdict.
+
+    Returns:
+        The slips in frame order; ``jump`` is the median displacement less the mean of the nearest verdict-giving
+        pairs' on either side that are not slips themselves (the body's motion), in the poses' units.
+    """
+    world_from_camera = np.asarray(world_from_camera, np.float64)
+    registered = np.asarray(registered, bool)
+    if world_from_camera.ndim != 3 or world_from_camera.shape[-1] != 7 or registered.shape != world_from_camera.shape[:2]:
+        raise ValueError(f"find_slips: expected poses (T, C, 7) and registered (T, C), got {world_from_camera.shape} "
+                         f"and {registered.shape}")
+    if not (fps > 0 and metres_per_unit > 0):
+        raise ValueError(f"find_slips: fps and metres_per_unit must be > 0, got {fps} and {metres_per_unit}")
+    if len(registered) < 2:
+        return []
+    moved = _displacements(world_from_camera[..., 4:], registered, min_cameras)
+    limit = (max_speed_m_s / fps + noise_m) / metres_per_unit
+    slipped = np.linalg.norm(moved, axis=1) > limit  # NaN compares False
+    body = np.where(slipped[:, None], np.nan, moved)
+    slips = []
+    for t in np.flatnonzero(slipped):
+        around = [body[k] for k in (_nearest(body, t, -1), _nearest(body, t, 1)) if k is not None]
+        motion = np.mean(around, axis=0) if around else np.zeros(3)
+        cameras = int((registered[t] & registered[t + 1]).sum())
+        slips.append(Slip(int(t + 1), moved[t] - motion, cameras))
+    return slips
+
+
+def _nearest(values: np.ndarray, t: int, direction: int) -> int | None:
+    """The nearest row before (``-1``) or after (``1``) ``t`` that is finite, or None."""
+    k = t + direction
+    while 0 <= k < len(values):
+        if np.isfinite(values[k]).all():
+            return k
+        k += direction
+    return None
+
+
+def undo_slips(world_from_camera: np.ndarray, registered: np.ndarray, slips: list[Slip]) -> tuple[np.ndarray, np.ndarray]:
+    """Each stretch of frames between slips moved back onto the stretch with the most registered camera-frames.
+
+    Returns:
+        ``(T, C, 7)`` the poses with the moved stretches' positions shifted (rotations kept: a pattern's copy keeps
+        the orientation), and ``(T,)`` bool, the frames moved.
+    """
+    world_from_camera = np.array(world_from_camera, np.float64)
+    registered = np.asarray(registered, bool)
+    bounds = [0, *(s.frame for s in slips), len(registered)]
+    counts = [int(registered[a:b].sum()) for a, b in zip(bounds[:-1], bounds[1:])]
+    anchor = int(np.argmax(counts))
+    offsets = np.zeros((len(counts), 3))  # each stretch's position relative to the anchor's
+    for k in range(anchor + 1, len(counts)):
+        offsets[k] = offsets[k - 1] + slips[k - 1].jump
+    for k in range(anchor - 1, -1, -1):
+        offsets[k] = offsets[k + 1] - slips[k].jump
+    moved = np.zeros(len(registered), bool)
+    for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+        if k != anchor:
+            world_from_camera[a:b, :, 4:] -= offsets[k]
+            moved[a:b] = True
+    return world_from_camera, moved
+
+
+@dataclasses.dataclass(frozen=True)
+class SlipRepair:
+    """What :func:`repair_slips` did: ``world_from_camera`` ``(T, C, 7)`` and ``registered`` ``(T, C)`` repaired;
+    ``moved`` ``(T, C)`` the registered camera-frames it shifted, ``left_out`` ``(T, C)`` those it unregistered (their
+    measurements were made on the pattern's copy: a solve should not read them); ``slips`` the body's slips."""
+
+    world_from_camera: np.ndarray
+    registered: np.ndarray
+    moved: np.ndarray
+    left_out: np.ndarray
+    slips: list[Slip]
+
+    @property
+    def changed(self) -> np.ndarray:
+        """``(T, C)`` the camera-frames moved or left out."""
+        return self.moved | self.left_out
+
+
+def repair_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: float, metres_per_unit: float, *,
+                 max_limb_speed_m_s: float = 15.0, noise_m: float = 0.05, **limits) -> SlipRepair:
+    """The body's slips undone (:func:`find_slips`, :func:`undo_slips`), then each camera's own slips: its track
+    relative to the frame's median registered camera is cut where it moves faster than a limb
+    (``max_limb_speed_m_s``, plus ``noise_m``, per frame between its registrations); from its longest piece outwards,
+    each piece is moved by the sum of the body's slip jumps (each once, either sign) that joins it best to the piece
+    before it, or left out where none joins it within that limit. ``limits``: :func:`find_slips`'s."""
+    registered = np.asarray(registered, bool)
+    given = np.asarray(world_from_camera, np.float64)
+    slips = find_slips(given, registered, fps, metres_per_unit, **limits)
+    poses, _ = undo_slips(given, registered, slips)
+    candidates = [np.zeros(3)]
+    for slip in slips:
+        candidates = [c + sign * slip.jump for c in candidates for sign in (0.0, 1.0, -1.0)]
+    candidates = np.unique(np.round(np.asarray(candidates), 12), axis=0)
+    step_limit = (max_limb_speed_m_s / fps + noise_m) / metres_per_unit
+    centres = np.full((len(registered), 3), np.nan)
+    for t in np.flatnonzero(registered.sum(axis=1) >= 3):
+        centres[t] = np.median(poses[t, registered[t], 4:], axis=0)
+    left_out = np.zeros_like(registered)
+    for c in range(registered.shape[1]):
+        frames = np.flatnonzero(registered[:, c] & np.isfinite(centres).all(axis=1))
+        if len(frames) < 2:
+            continue
+        relative = poses[frames, c, 4:] - centres[frames]
+        gaps = np.diff(frames)
+        cuts = np.flatnonzero(np.linalg.norm(np.diff(relative, axis=0), axis=1) > step_limit * gaps) + 1
+        pieces = np.split(np.arange(len(frames)), cuts)
+        anchor = int(np.argmax([len(p) for p in pieces]))
+        order = [*range(anchor + 1, len(pieces)), *range(anchor - 1, -1, -1)]
+        for k in order:
+            joined = k - 1 if k > anchor else k + 1  # the neighbour already placed (or left out: then its own end)
+            a, b = (pieces[joined][-1], pieces[k][0]) if k > anchor else (pieces[joined][0], pieces[k][-1])
+            distance = np.linalg.norm(relative[b] + candidates - relative[a], axis=1)
+            best = int(np.argmin(distance))
+            if distance[best] <= step_limit * abs(int(frames[b]) - int(frames[a])) and np.any(candidates[best]):
+                relative[pieces[k]] += candidates[best]
+                poses[frames[pieces[k]], c, 4:] += candidates[best]
+            elif distance[best] > step_limit * abs(int(frames[b]) - int(frames[a])):
+                left_out[frames[pieces[k]], c] = True
+                relative[pieces[k]] = relative[a]  # the next piece out joins where this one should have been
+    repaired = registered & ~left_out
+    moved = repaired & (np.linalg.norm(np.where(registered[..., None], poses[..., 4:] - given[..., 4:], 0.0), axis=-1)
+                        > 1e-9 * step_limit)
+    poses = np.where(left_out[..., None], given, poses)
+    return SlipRepair(poses, repaired, moved, left_out, slips)
