@@ -740,7 +740,7 @@ def _repaired_slips(ctx: RunContext, poses, registered, fps: float, metres_per_u
 
     repair = repair_slips(poses, registered, fps, metres_per_unit)
     for slip in repair.slips:
-        ctx.log(f"initial: capture: between frames {slip.frame - 1} and {slip.frame} the {slip.cameras} cameras "
+        ctx.log(f"initial: capture: between frames {slip.frame - 1} and {slip.frame} {slip.cameras} cameras "
                 f"registered in both jumped {100 * metres_per_unit * np.linalg.norm(slip.jump):.0f} cm together, "
                 "further than a body moves (a repeated pattern's copy): the frames after it are moved back")
     if repair.changed.any():

@@ -27,7 +27,8 @@ __all__ = ["Slip", "SlipRepair", "find_slips", "repair_slips", "undo_slips"]
 @dataclasses.dataclass(frozen=True)
 class Slip:
     """Between frames ``frame - 1`` and ``frame`` the registered cameras jumped by ``jump`` ``(3,)`` (the poses'
-    units; the body's own motion taken off), measured on ``cameras`` cameras registered in both frames."""
+    units; the body's own motion taken off): the median over the ``cameras`` cameras registered in both frames that
+    jumped (those that slipped earlier do not)."""
 
     frame: int
     jump: np.ndarray
@@ -58,8 +59,9 @@ def find_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: float
         min_cameras: fewer cameras registered in both frames give no verdict.
 
     Returns:
-        The slips in frame order; ``jump`` is the median displacement less the mean of the nearest verdict-giving
-        pairs' on either side that are not slips themselves (the body's motion), in the poses' units.
+        The slips in frame order; ``jump`` is the median displacement of the cameras that jumped less the body's
+        motion (the mean median displacement of the nearest verdict-giving pairs on either side that are not slips
+        themselves), in the poses' units.
     """
     world_from_camera = np.asarray(world_from_camera, np.float64)
     registered = np.asarray(registered, bool)
@@ -75,11 +77,14 @@ def find_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: float
     slipped = np.linalg.norm(moved, axis=1) > limit  # NaN compares False
     body = np.where(slipped[:, None], np.nan, moved)
     slips = []
+    positions = world_from_camera[..., 4:]
     for t in np.flatnonzero(slipped):
         around = [body[k] for k in (_nearest(body, t, -1), _nearest(body, t, 1)) if k is not None]
         motion = np.mean(around, axis=0) if around else np.zeros(3)
-        cameras = int((registered[t] & registered[t + 1]).sum())
-        slips.append(Slip(int(t + 1), moved[t] - motion, cameras))
+        both = registered[t] & registered[t + 1]
+        step = positions[t + 1, both] - positions[t, both]
+        jumped = np.linalg.norm(step - motion, axis=1) > limit  # the cameras that slipped here (some did earlier)
+        slips.append(Slip(int(t + 1), np.median(step[jumped], axis=0) - motion, int(jumped.sum())))
     return slips
 
 
@@ -137,46 +142,67 @@ class SlipRepair:
 
 
 def repair_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: float, metres_per_unit: float, *,
-                 max_limb_speed_m_s: float = 15.0, noise_m: float = 0.05, **limits) -> SlipRepair:
-    """The body's slips undone (:func:`find_slips`, :func:`undo_slips`), then each camera's own slips: its track
-    relative to the frame's median registered camera is cut where it moves faster than a limb
-    (``max_limb_speed_m_s``, plus ``noise_m``, per frame between its registrations); from its longest piece outwards,
-    each piece is moved by the sum of the body's slip jumps (each once, either sign) that joins it best to the piece
-    before it, or left out where none joins it within that limit. ``limits``: :func:`find_slips`'s."""
+                 max_limb_speed_m_s: float = 15.0, noise_m: float = 0.05, min_cameras: int = 3,
+                 **limits) -> SlipRepair:
+    """The body's slips undone (:func:`find_slips`, :func:`undo_slips`), then each camera's own slips.
+
+    A camera's step between two of its registered frames, less the body's (the median step of the cameras registered
+    in both, at least ``min_cameras``), is at most what a limb moves (``max_limb_speed_m_s`` times the time between
+    them, plus ``noise_m``). The camera's registered frames are cut where a step is more; from the longest piece
+    outwards each frame is kept where its step from the last kept frame fits, else moved by the sum of the body's slip
+    jumps (each once, either sign) that makes it fit (of those that do, the one nearest the last kept frame's move);
+    else left out, as are the frames that go on from a left-out one within a limb's step.
+    ``limits``: :func:`find_slips`'s."""
     registered = np.asarray(registered, bool)
     given = np.asarray(world_from_camera, np.float64)
-    slips = find_slips(given, registered, fps, metres_per_unit, **limits)
+    slips = find_slips(given, registered, fps, metres_per_unit, min_cameras=min_cameras, **limits)
     poses, _ = undo_slips(given, registered, slips)
     candidates = [np.zeros(3)]
     for slip in slips:
         candidates = [c + sign * slip.jump for c in candidates for sign in (0.0, 1.0, -1.0)]
     candidates = np.unique(np.round(np.asarray(candidates), 12), axis=0)
     step_limit = (max_limb_speed_m_s / fps + noise_m) / metres_per_unit
-    centres = np.full((len(registered), 3), np.nan)
-    for t in np.flatnonzero(registered.sum(axis=1) >= 3):
-        centres[t] = np.median(poses[t, registered[t], 4:], axis=0)
+    positions = poses[..., 4:]
+
+    def own_step(c: int, a: int, b: int) -> np.ndarray | None:
+        """Camera ``c``'s step from frame ``a`` to ``b`` less the body's (None: too few cameras in both)."""
+        both = registered[a] & registered[b]
+        both[c] = False
+        if both.sum() < min_cameras:
+            return None
+        return positions[b, c] - positions[a, c] - np.median(positions[b, both] - positions[a, both], axis=0)
+
     left_out = np.zeros_like(registered)
     for c in range(registered.shape[1]):
-        frames = np.flatnonzero(registered[:, c] & np.isfinite(centres).all(axis=1))
+        frames = np.flatnonzero(registered[:, c])
         if len(frames) < 2:
             continue
-        relative = poses[frames, c, 4:] - centres[frames]
-        gaps = np.diff(frames)
-        cuts = np.flatnonzero(np.linalg.norm(np.diff(relative, axis=0), axis=1) > step_limit * gaps) + 1
+        steps = [own_step(c, a, b) for a, b in zip(frames[:-1], frames[1:])]
+        cuts = [i + 1 for i, (step, gap) in enumerate(zip(steps, np.diff(frames)))
+                if step is not None and np.linalg.norm(step) > step_limit * gap]
         pieces = np.split(np.arange(len(frames)), cuts)
-        anchor = int(np.argmax([len(p) for p in pieces]))
-        order = [*range(anchor + 1, len(pieces)), *range(anchor - 1, -1, -1)]
-        for k in order:
-            joined = k - 1 if k > anchor else k + 1  # the neighbour already placed (or left out: then its own end)
-            a, b = (pieces[joined][-1], pieces[k][0]) if k > anchor else (pieces[joined][0], pieces[k][-1])
-            distance = np.linalg.norm(relative[b] + candidates - relative[a], axis=1)
-            best = int(np.argmin(distance))
-            if distance[best] <= step_limit * abs(int(frames[b]) - int(frames[a])) and np.any(candidates[best]):
-                relative[pieces[k]] += candidates[best]
-                poses[frames[pieces[k]], c, 4:] += candidates[best]
-            elif distance[best] > step_limit * abs(int(frames[b]) - int(frames[a])):
-                left_out[frames[pieces[k]], c] = True
-                relative[pieces[k]] = relative[a]  # the next piece out joins where this one should have been
+        anchor = pieces[int(np.argmax([len(p) for p in pieces]))]
+        for start, order in ((frames[anchor[-1]], frames[anchor[-1] + 1:]), (frames[anchor[0]], frames[:anchor[0]][::-1])):
+            # outwards from the longest piece, each frame from the last kept; a frame that goes on from a left-out
+            # one within a limb's step is on the same copy, however far the last kept frame lies behind
+            last, previous, shift = int(start), None, np.zeros(3)
+            for f in map(int, order):
+                step = own_step(c, last, f)
+                if step is None:
+                    last, previous = f, None
+                    continue
+                fits = np.linalg.norm(step + candidates, axis=1) <= step_limit * abs(f - last)
+                if previous is not None:
+                    on = own_step(c, previous, f)
+                    if on is not None and np.linalg.norm(on) <= step_limit * abs(f - previous):
+                        fits &= np.any(candidates != 0.0, axis=1)
+                if not fits.any():
+                    left_out[f, c], previous = True, f
+                    continue
+                # of the moves that fit, the one nearest the last kept frame's (a camera stays on its copy)
+                shift = candidates[fits][np.argmin(np.linalg.norm(candidates[fits] - shift, axis=1))]
+                positions[f, c] += shift
+                last, previous = f, None
     repaired = registered & ~left_out
     moved = repaired & (np.linalg.norm(np.where(registered[..., None], poses[..., 4:] - given[..., 4:], 0.0), axis=-1)
                         > 1e-9 * step_limit)
