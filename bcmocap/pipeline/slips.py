@@ -149,18 +149,18 @@ def repair_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: flo
     A camera's step between two of its registered frames, less the body's (the median step of the cameras registered
     in both, at least ``min_cameras``), is at most what a limb moves (``max_limb_speed_m_s`` times the time between
     them, plus ``noise_m``). The camera's registered frames are cut where a step is more; from the longest piece
-    outwards each frame is kept where its step from the last kept frame fits, else moved by the sum of the body's slip
-    jumps (each once, either sign) that makes it fit (of those that do, the one nearest the last kept frame's move);
+    outwards each frame is kept where its step from the last kept frame fits, else moved by the difference between
+    two stretches' places (the sum of the body's jumps between them, either sign) that makes it fit (of those that do,
+    the one nearest the last kept frame's move);
     else left out, as are the frames that go on from a left-out one within a limb's step.
     ``limits``: :func:`find_slips`'s."""
     registered = np.asarray(registered, bool)
     given = np.asarray(world_from_camera, np.float64)
     slips = find_slips(given, registered, fps, metres_per_unit, min_cameras=min_cameras, **limits)
     poses, _ = undo_slips(given, registered, slips)
-    candidates = [np.zeros(3)]
-    for slip in slips:
-        candidates = [c + sign * slip.jump for c in candidates for sign in (0.0, 1.0, -1.0)]
-    candidates = np.unique(np.round(np.asarray(candidates), 12), axis=0)
+    # a camera left on one stretch's copy while the body moved to another's: the differences of the stretches' places
+    places = np.concatenate([np.zeros((1, 3)), np.cumsum([slip.jump for slip in slips], axis=0).reshape(-1, 3)])
+    candidates = np.unique(np.round((places[:, None] - places[None]).reshape(-1, 3), 12), axis=0)
     step_limit = (max_limb_speed_m_s / fps + noise_m) / metres_per_unit
     positions = poses[..., 4:]
 
