@@ -41,7 +41,7 @@ def test_the_cluster_setting_is_checked_and_changes_no_fingerprint():
 
 def test_fingerprints_of_runs_made_before_the_windows_setting_stay_the_same():
     """A run folder made before ``solver.windows`` (and ``solver.registered_pose``, ``registered_pose_below``, ``gyro_turn``,
-    ``skeleton.centre_trials``, ``unregistered_ends``, ``frontend.rolling_shutter_readout``, ``frontend.self_calibration``, ``gyro_timing`` and
+    ``skeleton.centre_trials``, ``unregistered_ends``, ``unregistered_rest``, ``frontend.rolling_shutter_readout``, ``frontend.self_calibration``, ``gyro_timing`` and
     ``estimate_readout``) existed is still reused with the settings it was made with (those settings at
     the values that meant what the run did: no registered-pose prior, centres from the ROM trial)."""
     import hashlib
@@ -55,6 +55,7 @@ def test_fingerprints_of_runs_made_before_the_windows_setting_stay_the_same():
         del data["solver"][key]
     del data["skeleton"]["centre_trials"]
     del data["skeleton"]["unregistered_ends"]  # added later, at a value that changes nothing a run that finished did
+    del data["skeleton"]["unregistered_rest"]  # likewise: it places only what stopped a run before it
     for key in ("rolling_shutter_readout", "self_calibration", "gyro_timing", "estimate_readout"):  # added later, off
         del data["frontend"][key]
     acc, old = [], {}

@@ -400,7 +400,8 @@ def test_a_segment_no_rest_frame_registers_takes_its_other_sides_rest_orientatio
     full = skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, trial.registered,
                                          rest_frames=rest)
     mirror = RomOptions(unregistered_rest="mirror")
-    for segment, other, tolerance_deg in (("right_thigh", "left_thigh", 1e-9), ("left_shin", "right_shin", 1e-3)):
+    for segment, other, tolerance_deg, axes_atol in (("right_thigh", "left_thigh", 1e-9, 1e-9),
+                                                     ("left_shin", "right_shin", 1e-3, 1e-4)):
         registered = trial.registered.copy()
         registered[rest, rig.index(segment)] = False
         args = (skeleton, trial.assignment, trial.world_from_camera, registered)
@@ -411,7 +412,7 @@ def test_a_segment_no_rest_frame_registers_takes_its_other_sides_rest_orientatio
                                              rf"child joint's bend where '{other}''s are, mirrored"):
             est = skeleton_from_range_of_motion(*args, rest_frames=rest, options=mirror)
         np.testing.assert_allclose(est.skeleton.offsets, full.skeleton.offsets, atol=1e-9)
-        np.testing.assert_allclose(est.skeleton.hinge_axes, full.skeleton.hinge_axes, atol=tolerance_deg)
+        np.testing.assert_allclose(est.skeleton.hinge_axes, full.skeleton.hinge_axes, atol=axes_atol)
         turned = np.degrees(quat_distance(est.segment_from_camera[:, :4], full.segment_from_camera[:, :4]))
         assert turned.max() < tolerance_deg, (segment, turned.max())
     registered = trial.registered.copy()  # both thighs: neither side has a rest orientation to give

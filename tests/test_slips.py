@@ -66,3 +66,31 @@ def test_a_camera_that_no_slip_brings_back_is_left_out_and_a_body_without_slips_
     with pytest.raises(ValueError, match=r"find_slips: expected poses \(T, C, 7\) and registered \(T, C\), got "
                                          r"\(75, 15, 7\) and \(75, 14\)"):
         find_slips(as_poses(true, np.random.default_rng(6)), registered[:, 1:], FPS, METRES_PER_UNIT)
+
+
+def test_a_slip_across_an_unregistered_frame_and_a_camera_seen_mostly_after_it():
+    # Frame 50 registers no camera: the slip is found between frames 49 and 51. Camera 14 never slips and registers
+    # in 11 frames before the slip and 24 after: its frames after the slip, moved back with the body's, are moved
+    # forth again, not its right frames before the slip onto them.
+    true, registered = walk(seed=4)
+    registered[50] = False
+    registered[:40, 14] = False
+    seen = true.copy()
+    seen[51:, :12] += PERIOD
+    poses = as_poses(seen, np.random.default_rng(5))
+    repair = repair_slips(poses, registered, FPS, METRES_PER_UNIT)
+    (slip,) = repair.slips
+    assert slip.frame == 51 and np.linalg.norm(slip.jump * METRES_PER_UNIT - PERIOD) < 0.05
+    off = registered & (np.linalg.norm(seen - true, axis=-1) > 0.1)
+    np.testing.assert_array_equal(repair.moved, off)
+    error = np.linalg.norm(repair.world_from_camera[..., 4:] * METRES_PER_UNIT - true, axis=-1)[repair.registered]
+    assert error.max() < 0.05 and not repair.left_out.any()
+
+
+def test_a_body_moving_near_the_limit_has_no_slip_and_no_nan():
+    true, registered = walk(seed=6)
+    for speed in (11.0, 11.5, 12.5):  # m/s, at and past the 12 m/s limit (plus 5 cm of noise a frame)
+        fast = true + np.arange(75)[:, None, None] / FPS * np.array([speed, 0.0, 0.0])
+        repair = repair_slips(as_poses(fast, np.random.default_rng(7)), registered, FPS, METRES_PER_UNIT)
+        assert np.isfinite(repair.world_from_camera[repair.registered]).all(), speed
+        assert not repair.slips and not repair.changed.any(), speed

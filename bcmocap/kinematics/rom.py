@@ -903,8 +903,8 @@ def _bone_directions(topology, joints, families, s: int, all_v, all_known, fail)
     ``all_v`` ``(T, J, 7)``, ``all_known`` ``(T, J)``): ``(2, 3)`` unit vectors and whether the second is a hinge's
     axis. A hinge child: the bone's direction normal to the hinge's axis (where along the axis its centre lies is
     not known before the rest pose) and the axis; a ball child: the bone (joint centre to the child's centre) and,
-    normal to it, the mean direction from the child's centre to the child's virtual camera. A bone that starts at a
-    hinge placed on its axis by the rest pose is taken normal to that axis too. Also ``(3,)`` that mean direction
+    normal to it, the median direction from the child's centre to the child's virtual camera. A bone that starts at a
+    hinge placed on its axis by the rest pose is taken normal to that axis too. Also ``(3,)`` that median direction
     (which side a hinge bends to). ``fail(why)`` raises."""
     name = topology.names[s]
     kids = topology.children(s)
@@ -920,7 +920,7 @@ def _bone_directions(topology, joints, families, s: int, all_v, all_known, fail)
         fail(f"'{name}' and its child '{topology.names[c]}' are never known in one frame")
     rot_s = matrix_from_quat(all_v[both, s, :4])  # (N, 3, 3)
     child_origin = np.einsum("nba,nb->na", rot_s, all_v[both, c, 4:] - all_v[both, s, 4:])
-    bend = np.mean(child_origin - est_c.centre_in_parent, axis=0)  # child's centre → its camera, in s's frame
+    bend = np.median(child_origin - est_c.centre_in_parent, axis=0)  # child's centre → its camera, in s's frame
     bone = est_c.centre_in_parent - est_s.centre_in_child
     if est_s.axis_in_child is not None and name in families:  # its own centre's place on its own axis: not known yet
         bone = bone - (bone @ est_s.axis_in_child) * est_s.axis_in_child

@@ -50,6 +50,7 @@ from ..io.capture_folder import MANIFEST_FILE, RIG_FILE, changed_files, file_sta
 from .cluster import Executor, open_executor
 from .config import RunConfig
 from .peak_memory import out_of_memory, peak_mb, reset_peak, stage_out_of_memory
+from .slips import SlipRepair, repair_slips
 
 #: Seconds a run waits for the output folder's lock (a model saved in ``bcmocap view`` holds it for milliseconds)
 #: before refusing to start beside another command.
@@ -732,17 +733,16 @@ def _stage_initial(ctx: RunContext) -> dict:
             "slipped_camera_frames_left_out": int(repair.left_out.sum())}
 
 
-def _repaired_slips(ctx: RunContext, poses, registered, fps: float, metres_per_unit: float):
+def _repaired_slips(ctx: RunContext, poses: np.ndarray, registered: np.ndarray, fps: float,
+                    metres_per_unit: float) -> SlipRepair:
     """The capture's registrations with the body's and each camera's slips onto a repeated pattern's copy undone
     (:func:`~bcmocap.pipeline.slips.repair_slips`), each ``log``-ged; the solve reads no measurement of a camera-frame
     moved or left out (it was made on the copy)."""
-    from .slips import repair_slips
-
     repair = repair_slips(poses, registered, fps, metres_per_unit)
     for slip in repair.slips:
         ctx.log(f"initial: capture: between frames {slip.frame - 1} and {slip.frame} {slip.cameras} cameras "
                 f"registered in both jumped {100 * metres_per_unit * np.linalg.norm(slip.jump):.0f} cm together, "
-                "further than a body moves (a repeated pattern's copy): the frames after it are moved back")
+                "further than a body moves (a repeated pattern's copy): the side with fewer registrations is moved back")
     if repair.changed.any():
         ctx.log(f"initial: capture: {int(repair.moved.sum())} registered camera-frames moved back from a slip onto a "
                 f"repeated pattern's copy and {int(repair.left_out.sum())} left out as unregistered; the solve reads "

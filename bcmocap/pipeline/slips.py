@@ -1,15 +1,15 @@
 """Whole-body slips of a trial's registrations: every camera jumping at once by a repeated pattern's period.
 
 In a room of repeated tiles the frontend can carry a trial's registrations onto a copy of the pattern: from one
-frame on, every camera is registered a tile's period away from where it was (the studio's realistic walk in the
-repeated room, seed 2: all 15 registered cameras 1.33 m off over the last 24 of 75 frames), consistently with one
-another, so no check between the cameras of a frame sees it. Between two consecutive frames the body cannot move
-that far: :func:`find_slips` finds the frame pairs whose cameras, in the median, moved further than a body moves
-(``max_speed_m_s``), and :func:`undo_slips` moves each stretch between slips back by the jumps that separate it from
-the stretch with the most registrations (each jump: the cameras' median displacement at the slip less the body's
-median displacement over the frame pairs on either side). Cameras do not all slip at the same frame, and some come
-back earlier: :func:`repair_slips` then moves each camera-frame that lies further from the frame's median camera than
-any camera sits on a body by the slips' jumps that bring it back, and leaves out those no jump brings back.
+frame on, the cameras are registered a tile's period away from where they were (the studio's realistic walk in the
+repeated room, seed 2: most of its cameras 1.3 m off from frame 51 of 75 on, a few from earlier, some back before the
+end), consistently with one another, so no check between the cameras of a frame sees it. Between two consecutive frames the body cannot move
+that far: :func:`find_slips` finds the frame pairs where cameras registered in both jumped further than a body
+moves (``max_speed_m_s``), and :func:`undo_slips` moves each stretch between slips back by the jumps that separate it
+from the stretch with the most registrations (each jump: the median step of the cameras that jumped, less the
+body's motion over the pairs on either side). Cameras do not all slip at the same frame, and some come back earlier:
+:func:`repair_slips` then follows each camera's own step, less the body's, moves a frame that jumps faster than a
+limb by the difference between two stretches' places that joins it back, and leaves out those that none does.
 
 Poses are ``world_from_camera`` wxyz_xyz in any frame whose unit is ``metres_per_unit`` metres (the reference
 model's, with the world stage's scale).
@@ -35,20 +35,27 @@ class Slip:
     cameras: int
 
 
-def _displacements(positions: np.ndarray, registered: np.ndarray, min_cameras: int) -> np.ndarray:
-    """``(T - 1, 3)`` the median displacement of the cameras registered in frames ``t`` and ``t + 1`` (NaN where
-    fewer than ``min_cameras`` are)."""
-    both = registered[:-1] & registered[1:]
-    step = positions[1:] - positions[:-1]
-    out = np.full((len(step), 3), np.nan)
-    for t in np.flatnonzero(both.sum(axis=1) >= min_cameras):
-        out[t] = np.median(step[t, both[t]], axis=0)
-    return out
+def _verdict_pairs(registered: np.ndarray, min_cameras: int, max_gap: int) -> list[tuple[int, int, np.ndarray]]:
+    """``(t, u, cameras)``: each frame ``t`` with the next frame ``u`` (at most ``max_gap`` later) where at least
+    ``min_cameras`` cameras are registered in both, and those cameras ``(C,)`` bool (a sparse frame is stepped over)."""
+    pairs = []
+    for t in range(len(registered) - 1):
+        for u in range(t + 1, min(t + max_gap, len(registered) - 1) + 1):
+            both = registered[t] & registered[u]
+            if both.sum() >= min_cameras:
+                pairs.append((t, u, both))
+                break
+    return pairs
 
 
 def find_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: float, metres_per_unit: float, *,
-               max_speed_m_s: float = 10.0, noise_m: float = 0.05, min_cameras: int = 3) -> list[Slip]:
-    """The frame pairs where the cameras registered in both moved, in the median, further than the body can.
+               max_speed_m_s: float = 12.0, noise_m: float = 0.05, min_cameras: int = 3, max_gap: int = 5) -> list[Slip]:
+    """The frame pairs where at least ``min_cameras`` cameras registered in both jumped further than the body can move.
+
+    Each frame is paired with the next one (at most ``max_gap`` frames on) where ``min_cameras`` cameras are registered
+    in both. The body's motion over a pair is the median step of its cameras where that fits ``max_speed_m_s`` (plus
+    ``noise_m``) over the time between them, else the mean of the nearest such pairs on either side; the cameras whose
+    step, less that motion, exceeds the limit jumped.
 
     Args:
         world_from_camera: ``(T, C, 7)`` registered poses (only registered rows are read).
@@ -56,12 +63,12 @@ def find_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: float
         metres_per_unit: metres per unit of the poses' positions.
         max_speed_m_s: fastest the body moves (a sprinter's peak is about 12 m/s; the limbs' cameras, which swing
             faster, are outvoted by the median); noise_m: registration noise allowed on top (m).
-        min_cameras: fewer cameras registered in both frames give no verdict.
+        min_cameras: fewer cameras registered in both frames (or jumping) give no verdict.
+        max_gap: frames looked ahead for a frame to pair with.
 
     Returns:
-        The slips in frame order; ``jump`` is the median displacement of the cameras that jumped less the body's
-        motion (the mean median displacement of the nearest verdict-giving pairs on either side that are not slips
-        themselves), in the poses' units.
+        The slips in frame order (``frame``: the pair's later frame); ``jump`` is the median step of the cameras that
+        jumped less the body's motion, in the poses' units.
     """
     world_from_camera = np.asarray(world_from_camera, np.float64)
     registered = np.asarray(registered, bool)
@@ -70,21 +77,25 @@ def find_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: float
                          f"and {registered.shape}")
     if not (fps > 0 and metres_per_unit > 0):
         raise ValueError(f"find_slips: fps and metres_per_unit must be > 0, got {fps} and {metres_per_unit}")
-    if len(registered) < 2:
-        return []
-    moved = _displacements(world_from_camera[..., 4:], registered, min_cameras)
-    limit = (max_speed_m_s / fps + noise_m) / metres_per_unit
-    slipped = np.linalg.norm(moved, axis=1) > limit  # NaN compares False
-    body = np.where(slipped[:, None], np.nan, moved)
-    slips = []
     positions = world_from_camera[..., 4:]
-    for t in np.flatnonzero(slipped):
-        around = [body[k] for k in (_nearest(body, t, -1), _nearest(body, t, 1)) if k is not None]
-        motion = np.mean(around, axis=0) if around else np.zeros(3)
-        both = registered[t] & registered[t + 1]
-        step = positions[t + 1, both] - positions[t, both]
-        jumped = np.linalg.norm(step - motion, axis=1) > limit  # the cameras that slipped here (some did earlier)
-        slips.append(Slip(int(t + 1), np.median(step[jumped], axis=0) - motion, int(jumped.sum())))
+    pairs = _verdict_pairs(registered, min_cameras, max_gap)
+    limit = lambda gap: (max_speed_m_s * gap / fps + noise_m) / metres_per_unit  # noqa: E731
+    steps = [positions[u, both] - positions[t, both] for t, u, both in pairs]
+    medians = np.array([np.median(step, axis=0) for step in steps]).reshape(-1, 3)
+    gaps = np.array([u - t for t, u, _ in pairs])
+    fast = np.linalg.norm(medians, axis=1) > np.array([limit(g) for g in gaps])
+    rate = np.where(fast[:, None], np.nan, medians / np.maximum(gaps, 1)[:, None])  # the body's motion per frame
+    slips = []
+    for k in np.flatnonzero(fast):
+        t, u, both = pairs[k]
+        around = [rate[m] for m in (_nearest(rate, k, -1), _nearest(rate, k, 1)) if m is not None]
+        motion = (np.mean(around, axis=0) if around else np.zeros(3)) * gaps[k]
+        jumped = np.linalg.norm(steps[k] - motion, axis=1) > limit(gaps[k])  # some cameras may have slipped before
+        if jumped.sum() < min_cameras:
+            continue
+        jump = np.median(steps[k][jumped], axis=0) - motion
+        if np.linalg.norm(jump) > limit(gaps[k]):
+            slips.append(Slip(int(u), jump, int(jumped.sum())))
     return slips
 
 
@@ -108,6 +119,9 @@ def undo_slips(world_from_camera: np.ndarray, registered: np.ndarray, slips: lis
     world_from_camera = np.array(world_from_camera, np.float64)
     registered = np.asarray(registered, bool)
     bounds = [0, *(s.frame for s in slips), len(registered)]
+    if any(a >= b for a, b in zip(bounds[:-1], bounds[1:])):
+        raise ValueError(f"undo_slips: slip frames {[s.frame for s in slips]} are not increasing within (0, "
+                         f"{len(registered)})")
     counts = [int(registered[a:b].sum()) for a, b in zip(bounds[:-1], bounds[1:])]
     anchor = int(np.argmax(counts))
     offsets = np.zeros((len(counts), 3))  # each stretch's position relative to the anchor's
@@ -142,46 +156,53 @@ class SlipRepair:
 
 
 def repair_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: float, metres_per_unit: float, *,
-                 max_limb_speed_m_s: float = 15.0, noise_m: float = 0.05, min_cameras: int = 3,
-                 **limits) -> SlipRepair:
-    """The body's slips undone (:func:`find_slips`, :func:`undo_slips`), then each camera's own slips.
+                 max_speed_m_s: float = 12.0, max_limb_speed_m_s: float = 15.0, noise_m: float = 0.05,
+                 min_cameras: int = 3, max_gap: int = 5) -> SlipRepair:
+    """The body's slips undone (:func:`find_slips` with ``max_speed_m_s``, ``noise_m``, ``min_cameras``, ``max_gap``;
+    :func:`undo_slips`), then each camera's own slips.
 
-    A camera's step between two of its registered frames, less the body's (the median step of the cameras registered
-    in both, at least ``min_cameras``), is at most what a limb moves (``max_limb_speed_m_s`` times the time between
-    them, plus ``noise_m``). The camera's registered frames are cut where a step is more; from the longest piece
-    outwards each frame is kept where its step from the last kept frame fits, else moved by the difference between
-    two stretches' places (the sum of the body's jumps between them, either sign) that makes it fit (of those that do,
-    the one nearest the last kept frame's move);
-    else left out, as are the frames that go on from a left-out one within a limb's step.
-    ``limits``: :func:`find_slips`'s."""
+    A camera's step between two of its registered frames, less the body's (the median step of the other cameras
+    registered in both, at least ``min_cameras``, as the body's slips left them), is at most what a limb moves
+    (``max_limb_speed_m_s`` times the time between them, plus ``noise_m``). The camera's registered frames are cut
+    where a step is more, and where a slip of the body lies between two of them. From the piece with the most frames in the stretch the body's slips left in place (the
+    longest, where none is), each frame outwards is kept where its step from the last kept frame fits, else moved by
+    the difference between two stretches' places (the body's jumps between them, either sign) that makes it fit (of
+    those, the one that joins it best where a slip of the body lies between them, else the nearest the last kept
+    frame's move), else left out; a frame that goes on from a left-out one within a limb's step takes no move of zero,
+    however long the gap behind it. A frame too few other cameras share with the
+    last kept one takes the last kept frame's move."""
     registered = np.asarray(registered, bool)
     given = np.asarray(world_from_camera, np.float64)
-    slips = find_slips(given, registered, fps, metres_per_unit, min_cameras=min_cameras, **limits)
-    poses, _ = undo_slips(given, registered, slips)
+    slips = find_slips(given, registered, fps, metres_per_unit, max_speed_m_s=max_speed_m_s, noise_m=noise_m,
+                       min_cameras=min_cameras, max_gap=max_gap)
+    poses, undone = undo_slips(given, registered, slips)
     # a camera left on one stretch's copy while the body moved to another's: the differences of the stretches' places
     places = np.concatenate([np.zeros((1, 3)), np.cumsum([slip.jump for slip in slips], axis=0).reshape(-1, 3)])
     candidates = np.unique(np.round((places[:, None] - places[None]).reshape(-1, 3), 12), axis=0)
     step_limit = (max_limb_speed_m_s / fps + noise_m) / metres_per_unit
+    body = poses[..., 4:].copy()  # the other cameras' places, as the body's slips left them (no order dependence)
     positions = poses[..., 4:]
 
     def own_step(c: int, a: int, b: int) -> np.ndarray | None:
-        """Camera ``c``'s step from frame ``a`` to ``b`` less the body's (None: too few cameras in both)."""
+        """Camera ``c``'s step from frame ``a`` to ``b`` less the body's (None: too few other cameras in both)."""
         both = registered[a] & registered[b]
         both[c] = False
         if both.sum() < min_cameras:
             return None
-        return positions[b, c] - positions[a, c] - np.median(positions[b, both] - positions[a, both], axis=0)
+        return positions[b, c] - positions[a, c] - np.median(body[b, both] - body[a, both], axis=0)
 
     left_out = np.zeros_like(registered)
+    slip_frames = [slip.frame for slip in slips]
     for c in range(registered.shape[1]):
         frames = np.flatnonzero(registered[:, c])
         if len(frames) < 2:
             continue
         steps = [own_step(c, a, b) for a, b in zip(frames[:-1], frames[1:])]
-        cuts = [i + 1 for i, (step, gap) in enumerate(zip(steps, np.diff(frames)))
-                if step is not None and np.linalg.norm(step) > step_limit * gap]
+        cuts = [i + 1 for i, (step, a, b) in enumerate(zip(steps, frames[:-1], frames[1:]))  # and at the body's slips
+                if step is not None and np.linalg.norm(step) > step_limit * (b - a)
+                or any(a < frame <= b for frame in slip_frames)]
         pieces = np.split(np.arange(len(frames)), cuts)
-        anchor = pieces[int(np.argmax([len(p) for p in pieces]))]
+        anchor = max(pieces, key=lambda piece: (int(np.sum(~undone[frames[piece]])), len(piece)))
         for start, order in ((frames[anchor[-1]], frames[anchor[-1] + 1:]), (frames[anchor[0]], frames[:anchor[0]][::-1])):
             # outwards from the longest piece, each frame from the last kept; a frame that goes on from a left-out
             # one within a limb's step is on the same copy, however far the last kept frame lies behind
@@ -189,7 +210,7 @@ def repair_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: flo
             for f in map(int, order):
                 step = own_step(c, last, f)
                 if step is None:
-                    last, previous = f, None
+                    positions[f, c] += shift
                     continue
                 fits = np.linalg.norm(step + candidates, axis=1) <= step_limit * abs(f - last)
                 if previous is not None:
@@ -199,8 +220,13 @@ def repair_slips(world_from_camera: np.ndarray, registered: np.ndarray, fps: flo
                 if not fits.any():
                     left_out[f, c], previous = True, f
                     continue
-                # of the moves that fit, the one nearest the last kept frame's (a camera stays on its copy)
-                shift = candidates[fits][np.argmin(np.linalg.norm(candidates[fits] - shift, axis=1))]
+                # of the moves that fit: across a slip of the body, the one that joins the frame best (a camera that
+                # did not slip with the body was moved with it); elsewhere the nearest the last kept frame's (a camera
+                # stays on its copy)
+                if any(min(f, last) < frame <= max(f, last) for frame in slip_frames):
+                    shift = candidates[fits][np.argmin(np.linalg.norm(step + candidates[fits], axis=1))]
+                else:
+                    shift = candidates[fits][np.argmin(np.linalg.norm(candidates[fits] - shift, axis=1))]
                 positions[f, c] += shift
                 last, previous = f, None
     repaired = registered & ~left_out
