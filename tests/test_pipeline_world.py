@@ -221,6 +221,6 @@ def test_the_skeleton_stage_logs_what_the_estimate_warns(monkeypatch):
     config = RunConfig().with_overrides({"skeleton.unregistered_ends": "raise"})
     logged = []
     ctx = types.SimpleNamespace(capture=types.SimpleNamespace(cameras=[]), config=config, log=logged.append)
-    assert run._estimate_skeleton(ctx, lambda poses: poses, None, None, None) == "estimate"
+    assert run._estimate_skeleton(ctx, Similarity.identity(), None, None, None) == "estimate"
     assert logged == ["skeleton: joint 'left_foot': its centre is 'right_foot''s mirrored"]
     assert seen["options"].unregistered_ends == "raise"

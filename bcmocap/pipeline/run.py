@@ -39,6 +39,7 @@ import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -51,6 +52,9 @@ from .cluster import Executor, open_executor
 from .config import RunConfig
 from .peak_memory import out_of_memory, peak_mb, reset_peak, stage_out_of_memory
 from .slips import SlipRepair, repair_slips
+
+if TYPE_CHECKING:
+    from .world import Similarity
 
 #: Seconds a run waits for the output folder's lock (a model saved in ``bcmocap view`` holds it for milliseconds)
 #: before refusing to start beside another command.
@@ -528,19 +532,21 @@ def _refine_registered_poses(ctx: RunContext) -> None:
     write_json_atomic(folder / "summary.json", summary)
 
 
-def _more_trials(ctx: RunContext, to_world) -> list[tuple[np.ndarray, np.ndarray]]:
+def _more_trials(ctx: RunContext, to_world: Similarity) -> list[tuple[np.ndarray, np.ndarray]]:
     """Camera poses and registered masks of the trials besides the ROM trial in ``skeleton.centre_trials``
-    (through ``to_world``, as the ROM trial's)."""
+    (through ``to_world``, as the ROM trial's), their slips onto a repeated pattern's copy repaired as the initial
+    stage repairs them (:func:`~bcmocap.pipeline.slips.repair_slips`, with ``to_world``'s scale)."""
     from ..correspondence_store import CorrespondenceStore
 
     out = []
     for trial in ctx.config.skeleton.centre_trials[1:]:
-        poses, registered = _registered_poses(ctx, trial, CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences")))
-        out.append((to_world(poses), registered))
+        store = CorrespondenceStore.open(ctx.path("frontend", trial, "correspondences"))
+        repair = repair_slips(*_registered_poses(ctx, trial, store), store.fps, to_world.scale)
+        out.append((to_world.poses(repair.world_from_camera), repair.registered))
     return out
 
 
-def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest, log=None):
+def _estimate_skeleton(ctx: RunContext, to_world: Similarity, poses, registered, rest, log=None):
     """Skeleton and mounts from the ROM trial (camera poses through ``to_world``), its joint centres fitted to the
     motion of ``skeleton.centre_trials``. Pixel-registered poses are noisier than the 2 cm default certainty of
     :class:`~bcmocap.kinematics.rom.RomOptions` allows for a small joint like the ankle (3.0 cm for the left ankle
@@ -554,7 +560,7 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest, log=N
     log = ctx.log if log is None else log
     carried = _gyro_rest_orientations(ctx, poses, registered, rest, log)
     if carried is not None:  # the similarity turns orientations as it turns poses
-        carried = to_world(np.concatenate([carried, np.zeros((len(carried), 3))], axis=1)[None])[0, :, :4]
+        carried = to_world.poses(np.concatenate([carried, np.zeros((len(carried), 3))], axis=1)[None])[0, :, :4]
     more_trials = _more_trials(ctx, to_world)
     siblings = _sibling_rotations_from_gyros(ctx, [("rom", poses, registered)] + [
         (trial, p, r) for trial, (p, r) in zip(settings.centre_trials[1:], more_trials)], options.min_frames, log)
@@ -562,7 +568,7 @@ def _estimate_skeleton(ctx: RunContext, to_world, poses, registered, rest, log=N
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             estimate = skeleton_from_range_of_motion(
-                _topology(ctx), cams, to_world(poses), registered, rest_frames=rest, options=options,
+                _topology(ctx), cams, to_world.poses(poses), registered, rest_frames=rest, options=options,
                 intrinsics=_stacked_intrinsics(ctx), root_origin=list(settings.root_origin),
                 more_trials=more_trials, rest_orientations=carried, sibling_rotations=siblings)
     except ValueError as exc:
@@ -683,7 +689,7 @@ def _stage_world(ctx: RunContext) -> dict:
         raise ValueError(f"world: no camera of the root segment '{root}' ({', '.join(ctx.capture.cameras[i].name for i in root_cameras)}) "
                          f"is registered in the rest frames of the range-of-motion trial ({list(_rest_seconds(ctx))} s "
                          "after the first clap), which set the world's up direction and floor")
-    est = _estimate_skeleton(ctx, provisional.poses, poses, registered, rest, log=lambda text: None)  # logged by the skeleton stage
+    est = _estimate_skeleton(ctx, provisional, poses, registered, rest, log=lambda text: None)  # logged by the skeleton stage
     measurements = _subject(ctx)["measurements"]
     factor = scale_from_measurements(est.skeleton, measurements, f"{ctx.capture.path / 'capture.json'}: subject.measurements")
     rest_motion = motion_from_camera_poses(est.skeleton, est.rig, provisional.poses(poses)[rest], registered[rest], robust=True)
@@ -702,7 +708,7 @@ def _stage_skeleton(ctx: RunContext) -> dict:
     from .world import load_similarity
 
     poses, registered, rest = _rom_inputs(ctx)
-    est = _estimate_skeleton(ctx, load_similarity(ctx.out).poses, poses, registered, rest)
+    est = _estimate_skeleton(ctx, load_similarity(ctx.out), poses, registered, rest)
     write_json_atomic(ctx.path("model", "skeleton.json"), skeleton_to_dict(est.skeleton))
     write_json_atomic(ctx.path("model", "rig.json"), rig_to_dict(est.rig, est.skeleton))
     with atomic_path(ctx.path("model", "rom_summary.txt"), suffix=".txt") as tmp:
