@@ -329,13 +329,20 @@ def _two_legged_model():
     return skeleton, Rig.from_mounts(skeleton, mounts)
 
 
-def test_an_end_segment_never_registered_mirrors_its_other_side():
+@pytest.fixture(scope="module")
+def two_legs():
+    """The two-legged model (:func:`_two_legged_model`) and its noiseless range-of-motion trial, every frame registered
+    (tests copy what they change)."""
+    skeleton, rig = _two_legged_model()
+    return skeleton, rig, range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0,
+                                                missing_fraction=0.0, **TRIAL)
+
+
+def test_an_end_segment_never_registered_mirrors_its_other_side(two_legs):
     # The left foot's camera registers in no frame: by default that stops the estimate; with unregistered_ends =
     # "mirror" the left ankle and the camera's mount are the right's mirrored through the midplane (the plane
     # between the hips), exactly so on a body that is symmetric, and the rest of the estimate is as before.
-    skeleton, rig = _two_legged_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
-                                  **TRIAL)
+    skeleton, rig, trial = two_legs
     registered = trial.registered.copy()
     foot = rig.index("left_foot")
     registered[:, foot] = False
@@ -360,13 +367,11 @@ def test_an_end_segment_never_registered_mirrors_its_other_side():
         RomOptions(unregistered_ends="drop")
 
 
-def test_an_undetermined_joint_whose_other_side_is_left_out_says_why_it_is_not_mirrored():
+def test_an_undetermined_joint_whose_other_side_is_left_out_says_why_it_is_not_mirrored(two_legs):
     # The grid's failure at 8e7bf77 (run, sparse room, seed 2): the left foot's camera registers too little, so the
     # left foot is left out to be mirrored from the right, and the right ankle moves too little to be determined;
     # neither side can then give the other, and the error says so rather than only that the ankle is undetermined.
-    skeleton, rig = _two_legged_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
-                                  **TRIAL)
+    skeleton, rig, trial = two_legs
     rotations = np.asarray(trial.motion.rotations)
     ankle = np.degrees(2 * np.arccos(np.clip(np.abs(rotations[:, skeleton.index("right_foot"), 0]), 0, 1)))
     registered = trial.registered.copy()
@@ -385,7 +390,7 @@ def test_an_undetermined_joint_whose_other_side_is_left_out_says_why_it_is_not_m
                                       rest_frames=range(15), options=RomOptions(unregistered_ends="mirror"))
 
 
-def test_a_segment_no_rest_frame_registers_takes_its_other_sides_rest_orientation_mirrored():
+def test_a_segment_no_rest_frame_registers_takes_its_other_sides_rest_orientation_mirrored(two_legs):
     # The grid's failure at 8e7bf77 (jump, sparse room, seed 0): the left upper arm's camera registered elsewhere but
     # in no rest frame, and no gyro carried it there. With unregistered_rest = "mirror" the segment is turned so that
     # its bone and its child joint's bend are its other side's, mirrored through the midplane: exact on a symmetric
@@ -393,9 +398,7 @@ def test_a_segment_no_rest_frame_registers_takes_its_other_sides_rest_orientatio
     # within a thousandth of a degree through a ball joint (the shin above the ankle: the mean side of the foot camera,
     # which the two feet's different motions move). The hinges' flexion sides are as before (with the right thigh
     # mirrored, the median sign of the right knee's angles over frames mostly at rest was that of 1e-11 noise).
-    skeleton, rig = _two_legged_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
-                                  **TRIAL)
+    skeleton, rig, trial = two_legs
     rest = np.asarray(trial.rest_frames)
     full = skeleton_from_range_of_motion(skeleton, trial.assignment, trial.world_from_camera, trial.registered,
                                          rest_frames=rest)
@@ -431,13 +434,11 @@ def test_a_segment_no_rest_frame_registers_takes_its_other_sides_rest_orientatio
         RomOptions(unregistered_rest="carry")
 
 
-def test_an_end_joint_the_trial_did_not_move_mirrors_its_other_side():
+def test_an_end_joint_the_trial_did_not_move_mirrors_its_other_side(two_legs):
     # The left foot's camera is registered everywhere but while its ankle turns: its centre is undetermined, which
     # stops the estimate by default; with unregistered_ends = "mirror" it is the right ankle's mirrored (exact on a
     # symmetric body), the camera's mount still found from its own frames.
-    skeleton, rig = _two_legged_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
-                                  **TRIAL)
+    skeleton, rig, trial = two_legs
     ankle = np.degrees(2 * np.arccos(np.clip(np.abs(np.asarray(trial.motion.rotations)[:, skeleton.index("left_foot"), 0]), 0, 1)))
     registered = trial.registered.copy()
     registered[ankle > 0.01, rig.index("left_foot")] = False
@@ -452,14 +453,12 @@ def test_an_end_joint_the_trial_did_not_move_mirrors_its_other_side():
     assert_same_mounts(est.segment_from_camera, full.segment_from_camera, 1e-9)
 
 
-def test_a_hip_the_trial_did_not_move_mirrors_its_other_side():
+def test_a_hip_the_trial_did_not_move_mirrors_its_other_side(two_legs):
     # The left thigh's camera is registered only while its hip is still: a joint with children, so
     # unregistered_ends does not reach it and it stops the estimate; with degenerate = "mirror" it is the right hip's
     # centre mirrored (exact on a symmetric body), through the midplane the ankles fix (the hips are the pair at
     # fault, and the knees are placed from the hips), which _midplane_pair picks.
-    skeleton, rig = _two_legged_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
-                                  **TRIAL)
+    skeleton, rig, trial = two_legs
     rotations = np.asarray(trial.motion.rotations)
     hip = {side: np.degrees(2 * np.arccos(np.clip(np.abs(rotations[:, skeleton.index(f"{side}_thigh"), 0]), 0, 1)))
            for side in ("left", "right")}
@@ -494,7 +493,7 @@ def test_a_hip_the_trial_did_not_move_mirrors_its_other_side():
                                       rest_frames=range(15), options=RomOptions(degenerate="mirror"))
 
 
-def test_a_joint_moved_little_about_one_axis_keeps_its_centre_where_the_fit_pins_it():
+def test_a_joint_moved_little_about_one_axis_keeps_its_centre_where_the_fit_pins_it(two_legs):
     # The torso of the two-legged model turns about its left-right axis, and about its vertical axis by a fraction k of
     # that: with k = 0.2 the vertical direction's spread is 0.033, under min_spread (0.05) but over half of it, and
     # the (noiseless) fit pins the centre, so degenerate = "mirror" keeps it, warning, where the default raises; with
@@ -503,9 +502,7 @@ def test_a_joint_moved_little_about_one_axis_keeps_its_centre_where_the_fit_pins
     from bcmocap.kinematics.rig import camera_poses
     from bcmocap.kinematics.skeleton import Motion
 
-    skeleton, rig = _two_legged_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
-                                  **TRIAL)
+    skeleton, rig, trial = two_legs
     rotations = np.array(trial.motion.rotations)
     torso = rotations[:, skeleton.index("torso")]
     angle = 2 * np.arctan2(np.linalg.norm(torso[:, 1:], axis=1), np.abs(torso[:, 0])) * np.sign(torso[:, 1] + 1e-12)
@@ -531,12 +528,10 @@ def test_a_joint_moved_little_about_one_axis_keeps_its_centre_where_the_fit_pins
         skeleton_from_range_of_motion(*args(0.1), rest_frames=range(15), options=RomOptions(degenerate="mirror"))
 
 
-def test_a_knee_the_trials_saw_too_little_is_an_error_that_names_it_not_a_mirror():
+def test_a_knee_the_trials_saw_too_little_is_an_error_that_names_it_not_a_mirror(two_legs):
     # degenerate = "mirror" mirrors ball joints only: a hinge whose segments are known together in too few frames (the
     # thigh and shin cameras registered together only in the 15 rest frames) stops the estimate with its own message.
-    skeleton, rig = _two_legged_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
-                                  **TRIAL)
+    skeleton, rig, trial = two_legs
     registered = trial.registered.copy()
     thigh, shin = rig.index("left_thigh"), rig.index("left_shin")
     registered[15:, thigh] = np.arange(15, len(registered)) % 2 == 0
@@ -548,14 +543,12 @@ def test_a_knee_the_trials_saw_too_little_is_an_error_that_names_it_not_a_mirror
                                       rest_frames=range(15), options=RomOptions(degenerate="mirror"))
 
 
-def test_a_knee_whose_centre_the_trial_leaves_uncertain_keeps_its_axis_and_takes_the_mirrored_centre():
+def test_a_knee_whose_centre_the_trial_leaves_uncertain_keeps_its_axis_and_takes_the_mirrored_centre(two_legs):
     # The left shin's camera registers with 3 cm of position noise (the right shin's none): its knee, flexed through
     # its range, has a well-fixed axis (rotations alone) but a centre the fit cannot pin to 2 mm; with
     # degenerate = "mirror" it keeps its own axis and takes the right knee's centre, mirrored (exact on this
     # symmetric body), where the default raises.
-    skeleton, rig = _two_legged_model()
-    trial = range_of_motion_trial(skeleton, rig, rotation_sigma_deg=0.0, position_sigma_m=0.0, missing_fraction=0.0,
-                                  **TRIAL)
+    skeleton, rig, trial = two_legs
     poses = np.array(trial.world_from_camera)
     shin = rig.index("left_shin")
     poses[:, shin, 4:] += np.random.default_rng(0).normal(0.0, 0.03, (len(poses), 3))

@@ -59,6 +59,7 @@ from ..geometry import (
     quat_from_matrix,
     quat_multiply,
     rotate_by_quat,
+    rotation_from_covariance,
 )
 from ..precision import require_float64
 from .rig import Rig
@@ -939,12 +940,6 @@ def _bone_directions(topology, joints, families, s: int, all_v, all_known, fail)
     return np.stack([bone / np.linalg.norm(bone), second / np.linalg.norm(second)]), bend, hinge
 
 
-def _rotation_between(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """``(3, 3)`` the rotation taking the unit vectors ``source`` ``(K, 3)`` nearest ``target`` ``(K, 3)`` (Kabsch)."""
-    u, _, vt = np.linalg.svd(target.T @ source)
-    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-
-
 def _mirrored_rest_orientation(topology, joints, families, j, world_from_v_rest, world_v, known, rest, all_v, all_known,
                                why) -> np.ndarray:
     """``(4,)`` the world_from_virtual rest orientation of segment ``j``, which no rest frame registered: the one that
@@ -984,7 +979,8 @@ def _mirrored_rest_orientation(topology, joints, families, j, world_from_v_rest,
     rot_o = matrix_from_quat(world_from_v_rest[o])
     target = (reflect @ rot_o @ theirs.T).T  # polar vectors, and a hinge's axis up to its sign
     target_bend = reflect @ rot_o @ their_bend
-    candidates = [_rotation_between(own, target * np.array([[1.0], [sign]])) for sign in ((1.0, -1.0) if hinge else (1.0,))]
+    candidates = [rotation_from_covariance((target * np.array([[1.0], [sign]])).T @ own)  # Kabsch: own → target
+                  for sign in ((1.0, -1.0) if hinge else (1.0,))]
     rot = max(candidates, key=lambda r: float((r @ own_bend) @ target_bend))
     warnings.warn(f"segment '{name}': none of its cameras is registered in the rest frames and none has a carried rest "
                   f"orientation; its rest orientation puts its bone and its child joint's bend where '{other}''s are, "

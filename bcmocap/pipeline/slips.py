@@ -26,9 +26,10 @@ __all__ = ["Slip", "SlipRepair", "find_slips", "repair_slips", "undo_slips"]
 
 @dataclasses.dataclass(frozen=True)
 class Slip:
-    """Between frames ``frame - 1`` and ``frame`` the registered cameras jumped by ``jump`` ``(3,)`` (the poses'
-    units; the body's own motion taken off): the median over the ``cameras`` cameras registered in both frames that
-    jumped (those that slipped earlier do not)."""
+    """Between ``frame`` and the frame before it that :func:`find_slips` paired it with (the previous one, or a few
+    back over frames too few cameras registered) the registered cameras jumped by ``jump`` ``(3,)`` (the poses' units;
+    the body's own motion taken off): the median over the ``cameras`` cameras registered in both frames that jumped
+    (those that slipped earlier do not)."""
 
     frame: int
     jump: np.ndarray
