@@ -117,6 +117,23 @@ def test_pairs_follow_features_from_one_frame_to_the_next():
     assert len(rotation_pairs([(0, frames[0][1])], lens)) == 0
 
 
+def test_bearings_are_the_lens_rays_and_one_compiled_unprojection_serves_a_bucket():
+    from bcmocap.cameras import _unproject
+    from bcmocap.frontend.gyro_timing import _BEARING_BUCKET, _bearings
+
+    lens = _lens()
+    rng = np.random.default_rng(2)
+    for count in (1, 37, _BEARING_BUCKET, _BEARING_BUCKET + 1):
+        pixels = rng.uniform([0.0, 0.0], [lens.width, lens.height], (count, 2))
+        rays = np.asarray(lens.unproject(pixels))
+        np.testing.assert_allclose(_bearings(lens, pixels), rays / np.linalg.norm(rays, axis=1, keepdims=True),
+                                   rtol=0, atol=1e-15)
+    before = _unproject._cache_size()
+    for count in (5, 300, 999):  # the counts of pairs vary by window; one bucket, no new program
+        _bearings(lens, rng.uniform(0.0, 100.0, (count, 2)))
+    assert _unproject._cache_size() == before
+
+
 def test_gyro_unwarp_reads_the_gyro_at_the_shifted_frame_time():
     ramp = np.array([0.5, 1.0, -2.0])
     plain = GyroUnwarp((_lens(),), _imu(lambda t: ramp * t), (0,), (12,), FPS, READOUT)

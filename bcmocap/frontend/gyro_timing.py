@@ -53,6 +53,8 @@ TABLE_STEP_S = 0.0005
 #: At most this many pairs per camera are weighed (an even subsample of the rest): the search's cost is linear in
 #: them, and past a few thousand the shift's error is the scene's parallax, not their number.
 MAX_PAIRS = 6000
+#: Fewest rows a batch of pixels is unprojected in (padded to a power of two at or above it, :func:`_bearings`).
+_BEARING_BUCKET = 1024
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,10 +123,20 @@ def rotation_pairs(frames, lens, *, max_corners: int = 150, quality: float = 0.0
     frame = np.concatenate([c[0] for c in chunks]).astype(np.int64)
     a = np.concatenate([c[1] for c in chunks]).astype(np.float64)
     b = np.concatenate([c[2] for c in chunks]).astype(np.float64)
-    bearing_a, bearing_b = np.array(lens.unproject(a), np.float64), np.array(lens.unproject(b), np.float64)
-    bearing_a /= np.linalg.norm(bearing_a, axis=1, keepdims=True)
-    bearing_b /= np.linalg.norm(bearing_b, axis=1, keepdims=True)
-    return RotationPairs(frame, bearing_a, bearing_b, a[:, 1], b[:, 1], height)
+    bearings = _bearings(lens, np.concatenate([a, b]))
+    return RotationPairs(frame, bearings[:len(a)], bearings[len(a):], a[:, 1], b[:, 1], height)
+
+
+def _bearings(lens, pixels: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` unit bearings of ``(N, 2)`` pixels through ``lens``, unprojected padded to a power of two (at least
+    :data:`_BEARING_BUCKET` rows), so that the jitted unprojection compiles once per bucket, not once per count of
+    pairs (a window's pairs vary: each new count traced and compiled it again, half of the gyro timing's time)."""
+    size = max(_BEARING_BUCKET, 1 << int(np.ceil(np.log2(max(len(pixels), 1)))))
+    padded = np.concatenate([pixels, np.broadcast_to(np.asarray([[float(lens.width) / 2, float(lens.height) / 2]]),
+                                                     (size - len(pixels), 2))])
+    bearings = np.array(lens.unproject(padded), np.float64)[:len(pixels)]
+    return bearings / np.linalg.norm(bearings, axis=1, keepdims=True)
+
 
 
 def gyro_orientation(imu: ImuRecording, sensor: int, step_s: float = TABLE_STEP_S) -> Callable[[np.ndarray], np.ndarray]:
