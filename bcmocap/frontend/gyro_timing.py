@@ -29,11 +29,13 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..geometry import quat_conjugate, quat_multiply, rotate_by_quat
 from ..io.sensors import ImuRecording, integrate_gyro
+from .threads import default_threads
 
 __all__ = ["ANGLE_SCALE", "GyroTiming", "RotationPairs", "alignment_cost", "estimate_gyro_timing", "gyro_orientation",
            "rotation_pairs", "timing_of_trials", "trial_pairs", "turning_windows"]
@@ -270,9 +272,12 @@ def estimate_gyro_timing(pairs: list[RotationPairs], imu, imu_index, offsets, fp
         costs.append(cost)
     shifts = np.zeros(count)
     contrast = np.zeros(count)
-    for c in range(count):
-        if len(pairs[c]) >= 30:
-            shifts[c], _, contrast[c] = _best_shift(lambda s, c=c: costs[c](s, readout_s), 0.0, search_s)
+    searched = [c for c in range(count) if len(pairs[c]) >= 30]
+    # cameras in threads (numpy's work on thousands of pairs releases the GIL); each camera's search is its own
+    with ThreadPoolExecutor(max_workers=default_threads()) as pool:
+        for c, (shift, _, rise) in zip(searched, pool.map(
+                lambda c: _best_shift(lambda s: costs[c](s, readout_s), 0.0, search_s), searched)):
+            shifts[c], contrast[c] = shift, rise
     determined = contrast >= MIN_CONTRAST
     if not determined.any():
         raise ValueError("estimate_gyro_timing: no camera turned enough in the frames used to time its gyro "
@@ -281,14 +286,20 @@ def estimate_gyro_timing(pairs: list[RotationPairs], imu, imu_index, offsets, fp
     if estimate_readout:
         period = 1.0 / fps
         grid = READOUT_GRID * period
-        total = np.zeros(len(grid))
-        for c in np.flatnonzero(determined):
-            for k, r in enumerate(grid):  # the best shift near this camera's for each readout
-                local = shifts[c] + np.arange(-3 * FINE_STEP_S * 2, 3 * FINE_STEP_S * 2 + 1e-12, 2 * FINE_STEP_S)
-                total[k] += min(costs[c](s, r) for s in local)
-        readout = min(max(_parabola_minimum(grid, total), 0.0), period)
-        for c in np.flatnonzero(determined):
-            shifts[c], _, _ = _best_shift(lambda s, c=c: costs[c](s, readout), shifts[c], 4 * COARSE_STEP_S)
+        local = np.arange(-3 * FINE_STEP_S * 2, 3 * FINE_STEP_S * 2 + 1e-12, 2 * FINE_STEP_S)
+
+        def per_readout(c: int) -> np.ndarray:  # the best shift near this camera's for each readout
+            return np.array([min(costs[c](s, r) for s in shifts[c] + local) for r in grid])
+
+        timed = np.flatnonzero(determined)
+        with ThreadPoolExecutor(max_workers=default_threads()) as pool:
+            total = np.zeros(len(grid))
+            for row in pool.map(per_readout, timed):  # summed in camera order, as one thread would
+                total += row
+            readout = min(max(_parabola_minimum(grid, total), 0.0), period)
+            for c, (shift, _, _) in zip(timed, pool.map(
+                    lambda c: _best_shift(lambda s: costs[c](s, readout), shifts[c], 4 * COARSE_STEP_S), timed)):
+                shifts[c] = shift
     groups = np.zeros(count, np.int64) if groups is None else np.asarray(groups)
     for group in np.unique(groups[~determined]):
         mine = groups == group
@@ -330,11 +341,8 @@ def trial_pairs(capture, trial: str, offsets, span: int, *, windows: int = 8, wi
     Raises:
         ValueError: naming the file when the trial has no gyro recording or a camera none.
     """
-    from concurrent.futures import ThreadPoolExecutor
-
     from ..io.sensors import read_imu
     from .rolling_shutter import gyro_file, imu_indices
-    from .threads import default_threads
 
     path = gyro_file(capture, trial)
     imu = read_imu(path)
