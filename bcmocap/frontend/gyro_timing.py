@@ -130,15 +130,15 @@ def rotation_pairs(frames, lens, *, max_corners: int = 150, quality: float = 0.0
 
 
 def _bearings(lens, pixels: np.ndarray) -> np.ndarray:
-    """``(N, 3)`` unit bearings of ``(N, 2)`` pixels through ``lens``, unprojected padded to a power of two (at least
-    :data:`_BEARING_BUCKET` rows), so that the jitted unprojection compiles once per bucket, not once per count of
-    pairs (a window's pairs vary: each new count traced and compiled it again, half of the gyro timing's time)."""
-    size = max(_BEARING_BUCKET, 1 << int(np.ceil(np.log2(max(len(pixels), 1)))))
+    """``(N, 3)`` unit bearings of ``(N, 2)`` pixels (OpenCV convention) through ``lens``. They are unprojected padded
+    with the image centre to a power of two rows (at least :data:`_BEARING_BUCKET`), the padding dropped after, so that
+    the jitted unprojection compiles once per bucket, not once per count of pairs (a window's pairs vary: each new
+    count traced and compiled it again, half of the gyro timing's time)."""
+    size = max(_BEARING_BUCKET, 1 << (len(pixels) - 1).bit_length())
     padded = np.concatenate([pixels, np.broadcast_to(np.asarray([[float(lens.width) / 2, float(lens.height) / 2]]),
                                                      (size - len(pixels), 2))])
     bearings = np.array(lens.unproject(padded), np.float64)[:len(pixels)]
     return bearings / np.linalg.norm(bearings, axis=1, keepdims=True)
-
 
 
 def gyro_orientation(imu: ImuRecording, sensor: int, step_s: float = TABLE_STEP_S) -> Callable[[np.ndarray], np.ndarray]:
@@ -273,7 +273,8 @@ def estimate_gyro_timing(pairs: list[RotationPairs], imu, imu_index, offsets, fp
     shifts = np.zeros(count)
     contrast = np.zeros(count)
     searched = [c for c in range(count) if len(pairs[c]) >= 30]
-    # cameras in threads (numpy's work on thousands of pairs releases the GIL); each camera's search is its own
+    # cameras in threads (numpy releases the GIL for part of a cost over thousands of pairs); each camera's search is
+    # its own, and the results are taken in camera order
     with ThreadPoolExecutor(max_workers=default_threads()) as pool:
         for c, (shift, _, rise) in zip(searched, pool.map(
                 lambda c: _best_shift(lambda s: costs[c](s, readout_s), 0.0, search_s), searched)):
