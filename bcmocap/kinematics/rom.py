@@ -406,6 +406,7 @@ def skeleton_from_range_of_motion(
     more_trials: Sequence[tuple[np.ndarray, np.ndarray]] = (),
     rest_orientations: np.ndarray | None = None,
     sibling_rotations: Mapping[str, tuple[str, np.ndarray]] | None = None,
+    up: np.ndarray | None = None,
     options: RomOptions = RomOptions(),
 ) -> RomEstimate:
     """Estimate a skeleton and its camera mounts from the camera poses of a range-of-motion trial.
@@ -439,6 +440,11 @@ def skeleton_from_range_of_motion(
             (e.g. from their gyros: :func:`~bcmocap.pipeline.gyro_turns.rotations_from_siblings_by_gyro`). They are
             left out of the estimate, and each one's mount is its sibling's turned by that rotation, at the sibling's
             position: where it sits on the segment is not determined (no term that reads only its turns needs it).
+        up: ``(3,)`` the world's up, where the body's midplane is vertical at rest (the rest pose stands upright): the
+            midplane that mirrors a joint or a rest orientation (``"mirror"`` settings) then holds ``up``, its normal
+            the line between its two centres less that line's part along ``up`` (over a lever of 80 cm, 1° of tilt
+            between the hip centres moves a mirrored ankle by 3 cm). None: the plane normal to that line, as the
+            centres give it.
         options: thresholds and choices (:class:`RomOptions`).
 
     Raises:
@@ -446,7 +452,8 @@ def skeleton_from_range_of_motion(
             too few registered frames in all trials and no other camera on its segment; a joint the trials
             did not exercise (naming it and what is missing); a segment neither registered in the rest frames
             nor given a rest orientation; a ``sibling_rotations`` entry naming an unknown camera, a sibling on
-            another segment or itself placed by a sibling, a camera that is registered, or no quaternion.
+            another segment or itself placed by a sibling, a camera that is registered, or no quaternion; an ``up``
+            that is not a finite non-zero ``(3,)`` vector, or along the line between the midplane's centres.
 
     Warns:
         UserWarning: a camera registered with its segment's other cameras in few frames; a hinge whose
@@ -463,12 +470,12 @@ def skeleton_from_range_of_motion(
         return _with_sibling_mounts(sibling_rotations, topology, pairs, world_from_camera, registered,
                                     rest_frames=rest_frames, intrinsics=intrinsics, root_origin=root_origin,
                                     world_from_rest=world_from_rest, more_trials=more_trials,
-                                    rest_orientations=rest_orientations, options=options)
+                                    rest_orientations=rest_orientations, up=up, options=options)
     ends = _unregistered_ends(topology, pairs, registered, options, [reg for _, reg in more_trials])
     if ends:
         return _with_mirrored_ends(ends, topology, pairs, world_from_camera, registered, rest_frames=rest_frames,
                                    intrinsics=intrinsics, root_origin=root_origin, world_from_rest=world_from_rest,
-                                   more_trials=more_trials, rest_orientations=rest_orientations, options=options)
+                                   more_trials=more_trials, rest_orientations=rest_orientations, up=up, options=options)
     seg_cams = _check_assignment(topology, pairs, world_from_camera, registered, options,
                                  [reg for _, reg in more_trials])
     carried = _check_rest_orientations(rest_orientations, len(pairs))
@@ -481,10 +488,12 @@ def skeleton_from_range_of_motion(
     world_v, known = pooled[0]
     joints, families = _estimate_joint_centres(topology, pooled, more_trials, options)
     all_v, all_known = (np.concatenate(x) for x in zip(*pooled))
+    up = None if up is None else _unit_up(up)
     world_from_v_rest = _rest_pose(topology, joints, families, world_v, known, rest,
                                    _carried_segment_rest(topology, seg_cams, vcs, carried),
                                    mirror=options.unregistered_ends == "mirror",
-                                   mirror_rest=(all_v, all_known) if options.unregistered_rest == "mirror" else None)
+                                   mirror_rest=(all_v, all_known) if options.unregistered_rest == "mirror" else None,
+                                   up=up)
     skeleton, seg_from_v = _segment_frames(topology, joints, world_from_v_rest, world_from_rest, root_origin, all_v, all_known)
     camera_segments = tuple(topology.index(s) for _, s in pairs)
     mounts = np.zeros((len(pairs), 7))
@@ -589,12 +598,36 @@ def _midplane_pair(names, parents, undetermined=frozenset(), placed=frozenset())
                      "is determined to find the body's midplane")
 
 
-def _midplane_reflection(skeleton: Skeleton) -> np.ndarray:
-    """``(3, 3)`` the reflection through the body's midplane in the rest frame (:func:`_hip_pair`)."""
+def _midplane_reflection(skeleton: Skeleton, up: np.ndarray | None = None) -> np.ndarray:
+    """``(3, 3)`` the reflection through the body's midplane in the rest frame (:func:`_hip_pair`; ``up`` ``(3,)`` in
+    the rest frame: :func:`_midplane_normal`)."""
     left, right = _hip_pair(skeleton.names, skeleton.parents)
-    normal = np.asarray(skeleton.offsets)[left] - np.asarray(skeleton.offsets)[right]
-    normal /= np.linalg.norm(normal)
+    normal = _midplane_normal(np.asarray(skeleton.offsets)[left], np.asarray(skeleton.offsets)[right], up)
     return np.eye(3) - 2.0 * np.outer(normal, normal)
+
+
+def _unit_up(up) -> np.ndarray:
+    """``up`` as a ``(3,)`` unit vector (ValueError naming it otherwise)."""
+    up = np.asarray(up, np.float64)
+    if up.shape != (3,) or not np.all(np.isfinite(up)) or np.linalg.norm(up) == 0:
+        raise ValueError(f"skeleton_from_range_of_motion: up must be a non-zero finite (3,) vector, got {up!r}")
+    return up / np.linalg.norm(up)
+
+
+def _midplane_normal(left: np.ndarray, right: np.ndarray, up: np.ndarray | None) -> np.ndarray:
+    """``(3,)`` or ``(N, 3)`` unit normal of the body's midplane from a ``left_``/``right_`` pair of centres (the same
+    shape): the line between them, less its part along ``up`` (unit ``(3,)``) where given (the midplane is vertical at
+    rest). ValueError where that leaves less than half the line (the pair is more above each other than side by
+    side: up is not the body's)."""
+    line = np.asarray(left, np.float64) - np.asarray(right, np.float64)
+    if up is None:
+        return line / (np.linalg.norm(line) if line.ndim == 1 else np.linalg.norm(line, axis=1, keepdims=True))
+    normal = line - (line @ up)[..., None] * up
+    length = np.linalg.norm(normal, axis=-1, keepdims=True)
+    if np.any(length < 0.5 * np.linalg.norm(line, axis=-1, keepdims=True)):
+        raise ValueError(f"the line between the midplane's left_ and right_ centres at rest lies within 30° of up "
+                         f"{np.round(up, 3).tolist()}: up is not the body's (the rest pose stands upright)")
+    return normal / length
 
 
 def _with_mirrored_ends(ends, topology: Topology, pairs, world_from_camera, registered, *, more_trials,
@@ -612,7 +645,10 @@ def _with_mirrored_ends(ends, topology: Topology, pairs, world_from_camera, regi
     intrinsics = kwargs.pop("intrinsics")
     part = _estimate_with_cameras(cams, reduced, pairs, world_from_camera, registered, more_trials=more_trials,
                                   rest_orientations=rest_orientations, options=options, intrinsics=intrinsics, **kwargs)
-    mirror = _midplane_reflection(part.skeleton)
+    up, rest_q = kwargs.get("up"), kwargs.get("world_from_rest")
+    if up is not None and rest_q is not None:  # the offsets are in the rest frame
+        up = matrix_from_quat(np.asarray(rest_q, np.float64) / np.linalg.norm(rest_q)).T @ _unit_up(up)
+    mirror = _midplane_reflection(part.skeleton, None if up is None else _unit_up(up))
     n = len(topology.names)
     offsets, axes = np.zeros((n, 3)), np.zeros((n, 3))
     offsets[keep] = np.asarray(part.skeleton.offsets)
@@ -848,7 +884,7 @@ def _estimate_joint_centres(topology, pooled, more_trials, options):
 
 
 def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest, mirror: bool = False,
-               mirror_rest: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+               mirror_rest: tuple[np.ndarray, np.ndarray] | None = None, up: np.ndarray | None = None) -> np.ndarray:
     """Rest pose (Eq. 17): ``(J, 4)`` world_from_virtual orientations of the segments in the ``rest`` frames
     ``(T,)``; places each hinge-like family's centre on its axis, updating ``joints`` in place.
 
@@ -856,7 +892,7 @@ def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest, m
     orientation, else (``mirror_rest``: the ``(world_v, known)`` of all trials) its other side's mirrored
     (:func:`_mirrored_rest_orientation`), else ValueError; its virtual camera's pose in each rest frame where its
     parent's is known is put where that orientation and the joint centre hang it from the parent (for the families'
-    placement).
+    placement). ``up``: the world's unit up, which the midplane of any mirroring holds (:func:`_midplane_normal`).
     """
     world_v, known = world_v.copy(), known.copy()
     n = len(topology.names)
@@ -873,7 +909,7 @@ def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest, m
             if mirror_rest is None:
                 raise ValueError(why)
             world_from_v_rest[j] = _mirrored_rest_orientation(topology, joints, families, j, world_from_v_rest,
-                                                              world_v, known, rest, *mirror_rest, why)
+                                                              world_v, known, rest, *mirror_rest, why, up)
         q_rest = world_from_v_rest[j]
         p = topology.parents[j]
         hang = rest & known[:, p] if p >= 0 else np.zeros_like(rest)
@@ -892,10 +928,10 @@ def _rest_pose(topology, joints, families, world_v, known, rest, carried_rest, m
         for name, (y0, null) in families.items():
             if null is None:  # a centre the trials did not determine: its other side's, mirrored
                 joints[name] = _resolve_by_mirror(topology, joints, name, np.zeros(6), np.eye(6), world_v,
-                                                  known & rest[:, None], undetermined, placed)
+                                                  known & rest[:, None], undetermined, placed, up)
             else:
                 joints[name] = _resolve_on_axis(topology, joints, name, y0, null, world_v, known & rest[:, None], mirror,
-                                                undetermined, placed)
+                                                undetermined, placed, up)
     return world_from_v_rest
 
 
@@ -941,11 +977,12 @@ def _bone_directions(topology, joints, families, s: int, all_v, all_known, fail)
 
 
 def _mirrored_rest_orientation(topology, joints, families, j, world_from_v_rest, world_v, known, rest, all_v, all_known,
-                               why) -> np.ndarray:
+                               why, up=None) -> np.ndarray:
     """``(4,)`` the world_from_virtual rest orientation of segment ``j``, which no rest frame registered: the one that
     puts its bone and its child joint's bend (:func:`_bone_directions`, from the frames of all trials) where its
     other side's, at rest (``world_from_v_rest`` ``(J, 4)``), mirrored through the body's midplane puts them (the
-    plane halfway between the centres of :func:`_midplane_pair` in the ``rest`` frames of ``world_v``, ``known``).
+    plane halfway between the centres of :func:`_midplane_pair` in the ``rest`` frames of ``world_v``, ``known``,
+    holding ``up`` where given).
     A hinge's axis is a line: of its two directions, the one that puts the child's camera on the mirrored side.
     ValueError (``why`` and what is missing) where that cannot be done; warns naming the segment."""
     name = topology.names[j]
@@ -972,7 +1009,7 @@ def _mirrored_rest_orientation(topology, joints, families, j, world_from_v_rest,
              "the rest frames")
     a, b = (np.mean(apply_pose(world_v[ok, topology.parents[k]], joints[topology.names[k]].centre_in_parent), axis=0)
             for k in (left, right))
-    normal = (a - b) / np.linalg.norm(a - b)
+    normal = _midplane_normal(a, b, up)
     reflect = np.eye(3) - 2.0 * np.outer(normal, normal)
     own, own_bend, hinge = _bone_directions(topology, joints, families, j, all_v, all_known, fail)
     theirs, their_bend, _ = _bone_directions(topology, joints, families, o, all_v, all_known, fail)
@@ -1049,7 +1086,7 @@ def _check_neighbouring_axes(topology, families, world_from_v_rest, max_angle_de
 
 
 def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known, mirror: bool = False,
-                     undetermined=frozenset(), placed=frozenset()) -> JointEstimate:
+                     undetermined=frozenset(), placed=frozenset(), up=None) -> JointEstimate:
     """Pick the point on a hinge's axis that is collinear with the joints above and below at rest (Eq. 17); for a
     joint at the end of a chain (a wrist, an ankle moved about one axis), collinear with the two joints above it
     (the straight limb extended). A neighbour that is itself on an axis is taken where it currently is. With
@@ -1059,7 +1096,7 @@ def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known, mirr
     p = topology.parents[j]
     kids = topology.children(j)
     if mirror and topology.parents[p] == 0 and not kids and _other_side(name) in joints:
-        return _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known, undetermined, placed)
+        return _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known, undetermined, placed, up)
     if topology.parents[p] < 0 or len(kids) > 1 or (not kids and topology.parents[topology.parents[p]] < 0):
         raise ValueError(
             f"joint '{name}': a centre on an axis is fixed by the straight limb of the rest pose — collinear with the "
@@ -1095,11 +1132,11 @@ def _resolve_on_axis(topology, joints, name, y0, null, world_v, rest_known, mirr
 
 
 def _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known, undetermined=frozenset(),
-                       placed=frozenset()) -> JointEstimate:
+                       placed=frozenset(), up=None) -> JointEstimate:
     """The centre ``y0 + null · a`` (``null`` ``(6,)`` a hinge's axis, or ``(6, 6)``: any centre) nearest, over the rest
     frames, its other side's centre mirrored through the midplane (halfway between the centres of a ``left_``/``right_``
-    pair, normal to the line between them: :func:`_midplane_pair`, none of whose centres is ``undetermined``, and
-    preferably none ``placed`` on an axis by the rest pose)."""
+    pair, normal to the line between them and, where ``up`` is given, holding it: :func:`_midplane_pair`, none of whose
+    centres is ``undetermined``, and preferably none ``placed`` on an axis by the rest pose)."""
     j = topology.index(name)
     p = topology.parents[j]
     other = topology.index(_other_side(name))
@@ -1111,7 +1148,7 @@ def _resolve_by_mirror(topology, joints, name, y0, null, world_v, rest_known, un
                          f"'{topology.names[right]}' are never all known in the rest frames")
     wv = world_v[ok]
     a, b = (apply_pose(wv[:, topology.parents[k]], joints[topology.names[k]].centre_in_parent) for k in (left, right))
-    normal = (a - b) / np.linalg.norm(a - b, axis=1, keepdims=True)
+    normal = _midplane_normal(a, b, up)
     target = apply_pose(wv[:, other], joints[topology.names[other]].centre_in_child)
     target = target - 2.0 * np.sum((target - 0.5 * (a + b)) * normal, axis=1, keepdims=True) * normal
     null = np.asarray(null, np.float64).reshape(6, -1)  # (6, k) free directions of y = (c_child, c_parent)

@@ -546,9 +546,11 @@ def _more_trials(ctx: RunContext, to_world: Similarity) -> list[tuple[np.ndarray
     return out
 
 
-def _estimate_skeleton(ctx: RunContext, to_world: Similarity, poses, registered, rest, log=None):
+def _estimate_skeleton(ctx: RunContext, to_world: Similarity, poses, registered, rest, log=None, up=None):
     """Skeleton and mounts from the ROM trial (camera poses through ``to_world``), its joint centres fitted to the
-    motion of ``skeleton.centre_trials``. Pixel-registered poses are noisier than the 2 cm default certainty of
+    motion of ``skeleton.centre_trials``; ``up``: ``(3,)`` the up of ``to_world``'s frame where it has one (the metric
+    Z-up world: a joint or rest orientation mirrored from its other side is then mirrored through a vertical midplane),
+    None for the world stage's provisional frame (the reference model's axes). Pixel-registered poses are noisier than the 2 cm default certainty of
     :class:`~bcmocap.kinematics.rom.RomOptions` allows for a small joint like the ankle (3.0 cm for the left ankle
     of a rendered 3 s trial), hence ``skeleton.max_centre_std_cm`` (5 cm)."""
     from ..kinematics.rom import RomOptions, skeleton_from_range_of_motion
@@ -570,7 +572,7 @@ def _estimate_skeleton(ctx: RunContext, to_world: Similarity, poses, registered,
             estimate = skeleton_from_range_of_motion(
                 _topology(ctx), cams, to_world.poses(poses), registered, rest_frames=rest, options=options,
                 intrinsics=_stacked_intrinsics(ctx), root_origin=list(settings.root_origin),
-                more_trials=more_trials, rest_orientations=carried, sibling_rotations=siblings)
+                more_trials=more_trials, rest_orientations=carried, sibling_rotations=siblings, up=up)
     except ValueError as exc:
         raise ValueError(f"{exc} (run settings: [skeleton] max_centre_std_cm = {settings.max_centre_std_cm:g}, "
                          f"degenerate = {settings.degenerate!r}, centre_trials = {list(settings.centre_trials)}, "
@@ -708,7 +710,7 @@ def _stage_skeleton(ctx: RunContext) -> dict:
     from .world import load_similarity
 
     poses, registered, rest = _rom_inputs(ctx)
-    est = _estimate_skeleton(ctx, load_similarity(ctx.out), poses, registered, rest)
+    est = _estimate_skeleton(ctx, load_similarity(ctx.out), poses, registered, rest, up=np.array([0.0, 0.0, 1.0]))
     write_json_atomic(ctx.path("model", "skeleton.json"), skeleton_to_dict(est.skeleton))
     write_json_atomic(ctx.path("model", "rig.json"), rig_to_dict(est.rig, est.skeleton))
     with atomic_path(ctx.path("model", "rom_summary.txt"), suffix=".txt") as tmp:
