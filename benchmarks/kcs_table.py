@@ -24,6 +24,7 @@ true one (image-plane part and depth magnitude as estimated), the 3D error after
 the per-joint error.
 
     python benchmarks/kcs_table.py [--json FILE] [--cmu-dir DIR] [--paths N] [--sequences 35_01 02_04 ...]
+        [--prior-scale on|off]
 
 Goals: walk35 ≤ 17.0 mm (issue 47, past the paper's 18.94), jump ≤ 36.50 mm (the paper's Table 1).
 """
@@ -248,10 +249,12 @@ def main(argv=None) -> int:
     parser.add_argument("--no-ablation", action="store_true", help="skip the row for the paper's relaxation as printed")
     parser.add_argument("--true-lengths", action="store_true",
                         help="also solve each sequence with its true bone lengths given (the error the lengths carry)")
+    parser.add_argument("--prior-scale", choices=("on", "off"), default=None,
+                        help="KCSOptions.prior_scale for every row (default: the option's default)")
     args = parser.parse_args(argv)
     enable_float64()
     enable_compilation_cache()
-    options = KCSOptions()
+    options = KCSOptions() if args.prior_scale is None else KCSOptions(prior_scale=args.prior_scale == "on")
     chain, trials = load_trials(args.cmu_dir, args.bvh_dir)
     names = args.sequences or [n for n in (*WALK35, *JUMPS, PAPER_JUMP) if n in trials]
     missing = [n for n in names if n not in trials]

@@ -46,7 +46,7 @@ def test_cli_reconstructs_a_csv_capture(tmp_path, capture, capsys):
     data = read_input(folder)
     assert np.isnan(data.joints_2d[3, NAMES.index("lknee")]).all() and np.isfinite(data.joints_2d[4]).all()
     out = tmp_path / "out"
-    assert main(["kcs", str(folder), "--out", str(out), "--fps", "30", "--hinge-weight", "5"]) == 0
+    assert main(["kcs", str(folder), "--out", str(out), "--fps", "30", "--hinge-weight", "5", "--free-scale"]) == 0
     printed = capsys.readouterr().out
     assert "wrote" in printed and "0.3 % joint observations missing" in printed
     rows = list(csv.DictReader(open(out / "joints_3d.csv")))
@@ -57,7 +57,7 @@ def test_cli_reconstructs_a_csv_capture(tmp_path, capture, capsys):
     assert err < 0.6 * start
     report = json.loads((out / "report.json").read_text())
     assert report["frames"] == FRAMES and len(report["reprojection_px"]) == 2 * report["iterations"] + 1
-    assert report["options"]["hinge_weight"] == 5.0
+    assert report["options"]["hinge_weight"] == 5.0 and report["options"]["prior_scale"] is False
     bvh = read_bvh(out / "motion.bvh", up_axis="y")
     assert bvh.motion.num_frames == FRAMES and bvh.frame_time_s == pytest.approx(1 / 30)
     assert "lknee" in bvh.skeleton.names
@@ -146,7 +146,9 @@ def test_cli_refuses_a_huge_csv_frame_number_before_allocating(tmp_path, capture
 
 
 def test_extra_rigid_link_keeps_a_held_object_rigid():
-    """The sword-fight idea (§4.3): front hooves joined by a rigid bar; the link keeps its length constant."""
+    """The sword-fight idea (§4.3): front hooves joined by a rigid bar; the link keeps its length constant and the
+    chain that knows it reconstructs better. (With the lengths' sum free, ``prior_scale=False``, the link also holds
+    the bar steadier than the chain without it: 0.44 % against 0.72 %; held to the prior's sum both are at 0.73 %.)"""
     skeleton, joints, rest = quadruped(seed=1, front_in_phase=True)
     bar = np.linalg.norm(joints[:, NAMES.index("lfhoof")] - joints[:, NAMES.index("rfhoof")], axis=-1)
     assert np.ptp(bar) < 1e-9  # the simulated bar is rigid
@@ -154,10 +156,10 @@ def test_extra_rigid_link_keeps_a_held_object_rigid():
     plain = KinematicChainSpace.from_skeleton(skeleton)
     linked = KinematicChainSpace.from_skeleton(skeleton, extra_links=[("lfhoof", "rfhoof")])
 
-    def spread(chain):
+    def spread_and_error(chain):
         x = np.asarray(reconstruct(chain, uv, rest).joints)
         d = np.linalg.norm(x[:, NAMES.index("lfhoof")] - x[:, NAMES.index("rfhoof")], axis=-1)
-        return d.std() / d.mean()
+        return d.std() / d.mean(), float(np.asarray(aligned_joint_errors(x, np.broadcast_to(joints, x.shape))).mean())
 
-    with_link, without = spread(linked), spread(plain)
-    assert with_link < 0.02 and with_link < without
+    (with_link, error_with), (_, error_without) = spread_and_error(linked), spread_and_error(plain)
+    assert with_link < 0.02 and error_with < 0.95 * error_without, (with_link, error_with, error_without)  # 20.8, 23.0 mm

@@ -62,6 +62,11 @@ def add_kcs_command(sub: argparse._SubParsersAction) -> None:
         "detector's jitter (default 0: none; e.g. 3 at 30 frames/s)",
     )
     kcs.add_argument(
+        "--free-scale",
+        action="store_true",
+        help="let the bone lengths' sum drift with the cameras' scales instead of holding it to the prior's",
+    )
+    kcs.add_argument(
         "--no-bone-lengths",
         action="store_true",
         help="solve Eq. 21 as printed, without the constant-bone-length projection",
@@ -124,6 +129,8 @@ def run_kcs(args: argparse.Namespace) -> int:
         overrides["hinge_weight"] = args.hinge_weight
     if args.keypoint_smoothing is not None:
         overrides["keypoint_smoothing"] = args.keypoint_smoothing
+    if args.free_scale:
+        overrides["prior_scale"] = False
     if args.no_bone_lengths:
         overrides["constant_bone_lengths"] = False
     options = KCSOptions(**overrides)
