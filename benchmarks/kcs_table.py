@@ -24,7 +24,7 @@ true one (image-plane part and depth magnitude as estimated), the 3D error after
 the per-joint error.
 
     python benchmarks/kcs_table.py [--json FILE] [--cmu-dir DIR] [--paths N] [--sequences 35_01 02_04 ...]
-        [--prior-scale on|off]
+        [--prior-scale on|off] [--prior-subjects 01 02 13]
 
 Goals: walk35 ≤ 17.0 mm (issue 47, past the paper's 18.94), jump ≤ 36.50 mm (the paper's Table 1).
 """
@@ -95,10 +95,15 @@ def load_trials(cmu_dir: Path, bvh_dir: Path | None = None) -> tuple[KinematicCh
     return chain, trials
 
 
-def prior_for(name: str, trials: dict[str, np.ndarray], chain: KinematicChainSpace) -> np.ndarray:
+def prior_for(name: str, trials: dict[str, np.ndarray], chain: KinematicChainSpace,
+              subjects: tuple[str, ...] | None = None) -> np.ndarray:
     """Mean pose of all *other* trials (each evenly subsampled to at most 300 frames, so none dominates), kept in a
-    file keyed by that pool (:func:`bcmocap.kcs.pool_mean_pose`): a rerun reads it."""
-    return pool_mean_pose({k: x for k, x in trials.items() if k != name}, chain, max_frames=300)
+    file keyed by that pool (:func:`bcmocap.kcs.pool_mean_pose`): a rerun reads it. ``subjects``: only trials of these
+    CMU subjects (``"02"`` for 02_xx) in the pool."""
+    pool = {k: x for k, x in trials.items() if k != name and (subjects is None or k.split("_")[0] in subjects)}
+    if not pool:
+        raise SystemExit(f"kcs_table: no trial of subjects {subjects} for the prior of {name}")
+    return pool_mean_pose(pool, chain, max_frames=300)
 
 
 def camera_paths(num_frames: int, num_paths: int, rng: np.random.Generator):
@@ -149,13 +154,14 @@ def sign_profile(chain, estimate_camera: np.ndarray, truth_camera: np.ndarray, m
     }
 
 
-def run_sequence(chain, name, trials, num_paths, noise_px, seed, options, true_lengths: bool = False) -> dict:
+def run_sequence(chain, name, trials, num_paths, noise_px, seed, options, true_lengths: bool = False,
+                 prior_subjects: tuple[str, ...] | None = None) -> dict:
     truth = trials[name]
     rng = np.random.default_rng([seed, int(name.replace("_", "")), int(round(noise_px * 10))])
     rotation, scale = camera_paths(len(truth), num_paths, rng)
     images = project(truth, rotation, scale, noise_px, rng)
     start = time.perf_counter()
-    prior = prior_for(name, trials, chain)
+    prior = prior_for(name, trials, chain, prior_subjects)
     result = reconstruct(chain, images, prior, options=options)
     joints = np.asarray(result.joints)
     seconds = time.perf_counter() - start
@@ -251,7 +257,12 @@ def main(argv=None) -> int:
                         help="also solve each sequence with its true bone lengths given (the error the lengths carry)")
     parser.add_argument("--prior-scale", choices=("on", "off"), default=None,
                         help="KCSOptions.prior_scale for every row (default: the option's default)")
+    parser.add_argument("--prior-subjects", nargs="+", metavar="SUBJECT",
+                        help="with --sequences: the prior's pool holds only these subjects' trials (e.g. 01 02 13: "
+                        "a prior from other people than subject 35)")
     args = parser.parse_args(argv)
+    if args.prior_subjects and not args.sequences:
+        parser.error("--prior-subjects needs --sequences (the table's rows keep the paper's pool)")
     enable_float64()
     enable_compilation_cache()
     options = KCSOptions() if args.prior_scale is None else KCSOptions(prior_scale=args.prior_scale == "on")
@@ -264,7 +275,8 @@ def main(argv=None) -> int:
     print(f"{'sequence':<10}{'frames':>7}{'3D err mm':>11}{'MPJPE mm':>10}{'sim. mm':>9}{'iters':>7}{'reproj px':>11}{'s/path':>8}")
     sequences, details = {}, {}
     for name in names:
-        r = run_sequence(chain, name, trials, args.paths, 0.0, args.seed, options, args.true_lengths)
+        r = run_sequence(chain, name, trials, args.paths, 0.0, args.seed, options, args.true_lengths,
+                         tuple(args.prior_subjects) if args.prior_subjects else None)
         sequences[name] = {"error_3d_mm": r["error_3d_mm"], "mpjpe_mm": r["mpjpe_mm"]}
         details[name] = r
         print(f"{name:<10}{r['frames']:>7}{r['error_3d_mm']:>11.2f}{r['mpjpe_mm']:>10.2f}"
