@@ -6,7 +6,8 @@ distance 4–6 m with a 1000 px focal length, i.e. 167–250 px/m; over the sequ
 linearly by up to ±10° in azimuth, ±5° in elevation and ±10 % in distance); 2-D joints by projection
 (optionally with Gaussian noise of σ px per coordinate). The mean pose X0 / B0 comes from *other*
 sequences than the one reconstructed: the generalised-Procrustes mean of all other trials in the data
-(each evenly subsampled to at most 300 frames; subjects 35, 02 and 01, so mostly subject 35's size),
+(each evenly subsampled to at most 300 frames; subjects 35, 02, 01 and 13, so mostly subject 35's size;
+``--prior-subjects`` draws it from some subjects only),
 with each bone at its mean length over those frames. The 20 paths of a sequence are solved
 in one vmapped call.
 
@@ -230,7 +231,7 @@ def time_300(chain, trials, options, seed) -> dict:
     rng = np.random.default_rng(seed)
     rotation, scale = camera_paths(len(truth), 1, rng)
     images = project(truth, rotation, scale, 0.0, rng)[0]
-    prior = prior_for(name, trials, chain)
+    prior = prior_for(name, trials, chain)  # the table's pool, whatever --prior-subjects says: a timing row
     start = time.perf_counter()
     np.asarray(reconstruct(chain, images, prior, options=options).joints)
     first = time.perf_counter() - start
@@ -332,6 +333,7 @@ def main(argv=None) -> int:
         "paths_per_sequence": args.paths,
         "seed": args.seed,
         "options": options.__dict__,
+        "prior_subjects": args.prior_subjects,  # None: the paper's pool (every other trial)
         "joints": list(CMU_JOINTS),
         "timing": timing,
         "ablation": ablation,

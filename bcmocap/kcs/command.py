@@ -64,7 +64,8 @@ def add_kcs_command(sub: argparse._SubParsersAction) -> None:
     kcs.add_argument(
         "--free-scale",
         action="store_true",
-        help="let the bone lengths' sum drift with the cameras' scales instead of holding it to the prior's",
+        help="let the bone lengths' sum drift with the cameras' scales instead of holding it to the prior's "
+        "(no effect with --no-bone-lengths)",
     )
     kcs.add_argument(
         "--no-bone-lengths",

@@ -98,7 +98,9 @@ class KCSOptions:
             drift about 1 % long together with the cameras' scales (on CMU subject 35 walking), where 1 % costs 3 mm.
             On the 23 walks of subject 35 (6 camera paths each) it takes the mean 3-D error from 20.32 to 18.13 mm
             (better on every walk), the jumps 02_04 and 01_01 (other subjects) from 48.35 to 46.00 mm, 13_11 from
-            44.53 to 44.86 mm; the tests' quadruped from 21.6 to 22.9 mm. False leaves the scale to the solve.
+            44.53 to 44.86 mm; the tests' quadruped from 21.6 to 22.9 mm. False leaves the scale to the solve. Without
+            effect where the lengths are given (``reconstruct(..., bone_lengths=)``) or not held
+            (``constant_bone_lengths=False``).
     """
 
     max_iterations: int = 30
@@ -597,7 +599,7 @@ def reconstruct(
             :func:`solve_bones`), so that a new length reuses a compiled program; False solves them as they are.
         bone_lengths: ``(b,)`` or ``(..., b)`` known bone lengths in the mean pose's units (metres), in the order of
             ``chain.links``, e.g. measured on the subject: the constancy projection holds the bones to them instead of
-            to their current mean lengths (None: estimated). Bone lengths carry most of the error left with estimated
+            to their current mean lengths (None: estimated, and with ``options.prior_scale`` scaled to the mean pose's sum). Bone lengths carry most of the error left with estimated
             ones (docs/benchmarks/kcs.md).
 
     Returns:
