@@ -599,8 +599,8 @@ def reconstruct(
             :func:`solve_bones`), so that a new length reuses a compiled program; False solves them as they are.
         bone_lengths: ``(b,)`` or ``(..., b)`` known bone lengths in the mean pose's units (metres), in the order of
             ``chain.links``, e.g. measured on the subject: the constancy projection holds the bones to them instead of
-            to their current mean lengths (None: estimated, and with ``options.prior_scale`` scaled to the mean pose's sum). Bone lengths carry most of the error left with estimated
-            ones (docs/benchmarks/kcs.md).
+            to their current mean lengths (None: estimated, and with ``options.prior_scale`` scaled to the mean pose's
+            sum). Bone lengths carry most of the error left with estimated ones (docs/benchmarks/kcs.md).
 
     Returns:
         A :class:`KCSResult` with the batch shape of ``joints_2d``.
