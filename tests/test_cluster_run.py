@@ -95,8 +95,9 @@ def command_line_cluster(tmp_path):
 
 def test_a_cluster_run_with_a_worker_killed_mid_task_equals_the_run_without_one(capture_and_run, command_line_cluster):
     """``bcmocap run --cluster tcp://...`` on the command-line cluster, as a user runs it; a worker running a chunk's
-    registration is killed from a client of the same scheduler, its nanny starts it again, and the run registers the
-    frames the run without a cluster registers, at its poses within 2.5 cm (see below for why not bit for bit)."""
+    registration is killed from a client of the same scheduler, its nanny starts it again, and the run's stores equal
+    the run without a cluster's bit for bit. (This test found that ``dask scheduler``, started without float64 JAX,
+    unpickled the tasks' camera models as float32 on their way to the workers: tasks now travel as bytes.)"""
     from distributed import Client
 
     root = capture_and_run
@@ -137,18 +138,12 @@ def test_a_cluster_run_with_a_worker_killed_mid_task_equals_the_run_without_one(
     assert "reference: read" in log
     alone = json.loads((root / "alone" / "run.json").read_text())["stages"]["frontend"]
     assert json.loads((root / "cluster" / "run.json").read_text())["stages"]["frontend"]["capture"] == alone["capture"]
-    # Not bit for bit here: started from this test, the command-line workers track each camera 1e-5 m and 0.006 px away
-    # from the run without a cluster, the same in every run of this test, and the capture trial's registrations then
-    # part by up to 2.0 cm and 0.13 deg (median 0.007 cm); started from a plain Python process, the same workers give
-    # the plain run's stores bit for bit, with a worker killed or not. The cause is not found yet.
     for trial in ("rom", "capture"):
         x = CorrespondenceStore.open(root / "alone" / "frontend" / trial / "correspondences").load()
         y = CorrespondenceStore.open(root / "cluster" / "frontend" / trial / "correspondences").load()
         assert x.registered.mean() > 0.5 and np.array_equal(x.registered, y.registered), trial
-        a, b = np.asarray(x.world_from_camera)[x.registered], np.asarray(y.world_from_camera)[x.registered]
-        turn = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(a[:, :4] * b[:, :4], axis=1)), 0.0, 1.0)))
-        shift = np.linalg.norm(a[:, 4:] - b[:, 4:], axis=1)
-        assert shift.max() < 0.025 and np.median(shift) < 1e-3 and turn.max() < 0.2, (trial, shift.max(), turn.max())
+        for field in ("world_from_camera", "pixels", "point_ids", "points", "weights"):
+            assert np.array_equal(np.asarray(getattr(x, field)), np.asarray(getattr(y, field)), equal_nan=True), (trial, field)
 
 
 def test_a_batch_reports_a_failed_capture_and_finishes_the_others(capture_and_run, tmp_path):

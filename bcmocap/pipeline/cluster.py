@@ -147,7 +147,12 @@ class Executor:
         # fn goes to the cluster once, not once per task (it may hold a reference index), as the result of a
         # task rather than scattered data: a worker lost with it makes the scheduler compute it again, while
         # lost scattered data cannot be recovered and would cancel every task that needs it.
-        shared = self.client.submit(_itself, fn, pure=False, key=f"{label}-function-{os.urandom(4).hex()}")
+        # fn and the items travel as bytes, unpickled on the worker after worker_setup: the scheduler unpickles a task's
+        # arguments, and one started without float64 JAX (as `dask scheduler` is) turned a capture's float64 camera
+        # models into float32 ones on their way to the workers.
+        from distributed.protocol.pickle import dumps
+
+        shared = self.client.submit(_unpickled, dumps(fn), pure=False, key=f"{label}-function-{os.urandom(4).hex()}")
         # ... and to every worker, so that no worker is preferred for holding it.
         wait([shared])
         if shared.status == "finished" and len(self.client.nthreads()) > 1:
@@ -169,7 +174,7 @@ class Executor:
         def hand_over_next() -> None:
             i = next(todo, None)
             if i is not None:
-                future = self.client.submit(_timed, shared, items[i], pure=False,
+                future = self.client.submit(_timed_pickled, shared, dumps(items[i]), pure=False,
                                             key=f"{label}-{i}-{os.urandom(4).hex()}")
                 running[future] = i
                 done.add(future)
@@ -192,8 +197,17 @@ class Executor:
         return out
 
 
-def _itself(value):
-    return value
+def _unpickled(data: bytes):
+    """``data`` unpickled on a worker, after :func:`worker_setup` (float64 JAX)."""
+    from distributed.protocol.pickle import loads
+
+    worker_setup()
+    return loads(data)
+
+
+def _timed_pickled(fn: Callable, item: bytes) -> tuple[object, float, float]:
+    """:func:`_timed` of the item pickled in ``item``."""
+    return _timed(fn, _unpickled(item))
 
 
 def _timed(fn: Callable, item) -> tuple[object, float, float]:
