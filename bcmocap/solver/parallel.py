@@ -7,7 +7,9 @@ Here every window starts from the *initial* motion instead (the fixed history fr
 all windows are independent: they go through any ``map(fn, iterable)`` (the builtin, a process pool's, a
 Dask client's ``lambda f, xs: client.gather(client.map(f, list(xs)))``) and come back as small picklable
 :class:`WindowSolution` records of numpy arrays. This module imports no cluster library; the caller brings
-the ``map``.
+the ``map``. (With a plain Dask ``client.map`` the scheduler unpickles ``fn`` and its JAX arrays: one started
+without float64 JAX (``JAX_ENABLE_X64=1``) hands them to the workers as float32. ``Executor.map`` of
+:mod:`bcmocap.pipeline.cluster` sends them as bytes, unpickled on the worker in float64.)
 
 Joining (:func:`join_windows`). Consecutive windows are blended across the frames they share, with weights
 that ramp linearly from one window to the next (window ``k`` from 1 down, ``k + 1`` from 0 up, summing to
