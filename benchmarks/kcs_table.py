@@ -342,7 +342,10 @@ def main(argv=None) -> int:
         "walk35_mm": WALK35_GOAL_MM,
         "jump_mm": JUMP_GOAL_MM,
         "walk35_met": bool(walk) and payload["walk35_mean_3d_error_mm"] <= WALK35_GOAL_MM,
-        "jump_met": bool(jump) and payload["jump_mean_3d_error_mm"] <= JUMP_GOAL_MM,
+        # the goal is the paper's jump (13_11) where it was read, else the mean of the other jumps
+        "jump_met": (payload["paper_jump_13_11_3d_error_mm"] <= JUMP_GOAL_MM
+                     if payload["paper_jump_13_11_3d_error_mm"] is not None
+                     else bool(jump) and payload["jump_mean_3d_error_mm"] <= JUMP_GOAL_MM),
     }
     payload["details"] = {
         "paths_per_sequence": args.paths,
